@@ -1,0 +1,31 @@
+# Two commands do all the set-up on a fresh machine (Python 3.11, pip, gcc, make):
+#   make quickstart   create .venv on first use, install, run configs/quickstart.toml
+#   make test         create .venv on first use, install, run the fast tests
+VENV ?= .venv
+PY := $(VENV)/bin/python
+PYTEST_FLAGS ?= -q
+
+.PHONY: install quickstart test test-slow schemas clean
+
+install: $(VENV)/.installed
+
+$(VENV)/.installed: pyproject.toml
+	python3 -m venv $(VENV)
+	$(PY) -m pip install -q --upgrade pip
+	$(PY) -m pip install -q -e '.[test]'
+	touch $@
+
+quickstart: install
+	$(VENV)/bin/ebrl up configs/quickstart.toml
+
+test: install
+	$(PY) -m pytest $(PYTEST_FLAGS)
+
+test-slow: install
+	$(PY) -m pytest $(PYTEST_FLAGS) -m slow
+
+schemas: install
+	$(VENV)/bin/ebrl schemas --dir schemas
+
+clean:
+	rm -rf $(VENV) runs .pytest_cache

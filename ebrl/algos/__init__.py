@@ -1,0 +1,1 @@
+"""Learning algorithms: advantages and PPO."""

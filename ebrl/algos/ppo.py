@@ -1,0 +1,112 @@
+"""PPO with GAE over chunk decisions (Schulman et al. 2017; CleanRL's ppo_continuous_action).
+
+One decision is one action chunk of K env steps: its reward is the sum of the
+rewards of the steps it ran, and it is discounted by gamma**k for the k steps
+it took. Segments that ended by time limit or by segment length bootstrap from
+the value of ``last_obs``; terminated ones do not.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any, Sequence
+
+import numpy as np
+import torch
+from torch import nn
+
+from ebrl.messages import TrajectorySegment
+
+
+def gae(rewards: np.ndarray, values: np.ndarray, discounts: np.ndarray, last_value: float,
+        lam: float) -> tuple[np.ndarray, np.ndarray]:
+    """Generalised advantage estimation over one segment.
+
+    delta_t = r_t + gamma_t * V(s_{t+1}) - V(s_t);  A_t = delta_t + gamma_t * lambda * A_{t+1}
+    where gamma_t = gamma**k_t, V(s_T) = ``last_value`` (0 for a terminal state).
+    Returns advantages and returns (A_t + V(s_t)).
+    """
+    T = len(rewards)
+    advantages = np.zeros(T, dtype=np.float32)
+    next_value, lastgaelam = last_value, 0.0
+    for t in reversed(range(T)):
+        delta = rewards[t] + discounts[t] * next_value - values[t]
+        lastgaelam = delta + discounts[t] * lam * lastgaelam
+        advantages[t] = lastgaelam
+        next_value = values[t]
+    return advantages, advantages + values
+
+
+@dataclass
+class Batch:
+    obs: torch.Tensor
+    actions: torch.Tensor
+    logprobs: torch.Tensor
+    advantages: torch.Tensor
+    returns: torch.Tensor
+    values: torch.Tensor
+    versions: np.ndarray
+
+    def __len__(self) -> int:
+        return self.obs.shape[0]
+
+
+def build_batch(segments: Sequence[TrajectorySegment], model: nn.Module, gamma: float, lam: float) -> Batch:
+    """Advantages for every segment (bootstrap values from the current critic), concatenated."""
+    needs_bootstrap = [i for i, s in enumerate(segments) if s.end != "terminated"]
+    last_values = np.zeros(len(segments), dtype=np.float32)
+    if needs_bootstrap:
+        with torch.no_grad():
+            last_obs = torch.as_tensor(np.stack([segments[i].last_obs for i in needs_bootstrap]))
+            last_values[needs_bootstrap] = model.value(last_obs).numpy()
+    advs, rets = [], []
+    for seg, last_value in zip(segments, last_values):
+        a, r = gae(seg.rewards, seg.values, gamma ** seg.steps.astype(np.float64), float(last_value), lam)
+        advs.append(a)
+        rets.append(r)
+
+    def cat(name: str) -> torch.Tensor:
+        return torch.as_tensor(np.concatenate([getattr(s, name) for s in segments]))
+
+    return Batch(obs=cat("obs"), actions=cat("actions"), logprobs=cat("logprobs"),
+                 advantages=torch.as_tensor(np.concatenate(advs)), returns=torch.as_tensor(np.concatenate(rets)),
+                 values=cat("values"), versions=np.concatenate([s.versions for s in segments]))
+
+
+class PPO:
+    """Clipped-surrogate PPO updates of a policy with ``evaluate(obs, actions)``."""
+
+    def __init__(self, model: nn.Module, algo_cfg: Any, lr: float, seed: int = 0):
+        self.model, self.cfg = model, algo_cfg
+        self.optimizer = torch.optim.Adam(model.parameters(), lr=lr, eps=1e-5)
+        self.generator = torch.Generator().manual_seed(seed)
+
+    def update(self, batch: Batch) -> dict[str, float]:
+        cfg, n = self.cfg, len(batch)
+        minibatch = max(1, n // cfg.minibatches)
+        stats: dict[str, list[float]] = {k: [] for k in ("policy_loss", "value_loss", "entropy", "approx_kl", "clipfrac")}
+        for _ in range(cfg.epochs):
+            order = torch.randperm(n, generator=self.generator)
+            for start in range(0, n, minibatch):
+                idx = order[start:start + minibatch]
+                newlogprob, entropy, newvalue = self.model.evaluate(batch.obs[idx], batch.actions[idx])
+                logratio = newlogprob - batch.logprobs[idx]
+                ratio = logratio.exp()
+                adv = batch.advantages[idx]
+                if len(idx) > 1:
+                    adv = (adv - adv.mean()) / (adv.std() + 1e-8)
+                pg_loss = torch.max(-adv * ratio, -adv * ratio.clamp(1 - cfg.clip, 1 + cfg.clip)).mean()
+                v_loss = 0.5 * ((newvalue - batch.returns[idx]) ** 2).mean()
+                ent = entropy.mean()
+                loss = pg_loss - cfg.ent_coef * ent + cfg.vf_coef * v_loss
+                self.optimizer.zero_grad()
+                loss.backward()
+                nn.utils.clip_grad_norm_(self.model.parameters(), cfg.max_grad_norm)
+                self.optimizer.step()
+                with torch.no_grad():
+                    stats["policy_loss"].append(pg_loss.item())
+                    stats["value_loss"].append(v_loss.item())
+                    stats["entropy"].append(ent.item())
+                    stats["approx_kl"].append(((ratio - 1) - logratio).mean().item())
+                    stats["clipfrac"].append(((ratio - 1.0).abs() > cfg.clip).float().mean().item())
+        return {k: float(np.mean(v)) for k, v in stats.items()}

@@ -1,0 +1,97 @@
+"""Every Zenoh key EBRL uses, built in one place (shared/DESIGN.md section 3).
+
+Layout: ``ebrl/<category>/<run>/...``. The category comes first so that one
+wildcard (``ebrl/stats/**``) sees every run, and so that data subscribers
+(``ebrl/data/<run>/**``) never see control or stats traffic. The run name is
+in every key: two runs on one bus never see each other's messages.
+"""
+
+from __future__ import annotations
+
+import re
+
+ROOT = "ebrl"
+CONTROL_KINDS = ("quota", "affinity", "stop", "status")
+
+_CHUNK = re.compile(r"^[a-z0-9_.=-]+$")
+
+
+def check_chunk(value: str | int, what: str) -> str:
+    """Return ``value`` as one key chunk, or raise ValueError naming ``what``."""
+    text = str(value)
+    if not _CHUNK.match(text):
+        raise ValueError(
+            f"{what} {text!r} cannot be a Zenoh key chunk: use lowercase letters, digits and _ . = -"
+        )
+    return text
+
+
+# --- data: sim <-> gen <-> train ------------------------------------------------
+
+
+def obs(run: str, group: int | str = "*") -> str:
+    """``ebrl/data/<run>/obs/<group>``: one group's observations at a chunk boundary (sim -> gen)."""
+    return f"{ROOT}/data/{run}/obs/{group}"
+
+
+def act(run: str, group: int | str = "*") -> str:
+    """``ebrl/data/<run>/act/<group>``: one group's action chunks (gen -> sim)."""
+    return f"{ROOT}/data/{run}/act/{group}"
+
+
+def traj(run: str, group: int | str = "*") -> str:
+    """``ebrl/data/<run>/traj/<group>``: finished trajectory segments (sim -> train)."""
+    return f"{ROOT}/data/{run}/traj/{group}"
+
+
+def weights(run: str) -> str:
+    """``ebrl/data/<run>/weights``: versioned policy weights (train -> gen); also a queryable
+    that answers with the latest weights, so a late subscriber never waits for the next update."""
+    return f"{ROOT}/data/{run}/weights"
+
+
+def data(run: str) -> str:
+    """Every data key of one run."""
+    return f"{ROOT}/data/{run}/**"
+
+
+# --- control: launcher/allocator -> services -------------------------------------
+
+
+def ctl(run: str, service: str, instance: int | str, kind: str) -> str:
+    """``ebrl/ctl/<run>/<service>/<instance>/<kind>``; kind is one of quota, affinity, stop
+    (published, versioned, idempotent) or status (a queryable answering the service's stats)."""
+    if kind not in CONTROL_KINDS and kind != "*":
+        raise ValueError(f"unknown control kind {kind!r}; expected one of {CONTROL_KINDS}")
+    return f"{ROOT}/ctl/{run}/{service}/{instance}/{kind}"
+
+
+# --- observability ---------------------------------------------------------------
+
+
+def stats(run: str | None = None, service: str = "*", instance: int | str = "*") -> str:
+    """``ebrl/stats/<run>/<service>/<instance>``: periodic stats of one service instance.
+    With ``run=None`` the expression matches stats and spans of every run."""
+    if run is None:
+        return f"{ROOT}/stats/**"
+    return f"{ROOT}/stats/{run}/{service}/{instance}"
+
+
+def spans(run: str, lane: str = "*") -> str:
+    """``ebrl/stats/<run>/spans/<lane>``: timeline spans of one lane (``spans`` is reserved
+    as a service name so the two families never collide)."""
+    return f"{ROOT}/stats/{run}/spans/{lane}"
+
+
+def live(run: str, service: str = "*", instance: int | str = "*") -> str:
+    """``ebrl/live/<run>/<service>/<instance>``: liveliness token; vanishes when the process dies."""
+    return f"{ROOT}/live/{run}/{service}/{instance}"
+
+
+def live_all(run: str) -> str:
+    return f"{ROOT}/live/{run}/**"
+
+
+def parse(key: str) -> list[str]:
+    """Split a key into chunks: ``parse("ebrl/data/r/obs/3") == ["ebrl", "data", "r", "obs", "3"]``."""
+    return str(key).split("/")

@@ -1,0 +1,62 @@
+"""``ebrl`` command line: up, stats, schemas, config."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="ebrl", description="Asynchronous embodied RL over a Zenoh bus.")
+    sub = parser.add_subparsers(dest="command", required=True)
+
+    p = sub.add_parser("up", help="start a training run from a TOML config")
+    p.add_argument("config", help="path to a config, e.g. configs/quickstart.toml")
+    p.add_argument("--set", action="append", default=[], dest="overrides", metavar="SECTION.KEY=VALUE",
+                   help="override one config value (TOML syntax), e.g. --set run.iterations=2")
+
+    p = sub.add_parser("stats", help="print decoded ebrl/stats/** messages live")
+    p.add_argument("--run", default=None, help="only this run (default: every run)")
+    p.add_argument("--connect", default="tcp/127.0.0.1:7447", help="bus endpoint of the run (its launcher)")
+    p.add_argument("--spans", action="store_true", help="also print timeline spans")
+    p.add_argument("--count", type=int, default=0, help="exit after this many messages (0: until Ctrl-C)")
+
+    p = sub.add_parser("schemas", help="write schemas/*.json from ebrl/messages.py")
+    p.add_argument("--dir", default="schemas")
+
+    p = sub.add_parser("config", help="check a config, or list every config key")
+    p.add_argument("config", nargs="?", help="config to validate and print resolved")
+    p.add_argument("--set", action="append", default=[], dest="overrides", metavar="SECTION.KEY=VALUE")
+
+    args = parser.parse_args(argv)
+    if args.command == "up":
+        from ebrl.launch import up
+
+        return up(args.config, args.overrides)
+    if args.command == "stats":
+        from ebrl.stats import watch
+
+        return watch(args.connect, args.run, spans=args.spans, count=args.count)
+    if args.command == "schemas":
+        from ebrl.messages import write_schemas
+
+        for path in write_schemas(args.dir):
+            print(path)
+        return 0
+    if args.command == "config":
+        from ebrl import config
+
+        if not args.config:
+            print(config.describe())
+            return 0
+        try:
+            print(config.dump_toml(config.load(args.config, args.overrides)), end="")
+        except config.ConfigError as exc:
+            print(f"ebrl: config error: {exc}", file=sys.stderr)
+            return 2
+        return 0
+    return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,285 @@
+"""TOML config -> validated, typed config. Errors name the field; unknown keys are errors.
+
+Each section is a dataclass; every field has a docstring (``doc``), shown by
+``ebrl config --help-fields`` and README. Values derived from several fields are
+computed in one place (properties of :class:`Config`).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import difflib
+import tomllib
+import typing
+from dataclasses import dataclass, field
+from typing import Any, Literal, get_args, get_origin
+
+from ebrl.bus import keys
+
+
+class ConfigError(ValueError):
+    """A config that cannot be used; the message names the field."""
+
+
+def doc(text: str, default: Any = dataclasses.MISSING, factory: Any = dataclasses.MISSING) -> Any:
+    if factory is not dataclasses.MISSING:
+        return field(default_factory=factory, metadata={"doc": text})
+    return field(default=default, metadata={"doc": text})
+
+
+@dataclass
+class RunSection:
+    name: str = doc("run name; part of every bus key, so two runs never see each other", "quickstart")
+    mode: Literal["ebrl"] = doc("execution mode (the baseline modes arrive with the scheduler)", "ebrl")
+    iterations: int = doc("training updates (policy versions) after which the run ends; 0 runs until Ctrl-C", 100)
+    seed: int = doc("seed for environments and model initialisation", 0)
+    output_dir: str = doc("where run directories (logs, resolved config, summary) are created", "runs")
+    stats_interval: float = doc("seconds between stats reports of each service", 1.0)
+    startup_timeout: float = doc("seconds to wait for every service to come up", 120.0)
+    log_level: Literal["debug", "info", "warning"] = doc("log level of the services", "info")
+
+
+@dataclass
+class BusSection:
+    mode: Literal["peer", "client"] = doc("Zenoh session mode of every service", "peer")
+    listen: list[str] = doc(
+        "endpoints the launcher listens on; services and scripts connect here (a busy port falls back to a free one)",
+        factory=lambda: ["tcp/127.0.0.1:7447"],
+    )
+    connect: list[str] = doc("extra endpoints to connect to (a Zenoh router or another host)", factory=list)
+    config_file: str = doc("path to a native Zenoh JSON5 config (TLS, access control); empty for none", "")
+
+
+@dataclass
+class EnvSection:
+    backend: Literal["gymnasium"] = doc("simulator adapter", "gymnasium")
+    id: str = doc("environment id, e.g. InvertedPendulum-v5 or my_pkg.envs:MyEnv-v0", "InvertedPendulum-v5")
+    max_episode_steps: int = doc("time limit in env steps; 0 keeps the environment's own", 0)
+    kwargs: dict[str, Any] = doc("extra keyword arguments for the environment constructor", factory=dict)
+
+
+@dataclass
+class SimSection:
+    groups: int = doc("environment groups; each publishes its observations on its own key", 2)
+    envs_per_group: int = doc("environments per group (one worker process each)", 4)
+    cores: list[int] = doc("CPU cores for env workers (pinned round-robin); empty: no pinning", factory=list)
+    segment_length: int = doc("chunk decisions per trajectory segment sent to training", 32)
+
+
+@dataclass
+class PolicySection:
+    kind: Literal["mlp"] = doc("policy model", "mlp")
+    chunk: int = doc("K: actions per chunk, executed open-loop", 4)
+    hidden: list[int] = doc("hidden layer widths", factory=lambda: [64, 64])
+    init_log_std: float = doc("initial log standard deviation of the Gaussian", -0.5)
+
+
+@dataclass
+class GenSection:
+    max_batch_groups: int = doc("most groups served by one forward pass; 0 means all groups", 0)
+    threads: int = doc("torch threads of the generation process", 1)
+
+
+@dataclass
+class AlgoSection:
+    name: Literal["ppo"] = doc("learning algorithm", "ppo")
+    gamma: float = doc("discount per env step (a chunk of k steps is discounted by gamma**k)", 0.99)
+    gae_lambda: float = doc("GAE lambda", 0.95)
+    clip: float = doc("PPO ratio clip", 0.2)
+    epochs: int = doc("passes over each batch", 10)
+    minibatches: int = doc("minibatches per pass", 4)
+    ent_coef: float = doc("entropy bonus coefficient", 0.0)
+    vf_coef: float = doc("value loss coefficient", 0.5)
+    max_grad_norm: float = doc("gradient clipping norm", 0.5)
+
+
+@dataclass
+class TrainSection:
+    batch_size: int = doc("chunk decisions per update", 1024)
+    lr: float = doc("Adam learning rate", 3e-4)
+    device: str = doc("torch device", "cpu")
+    threads: int = doc("torch threads of the training process", 1)
+    max_pending: int = doc("most chunk decisions buffered while an update runs; beyond it the oldest are dropped (counted)", 8192)
+
+
+SECTIONS: dict[str, type] = {
+    "run": RunSection,
+    "bus": BusSection,
+    "env": EnvSection,
+    "sim": SimSection,
+    "policy": PolicySection,
+    "gen": GenSection,
+    "algo": AlgoSection,
+    "train": TrainSection,
+}
+
+
+@dataclass
+class Config:
+    run: RunSection = field(default_factory=RunSection)
+    bus: BusSection = field(default_factory=BusSection)
+    env: EnvSection = field(default_factory=EnvSection)
+    sim: SimSection = field(default_factory=SimSection)
+    policy: PolicySection = field(default_factory=PolicySection)
+    gen: GenSection = field(default_factory=GenSection)
+    algo: AlgoSection = field(default_factory=AlgoSection)
+    train: TrainSection = field(default_factory=TrainSection)
+
+    @property
+    def num_envs(self) -> int:
+        return self.sim.groups * self.sim.envs_per_group
+
+    def to_dict(self) -> dict[str, dict[str, Any]]:
+        return dataclasses.asdict(self)
+
+
+def load(path: str, overrides: list[str] = ()) -> Config:
+    """Read ``path`` (TOML), apply ``section.key=value`` overrides, validate."""
+    try:
+        with open(path, "rb") as fh:
+            raw = tomllib.load(fh)
+    except FileNotFoundError:
+        raise ConfigError(f"{path}: no such file") from None
+    except tomllib.TOMLDecodeError as exc:
+        raise ConfigError(f"{path}: not valid TOML: {exc}") from None
+    for item in overrides:
+        apply_override(raw, item)
+    return from_dict(raw)
+
+
+def apply_override(raw: dict[str, Any], item: str) -> None:
+    """Apply one ``section.key=value`` (value parsed as TOML, else taken as a string)."""
+    name, sep, text = item.partition("=")
+    section, dot, key = name.strip().partition(".")
+    if not sep or not dot or not key:
+        raise ConfigError(f"--set {item!r}: expected section.key=value")
+    try:
+        value = tomllib.loads(f"v = {text}")["v"]
+    except tomllib.TOMLDecodeError:
+        value = text
+    raw.setdefault(section, {})
+    if not isinstance(raw[section], dict):
+        raise ConfigError(f"--set {item!r}: [{section}] is not a section")
+    raw[section][key] = value
+
+
+def from_dict(raw: dict[str, Any]) -> Config:
+    sections = {}
+    for name, value in raw.items():
+        if name not in SECTIONS:
+            raise ConfigError(f"unknown section [{name}]; known sections: {', '.join(SECTIONS)}")
+        if not isinstance(value, dict):
+            raise ConfigError(f"[{name}] must be a table")
+        sections[name] = _section(name, SECTIONS[name], value)
+    cfg = Config(**sections)
+    _check_semantics(cfg)
+    return cfg
+
+
+def _section(name: str, cls: type, values: dict[str, Any]) -> Any:
+    hints = typing.get_type_hints(cls)
+    known = {f.name for f in dataclasses.fields(cls)}
+    for key in values:
+        if key not in known:
+            close = difflib.get_close_matches(key, sorted(known), n=1)
+            hint = f" (did you mean {name}.{close[0]}?)" if close else ""
+            raise ConfigError(f"unknown key {name}.{key}{hint}; known keys of [{name}]: {', '.join(sorted(known))}")
+    return cls(**{key: _typed(f"{name}.{key}", value, hints[key]) for key, value in values.items()})
+
+
+def _typed(path: str, value: Any, tp: Any) -> Any:
+    origin = get_origin(tp)
+    if origin is Literal:
+        if value not in get_args(tp):
+            raise ConfigError(f"{path} = {value!r}: expected one of {', '.join(map(repr, get_args(tp)))}")
+        return value
+    if origin is list:
+        if not isinstance(value, list):
+            raise ConfigError(f"{path}: expected a list, got {_name(value)} {value!r}")
+        (item,) = get_args(tp)
+        return [_typed(f"{path}[{i}]", v, item) for i, v in enumerate(value)]
+    if origin is dict:
+        if not isinstance(value, dict):
+            raise ConfigError(f"{path}: expected a table, got {_name(value)} {value!r}")
+        return dict(value)
+    if tp is float:
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise ConfigError(f"{path}: expected a number, got {_name(value)} {value!r}")
+        return float(value)
+    if tp is int:
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise ConfigError(f"{path}: expected an integer, got {_name(value)} {value!r}")
+        return value
+    if tp in (str, bool):
+        if not isinstance(value, tp):
+            raise ConfigError(f"{path}: expected {'a string' if tp is str else 'true or false'}, got {_name(value)} {value!r}")
+        return value
+    raise TypeError(f"{path}: unsupported config type {tp!r}")
+
+
+def _name(value: Any) -> str:
+    return {str: "string", int: "integer", float: "number", bool: "boolean", list: "list", dict: "table"}.get(
+        type(value), type(value).__name__
+    )
+
+
+def _check_semantics(cfg: Config) -> None:
+    def positive(path: str, value: float) -> None:
+        if value <= 0:
+            raise ConfigError(f"{path} = {value}: must be > 0")
+
+    try:
+        keys.check_chunk(cfg.run.name, "run.name")
+    except ValueError as exc:
+        raise ConfigError(str(exc)) from None
+    if cfg.run.iterations < 0:
+        raise ConfigError(f"run.iterations = {cfg.run.iterations}: must be >= 0")
+    for path in ("sim.groups", "sim.envs_per_group", "sim.segment_length", "policy.chunk", "algo.epochs",
+                 "algo.minibatches", "train.batch_size", "train.lr", "train.threads", "gen.threads",
+                 "run.stats_interval", "train.max_pending"):
+        section, key = path.split(".")
+        positive(path, getattr(getattr(cfg, section), key))
+    if not 0 < cfg.algo.gamma <= 1:
+        raise ConfigError(f"algo.gamma = {cfg.algo.gamma}: must be in (0, 1]")
+    if not cfg.bus.listen and not cfg.bus.connect:
+        raise ConfigError("bus.listen and bus.connect are both empty: services could not find each other")
+    if cfg.train.max_pending < cfg.train.batch_size:
+        raise ConfigError(f"train.max_pending = {cfg.train.max_pending}: must be >= train.batch_size ({cfg.train.batch_size})")
+
+
+def dump_toml(cfg: Config) -> str:
+    """The resolved config as TOML (what services read and what the run directory keeps)."""
+    lines = []
+    for section, values in cfg.to_dict().items():
+        lines.append(f"[{section}]")
+        for key, value in values.items():
+            lines.append(f"{key} = {_toml_value(value)}")
+        lines.append("")
+    return "\n".join(lines)
+
+
+def _toml_value(value: Any) -> str:
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, (int, float)):
+        return repr(value)
+    if isinstance(value, str):
+        return '"' + value.replace("\\", "\\\\").replace('"', '\\"') + '"'
+    if isinstance(value, list):
+        return "[" + ", ".join(_toml_value(v) for v in value) + "]"
+    if isinstance(value, dict):
+        return "{" + ", ".join(f"{k} = {_toml_value(v)}" for k, v in value.items()) + "}"
+    raise TypeError(f"cannot write {value!r} as TOML")
+
+
+def describe() -> str:
+    """Every section and key with its type, default and docstring (``ebrl config --fields``)."""
+    out = []
+    for name, cls in SECTIONS.items():
+        out.append(f"[{name}]")
+        hints = typing.get_type_hints(cls)
+        for f in dataclasses.fields(cls):
+            default = f.default if f.default is not dataclasses.MISSING else f.default_factory()
+            tp = getattr(hints[f.name], "__name__", None) or str(hints[f.name]).replace("typing.", "")
+            out.append(f"  {f.name} ({tp}, default {_toml_value(default)}): {f.metadata['doc']}")
+    return "\n".join(out)

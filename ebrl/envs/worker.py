@@ -1,0 +1,147 @@
+"""Env worker: one environment in its own process, driven from the event loop over a pipe.
+
+One process per environment so that each can be pinned to a core. A request
+is one pickled tuple; the parent awaits the reply through ``loop.add_reader``
+on the pipe, so hundreds of workers need no threads. A worker exits when its
+pipe closes (its parent died), so workers never outlive the sim service.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import multiprocessing as mp
+import os
+import signal
+from dataclasses import dataclass
+from multiprocessing.connection import Connection
+
+import numpy as np
+
+from ebrl.envs.gym import EnvSpec, as_obs, make_env
+
+_CTX = None
+
+
+def _context() -> mp.context.BaseContext:
+    # forkserver: workers fork from a clean server that has gymnasium and MuJoCo
+    # imported, never from the sim service (whose Zenoh threads must not fork).
+    global _CTX
+    if _CTX is None:
+        _CTX = mp.get_context("forkserver")
+        _CTX.set_forkserver_preload(["gymnasium", "mujoco", "ebrl.envs.worker"])
+    return _CTX
+
+
+@dataclass
+class ChunkResult:
+    """What one environment did with one action chunk."""
+
+    reward: float  # sum of rewards over the executed steps
+    steps: int  # steps executed (< K when the episode ended inside the chunk)
+    terminated: bool
+    truncated: bool
+    final_obs: np.ndarray  # observation after the last executed step (before any reset)
+    next_obs: np.ndarray  # observation for the next chunk (after auto-reset if the episode ended)
+    episode_return: float | None  # set when the episode ended in this chunk
+    episode_length: int | None
+
+
+def _worker_main(conn: Connection, spec: EnvSpec, seed: int) -> None:
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # the sim service decides when workers stop
+    env = make_env(spec)
+    low, high = env.action_space.low, env.action_space.high
+    episode_return, episode_length, episodes = 0.0, 0, 0
+    try:
+        while True:
+            try:
+                cmd, arg = conn.recv()
+            except (EOFError, OSError):
+                return
+            if cmd == "reset":
+                obs, _ = env.reset(seed=seed)
+                episode_return, episode_length = 0.0, 0
+                conn.send(as_obs(obs))
+            elif cmd == "chunk":
+                total, steps, terminated, truncated = 0.0, 0, False, False
+                for action in arg:
+                    obs, reward, terminated, truncated, _ = env.step(np.clip(action, low, high))
+                    total += float(reward)
+                    steps += 1
+                    if terminated or truncated:
+                        break
+                episode_return += total
+                episode_length += steps
+                final_obs = as_obs(obs)
+                ep_ret = ep_len = None
+                if terminated or truncated:
+                    ep_ret, ep_len = episode_return, episode_length
+                    episodes += 1
+                    obs, _ = env.reset(seed=seed + 7919 * episodes)
+                    episode_return, episode_length = 0.0, 0
+                conn.send(ChunkResult(total, steps, bool(terminated), bool(truncated), final_obs, as_obs(obs),
+                                      ep_ret, ep_len))
+            elif cmd == "close":
+                return
+            else:
+                conn.send(ValueError(f"unknown worker command {cmd!r}"))
+    finally:
+        env.close()
+
+
+class EnvWorker:
+    """Parent-side handle of one env worker process."""
+
+    def __init__(self, spec: EnvSpec, seed: int, core: int | None = None):
+        ctx = _context()
+        self.conn, child = ctx.Pipe()
+        self.proc = ctx.Process(target=_worker_main, args=(child, spec, seed), daemon=True, name="ebrl-env")
+        self.proc.start()
+        child.close()
+        self.core = core
+        if core is not None:
+            self.pin(core)
+
+    def pin(self, core: int) -> None:
+        os.sched_setaffinity(self.proc.pid, {core})
+        self.core = core
+
+    async def request(self, cmd: str, arg: object = None) -> object:
+        loop = asyncio.get_running_loop()
+        fut: asyncio.Future = loop.create_future()
+        fd = self.conn.fileno()
+
+        def readable() -> None:
+            loop.remove_reader(fd)
+            try:
+                reply = self.conn.recv()
+            except (EOFError, OSError) as exc:
+                fut.set_exception(RuntimeError(f"env worker {self.proc.pid} died: {exc!r}"))
+                return
+            if isinstance(reply, Exception):
+                fut.set_exception(reply)
+            else:
+                fut.set_result(reply)
+
+        self.conn.send((cmd, arg))
+        loop.add_reader(fd, readable)
+        try:
+            return await fut
+        finally:
+            loop.remove_reader(fd)
+
+    async def reset(self) -> np.ndarray:
+        return await self.request("reset")  # type: ignore[return-value]
+
+    async def chunk(self, actions: np.ndarray) -> ChunkResult:
+        return await self.request("chunk", actions)  # type: ignore[return-value]
+
+    def close(self, timeout: float = 2.0) -> None:
+        try:
+            self.conn.send(("close", None))
+        except (OSError, ValueError):
+            pass
+        self.proc.join(timeout)
+        if self.proc.is_alive():
+            self.proc.kill()
+            self.proc.join(1.0)
+        self.conn.close()

@@ -1,0 +1,316 @@
+"""``ebrl up``: validate the config, spawn every service as its own process, supervise, report, shut down.
+
+The launcher is a bus peer like the services: it listens on ``bus.listen``
+(services and scripts connect there), watches liveliness tokens to know who is
+up, reads ``ebrl/stats/<run>/**`` for the progress line, and stops the run with
+``ctl/.../stop`` messages, then SIGTERM, then SIGKILL, so that no process is
+left after ``SHUTDOWN_S`` seconds.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import ctypes
+import dataclasses
+import json
+import logging
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+from ebrl import config as config_mod
+from ebrl.bus import Bus, BusOptions, keys
+from ebrl.messages import StatsReport, Stop
+
+log = logging.getLogger("ebrl.launch")
+
+SERVICES = ("train", "gen", "sim")  # started in this order; each is `python -m services.<role>`
+STOP_GRACE_S = 5.0  # after the stop message, before SIGTERM
+SHUTDOWN_S = 8.0  # after which anything left is SIGKILLed
+LOG_TAIL = 20
+
+
+@dataclasses.dataclass
+class Child:
+    role: str
+    instance: int
+    proc: subprocess.Popen
+    log_path: Path
+
+    @property
+    def name(self) -> str:
+        return f"{self.role}/{self.instance}"
+
+    def tail(self, n: int = LOG_TAIL) -> str:
+        try:
+            lines = self.log_path.read_text(errors="replace").splitlines()
+        except OSError:
+            return "(no log)"
+        return "\n".join("    " + line for line in lines[-n:])
+
+
+def make_run_dir(cfg: config_mod.Config) -> Path:
+    stamp = time.strftime("%Y%m%d-%H%M%S")
+    run_dir = Path(cfg.run.output_dir) / f"{cfg.run.name}-{stamp}"
+    suffix = 1
+    while run_dir.exists():
+        run_dir = Path(cfg.run.output_dir) / f"{cfg.run.name}-{stamp}-{suffix}"
+        suffix += 1
+    (run_dir / "logs").mkdir(parents=True)
+    return run_dir
+
+
+def listen_endpoint(wanted: str) -> str:
+    """``wanted`` if its TCP port is free, else the same host on a free port (logged)."""
+    proto, _, address = wanted.partition("/")
+    host, _, port = address.rpartition(":")
+    if proto != "tcp" or not port.isdigit():
+        return wanted
+    with socket.socket() as sock:
+        try:
+            sock.bind((host.strip("[]"), int(port)))
+            return wanted
+        except OSError:
+            sock.bind((host.strip("[]"), 0))
+            free = f"tcp/{host}:{sock.getsockname()[1]}"
+    print(f"ebrl: {wanted} is busy (another run?); listening on {free} instead", file=sys.stderr)
+    return free
+
+
+def _die_with_parent() -> None:  # runs in the child between fork and exec
+    os.setpgrp()  # Ctrl-C reaches the launcher only; it stops the children in order
+    libc = ctypes.CDLL("libc.so.6", use_errno=True)
+    libc.prctl(1, signal.SIGTERM)  # PR_SET_PDEATHSIG: a killed launcher takes its children along
+
+
+class Launcher:
+    def __init__(self, cfg: config_mod.Config, run_dir: Path, out=sys.stdout):
+        self.cfg, self.run_dir, self.out = cfg, run_dir, out
+        self.run_name = cfg.run.name
+        self.children: list[Child] = []
+        self.live: set[str] = set()
+        self.stats: dict[str, StatsReport] = {}
+        self.best_return: float | None = None
+        self.failure: str | None = None
+        self.started = time.monotonic()
+        self.tty = hasattr(out, "isatty") and out.isatty()
+        self._last_line = 0.0
+
+    async def main(self) -> int:
+        self.stopping = asyncio.Event()
+        self.stop_reason = ""
+        loop = asyncio.get_running_loop()
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            loop.add_signal_handler(sig, self._on_signal, sig)
+        self.endpoint = listen_endpoint(self.cfg.bus.listen[0]) if self.cfg.bus.listen else ""
+        listen = [self.endpoint, *self.cfg.bus.listen[1:]] if self.endpoint else []
+        self.bus = Bus(BusOptions(mode="peer", listen=listen, connect=list(self.cfg.bus.connect),
+                                  config_file=self.cfg.bus.config_file))
+        (self.run_dir / "bus.json").write_text(json.dumps({"listen": listen, "run": self.run_name}) + "\n")
+        self.bus.watch_liveliness(keys.live_all(self.run_name), self._on_liveliness)
+        self.bus.declare_token(keys.live(self.run_name, "launcher", 0))
+        stats_tasks = [asyncio.create_task(self._collect(self.bus.subscribe(
+            keys.stats(self.run_name, role, "*"), StatsReport, policy="latest", capacity=64))) for role in SERVICES]
+        code = 1
+        try:
+            self._say(f"run {self.run_name}: {self.run_dir}  (bus {self.endpoint or ', '.join(self.cfg.bus.connect)})")
+            self.spawn_all()
+            if await self.wait_live():
+                code = await self.supervise()
+        finally:
+            await self.shutdown()
+            for task in stats_tasks:
+                task.cancel()
+            await self.bus.close()
+        self.write_summary(code)
+        return code
+
+    # --- processes ----------------------------------------------------------------
+
+    def spawn_all(self) -> None:
+        config_path = self.run_dir / "config.toml"
+        env = dict(os.environ, PYTHONUNBUFFERED="1")
+        root = str(Path(__file__).resolve().parent.parent)
+        env["PYTHONPATH"] = root + os.pathsep + env.get("PYTHONPATH", "")  # `services` beside `ebrl`
+        for role in SERVICES:
+            log_path = self.run_dir / "logs" / f"{role}-0.log"
+            cmd = [sys.executable, "-m", f"services.{role}", "--config", str(config_path), "--instance", "0"]
+            if self.endpoint:
+                cmd += ["--connect", self.endpoint]
+            with open(log_path, "wb") as fh:
+                proc = subprocess.Popen(cmd, stdout=fh, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
+                                        env=env, preexec_fn=_die_with_parent)
+            self.children.append(Child(role, 0, proc, log_path))
+
+    async def wait_live(self) -> bool:
+        wanted = {keys.live(self.run_name, c.role, c.instance) for c in self.children}
+        deadline = time.monotonic() + self.cfg.run.startup_timeout
+        while not wanted <= self.live:
+            if self.stopping.is_set():
+                return False
+            if self.check_children():
+                return False
+            if time.monotonic() > deadline:
+                missing = sorted(k.split("/", 3)[3] for k in wanted - self.live)
+                self.failure = f"not up after {self.cfg.run.startup_timeout:.0f} s: {', '.join(missing)}"
+                self._say("ebrl: " + self.failure)
+                for child in self.children:
+                    if keys.live(self.run_name, child.role, child.instance) not in self.live:
+                        self._say(f"--- last lines of {child.log_path}:\n{child.tail()}")
+                return False
+            await asyncio.sleep(0.05)
+        self._say(f"all services live after {time.monotonic() - self.started:.1f} s: "
+                  + ", ".join(c.name for c in self.children))
+        return True
+
+    def check_children(self) -> bool:
+        """Report a child that exited on its own; True if one did."""
+        for child in self.children:
+            rc = child.proc.poll()
+            if rc is not None:
+                self.failure = f"{child.name} exited with status {rc}"
+                self._say(f"\nebrl: {self.failure}; last lines of {child.log_path}:\n{child.tail()}")
+                return True
+        return False
+
+    async def supervise(self) -> int:
+        target = self.cfg.run.iterations
+        while not self.stopping.is_set():
+            if self.check_children():
+                return 1
+            self.progress()
+            if target and self.version() >= target:
+                self.progress(force=True)
+                return 0
+            try:
+                await asyncio.wait_for(self.stopping.wait(), 0.5)
+            except asyncio.TimeoutError:
+                pass
+        return 130 if self.stop_reason.startswith("signal SIGINT") else 143
+
+    async def shutdown(self) -> None:
+        if self.tty:
+            self.out.write("\n")
+        running = [c for c in self.children if c.proc.poll() is None]
+        for child in running:
+            await self.bus.put(keys.ctl(self.run_name, child.role, child.instance, "stop"),
+                               Stop(reason=self.stop_reason or "run finished"))
+        deadline = time.monotonic() + STOP_GRACE_S
+        await self._wait_exit(deadline)
+        for child in self.children:
+            if child.proc.poll() is None:
+                log.warning("%s did not stop in %.0f s; SIGTERM", child.name, STOP_GRACE_S)
+                child.proc.terminate()
+        await self._wait_exit(time.monotonic() + SHUTDOWN_S - STOP_GRACE_S)
+        for child in self.children:
+            if child.proc.poll() is None:
+                self._say(f"ebrl: {child.name} ignored SIGTERM; killing it")
+                os.killpg(child.proc.pid, signal.SIGKILL)
+                child.proc.wait(1.0)
+
+    async def _wait_exit(self, deadline: float) -> None:
+        while time.monotonic() < deadline and any(c.proc.poll() is None for c in self.children):
+            await asyncio.sleep(0.05)
+
+    # --- bus events ---------------------------------------------------------------
+
+    def _on_signal(self, sig: signal.Signals) -> None:
+        if not self.stopping.is_set():
+            self.stop_reason = f"signal {sig.name}"
+            self._say(f"\nebrl: {sig.name} received, stopping every service")
+            self.stopping.set()
+
+    def _on_liveliness(self, key: str, alive: bool) -> None:
+        if alive:
+            self.live.add(key)
+        else:
+            self.live.discard(key)
+
+    async def _collect(self, sub) -> None:
+        async for key, report in sub:
+            self.stats[key] = report
+
+    # --- progress -----------------------------------------------------------------
+
+    def metric(self, name: str, how: str = "sum") -> float | None:
+        values = [r.metrics[name] for r in self.stats.values() if name in r.metrics]
+        if not values:
+            return None
+        return sum(values) if how == "sum" else (max(values) if how == "max" else sum(values) / len(values))
+
+    def version(self) -> int:
+        return int(self.metric("train/policy_version", "max") or 0)
+
+    def progress(self, force: bool = False) -> None:
+        ret = self.metric("sim/episode_return_mean", "mean")
+        if ret is not None:
+            self.best_return = ret if self.best_return is None else max(self.best_return, ret)
+        target = self.cfg.run.iterations
+        fields = [
+            f"iter {self.version()}" + (f"/{target}" if target else ""),
+            f"{self.metric('sim/env_steps_per_s') or 0:,.0f} env steps/s",
+            f"{self.metric('sim/segments_per_s') or 0:,.1f} traj/s",
+            f"policy v{max(int(self.metric('gen/policy_version', 'max') or 0), 0)}",
+            f"staleness {self.metric('train/staleness_mean', 'mean') or 0:.2f}",
+            f"return {ret:.1f}" if ret is not None else "return -",
+            _clock(time.monotonic() - self.started),
+        ]
+        line = " | ".join(fields)
+        if self.tty:
+            self.out.write("\r\033[K" + line)
+            self.out.flush()
+        elif force or time.monotonic() - self._last_line >= 5.0:
+            self._say(line)
+        if not self.tty or force:
+            self._last_line = time.monotonic()
+
+    def _say(self, text: str) -> None:
+        if self.tty:
+            text = "\r\033[K" + text.lstrip("\n")
+        print(text, file=self.out, flush=True)
+
+    def write_summary(self, code: int) -> None:
+        elapsed = time.monotonic() - self.started
+        steps = self.metric("sim/env_steps") or 0
+        summary = {
+            "run": self.run_name,
+            "run_dir": str(self.run_dir),
+            "exit_code": code,
+            "failure": self.failure,
+            "iterations": self.version(),
+            "wall_s": round(elapsed, 2),
+            "env_steps": int(steps),
+            "env_steps_per_s": round(steps / elapsed, 1) if elapsed > 0 else 0.0,
+            "segments": int(self.metric("sim/segments") or 0),
+            "episodes": int(self.metric("sim/episodes") or 0),
+            "final_return": self.metric("sim/episode_return_mean", "mean"),
+            "best_return": self.best_return,
+        }
+        (self.run_dir / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
+        final = f"{summary['final_return']:.1f}" if summary["final_return"] is not None else "-"
+        best = f"{summary['best_return']:.1f}" if summary["best_return"] is not None else "-"
+        self._say(f"run {self.run_name} {'finished' if code == 0 else 'stopped'}: {summary['iterations']} iterations "
+                  f"in {elapsed:.0f} s, {summary['env_steps']:,} env steps ({summary['env_steps_per_s']:,.0f}/s), "
+                  f"mean return {final} (best {best}); summary in {self.run_dir / 'summary.json'}")
+
+
+def _clock(seconds: float) -> str:
+    s = int(seconds)
+    return f"{s // 3600}:{s // 60 % 60:02d}:{s % 60:02d}"
+
+
+def up(config_path: str, overrides: list[str]) -> int:
+    """``ebrl up``: exit 2 on a config error (nothing started), else the run's exit code."""
+    try:
+        cfg = config_mod.load(config_path, overrides)
+    except config_mod.ConfigError as exc:
+        print(f"ebrl: config error: {exc}", file=sys.stderr)
+        return 2
+    run_dir = make_run_dir(cfg)
+    (run_dir / "config.toml").write_text(config_mod.dump_toml(cfg))
+    logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
+    return asyncio.run(Launcher(cfg, run_dir).main())

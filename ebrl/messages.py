@@ -1,0 +1,354 @@
+"""Every message on the EBRL bus, defined once; ``schemas/`` is generated from here.
+
+A message is a dataclass whose fields carry a docstring (``doc``) and whose
+types are checked on receipt by :func:`decode_message`: a payload that does
+not match raises :class:`MessageError`, which services count and drop.
+On the wire a message is a msgpack map of its fields plus ``"v"`` (the schema
+version); arrays travel through :mod:`ebrl.bus.codec`.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import types
+import typing
+from dataclasses import dataclass, field
+from typing import Annotated, Any, Literal, TypeVar, get_args, get_origin
+
+import numpy as np
+
+from ebrl.bus import codec
+
+SCHEMA_VERSION = 1
+
+T = TypeVar("T")
+
+
+class MessageError(ValueError):
+    """A payload that is not a valid message of the expected type."""
+
+
+@dataclass(frozen=True)
+class Array:
+    """Annotation for a numpy array field: dtype kind and number of dimensions."""
+
+    dtype: str | None = None  # e.g. "float32"; None accepts any numeric dtype
+    ndim: int | None = None  # None accepts any rank
+
+
+def doc(text: str, **kw: Any) -> Any:
+    """A dataclass field with a docstring (used in ``schemas/`` and README)."""
+    return field(metadata={"doc": text}, **kw)
+
+
+F32 = Annotated[np.ndarray, Array("float32")]
+
+
+# --- data ------------------------------------------------------------------------
+
+
+@dataclass
+class Observation:
+    """Observations of one environment group at a chunk boundary (sim -> gen)."""
+
+    KEY = "ebrl/data/<run>/obs/<group>"
+    group: int = doc("group index")
+    seq: int = doc("chunk counter of this group; the action chunk answering it carries the same seq")
+    env_ids: Annotated[np.ndarray, Array("int64", 1)] = doc("global env ids, shape [E]")
+    obs: Annotated[np.ndarray, Array("float32")] = doc("observations, shape [E, *obs_shape]")
+    sent_at: float = doc("epoch seconds when sim published it")
+
+
+@dataclass
+class ActionChunk:
+    """An action chunk for every env of one group (gen -> sim)."""
+
+    KEY = "ebrl/data/<run>/act/<group>"
+    group: int = doc("group index")
+    seq: int = doc("seq of the observation this answers")
+    policy_version: int = doc("version of the weights that produced these actions")
+    actions: Annotated[np.ndarray, Array("float32", 3)] = doc("actions, shape [E, K, action_dim]")
+    logprobs: Annotated[np.ndarray, Array("float32", 1)] = doc("log-probability of each whole chunk, shape [E]")
+    values: Annotated[np.ndarray, Array("float32", 1)] = doc("value estimate at the observation, shape [E]")
+
+
+@dataclass
+class TrajectorySegment:
+    """A finished piece of one environment's trajectory, T chunk decisions long (sim -> train)."""
+
+    KEY = "ebrl/data/<run>/traj/<group>"
+    group: int = doc("group index")
+    env_id: int = doc("global env id")
+    obs: Annotated[np.ndarray, Array("float32")] = doc("observation before each chunk, shape [T, *obs_shape]")
+    actions: Annotated[np.ndarray, Array("float32", 3)] = doc("chunks sent, shape [T, K, action_dim]")
+    logprobs: Annotated[np.ndarray, Array("float32", 1)] = doc("behaviour log-prob of each chunk, shape [T]")
+    values: Annotated[np.ndarray, Array("float32", 1)] = doc("value estimate at each chunk start, shape [T]")
+    rewards: Annotated[np.ndarray, Array("float32", 1)] = doc("sum of env rewards over each chunk, shape [T]")
+    steps: Annotated[np.ndarray, Array("int32", 1)] = doc("env steps executed in each chunk (< K if the episode ended), shape [T]")
+    versions: Annotated[np.ndarray, Array("int64", 1)] = doc("policy version that produced each chunk, shape [T]")
+    end: Literal["terminated", "truncated", "cut"] = doc(
+        "why the segment ended: terminal state (no bootstrap), time limit or segment length (bootstrap from last_obs)"
+    )
+    last_obs: Annotated[np.ndarray, Array("float32")] = doc("observation after the last chunk, for bootstrapping")
+    episode_returns: list[float] = doc("returns of episodes that finished inside this segment")
+    episode_lengths: list[int] = doc("lengths (env steps) of episodes that finished inside this segment")
+
+
+@dataclass
+class Weights:
+    """Versioned policy weights (train -> gen)."""
+
+    KEY = "ebrl/data/<run>/weights"
+    version: int = doc("policy version; increases by one per update")
+    params: dict[str, Annotated[np.ndarray, Array()]] = doc("state dict: parameter name -> array")
+    created_at: float = doc("epoch seconds when train produced them")
+
+
+# --- observability -----------------------------------------------------------------
+
+
+@dataclass
+class StatsReport:
+    """Periodic stats of one service instance, published every `stats_interval` seconds."""
+
+    KEY = "ebrl/stats/<run>/<service>/<instance>"
+    run: str = doc("run name")
+    service: str = doc("service role: sim, gen, train, ...")
+    instance: int = doc("instance index of the service")
+    time: float = doc("epoch seconds of the report")
+    seq: int = doc("report counter of this instance, from 0")
+    metrics: dict[str, float] = doc("namespaced metrics, e.g. sim/env_steps_per_s (see README)")
+
+
+@dataclass
+class Span:
+    """One timeline span: a stage was busy with `label` from `start` to `end`."""
+
+    KEY = "ebrl/stats/<run>/spans/<lane>"
+    lane: str = doc("timeline lane, e.g. sim.g0, gen, train, weights")
+    start: float = doc("epoch seconds")
+    end: float = doc("epoch seconds")
+    label: str = doc("what ran, e.g. chunk, forward, update, publish")
+    service: str = doc("service role that recorded it")
+    instance: int = doc("instance index of that service")
+
+
+# --- control -----------------------------------------------------------------------
+
+
+@dataclass
+class Stop:
+    """Ask a service to stop gracefully."""
+
+    KEY = "ebrl/ctl/<run>/<service>/<instance>/stop"
+    reason: str = doc("why, for the log")
+
+
+@dataclass
+class Affinity:
+    """Pin a service's process (and the workers it owns) to CPU cores."""
+
+    KEY = "ebrl/ctl/<run>/<service>/<instance>/affinity"
+    version: int = doc("monotonic; an update with a version already applied is ignored")
+    cores: list[int] = doc("CPU core ids")
+
+
+@dataclass
+class Quota:
+    """Resource quota of a service: thread count and GPU share."""
+
+    KEY = "ebrl/ctl/<run>/<service>/<instance>/quota"
+    version: int = doc("monotonic; an update with a version already applied is ignored")
+    threads: int | None = doc("torch intra-op threads", default=None)
+    sm_percent: float | None = doc("GPU SM share in percent", default=None)
+    mem_bytes: int | None = doc("GPU memory budget in bytes", default=None)
+
+
+MESSAGES: tuple[type, ...] = (
+    Observation,
+    ActionChunk,
+    TrajectorySegment,
+    Weights,
+    StatsReport,
+    Span,
+    Stop,
+    Affinity,
+    Quota,
+)
+
+# --- validation ----------------------------------------------------------------------
+
+
+def to_wire(msg: Any) -> dict[str, Any]:
+    """The msgpack-able map of a message (shallow: arrays stay arrays)."""
+    out = {f.name: getattr(msg, f.name) for f in dataclasses.fields(msg)}
+    out["v"] = SCHEMA_VERSION
+    return out
+
+
+def encode_message(msg: Any) -> bytes:
+    return codec.encode(to_wire(msg))
+
+
+def decode_message(cls: type[T], payload: bytes | memoryview) -> T:
+    """Decode and validate ``payload`` as ``cls``; raise :class:`MessageError` if it is not one."""
+    try:
+        raw = codec.decode(payload)
+    except codec.DecodeError as exc:
+        raise MessageError(f"undecodable payload: {exc}") from None
+    return from_wire(cls, raw)
+
+
+def from_wire(cls: type[T], raw: Any) -> T:
+    if not isinstance(raw, dict):
+        raise MessageError(f"{cls.__name__}: expected a map, got {type(raw).__name__}")
+    version = raw.get("v")
+    if version != SCHEMA_VERSION:
+        raise MessageError(f"{cls.__name__}: schema version {version!r}, expected {SCHEMA_VERSION}")
+    hints = _hints(cls)
+    values = {}
+    for f in dataclasses.fields(cls):
+        if f.name in raw:
+            values[f.name] = _check(raw[f.name], hints[f.name], f"{cls.__name__}.{f.name}")
+        elif f.default is dataclasses.MISSING:
+            raise MessageError(f"{cls.__name__}: missing field {f.name!r}")
+    unknown = set(raw) - set(hints) - {"v"}
+    if unknown:
+        raise MessageError(f"{cls.__name__}: unknown fields {sorted(unknown)}")
+    return cls(**values)
+
+
+_HINTS: dict[type, dict[str, Any]] = {}
+
+
+def _hints(cls: type) -> dict[str, Any]:
+    if cls not in _HINTS:
+        _HINTS[cls] = typing.get_type_hints(cls, include_extras=True)
+    return _HINTS[cls]
+
+
+def _check(value: Any, tp: Any, path: str) -> Any:
+    origin = get_origin(tp)
+    if origin is Annotated:
+        base, *extra = get_args(tp)
+        spec = next((e for e in extra if isinstance(e, Array)), None)
+        if spec is not None:
+            return _check_array(value, spec, path)
+        return _check(value, base, path)
+    if origin in (types.UnionType, typing.Union):
+        options = get_args(tp)
+        if value is None and type(None) in options:
+            return None
+        errors = []
+        for option in options:
+            if option is type(None):
+                continue
+            try:
+                return _check(value, option, path)
+            except MessageError as exc:
+                errors.append(str(exc))
+        raise MessageError("; ".join(errors))
+    if origin is Literal:
+        if value not in get_args(tp):
+            raise MessageError(f"{path}: {value!r} is not one of {list(get_args(tp))}")
+        return value
+    if origin is list:
+        if not isinstance(value, list):
+            raise MessageError(f"{path}: expected a list, got {type(value).__name__}")
+        (item,) = get_args(tp)
+        return [_check(v, item, f"{path}[{i}]") for i, v in enumerate(value)]
+    if origin is dict:
+        if not isinstance(value, dict):
+            raise MessageError(f"{path}: expected a map, got {type(value).__name__}")
+        key_tp, item = get_args(tp)
+        return {_check(k, key_tp, f"{path} key"): _check(v, item, f"{path}[{k!r}]") for k, v in value.items()}
+    if tp is float:
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise MessageError(f"{path}: expected a number, got {type(value).__name__}")
+        return float(value)
+    if tp is int:
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise MessageError(f"{path}: expected an integer, got {type(value).__name__}")
+        return value
+    if tp is bool or tp is str:
+        if not isinstance(value, tp):
+            raise MessageError(f"{path}: expected {tp.__name__}, got {type(value).__name__}")
+        return value
+    raise TypeError(f"{path}: unsupported field type {tp!r}")  # a bug in this module, not bad input
+
+
+def _check_array(value: Any, spec: Array, path: str) -> np.ndarray:
+    if not isinstance(value, np.ndarray):
+        raise MessageError(f"{path}: expected an array, got {type(value).__name__}")
+    if spec.dtype is not None and value.dtype != np.dtype(spec.dtype):
+        raise MessageError(f"{path}: dtype {value.dtype}, expected {spec.dtype}")
+    if spec.dtype is None and value.dtype.kind not in "biuf":
+        raise MessageError(f"{path}: dtype {value.dtype} is not numeric")
+    if spec.ndim is not None and value.ndim != spec.ndim:
+        raise MessageError(f"{path}: {value.ndim} dimensions, expected {spec.ndim}")
+    return value
+
+
+# --- JSON Schema ------------------------------------------------------------------------
+
+
+def json_schema(cls: type) -> dict[str, Any]:
+    """JSON Schema (draft 2020-12) of one message type, as it appears after msgpack decoding."""
+    hints = _hints(cls)
+    props: dict[str, Any] = {"v": {"const": SCHEMA_VERSION, "description": "schema version"}}
+    required = ["v"]
+    for f in dataclasses.fields(cls):
+        prop = _schema_of(hints[f.name])
+        prop["description"] = f.metadata.get("doc", "")
+        props[f.name] = prop
+        if f.default is dataclasses.MISSING:
+            required.append(f.name)
+    return {
+        "$schema": "https://json-schema.org/draft/2020-12/schema",
+        "$id": f"ebrl/{cls.__name__}.json",
+        "title": cls.__name__,
+        "description": (cls.__doc__ or "").strip(),
+        "x-ebrl-key": cls.KEY,
+        "type": "object",
+        "properties": props,
+        "required": required,
+        "additionalProperties": False,
+    }
+
+
+def _schema_of(tp: Any) -> dict[str, Any]:
+    origin = get_origin(tp)
+    if origin is Annotated:
+        base, *extra = get_args(tp)
+        spec = next((e for e in extra if isinstance(e, Array)), None)
+        if spec is not None:
+            return {
+                "x-ebrl-ndarray": {"dtype": spec.dtype or "numeric", "ndim": spec.ndim},
+                "description": "numpy array (msgpack extension type 1, see ebrl/bus/codec.py)",
+            }
+        return _schema_of(base)
+    if origin in (types.UnionType, typing.Union):
+        return {"anyOf": [_schema_of(a) for a in get_args(tp)]}
+    if origin is Literal:
+        return {"enum": list(get_args(tp))}
+    if origin is list:
+        return {"type": "array", "items": _schema_of(get_args(tp)[0])}
+    if origin is dict:
+        return {"type": "object", "additionalProperties": _schema_of(get_args(tp)[1])}
+    names = {float: "number", int: "integer", bool: "boolean", str: "string", type(None): "null"}
+    return {"type": names[tp]}
+
+
+def write_schemas(directory: str) -> list[str]:
+    """Write one ``<Message>.json`` per message type into ``directory``; return the paths."""
+    import os
+
+    os.makedirs(directory, exist_ok=True)
+    paths = []
+    for cls in MESSAGES:
+        path = os.path.join(directory, f"{cls.__name__}.json")
+        with open(path, "w") as fh:
+            fh.write(json.dumps(json_schema(cls), indent=2) + "\n")
+        paths.append(path)
+    return paths

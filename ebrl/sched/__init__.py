@@ -1,0 +1,1 @@
+"""Scheduling of simulation: trajectory assembly, group stepping."""

@@ -1,0 +1,73 @@
+"""Trajectory assembly: one builder per environment turns chunk results into segments."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ebrl.envs.worker import ChunkResult
+from ebrl.messages import TrajectorySegment
+
+
+@dataclass
+class SegmentBuilder:
+    """Collects one environment's chunk decisions; emits a segment at episode end or at ``length``."""
+
+    group: int
+    env_id: int
+    length: int
+    _obs: list[np.ndarray] = field(default_factory=list)
+    _actions: list[np.ndarray] = field(default_factory=list)
+    _logprobs: list[float] = field(default_factory=list)
+    _values: list[float] = field(default_factory=list)
+    _rewards: list[float] = field(default_factory=list)
+    _steps: list[int] = field(default_factory=list)
+    _versions: list[int] = field(default_factory=list)
+    _returns: list[float] = field(default_factory=list)
+    _lengths: list[int] = field(default_factory=list)
+
+    def __len__(self) -> int:
+        return len(self._obs)
+
+    def add(self, obs: np.ndarray, action: np.ndarray, logprob: float, value: float, version: int,
+            result: ChunkResult) -> TrajectorySegment | None:
+        """Record one chunk decision and what the environment did; return a finished segment or None."""
+        self._obs.append(obs)
+        self._actions.append(action)
+        self._logprobs.append(logprob)
+        self._values.append(value)
+        self._rewards.append(result.reward)
+        self._steps.append(result.steps)
+        self._versions.append(version)
+        if result.episode_return is not None:
+            self._returns.append(result.episode_return)
+            self._lengths.append(int(result.episode_length))
+        if result.terminated:
+            return self._emit("terminated", result.final_obs)
+        if result.truncated:
+            return self._emit("truncated", result.final_obs)
+        if len(self._obs) >= self.length:
+            return self._emit("cut", result.next_obs)
+        return None
+
+    def _emit(self, end: str, last_obs: np.ndarray) -> TrajectorySegment:
+        segment = TrajectorySegment(
+            group=self.group,
+            env_id=self.env_id,
+            obs=np.stack(self._obs).astype(np.float32),
+            actions=np.stack(self._actions).astype(np.float32),
+            logprobs=np.asarray(self._logprobs, dtype=np.float32),
+            values=np.asarray(self._values, dtype=np.float32),
+            rewards=np.asarray(self._rewards, dtype=np.float32),
+            steps=np.asarray(self._steps, dtype=np.int32),
+            versions=np.asarray(self._versions, dtype=np.int64),
+            end=end,  # type: ignore[arg-type]
+            last_obs=np.asarray(last_obs, dtype=np.float32),
+            episode_returns=list(self._returns),
+            episode_lengths=list(self._lengths),
+        )
+        for buf in (self._obs, self._actions, self._logprobs, self._values, self._rewards, self._steps,
+                    self._versions, self._returns, self._lengths):
+            buf.clear()
+        return segment

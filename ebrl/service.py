@@ -1,0 +1,248 @@
+"""Service base: one lifecycle for every EBRL process (bus, liveliness, stats, spans, control, shutdown).
+
+A service subclass implements ``setup`` (declare subscriptions, build models),
+``run`` (its main coroutine) and optionally ``teardown`` and ``metrics``. The
+base owns everything else:
+
+* SIGINT/SIGTERM set an ``asyncio.Event``; ``run`` is cancelled and given
+  ``STOP_GRACE_S`` to finish, then the bus is flushed and closed;
+* the liveliness token ``ebrl/live/<run>/<role>/<instance>`` is declared once
+  ``setup`` has finished, so "live" means "ready";
+* stats are published every ``run.stats_interval`` seconds; ``count(name, n)``
+  counters become ``name`` (total) and ``name_per_s`` (rate over the interval);
+* ``with self.span(label, lane):`` publishes a timeline span from any thread;
+* control messages (stop, affinity, quota) are versioned and applied once.
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import collections
+import contextlib
+import logging
+import os
+import signal
+import sys
+import threading
+import time
+from typing import Any, Iterator
+
+import psutil
+
+from ebrl import config as config_mod
+from ebrl.bus import Bus, BusOptions, keys
+from ebrl.messages import Affinity, Quota, Span, StatsReport, Stop, encode_message
+
+STOP_GRACE_S = 5.0
+
+
+class Service:
+    role = "service"
+
+    def __init__(self, cfg: config_mod.Config, instance: int = 0, bus_options: BusOptions | None = None):
+        self.cfg = cfg
+        self.run_name = cfg.run.name
+        self.instance = instance
+        self.bus_options = bus_options or BusOptions(mode=cfg.bus.mode, connect=list(cfg.bus.connect),
+                                                     config_file=cfg.bus.config_file)
+        self.log = logging.getLogger(f"ebrl.{self.role}")
+        self.bus: Bus = None  # type: ignore[assignment]  # opened in main()
+        self.stopping: asyncio.Event = None  # type: ignore[assignment]
+        self._counts: collections.Counter[str] = collections.Counter()
+        self._counts_lock = threading.Lock()
+        self._busy: collections.Counter[str] = collections.Counter()
+        self._control_versions: dict[str, int] = {}
+        self._stats_seq = 0
+        self._proc = psutil.Process()
+        self.started_at = time.time()
+
+    # --- to override ---------------------------------------------------------------
+
+    async def setup(self) -> None:
+        """Declare subscriptions, build models. The service is announced live after this."""
+
+    async def run(self) -> None:
+        """The service's work; return to stop the service."""
+        await self.stopping.wait()
+
+    async def teardown(self) -> None:
+        """Release what setup acquired (called after run ended, before the bus closes)."""
+
+    def metrics(self) -> dict[str, float]:
+        """Service-specific metrics for the stats report (namespaced: sim/, gen/, train/)."""
+        return {}
+
+    def on_affinity(self, cores: list[int]) -> None:
+        """Apply a CPU affinity; the default pins this process."""
+        os.sched_setaffinity(0, cores)
+
+    def on_quota(self, quota: Quota) -> None:
+        """Apply a resource quota; the default sets torch's thread count."""
+        if quota.threads:
+            import torch
+
+            torch.set_num_threads(quota.threads)
+
+    # --- helpers for subclasses ------------------------------------------------------
+
+    def count(self, name: str, n: float = 1) -> None:
+        """Add ``n`` to counter ``name`` (thread-safe); reported as total and per-second rate."""
+        with self._counts_lock:
+            self._counts[name] += n
+
+    @contextlib.contextmanager
+    def span(self, label: str, lane: str | None = None) -> Iterator[None]:
+        """Time a block and publish it as a span on ``ebrl/stats/<run>/spans/<lane>``."""
+        lane = lane or self.role
+        start = time.time()
+        try:
+            yield
+        finally:
+            end = time.time()
+            self.publish_span(lane, label, start, end)
+
+    def publish_span(self, lane: str, label: str, start: float, end: float) -> None:
+        with self._counts_lock:
+            self._busy[lane] += end - start
+        self.bus.put_nowait(keys.spans(self.run_name, lane),
+                            Span(lane=lane, start=start, end=end, label=label, service=self.role, instance=self.instance))
+
+    def key(self, kind: str) -> str:
+        return keys.ctl(self.run_name, self.role, self.instance, kind)
+
+    # --- lifecycle ------------------------------------------------------------------
+
+    async def main(self) -> int:
+        loop = asyncio.get_running_loop()
+        self.stopping = asyncio.Event()
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            loop.add_signal_handler(sig, self.request_stop, f"signal {sig.name}")
+        self.bus = Bus(self.bus_options)
+        exit_code = 0
+        try:
+            await self.setup()
+            self._declare_control()
+            self.bus.declare_token(keys.live(self.run_name, self.role, self.instance))
+            self.log.info("%s/%d ready", self.role, self.instance)
+            stats_task = asyncio.create_task(self._stats_loop())
+            run_task = asyncio.create_task(self.run())
+            stop_task = asyncio.create_task(self.stopping.wait())
+            done, _ = await asyncio.wait({run_task, stop_task}, return_when=asyncio.FIRST_COMPLETED)
+            if run_task in done:
+                exc = run_task.exception()
+                if exc is not None:
+                    self.log.error("run failed", exc_info=exc)
+                    exit_code = 1
+            else:
+                run_task.cancel()
+                with contextlib.suppress(asyncio.CancelledError, asyncio.TimeoutError, Exception):
+                    await asyncio.wait_for(run_task, STOP_GRACE_S)
+            stop_task.cancel()
+            stats_task.cancel()
+            await self.teardown()
+            await self._publish_stats()
+        finally:
+            await self.bus.close()
+        self.log.info("%s/%d stopped", self.role, self.instance)
+        return exit_code
+
+    def request_stop(self, reason: str) -> None:
+        if not self.stopping.is_set():
+            self.log.info("stopping: %s", reason)
+            self.stopping.set()
+
+    def _declare_control(self) -> None:
+        self._spawn_control(keys.ctl(self.run_name, self.role, self.instance, "stop"), Stop,
+                            lambda m: self.request_stop(m.reason))
+        self._spawn_control(keys.ctl(self.run_name, self.role, self.instance, "affinity"), Affinity,
+                            lambda m: self._versioned("affinity", m, lambda: self.on_affinity(m.cores)))
+        self._spawn_control(keys.ctl(self.run_name, self.role, self.instance, "quota"), Quota,
+                            lambda m: self._versioned("quota", m, lambda: self.on_quota(m)))
+
+        async def status(_: bytes) -> bytes:
+            return encode_message(self._report())
+
+        self.bus.declare_queryable(keys.ctl(self.run_name, self.role, self.instance, "status"), status)
+
+    def _spawn_control(self, key: str, cls: type, apply: Any) -> None:
+        sub = self.bus.subscribe(key, cls, policy="latest", capacity=8)
+
+        async def consume() -> None:
+            async for _, msg in sub:
+                try:
+                    apply(msg)
+                except Exception as exc:
+                    self.log.warning("control %s not applied: %s", key, exc)
+
+        asyncio.create_task(consume())
+
+    def _versioned(self, kind: str, msg: Any, apply: Any) -> None:
+        if msg.version <= self._control_versions.get(kind, -1):
+            self.count(f"ctl/{kind}_ignored")
+            return
+        apply()
+        self._control_versions[kind] = msg.version
+        self.count(f"ctl/{kind}_applied")
+        self.log.info("applied %s version %d", kind, msg.version)
+
+    async def _stats_loop(self) -> None:
+        self._last_stats = (time.monotonic(), dict(self._counts), dict(self._busy))
+        self._proc.cpu_percent()
+        while True:
+            await asyncio.sleep(self.cfg.run.stats_interval)
+            await self._publish_stats()
+
+    async def _publish_stats(self) -> None:
+        try:
+            report = self._report()
+        except Exception as exc:
+            self.log.warning("stats not reported: %s", exc)
+            return
+        await self.bus.put(keys.stats(self.run_name, self.role, self.instance), report)
+
+    def _report(self) -> StatsReport:
+        now = time.monotonic()
+        with self._counts_lock:
+            counts, busy = dict(self._counts), dict(self._busy)
+        last_t, last_counts, last_busy = getattr(self, "_last_stats", (now, {}, {}))
+        dt = max(now - last_t, 1e-9)
+        metrics: dict[str, float] = {}
+        for name, total in counts.items():
+            metrics[name] = float(total)
+            metrics[f"{name}_per_s"] = (total - last_counts.get(name, 0)) / dt if now > last_t else 0.0
+        for lane, seconds in busy.items():
+            metrics[f"busy/{lane}"] = min(1.0, (seconds - last_busy.get(lane, 0.0)) / dt) if now > last_t else 0.0
+        metrics["bus/malformed"] = float(sum(self.bus.malformed.values()))
+        metrics["bus/sender_dropped"] = float(self.bus.sender_dropped)
+        metrics["proc/cpu_percent"] = self._proc.cpu_percent()
+        metrics["proc/rss_mb"] = self._proc.memory_info().rss / 2**20
+        metrics["proc/uptime_s"] = time.time() - self.started_at
+        metrics.update(self.metrics())
+        if now > last_t:
+            self._last_stats = (now, counts, busy)
+        report = StatsReport(run=self.run_name, service=self.role, instance=self.instance, time=time.time(),
+                             seq=self._stats_seq, metrics=metrics)
+        self._stats_seq += 1
+        return report
+
+
+def service_main(cls: type[Service], argv: list[str] | None = None) -> None:
+    """Entry point of ``python -m services.<role>``: parse args, configure logging, run."""
+    parser = argparse.ArgumentParser(prog=f"services.{cls.role}")
+    parser.add_argument("--config", required=True, help="resolved TOML config")
+    parser.add_argument("--instance", type=int, default=0)
+    parser.add_argument("--connect", action="append", default=[], help="bus endpoint to connect to")
+    parser.add_argument("--set", action="append", default=[], dest="overrides", metavar="SECTION.KEY=VALUE")
+    args = parser.parse_args(argv)
+    try:
+        cfg = config_mod.load(args.config, args.overrides)
+    except config_mod.ConfigError as exc:
+        print(f"config error: {exc}", file=sys.stderr)
+        sys.exit(2)
+    logging.basicConfig(level=cfg.run.log_level.upper(),
+                        format=f"%(asctime)s {cls.role}/{args.instance} %(levelname)s %(name)s: %(message)s")
+    options = BusOptions(mode=cfg.bus.mode, connect=args.connect + list(cfg.bus.connect),
+                         listen=["tcp/127.0.0.1:0"], config_file=cfg.bus.config_file)
+    service = cls(cfg, args.instance, options)
+    sys.exit(asyncio.run(service.main()))

@@ -1,0 +1,135 @@
+"""sim service: environment groups in worker processes; observations out, action chunks in, segments to train."""
+
+from __future__ import annotations
+
+import asyncio
+import collections
+import time
+
+import numpy as np
+
+from ebrl.bus import keys
+from ebrl.envs import EnvSpec, EnvWorker, spaces
+from ebrl.messages import ActionChunk, Observation
+from ebrl.sched.rollout import SegmentBuilder
+from ebrl.service import Service, service_main
+
+# A group whose observation got no answer for this long publishes it again (a
+# generation restart or a lost sample must never leave a group waiting forever).
+ACTION_TIMEOUT_S = 30.0
+
+
+class SimService(Service):
+    role = "sim"
+
+    async def setup(self) -> None:
+        cfg = self.cfg
+        spec = EnvSpec.from_config(cfg.env)
+        await asyncio.get_running_loop().run_in_executor(None, spaces, spec)  # clear error before spawning
+        self.groups = list(range(cfg.sim.groups))
+        per = cfg.sim.envs_per_group
+        cores = cfg.sim.cores
+        self.workers: dict[int, list[EnvWorker]] = {}
+        for g in self.groups:
+            self.workers[g] = [
+                EnvWorker(spec, seed=cfg.run.seed * 100_003 + g * per + i,
+                          core=cores[(g * per + i) % len(cores)] if cores else None)
+                for i in range(per)
+            ]
+        self.actions = {g: self.bus.subscribe(keys.act(self.run_name, g), ActionChunk, capacity=4)
+                        for g in self.groups}
+        self.returns: collections.deque[float] = collections.deque(maxlen=20)
+        self.chunk_latency: collections.deque[float] = collections.deque(maxlen=200)
+        self.peers_live: set[str] = set()
+        self.bus.watch_liveliness(keys.live_all(self.run_name), self._on_liveliness)
+
+    def _on_liveliness(self, key: str, alive: bool) -> None:
+        (self.peers_live.add if alive else self.peers_live.discard)(key)
+        if not alive and not self.stopping.is_set():
+            self.log.warning("%s left the bus", key)
+
+    def _role_live(self, role: str) -> bool:
+        return any(keys.parse(k)[3] == role for k in self.peers_live)
+
+    async def run(self) -> None:
+        while not (self._role_live("gen") and self._role_live("train")):  # nobody would hear us yet
+            await asyncio.sleep(0.05)
+        await asyncio.gather(*(self.run_group(g) for g in self.groups))
+
+    async def run_group(self, g: int) -> None:
+        per = self.cfg.sim.envs_per_group
+        workers = self.workers[g]
+        env_ids = np.arange(g * per, (g + 1) * per, dtype=np.int64)
+        builders = [SegmentBuilder(g, int(e), self.cfg.sim.segment_length) for e in env_ids]
+        obs = np.stack(await asyncio.gather(*(w.reset() for w in workers)))
+        seq = 0
+        while True:
+            chunk = await self.exchange(g, seq, env_ids, obs)
+            start = time.time()
+            results = await asyncio.gather(*(w.chunk(chunk.actions[i]) for i, w in enumerate(workers)))
+            end = time.time()
+            self.publish_span(f"sim.g{g}", "chunk", start, end)
+            self.chunk_latency.append(end - start)
+            next_obs = np.empty_like(obs)
+            for i, res in enumerate(results):
+                self.count("sim/env_steps", res.steps)
+                if res.episode_return is not None:
+                    self.returns.append(res.episode_return)
+                    self.count("sim/episodes")
+                segment = builders[i].add(obs[i], chunk.actions[i], float(chunk.logprobs[i]),
+                                          float(chunk.values[i]), chunk.policy_version, res)
+                if segment is not None:
+                    await self.bus.put(keys.traj(self.run_name, g), segment)
+                    self.count("sim/segments")
+                next_obs[i] = res.next_obs
+            obs = next_obs
+            seq += 1
+
+    async def exchange(self, g: int, seq: int, env_ids: np.ndarray, obs: np.ndarray) -> ActionChunk:
+        """Publish this group's observations and wait for the action chunk that answers them."""
+        message = Observation(group=g, seq=seq, env_ids=env_ids, obs=obs, sent_at=time.time())
+        while True:
+            await self.bus.put(keys.obs(self.run_name, g), message, express=True)
+            start = time.time()
+            deadline = time.monotonic() + ACTION_TIMEOUT_S
+            while time.monotonic() < deadline:
+                try:
+                    _, chunk = await asyncio.wait_for(self.actions[g].next(), deadline - time.monotonic())
+                except asyncio.TimeoutError:
+                    break
+                if chunk.seq == seq and chunk.actions.shape[0] == len(env_ids):
+                    self.publish_span(f"sim.g{g}", "wait", start, time.time())
+                    return chunk
+                self.count("sim/stale_actions_dropped")
+            self.count("sim/obs_resent")
+            self.log.warning("group %d: no actions for seq %d after %.0f s, publishing again", g, seq, ACTION_TIMEOUT_S)
+
+    def metrics(self) -> dict[str, float]:
+        out = {"sim/envs": float(sum(len(w) for w in self.workers.values()))}
+        if self.returns:
+            out["sim/episode_return_mean"] = float(np.mean(self.returns))
+        if self.chunk_latency:
+            lat = np.asarray(self.chunk_latency)
+            out["sim/chunk_latency_avg_ms"] = float(lat.mean() * 1e3)
+            out["sim/chunk_latency_p50_ms"] = float(np.percentile(lat, 50) * 1e3)
+            out["sim/chunk_latency_p99_ms"] = float(np.percentile(lat, 99) * 1e3)
+        return out
+
+    def on_affinity(self, cores: list[int]) -> None:
+        super().on_affinity(cores)
+        flat = [w for g in self.groups for w in self.workers[g]]
+        for i, worker in enumerate(flat):
+            worker.pin(cores[i % len(cores)])
+
+    async def teardown(self) -> None:
+        for workers in self.workers.values():
+            for worker in workers:
+                worker.close(timeout=1.0)
+
+
+def main() -> None:
+    service_main(SimService)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,135 @@
+"""train service: consumes trajectory segments continuously, runs PPO updates, publishes versioned weights."""
+
+from __future__ import annotations
+
+import asyncio
+import collections
+import concurrent.futures
+import time
+
+import numpy as np
+import torch
+
+from ebrl.algos.ppo import PPO, build_batch
+from ebrl.bus import keys
+from ebrl.envs import EnvSpec, spaces
+from ebrl.messages import TrajectorySegment, Weights, encode_message
+from ebrl.policies import make_policy, state_arrays
+from ebrl.service import Service, service_main
+
+
+class TrainService(Service):
+    role = "train"
+
+    async def setup(self) -> None:
+        cfg = self.cfg
+        torch.manual_seed(cfg.run.seed)
+        torch.set_num_threads(cfg.train.threads)
+        obs_space, act_space = await asyncio.get_running_loop().run_in_executor(
+            None, spaces, EnvSpec.from_config(cfg.env))
+        self.obs_shape = tuple(obs_space.shape)
+        self.action_shape = (cfg.policy.chunk, act_space.shape[0])
+        self.model = make_policy(cfg.policy, obs_space.shape, act_space.shape[0])
+        self.ppo = PPO(self.model, cfg.algo, cfg.train.lr, seed=cfg.run.seed)
+        self.version = 0
+        self.pending: collections.deque[TrajectorySegment] = collections.deque()
+        self.pending_steps = 0
+        self.enough = asyncio.Event()
+        self.last: dict[str, float] = {}
+        self.returns: collections.deque[float] = collections.deque(maxlen=20)
+        self.pool = concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix="train-update")
+        self.traj = self.bus.subscribe(keys.traj(self.run_name), TrajectorySegment, capacity=256)
+        self.encoded_weights = self.encode_weights()
+
+        async def latest_weights(_: bytes) -> bytes:
+            return self.encoded_weights
+
+        self.bus.declare_queryable(keys.weights(self.run_name), latest_weights)
+
+    def encode_weights(self) -> bytes:
+        return encode_message(Weights(version=self.version, params=state_arrays(self.model), created_at=time.time()))
+
+    async def run(self) -> None:
+        receiver = asyncio.create_task(self.receive())
+        try:
+            await self.publish_weights()
+            while self.cfg.run.iterations == 0 or self.version < self.cfg.run.iterations:
+                await self.enough.wait()
+                segments = self.take_batch()
+                start = time.time()
+                losses = await asyncio.get_running_loop().run_in_executor(self.pool, self.update, segments)
+                self.publish_span("train", "update", start, time.time())
+                self.version += 1
+                self.last = {f"train/{k}": v for k, v in losses.items()}
+                self.last["train/update_s"] = time.time() - start
+                self.count("train/updates")
+                await self.publish_weights()
+            self.log.info("reached run.iterations = %d; idle until stopped", self.cfg.run.iterations)
+            await self.stopping.wait()
+        finally:
+            receiver.cancel()
+
+    async def receive(self) -> None:
+        """Drain trajectories all the time (also during updates), into a bounded pending buffer."""
+        max_pending = self.cfg.train.max_pending
+        async for key, seg in self.traj:
+            if seg.obs.shape[1:] != self.obs_shape or seg.actions.shape[1:] != self.action_shape \
+                    or not len(seg.obs) == len(seg.actions) == len(seg.rewards) == len(seg.versions):
+                self.bus.count_malformed(key, ValueError("segment shapes do not match the policy"))
+                continue
+            self.pending.append(seg)
+            self.pending_steps += len(seg.obs)
+            self.returns.extend(seg.episode_returns)
+            self.count("train/segments_received")
+            while self.pending_steps - len(self.pending[0].obs) >= max_pending:
+                dropped = self.pending.popleft()
+                self.pending_steps -= len(dropped.obs)
+                self.count("train/segments_dropped_overflow")
+            if self.pending_steps >= self.cfg.train.batch_size:
+                self.enough.set()
+
+    def take_batch(self) -> list[TrajectorySegment]:
+        segments, steps = [], 0
+        while self.pending and steps < self.cfg.train.batch_size:
+            seg = self.pending.popleft()
+            segments.append(seg)
+            steps += len(seg.obs)
+        self.pending_steps -= steps
+        if self.pending_steps < self.cfg.train.batch_size:
+            self.enough.clear()
+        return segments
+
+    def update(self, segments: list[TrajectorySegment]) -> dict[str, float]:
+        """One PPO update (runs on the update thread)."""
+        batch = build_batch(segments, self.model, self.cfg.algo.gamma, self.cfg.algo.gae_lambda)
+        staleness = self.version - batch.versions
+        out = self.ppo.update(batch)
+        out.update(staleness_mean=float(staleness.mean()), staleness_max=float(staleness.max()),
+                   batch_size=float(len(batch)))
+        return out
+
+    async def publish_weights(self) -> None:
+        """Encode the current weights once: published now, and served to late joiners by the queryable."""
+        start = time.time()
+        self.encoded_weights = self.encode_weights()
+        await self.bus.put_bytes(keys.weights(self.run_name), self.encoded_weights)
+        self.publish_span("weights", f"v{self.version}", start, time.time())
+        self.count("train/weights_published")
+
+    def metrics(self) -> dict[str, float]:
+        out = {"train/policy_version": float(self.version), "train/pending_steps": float(self.pending_steps),
+               "train/traj_queue": float(len(self.traj)), **self.last}
+        if self.returns:
+            out["train/episode_return_mean"] = float(np.mean(self.returns))
+        return out
+
+    async def teardown(self) -> None:
+        self.pool.shutdown(wait=True, cancel_futures=True)
+
+
+def main() -> None:
+    service_main(TrainService)
+
+
+if __name__ == "__main__":
+    main()

@@ -10,6 +10,7 @@ from __future__ import annotations
 import dataclasses
 import difflib
 import tomllib
+import types
 import typing
 from dataclasses import dataclass, field
 from typing import Any, Literal, get_args, get_origin
@@ -32,6 +33,8 @@ class RunSection:
     name: str = doc("run name; part of every bus key, so two runs never see each other", "quickstart")
     mode: Literal["ebrl"] = doc("execution mode (the baseline modes arrive with the scheduler)", "ebrl")
     iterations: int = doc("training updates (policy versions) after which the run ends; 0 runs until Ctrl-C", 100)
+    target_return: float | None = doc(
+        "end the run early once the mean return of the last 20 episodes reaches this; absent: never", None)
     seed: int = doc("seed for environments and model initialisation", 0)
     output_dir: str = doc("where run directories (logs, resolved config, summary) are created", "runs")
     stats_interval: float = doc("seconds between stats reports of each service", 1.0)
@@ -189,6 +192,9 @@ def _section(name: str, cls: type, values: dict[str, Any]) -> Any:
 
 def _typed(path: str, value: Any, tp: Any) -> Any:
     origin = get_origin(tp)
+    if origin is types.UnionType:  # `X | None`: TOML has no null, so None means "absent"
+        (inner,) = [a for a in get_args(tp) if a is not type(None)]
+        return None if value is None else _typed(path, value, inner)
     if origin is Literal:
         if value not in get_args(tp):
             raise ConfigError(f"{path} = {value!r}: expected one of {', '.join(map(repr, get_args(tp)))}")
@@ -253,7 +259,8 @@ def dump_toml(cfg: Config) -> str:
     for section, values in cfg.to_dict().items():
         lines.append(f"[{section}]")
         for key, value in values.items():
-            lines.append(f"{key} = {_toml_value(value)}")
+            if value is not None:
+                lines.append(f"{key} = {_toml_value(value)}")
         lines.append("")
     return "\n".join(lines)
 
@@ -281,5 +288,6 @@ def describe() -> str:
         for f in dataclasses.fields(cls):
             default = f.default if f.default is not dataclasses.MISSING else f.default_factory()
             tp = getattr(hints[f.name], "__name__", None) or str(hints[f.name]).replace("typing.", "")
-            out.append(f"  {f.name} ({tp}, default {_toml_value(default)}): {f.metadata['doc']}")
+            shown = "absent" if default is None else _toml_value(default)
+            out.append(f"  {f.name} ({tp}, default {shown}): {f.metadata['doc']}")
     return "\n".join(out)

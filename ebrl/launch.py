@@ -96,6 +96,7 @@ class Launcher:
         self.stats: dict[str, StatsReport] = {}
         self.best_return: float | None = None
         self.failure: str | None = None
+        self.reached: tuple[int, float, float] | None = None  # (iteration, seconds, return) at target_return
         self.started = time.monotonic()
         self.tty = hasattr(out, "isatty") and out.isatty()
         self._last_line = 0.0
@@ -186,6 +187,13 @@ class Launcher:
             if target and self.version() >= target:
                 self.progress(force=True)
                 return 0
+            goal, ret = self.cfg.run.target_return, self.metric("sim/episode_return_mean", "mean")
+            if goal is not None and ret is not None and ret >= goal:
+                self.progress(force=True)
+                self.reached = (self.version(), time.monotonic() - self.started, ret)
+                self._say(f"reached run.target_return = {goal:g}: mean return {ret:.1f} at iteration "
+                          f"{self.version()} after {self.reached[1]:.0f} s")
+                return 0
             try:
                 await asyncio.wait_for(self.stopping.wait(), 0.5)
             except asyncio.TimeoutError:
@@ -265,7 +273,6 @@ class Launcher:
             self.out.flush()
         elif force or time.monotonic() - self._last_line >= 5.0:
             self._say(line)
-        if not self.tty or force:
             self._last_line = time.monotonic()
 
     def _say(self, text: str) -> None:
@@ -289,6 +296,9 @@ class Launcher:
             "episodes": int(self.metric("sim/episodes") or 0),
             "final_return": self.metric("sim/episode_return_mean", "mean"),
             "best_return": self.best_return,
+            "target_return": self.cfg.run.target_return,
+            "target_reached": None if self.reached is None else
+            {"iteration": self.reached[0], "wall_s": round(self.reached[1], 2), "return": self.reached[2]},
         }
         (self.run_dir / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
         final = f"{summary['final_return']:.1f}" if summary["final_return"] is not None else "-"

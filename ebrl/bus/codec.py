@@ -57,7 +57,8 @@ def encode(obj: Any) -> bytes:
     out += header
     out += bytes(_padded(len(out)) - len(out))
     for array in arrays:
-        out += memoryview(array).cast("B")
+        if array.nbytes:
+            out += memoryview(array).cast("B")
         out += bytes(_padded(array.nbytes) - array.nbytes)
     return bytes(out)
 

@@ -1,0 +1,124 @@
+"""Bus: a round trip between two processes, liveliness, request-reply, queue policies, malformed input."""
+
+import asyncio
+import os
+import pathlib
+import signal
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from ebrl.bus import keys
+from ebrl.messages import Observation, Span, StatsReport
+from helpers import free_port, loopback_bus, until
+
+HERE = pathlib.Path(__file__).resolve().parent
+
+
+def observation(seq: int, group: int = 0, n: int = 4) -> Observation:
+    return Observation(group=group, seq=seq, env_ids=np.arange(n, dtype=np.int64),
+                       obs=np.full((n, 3, 32, 32), seq, dtype=np.float32), sent_at=0.0)
+
+
+@pytest.fixture
+def echo_process():
+    port = free_port()
+    env = dict(os.environ, PYTHONPATH=f"{HERE.parent}{os.pathsep}{HERE}")
+    procs = []
+
+    def start():
+        proc = subprocess.Popen([sys.executable, str(HERE / "echo_peer.py"), str(port)], env=env)
+        procs.append(proc)
+        return proc
+
+    yield port, start
+    for proc in procs:
+        if proc.poll() is None:
+            proc.kill()
+        proc.wait(5)
+
+
+def test_round_trip_between_two_processes_with_liveliness_and_query(echo_process):
+    port, start = echo_process
+
+    async def scenario():
+        bus = loopback_bus(port)
+        live = {}
+        bus.watch_liveliness(keys.live("test", "echo", "*"), lambda k, alive: live.__setitem__(k, alive))
+        pongs = bus.subscribe("test/pong/*", Observation, capacity=64)
+        proc = start()
+        await until(lambda: live.get(keys.live("test", "echo", 0)), 30, "the echo peer's liveliness token")
+        replies = await bus.get("test/query", payload=b"hi", timeout=5.0)
+        assert replies == [("test/query", b"pong:hi")]
+        for seq in range(20):
+            await bus.put(f"test/ping/{seq % 3}", observation(seq, group=seq % 3))
+        got = [await asyncio.wait_for(pongs.next(), 10) for _ in range(20)]
+        assert sorted(m.seq for _, m in got) == list(range(20))
+        key, msg = got[-1]
+        assert key == f"test/pong/{msg.group}"
+        np.testing.assert_array_equal(msg.obs, np.full((4, 3, 32, 32), msg.seq, np.float32))
+        proc.send_signal(signal.SIGKILL)
+        await until(lambda: live.get(keys.live("test", "echo", 0)) is False, 10, "the token to vanish")
+        assert await bus.get("test/query", timeout=0.5) == []
+        await bus.close()
+
+    asyncio.run(scenario())
+
+
+def test_malformed_messages_are_counted_and_dropped():
+    async def scenario():
+        port = free_port()
+        bus = loopback_bus(port)
+        sub = bus.subscribe("test/spans/*", Span, capacity=16)
+        good = Span(lane="gen", start=1.0, end=2.0, label="forward", service="gen", instance=0)
+        await bus.put_bytes("test/spans/a", b"\xc1garbage")
+        await bus.put("test/spans/a", StatsReport(run="r", service="s", instance=0, time=0.0, seq=0, metrics={}))
+        await bus.put_bytes("test/spans/b", os.urandom(64))
+        await bus.put("test/spans/a", good)
+        key, msg = await asyncio.wait_for(sub.next(), 5)
+        assert (key, msg) == ("test/spans/a", good)
+        assert bus.malformed["test/spans/a"] == 2 and bus.malformed["test/spans/b"] == 1
+        await bus.close()
+
+    asyncio.run(scenario())
+
+
+def test_latest_policy_keeps_the_newest_and_block_policy_loses_nothing():
+    async def scenario():
+        port = free_port()
+        bus = loopback_bus(port)
+        latest = bus.subscribe("test/latest", Span, policy="latest", capacity=2)
+        blocking = bus.subscribe("test/block", Observation, policy="block", capacity=2)
+        for i in range(10):
+            await bus.put("test/latest", Span(lane="x", start=float(i), end=float(i), label="", service="s", instance=0))
+        await until(lambda: latest.received >= 2 and latest.dropped + latest.received >= 10, 5, "latest samples")
+        assert [m.start for _, m in latest.drain()] == [8.0, 9.0]
+        for seq in range(50):
+            await bus.put("test/block", observation(seq))
+        seen = []
+        while len(seen) < 50:
+            _, msg = await asyncio.wait_for(blocking.next(), 5)
+            seen.append(msg.seq)
+            assert len(blocking) <= 2  # never more than its capacity
+        assert seen == list(range(50)) and blocking.dropped == 0
+        await bus.close()
+
+    asyncio.run(scenario())
+
+
+def test_keys_put_the_run_in_every_key():
+    assert keys.obs("r1", 3) == "ebrl/data/r1/obs/3"
+    assert keys.act("r1", 3) == "ebrl/data/r1/act/3"
+    assert keys.traj("r1") == "ebrl/data/r1/traj/*"
+    assert keys.weights("r1") == "ebrl/data/r1/weights"
+    assert keys.ctl("r1", "gen", 0, "quota") == "ebrl/ctl/r1/gen/0/quota"
+    assert keys.stats("r1", "sim", 0) == "ebrl/stats/r1/sim/0"
+    assert keys.spans("r1", "sim.g0") == "ebrl/stats/r1/spans/sim.g0"
+    assert keys.live("r1", "train", 0) == "ebrl/live/r1/train/0"
+    assert keys.stats() == "ebrl/stats/**"
+    with pytest.raises(ValueError):
+        keys.ctl("r1", "gen", 0, "reboot")
+    with pytest.raises(ValueError):
+        keys.check_chunk("Bad Name", "run.name")

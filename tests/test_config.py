@@ -1,0 +1,73 @@
+"""Config: unknown keys and wrong types name the field; overrides; `ebrl up` exits 2 and starts nothing."""
+
+import pathlib
+import subprocess
+import sys
+
+import pytest
+
+from ebrl import config
+
+ROOT = pathlib.Path(__file__).resolve().parent.parent
+
+
+def write(tmp_path, text):
+    path = tmp_path / "c.toml"
+    path.write_text(text)
+    return str(path)
+
+
+def test_every_shipped_config_is_valid():
+    for path in (ROOT / "configs").glob("*.toml"):
+        config.load(str(path))
+
+
+def test_unknown_key_names_the_field(tmp_path):
+    with pytest.raises(config.ConfigError, match=r"unknown key sim\.envs_per_grup.*did you mean sim\.envs_per_group"):
+        config.load(write(tmp_path, "[sim]\nenvs_per_grup = 3\n"))
+
+
+def test_unknown_section(tmp_path):
+    with pytest.raises(config.ConfigError, match=r"unknown section \[simulator\]"):
+        config.load(write(tmp_path, "[simulator]\ngroups = 3\n"))
+
+
+@pytest.mark.parametrize(
+    "text, error",
+    [
+        ('[run]\niterations = "ten"\n', r"run\.iterations: expected an integer, got string 'ten'"),
+        ("[train]\nlr = true\n", r"train\.lr: expected a number"),
+        ('[policy]\nhidden = [64, "x"]\n', r"policy\.hidden\[1\]: expected an integer"),
+        ('[run]\nmode = "turbo"\n', r"run\.mode = 'turbo': expected one of"),
+        ("[sim]\ngroups = 0\n", r"sim\.groups = 0: must be > 0"),
+        ('[run]\nname = "My Run"\n', r"run\.name"),
+        ("[run\n", r"not valid TOML"),
+    ],
+)
+def test_wrong_values_name_the_field(tmp_path, text, error):
+    with pytest.raises(config.ConfigError, match=error):
+        config.load(write(tmp_path, text))
+
+
+def test_overrides_are_typed(tmp_path):
+    cfg = config.load(write(tmp_path, "[run]\niterations = 5\n"),
+                      ["run.iterations=2", "env.id=Hopper-v5", "policy.hidden=[32]", "run.seed = 4"])
+    assert cfg.run.iterations == 2 and cfg.env.id == "Hopper-v5" and cfg.policy.hidden == [32] and cfg.run.seed == 4
+    with pytest.raises(config.ConfigError, match="run.iterations"):
+        config.load(write(tmp_path, ""), ["run.iterations=lots"])
+    with pytest.raises(config.ConfigError, match="expected section.key=value"):
+        config.load(write(tmp_path, ""), ["iterations=3"])
+
+
+def test_dump_round_trips(tmp_path):
+    cfg = config.load(str(ROOT / "configs" / "quickstart.toml"), ['env.kwargs={reset_noise_scale = 0.1}'])
+    again = config.load(write(tmp_path, config.dump_toml(cfg)))
+    assert again == cfg
+
+
+def test_ebrl_up_with_a_typo_exits_2_and_starts_nothing(tmp_path):
+    path = write(tmp_path, '[run]\nname = "typo"\noutput_dir = "%s"\n[train]\nbatch_sise = 8\n' % (tmp_path / "runs"))
+    proc = subprocess.run([sys.executable, "-m", "ebrl.cli", "up", path], capture_output=True, text=True, timeout=60)
+    assert proc.returncode == 2
+    assert "train.batch_sise" in proc.stderr
+    assert not (tmp_path / "runs").exists()

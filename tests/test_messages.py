@@ -1,0 +1,77 @@
+"""Messages: round trips, validation on receipt, and schemas/ kept in sync with ebrl/messages.py."""
+
+import json
+import pathlib
+
+import jsonschema
+import msgpack
+import numpy as np
+import pytest
+
+from ebrl import messages as m
+from ebrl.bus import codec
+
+ROOT = pathlib.Path(__file__).resolve().parent.parent
+
+
+def observation(**kw):
+    base = dict(group=1, seq=7, env_ids=np.arange(4, dtype=np.int64), obs=np.ones((4, 3), np.float32), sent_at=1.0)
+    base.update(kw)
+    return m.Observation(**base)
+
+
+def test_round_trip_with_arrays():
+    msg = m.decode_message(m.Observation, m.encode_message(observation()))
+    assert msg.group == 1 and msg.seq == 7
+    np.testing.assert_array_equal(msg.obs, np.ones((4, 3), np.float32))
+
+
+def test_stats_decode_with_plain_msgpack():
+    report = m.StatsReport(run="r", service="sim", instance=0, time=2.0, seq=0, metrics={"sim/env_steps": 3.0})
+    raw = msgpack.unpackb(m.encode_message(report))
+    assert raw["metrics"] == {"sim/env_steps": 3.0} and raw["v"] == m.SCHEMA_VERSION
+    jsonschema.validate(raw, m.json_schema(m.StatsReport))
+
+
+@pytest.mark.parametrize(
+    "mutate, error",
+    [
+        (lambda w: w.update(obs=np.ones((4, 3), np.float64)), "dtype float64"),
+        (lambda w: w.pop("seq"), "missing field 'seq'"),
+        (lambda w: w.update(extra=1), "unknown fields"),
+        (lambda w: w.update(v=99), "schema version 99"),
+        (lambda w: w.update(group="one"), "expected an integer"),
+        (lambda w: w.update(env_ids=[0, 1]), "expected an array"),
+        (lambda w: w.update(sent_at=True), "expected a number"),
+    ],
+)
+def test_invalid_messages_are_rejected_with_the_field(mutate, error):
+    wire = m.to_wire(observation())
+    mutate(wire)
+    with pytest.raises(m.MessageError, match=error):
+        m.decode_message(m.Observation, codec.encode(wire))
+
+
+def test_garbage_is_a_message_error():
+    with pytest.raises(m.MessageError):
+        m.decode_message(m.Span, b"\x00\x01garbage")
+
+
+def test_literal_and_optional_fields():
+    seg_end = m.Quota(version=1, threads=None)
+    assert m.decode_message(m.Quota, m.encode_message(seg_end)).threads is None
+    wire = m.to_wire(m.Stop(reason="x"))
+    wire["reason"] = 5
+    with pytest.raises(m.MessageError):
+        m.from_wire(m.Stop, wire)
+
+
+def test_schemas_directory_is_up_to_date(tmp_path):
+    m.write_schemas(str(tmp_path))
+    for cls in m.MESSAGES:
+        fresh = json.loads((tmp_path / f"{cls.__name__}.json").read_text())
+        committed_path = ROOT / "schemas" / f"{cls.__name__}.json"
+        assert committed_path.exists(), f"schemas/{cls.__name__}.json missing: run `make schemas`"
+        assert json.loads(committed_path.read_text()) == fresh, f"schemas/{cls.__name__}.json is stale: run `make schemas`"
+    extra = {p.stem for p in (ROOT / "schemas").glob("*.json")} - {c.__name__ for c in m.MESSAGES}
+    assert not extra, f"schemas/ has files for no message: {extra}"

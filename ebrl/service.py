@@ -53,6 +53,7 @@ class Service:
         self._counts_lock = threading.Lock()
         self._busy: collections.Counter[str] = collections.Counter()
         self._control_versions: dict[str, int] = {}
+        self._tasks: set[asyncio.Task] = set()
         self._stats_seq = 0
         self._proc = psutil.Process()
         self.started_at = time.time()
@@ -175,7 +176,7 @@ class Service:
                 except Exception as exc:
                     self.log.warning("control %s not applied: %s", key, exc)
 
-        asyncio.create_task(consume())
+        self._tasks.add(asyncio.create_task(consume()))  # keep a reference: the loop holds tasks weakly
 
     def _versioned(self, kind: str, msg: Any, apply: Any) -> None:
         if msg.version <= self._control_versions.get(kind, -1):

@@ -103,3 +103,10 @@ def test_quickstart_learns_to_the_stated_return(tmp_path):
     assert summary["target_reached"] is not None, out
     assert summary["target_reached"]["return"] >= 900
     assert summary["target_reached"]["wall_s"] < 600
+
+
+def test_a_service_that_fails_is_reported_and_the_run_stops(tmp_path):
+    proc, _ = ebrl_up(tmp_path / "runs", "run.name=broken", "env.id=NoSuchEnv-v9")
+    out, _ = proc.communicate(timeout=120)
+    assert proc.returncode == 1
+    assert "exited with status" in out and "NoSuchEnv-v9" in out  # the dead service's last log lines

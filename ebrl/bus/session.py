@@ -80,6 +80,7 @@ class Bus:
         self._sender.start()
         self._closed = False
         self._declared: list[Any] = []
+        self._tasks: set[asyncio.Future] = set()
 
     # --- publishing -------------------------------------------------------------
 
@@ -195,7 +196,7 @@ class Bus:
                 finally:
                     query.drop()
 
-            self._call_soon(lambda: asyncio.ensure_future(respond()))
+            self._call_soon(self._start_task, respond())
 
         queryable = self.session.declare_queryable(key, callback)
         self._declared.append(queryable)
@@ -214,6 +215,11 @@ class Bus:
         return await self.loop.run_in_executor(None, run)
 
     # --- lifecycle --------------------------------------------------------------
+
+    def _start_task(self, coro: Awaitable[None]) -> None:
+        task = asyncio.ensure_future(coro)
+        self._tasks.add(task)  # the loop holds tasks weakly
+        task.add_done_callback(self._tasks.discard)
 
     def _call_soon(self, fn: Callable[..., Any], *args: Any) -> None:
         try:

@@ -1,0 +1,41 @@
+"""Env adapter and worker processes: ids in module:EnvId form, chunks, auto-reset, clear errors."""
+
+import asyncio
+
+import numpy as np
+import pytest
+
+from ebrl.envs import EnvSpec, EnvWorker, make_env, spaces
+from ebrl.envs.gym import EnvError
+
+
+def test_module_colon_id_imports_the_users_module():
+    obs_space, act_space = spaces(EnvSpec("user_envs:ShortPendulum-v0"))
+    assert obs_space.shape == (4,) and act_space.shape == (1,)
+
+
+def test_unknown_env_is_a_clear_error():
+    with pytest.raises(EnvError, match="NoSuchEnv-v9"):
+        make_env(EnvSpec("NoSuchEnv-v9"))
+    with pytest.raises(EnvError, match="no_such_module"):
+        make_env(EnvSpec("no_such_module:Env-v0"))
+
+
+def test_worker_runs_chunks_and_resets_at_episode_end():
+    async def scenario():
+        worker = EnvWorker(EnvSpec("user_envs:ShortPendulum-v0"), seed=3)
+        try:
+            obs = await worker.reset()
+            assert obs.shape == (4,) and obs.dtype == np.float32
+            first = await worker.chunk(np.zeros((4, 1), np.float32))
+            assert first.steps == 4 and first.reward == 4.0 and not (first.terminated or first.truncated)
+            second = await worker.chunk(np.zeros((4, 1), np.float32))
+            third = await worker.chunk(np.zeros((4, 1), np.float32))  # the 10-step limit falls inside it
+            assert second.steps == 4 and third.steps == 2 and third.truncated
+            assert third.episode_return == 10.0 and third.episode_length == 10
+            assert not np.array_equal(third.final_obs, third.next_obs)  # next_obs is after the reset
+        finally:
+            worker.close()
+        assert not worker.proc.is_alive()
+
+    asyncio.run(scenario())

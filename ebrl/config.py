@@ -10,11 +10,11 @@ from __future__ import annotations
 import dataclasses
 import difflib
 import tomllib
-import types
 import typing
 from dataclasses import dataclass, field
-from typing import Any, Literal, get_args, get_origin
+from typing import Any, Literal
 
+from ebrl import typecheck
 from ebrl.bus import keys
 
 
@@ -187,46 +187,7 @@ def _section(name: str, cls: type, values: dict[str, Any]) -> Any:
             close = difflib.get_close_matches(key, sorted(known), n=1)
             hint = f" (did you mean {name}.{close[0]}?)" if close else ""
             raise ConfigError(f"unknown key {name}.{key}{hint}; known keys of [{name}]: {', '.join(sorted(known))}")
-    return cls(**{key: _typed(f"{name}.{key}", value, hints[key]) for key, value in values.items()})
-
-
-def _typed(path: str, value: Any, tp: Any) -> Any:
-    origin = get_origin(tp)
-    if origin is types.UnionType:  # `X | None`: TOML has no null, so None means "absent"
-        (inner,) = [a for a in get_args(tp) if a is not type(None)]
-        return None if value is None else _typed(path, value, inner)
-    if origin is Literal:
-        if value not in get_args(tp):
-            raise ConfigError(f"{path} = {value!r}: expected one of {', '.join(map(repr, get_args(tp)))}")
-        return value
-    if origin is list:
-        if not isinstance(value, list):
-            raise ConfigError(f"{path}: expected a list, got {_name(value)} {value!r}")
-        (item,) = get_args(tp)
-        return [_typed(f"{path}[{i}]", v, item) for i, v in enumerate(value)]
-    if origin is dict:
-        if not isinstance(value, dict):
-            raise ConfigError(f"{path}: expected a table, got {_name(value)} {value!r}")
-        return dict(value)
-    if tp is float:
-        if isinstance(value, bool) or not isinstance(value, (int, float)):
-            raise ConfigError(f"{path}: expected a number, got {_name(value)} {value!r}")
-        return float(value)
-    if tp is int:
-        if isinstance(value, bool) or not isinstance(value, int):
-            raise ConfigError(f"{path}: expected an integer, got {_name(value)} {value!r}")
-        return value
-    if tp in (str, bool):
-        if not isinstance(value, tp):
-            raise ConfigError(f"{path}: expected {'a string' if tp is str else 'true or false'}, got {_name(value)} {value!r}")
-        return value
-    raise TypeError(f"{path}: unsupported config type {tp!r}")
-
-
-def _name(value: Any) -> str:
-    return {str: "string", int: "integer", float: "number", bool: "boolean", list: "list", dict: "table"}.get(
-        type(value), type(value).__name__
-    )
+    return cls(**{key: typecheck.check(value, hints[key], f"{name}.{key}", ConfigError) for key, value in values.items()})
 
 
 def _check_semantics(cfg: Config) -> None:

@@ -19,6 +19,8 @@ from typing import Annotated, Any, Literal, TypeVar, get_args, get_origin
 import numpy as np
 
 from ebrl.bus import codec
+from ebrl import typecheck
+from ebrl.typecheck import Array
 
 SCHEMA_VERSION = 1
 
@@ -27,14 +29,6 @@ T = TypeVar("T")
 
 class MessageError(ValueError):
     """A payload that is not a valid message of the expected type."""
-
-
-@dataclass(frozen=True)
-class Array:
-    """Annotation for a numpy array field: dtype kind and number of dimensions."""
-
-    dtype: str | None = None  # e.g. "float32"; None accepts any numeric dtype
-    ndim: int | None = None  # None accepts any rank
 
 
 def doc(text: str, **kw: Any) -> Any:
@@ -210,7 +204,7 @@ def from_wire(cls: type[T], raw: Any) -> T:
     values = {}
     for f in dataclasses.fields(cls):
         if f.name in raw:
-            values[f.name] = _check(raw[f.name], hints[f.name], f"{cls.__name__}.{f.name}")
+            values[f.name] = typecheck.check(raw[f.name], hints[f.name], f"{cls.__name__}.{f.name}", MessageError)
         elif f.default is dataclasses.MISSING:
             raise MessageError(f"{cls.__name__}: missing field {f.name!r}")
     unknown = set(raw) - set(hints) - {"v"}
@@ -226,68 +220,6 @@ def _hints(cls: type) -> dict[str, Any]:
     if cls not in _HINTS:
         _HINTS[cls] = typing.get_type_hints(cls, include_extras=True)
     return _HINTS[cls]
-
-
-def _check(value: Any, tp: Any, path: str) -> Any:
-    origin = get_origin(tp)
-    if origin is Annotated:
-        base, *extra = get_args(tp)
-        spec = next((e for e in extra if isinstance(e, Array)), None)
-        if spec is not None:
-            return _check_array(value, spec, path)
-        return _check(value, base, path)
-    if origin in (types.UnionType, typing.Union):
-        options = get_args(tp)
-        if value is None and type(None) in options:
-            return None
-        errors = []
-        for option in options:
-            if option is type(None):
-                continue
-            try:
-                return _check(value, option, path)
-            except MessageError as exc:
-                errors.append(str(exc))
-        raise MessageError("; ".join(errors))
-    if origin is Literal:
-        if value not in get_args(tp):
-            raise MessageError(f"{path}: {value!r} is not one of {list(get_args(tp))}")
-        return value
-    if origin is list:
-        if not isinstance(value, list):
-            raise MessageError(f"{path}: expected a list, got {type(value).__name__}")
-        (item,) = get_args(tp)
-        return [_check(v, item, f"{path}[{i}]") for i, v in enumerate(value)]
-    if origin is dict:
-        if not isinstance(value, dict):
-            raise MessageError(f"{path}: expected a map, got {type(value).__name__}")
-        key_tp, item = get_args(tp)
-        return {_check(k, key_tp, f"{path} key"): _check(v, item, f"{path}[{k!r}]") for k, v in value.items()}
-    if tp is float:
-        if isinstance(value, bool) or not isinstance(value, (int, float)):
-            raise MessageError(f"{path}: expected a number, got {type(value).__name__}")
-        return float(value)
-    if tp is int:
-        if isinstance(value, bool) or not isinstance(value, int):
-            raise MessageError(f"{path}: expected an integer, got {type(value).__name__}")
-        return value
-    if tp is bool or tp is str:
-        if not isinstance(value, tp):
-            raise MessageError(f"{path}: expected {tp.__name__}, got {type(value).__name__}")
-        return value
-    raise TypeError(f"{path}: unsupported field type {tp!r}")  # a bug in this module, not bad input
-
-
-def _check_array(value: Any, spec: Array, path: str) -> np.ndarray:
-    if not isinstance(value, np.ndarray):
-        raise MessageError(f"{path}: expected an array, got {type(value).__name__}")
-    if spec.dtype is not None and value.dtype != np.dtype(spec.dtype):
-        raise MessageError(f"{path}: dtype {value.dtype}, expected {spec.dtype}")
-    if spec.dtype is None and value.dtype.kind not in "biuf":
-        raise MessageError(f"{path}: dtype {value.dtype} is not numeric")
-    if spec.ndim is not None and value.ndim != spec.ndim:
-        raise MessageError(f"{path}: {value.ndim} dimensions, expected {spec.ndim}")
-    return value
 
 
 # --- JSON Schema ------------------------------------------------------------------------

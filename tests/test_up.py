@@ -1,7 +1,6 @@
 """End to end: real `ebrl up` runs on loopback (services are separate processes talking over Zenoh)."""
 
 import json
-import os
 import pathlib
 import signal
 import subprocess

@@ -31,7 +31,10 @@ def doc(text: str, default: Any = dataclasses.MISSING, factory: Any = dataclasse
 @dataclass
 class RunSection:
     name: str = doc("run name; part of every bus key, so two runs never see each other", "quickstart")
-    mode: Literal["ebrl"] = doc("execution mode (the baseline modes arrive with the scheduler)", "ebrl")
+    mode: Literal["ebrl", "colocated", "hybrid", "async"] = doc(
+        "ebrl: every mechanism; colocated: all envs step together, then train; hybrid: sim/gen pipelined "
+        "across groups, barrier before training; async: rollout and training overlap on disjoint cores, "
+        "batch-synchronous stepping", "ebrl")
     iterations: int = doc("training updates (policy versions) after which the run ends; 0 runs until Ctrl-C", 100)
     target_return: float | None = doc(
         "end the run early once the mean return of the last 20 episodes reaches this; absent: never", None)
@@ -55,17 +58,30 @@ class BusSection:
 
 @dataclass
 class EnvSection:
-    backend: Literal["gymnasium"] = doc("simulator adapter", "gymnasium")
-    id: str = doc("environment id, e.g. InvertedPendulum-v5 or my_pkg.envs:MyEnv-v0", "InvertedPendulum-v5")
+    backend: Literal["gymnasium", "robosuite"] = doc("simulator adapter", "gymnasium")
+    id: str = doc("environment id: a gymnasium id (InvertedPendulum-v5, my_pkg.envs:MyEnv-v0) or a robosuite "
+                  "task (Lift)", "InvertedPendulum-v5")
     max_episode_steps: int = doc("time limit in env steps; 0 keeps the environment's own", 0)
     kwargs: dict[str, Any] = doc("extra keyword arguments for the environment constructor", factory=dict)
+    latency: Literal["none", "lognormal"] = doc(
+        "add a synthetic step latency (CPU busy-wait) drawn from this distribution, for scheduler experiments", "none")
+    latency_mean_ms: float = doc("mean of the added step latency in milliseconds", 16.0)
+    latency_sigma: float = doc("sigma of the lognormal step latency (0.3: mild tail, 0.8: heavy tail)", 0.3)
 
 
 @dataclass
 class SimSection:
     groups: int = doc("environment groups; each publishes its observations on its own key", 2)
     envs_per_group: int = doc("environments per group (one worker process each)", 4)
-    cores: list[int] = doc("CPU cores for env workers (pinned round-robin); empty: no pinning", factory=list)
+    cores: list[int] = doc("CPU cores of the simulation budget; empty: every core this process may use", factory=list)
+    stepping: Literal["async", "batch"] | None = doc(
+        "async: each env steps through its chunk on its own; batch: all envs of a group step, then a barrier; "
+        "absent: the mode's choice", None)
+    core_rebinding: bool | None = doc(
+        "greedy core rebinding of single steps onto free cores (async stepping); false pins each env worker to "
+        "one core; absent: the mode's choice", None)
+    group_pipeline: bool | None = doc(
+        "pipeline groups through generation; false makes all envs one group; absent: the mode's choice", None)
     segment_length: int = doc("chunk decisions per trajectory segment sent to training", 32)
 
 
@@ -80,12 +96,18 @@ class PolicySection:
 @dataclass
 class GenSection:
     max_batch_groups: int = doc("most groups served by one forward pass; 0 means all groups", 0)
+    cores: list[int] = doc("cores for the generation process; empty: the mode's choice", factory=list)
     threads: int = doc("torch threads of the generation process", 1)
 
 
 @dataclass
 class AlgoSection:
     name: Literal["ppo"] = doc("learning algorithm", "ppo")
+    max_staleness: int = doc("most policy versions between the weights that act and the update that learns, "
+                             "when rollout and training overlap", 1)
+    decoupled: bool = doc("decoupled PPO for stale data: clip around the proximal policy, weight by "
+                          "pi_prox / pi_behave", True)
+    behave_weight_cap: float = doc("upper bound of the pi_prox / pi_behave weight", 5.0)
     gamma: float = doc("discount per env step (a chunk of k steps is discounted by gamma**k)", 0.99)
     gae_lambda: float = doc("GAE lambda", 0.95)
     clip: float = doc("PPO ratio clip", 0.2)
@@ -103,6 +125,9 @@ class TrainSection:
     device: str = doc("torch device", "cpu")
     threads: int = doc("torch threads of the training process", 1)
     max_pending: int = doc("most chunk decisions buffered while an update runs; beyond it the oldest are dropped (counted)", 8192)
+    overlap: bool | None = doc("train while rollout goes on (bounded by algo.max_staleness); false restores the "
+                               "rollout -> train barrier; absent: the mode's choice", None)
+    cores: list[int] = doc("cores for the training process; empty: the mode's choice", factory=list)
 
 
 SECTIONS: dict[str, type] = {
@@ -131,6 +156,11 @@ class Config:
     @property
     def num_envs(self) -> int:
         return self.sim.groups * self.sim.envs_per_group
+
+    @property
+    def rollout_length(self) -> int:
+        """Chunk decisions of each env per iteration (one policy update consumes one iteration)."""
+        return self.train.batch_size // self.num_envs
 
     def to_dict(self) -> dict[str, dict[str, Any]]:
         return dataclasses.asdict(self)
@@ -210,6 +240,12 @@ def _check_semantics(cfg: Config) -> None:
         raise ConfigError(f"algo.gamma = {cfg.algo.gamma}: must be in (0, 1]")
     if not cfg.bus.listen and not cfg.bus.connect:
         raise ConfigError("bus.listen and bus.connect are both empty: services could not find each other")
+    if cfg.train.batch_size % cfg.num_envs:
+        raise ConfigError(f"train.batch_size = {cfg.train.batch_size}: must be a multiple of the number of envs "
+                          f"(sim.groups x sim.envs_per_group = {cfg.num_envs}); each env runs batch_size / envs "
+                          "decisions per iteration")
+    if cfg.algo.max_staleness < 0:
+        raise ConfigError(f"algo.max_staleness = {cfg.algo.max_staleness}: must be >= 0")
     if cfg.train.max_pending < cfg.train.batch_size:
         raise ConfigError(f"train.max_pending = {cfg.train.max_pending}: must be >= train.batch_size ({cfg.train.batch_size})")
 

@@ -1,0 +1,88 @@
+"""Execution modes (shared/DESIGN.md section 4): one function turns ``run.mode`` plus the ablation
+switches into the concrete schedule every service follows.
+
+| mode      | group pipeline | stepping              | rollout/train overlap | cores                      |
+|-----------|----------------|-----------------------|-----------------------|----------------------------|
+| ebrl      | yes            | async + core rebinding| yes (max_staleness)   | shared                     |
+| colocated | no (one batch) | batch (barrier/step)  | no                    | shared                     |
+| hybrid    | yes            | batch                 | no                    | shared                     |
+| async     | no (one batch) | batch                 | yes (max_staleness)   | rollout and train disjoint |
+
+An explicit ``sim.stepping``, ``sim.core_rebinding``, ``sim.group_pipeline`` or
+``train.overlap`` overrides the mode's choice (the ablations).
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass
+from typing import Any
+
+PRESETS: dict[str, dict[str, Any]] = {
+    "ebrl": dict(group_pipeline=True, stepping="async", core_rebinding=True, overlap=True, disjoint=False),
+    "colocated": dict(group_pipeline=False, stepping="batch", core_rebinding=False, overlap=False, disjoint=False),
+    "hybrid": dict(group_pipeline=True, stepping="batch", core_rebinding=False, overlap=False, disjoint=False),
+    "async": dict(group_pipeline=False, stepping="batch", core_rebinding=False, overlap=True, disjoint=True),
+}
+
+
+@dataclass(frozen=True)
+class Schedule:
+    mode: str
+    groups: int  # groups as scheduled (1 when group pipelining is off)
+    envs_per_group: int
+    stepping: str  # "async" | "batch"
+    core_rebinding: bool
+    overlap: bool
+    max_staleness: int  # 0 when overlap is off: every decision of iteration i comes from policy version i
+    rollout_length: int  # decisions per env per iteration
+    sim_cores: list[int]
+    gen_cores: list[int]  # empty: not pinned
+    train_cores: list[int]  # empty: not pinned
+
+    def iteration_of(self, seq: int) -> int:
+        """The iteration a group's chunk ``seq`` belongs to."""
+        return seq // self.rollout_length
+
+    def min_version(self, seq: int) -> int:
+        """Oldest policy version allowed to answer chunk ``seq``: iteration i may be acted by version
+        i - max_staleness or newer, so the update that learns from it is at most max_staleness ahead."""
+        return self.iteration_of(seq) - self.max_staleness
+
+
+def available_cores() -> list[int]:
+    return sorted(os.sched_getaffinity(0))
+
+
+def resolve(cfg: Any, cores: list[int] | None = None) -> Schedule:
+    """The schedule of ``cfg`` on a machine whose usable cores are ``cores`` (default: this process's)."""
+    preset = PRESETS[cfg.run.mode]
+    cores = list(cores) if cores is not None else available_cores()
+
+    def pick(value: Any, name: str) -> Any:
+        return preset[name] if value is None else value
+
+    group_pipeline = pick(cfg.sim.group_pipeline, "group_pipeline")
+    stepping = pick(cfg.sim.stepping, "stepping")
+    core_rebinding = pick(cfg.sim.core_rebinding, "core_rebinding") and stepping == "async"
+    overlap = pick(cfg.train.overlap, "overlap")
+    sim_cores, gen_cores, train_cores = list(cfg.sim.cores), list(cfg.gen.cores), list(cfg.train.cores)
+    if preset["disjoint"] and not (sim_cores or gen_cores or train_cores):
+        # Async disaggregated systems give rollout and training separate hardware: split the cores.
+        half = max(1, len(cores) // 2)
+        rollout, train = (cores[:half], cores[half:]) if len(cores) > 1 else (cores, cores)
+        sim_cores, gen_cores, train_cores = rollout, rollout, train
+    groups = cfg.sim.groups if group_pipeline else 1
+    return Schedule(
+        mode=cfg.run.mode,
+        groups=groups,
+        envs_per_group=cfg.num_envs // groups,
+        stepping=stepping,
+        core_rebinding=core_rebinding,
+        overlap=overlap,
+        max_staleness=cfg.algo.max_staleness if overlap else 0,
+        rollout_length=cfg.rollout_length,
+        sim_cores=sim_cores or cores,
+        gen_cores=gen_cores,
+        train_cores=train_cores,
+    )

@@ -1,0 +1,147 @@
+"""How a group executes one action chunk on its env workers: three stepping policies.
+
+* :class:`IndependentStepping` — every env runs its whole chunk on its own
+  (statically pinned) worker; no barrier between envs.
+* :class:`BatchStepping` — all envs of the group take step k, then a barrier,
+  then step k+1 (vectorised-env stepping, what RLinf and gymnasium vector envs do).
+* :class:`RebindingStepping` — step-level asynchrony with greedy core rebinding
+  across all groups (:mod:`ebrl.sched.rebind`): one step at a time is bound to a
+  free core of the simulation budget, longest-latency ready env first.
+
+Each returns, per env, the merged :class:`ChunkResult` and the env's chunk
+latency (chunk start to the env's last step).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import time
+from typing import Protocol, Sequence
+
+import numpy as np
+
+from ebrl.envs.worker import ChunkResult, EnvWorker
+from ebrl.sched.rebind import CoreRebinding
+
+
+def merge(results: Sequence[ChunkResult]) -> ChunkResult:
+    """Combine consecutive single-step results of one env into one chunk result."""
+    last = results[-1]
+    return ChunkResult(
+        reward=float(sum(r.reward for r in results)),
+        steps=int(sum(r.steps for r in results)),
+        terminated=last.terminated,
+        truncated=last.truncated,
+        final_obs=last.final_obs,
+        next_obs=last.next_obs,
+        episode_return=last.episode_return,
+        episode_length=last.episode_length,
+    )
+
+
+class Stepping(Protocol):
+    async def run_chunk(self, workers: Sequence[EnvWorker],
+                        actions: np.ndarray) -> tuple[list[ChunkResult], list[float]]: ...
+
+
+class IndependentStepping:
+    async def run_chunk(self, workers, actions):
+        start = time.perf_counter()
+        latencies = [0.0] * len(workers)
+
+        async def one(i: int) -> ChunkResult:
+            result = await workers[i].chunk(actions[i])
+            latencies[i] = time.perf_counter() - start
+            return result
+
+        results = await asyncio.gather(*(one(i) for i in range(len(workers))))
+        return list(results), latencies
+
+
+class BatchStepping:
+    async def run_chunk(self, workers, actions):
+        start = time.perf_counter()
+        steps: list[list[ChunkResult]] = [[] for _ in workers]
+        latencies = [0.0] * len(workers)
+        active = list(range(len(workers)))
+        for k in range(actions.shape[1]):
+            if not active:
+                break
+            results = await asyncio.gather(*(workers[i].chunk(actions[i, k:k + 1]) for i in active))  # barrier
+            now = time.perf_counter()
+            still = []
+            for i, result in zip(active, results):
+                steps[i].append(result)
+                latencies[i] = now - start
+                if not (result.terminated or result.truncated):
+                    still.append(i)
+            active = still
+        return [merge(s) for s in steps], latencies
+
+
+class RebindingStepping:
+    """One instance serves every group of the sim service: the ready set spans all groups."""
+
+    def __init__(self, cores: list[int]):
+        self.sched = CoreRebinding(cores)
+        self.workers: dict[int, EnvWorker] = {}
+        self._env_by_worker: dict[int, int] = {}
+        self._actions: dict[int, np.ndarray] = {}
+        self._steps: dict[int, list[ChunkResult]] = {}
+        self._done: dict[int, asyncio.Future] = {}
+        self._tasks: set[asyncio.Task] = set()
+        self.core_busy: dict[int, float] = {c: 0.0 for c in cores}  # seconds of steps per core
+        self.rebinds = 0
+
+    def add(self, env: int, worker: EnvWorker) -> None:
+        self.workers[env] = worker
+        self._env_by_worker[id(worker)] = env
+        self.sched.add_env(env)
+
+    async def run_chunk(self, workers, actions):
+        loop = asyncio.get_running_loop()
+        start = time.perf_counter()
+        envs = [self._env_by_worker[id(w)] for w in workers]
+        futures = []
+        for env, chunk in zip(envs, actions):
+            self._actions[env] = chunk
+            self._steps[env] = []
+            self._done[env] = loop.create_future()
+            futures.append(self._done[env])
+            self.sched.submit_chunk(env, len(chunk))
+        self._pump()
+        finished = await asyncio.gather(*futures)
+        return [merge(self._steps.pop(env)) for env in envs], [t - start for t in finished]
+
+    def set_budget(self, cores: list[int]) -> None:
+        self.sched.set_budget(cores)
+        for core in cores:
+            self.core_busy.setdefault(core, 0.0)
+        self._pump()
+
+    def _pump(self) -> None:
+        for env, core in self.sched.dispatch():
+            task = asyncio.ensure_future(self._step(env, core))
+            self._tasks.add(task)
+            task.add_done_callback(self._tasks.discard)
+
+    async def _step(self, env: int, core: int) -> None:
+        worker = self.workers[env]
+        if worker.core != core:
+            worker.pin(core)
+            self.rebinds += 1
+        s = self.sched.envs[env].s
+        t0 = time.perf_counter()
+        try:
+            result = await worker.chunk(self._actions[env][s:s + 1])
+        except Exception as exc:
+            self.sched.complete(env, time.perf_counter() - t0, chunk_ended=True)
+            self._done[env].set_exception(exc)
+            self._pump()
+            return
+        latency = time.perf_counter() - t0
+        self.core_busy[core] = self.core_busy.get(core, 0.0) + latency
+        self._steps[env].append(result)
+        if self.sched.complete(env, latency, chunk_ended=result.terminated or result.truncated):
+            self._done[env].set_result(time.perf_counter())
+        self._pump()

@@ -1,9 +1,17 @@
-"""gen service: batches the groups whose observations are ready, answers each with an action chunk."""
+"""gen service: batches the groups whose observations are ready, answers each with an action chunk.
+
+Staleness bound: a group's chunk ``seq`` belongs to iteration ``seq // rollout_length``;
+it is answered only by a policy version at least ``iteration - max_staleness``
+(``Schedule.min_version``). Observations that would need a newer policy wait
+here — back-pressure on their group, never an unbounded buffer (one observation
+per group at most).
+"""
 
 from __future__ import annotations
 
 import asyncio
 import concurrent.futures
+import os
 import time
 
 import numpy as np
@@ -13,6 +21,7 @@ from ebrl.bus import keys
 from ebrl.envs import EnvSpec, spaces
 from ebrl.messages import ActionChunk, MessageError, Observation, Weights, decode_message
 from ebrl.policies import load_arrays, make_policy
+from ebrl.sched.modes import resolve
 from ebrl.service import Service, service_main
 
 
@@ -21,40 +30,57 @@ class GenService(Service):
 
     async def setup(self) -> None:
         cfg = self.cfg
+        self.schedule = resolve(cfg)
+        if self.schedule.gen_cores:
+            os.sched_setaffinity(0, self.schedule.gen_cores)
         torch.set_num_threads(cfg.gen.threads)
         obs_space, act_space = await asyncio.get_running_loop().run_in_executor(
             None, spaces, EnvSpec.from_config(cfg.env))
         self.policy = make_policy(cfg.policy, obs_space.shape, act_space.shape[0])
         self.policy.eval()
         self.version = -1
-        self.max_groups = cfg.gen.max_batch_groups or cfg.sim.groups
+        self.max_groups = cfg.gen.max_batch_groups or self.schedule.groups
+        self.waiting: list[Observation] = []  # observations whose iteration needs a newer policy
         # Forward passes run on one dedicated thread, never on the event loop.
         self.pool = concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix="gen-forward")
-        self.obs = self.bus.subscribe(keys.obs(self.run_name), Observation, capacity=4 * cfg.sim.groups)
-        self.weights = self.bus.subscribe(keys.weights(self.run_name), Weights, policy="latest", capacity=1)
+        self.wake = asyncio.Event()
+        self.obs = self.bus.subscribe(keys.obs(self.run_name), Observation, capacity=4 * self.schedule.groups,
+                                      notify=self.wake)
+        self.weights = self.bus.subscribe(keys.weights(self.run_name), Weights, policy="latest", capacity=1,
+                                          notify=self.wake)
 
     async def run(self) -> None:
         await self.initial_weights()
         while True:
-            first = await self.obs.next()
-            batch = [first[1]] + [m for _, m in self.obs.drain(self.max_groups - 1)]
+            self.wake.clear()
             self.apply_latest_weights()
-            obs = np.concatenate([m.obs for m in batch])
-            start = time.time()
-            actions, logprobs, values = await asyncio.get_running_loop().run_in_executor(
-                self.pool, self.policy.act, obs)
-            self.publish_span("gen", "forward", start, time.time())
-            row = 0
-            for m in batch:
-                n = len(m.env_ids)
-                chunk = ActionChunk(group=m.group, seq=m.seq, policy_version=self.version,
-                                    actions=actions[row:row + n], logprobs=logprobs[row:row + n],
-                                    values=values[row:row + n])
-                await self.bus.put(keys.act(self.run_name, m.group), chunk, express=True)
-                row += n
-            self.count("gen/batches")
-            self.count("gen/groups_served", len(batch))
-            self.count("gen/envs_served", row)
+            self.waiting.extend(m for _, m in self.obs.drain())
+            batch = [m for m in self.waiting if self.version >= self.schedule.min_version(m.seq)][:self.max_groups]
+            if not batch:
+                if self.waiting:
+                    self.count("gen/throttled")
+                await self.wake.wait()  # new observations or new weights
+                continue
+            self.waiting = [m for m in self.waiting if all(m is not b for b in batch)]
+            await self.serve(batch)
+
+    async def serve(self, batch: list[Observation]) -> None:
+        obs = np.concatenate([m.obs for m in batch])
+        start = time.time()
+        actions, logprobs, values = await asyncio.get_running_loop().run_in_executor(
+            self.pool, self.policy.act, obs)
+        self.publish_span("gen", "forward", start, time.time())
+        row = 0
+        for m in batch:
+            n = len(m.env_ids)
+            chunk = ActionChunk(group=m.group, seq=m.seq, policy_version=self.version,
+                                actions=actions[row:row + n], logprobs=logprobs[row:row + n],
+                                values=values[row:row + n])
+            await self.bus.put(keys.act(self.run_name, m.group), chunk, express=True)
+            row += n
+        self.count("gen/batches")
+        self.count("gen/groups_served", len(batch))
+        self.count("gen/envs_served", row)
 
     async def initial_weights(self) -> None:
         """Ask train for its latest weights (request-reply), retrying until it answers."""
@@ -71,6 +97,7 @@ class GenService(Service):
                 await asyncio.sleep(0.2)
 
     def apply_latest_weights(self) -> None:
+        """Swap to the newest weights that arrived (between batches only)."""
         latest = self.weights.drain()
         if latest and latest[-1][1].version > self.version:
             self.load(latest[-1][1])
@@ -81,7 +108,8 @@ class GenService(Service):
         self.count("gen/weights_applied")
 
     def metrics(self) -> dict[str, float]:
-        return {"gen/policy_version": float(self.version), "gen/obs_queue": float(len(self.obs))}
+        return {"gen/policy_version": float(self.version), "gen/obs_queue": float(len(self.obs)),
+                "gen/obs_waiting_for_policy": float(len(self.waiting))}
 
     async def teardown(self) -> None:
         self.pool.shutdown(wait=False, cancel_futures=True)

@@ -4,14 +4,18 @@ from __future__ import annotations
 
 import asyncio
 import collections
+import os
 import time
 
 import numpy as np
+import psutil
 
 from ebrl.bus import keys
 from ebrl.envs import EnvSpec, EnvWorker, spaces
 from ebrl.messages import ActionChunk, Observation
+from ebrl.sched.modes import resolve
 from ebrl.sched.rollout import SegmentBuilder
+from ebrl.sched.stepping import BatchStepping, IndependentStepping, RebindingStepping
 from ebrl.service import Service, service_main
 
 # A group whose observation got no answer for this long publishes it again (a
@@ -24,29 +28,45 @@ class SimService(Service):
 
     async def setup(self) -> None:
         cfg = self.cfg
+        self.schedule = sched = resolve(cfg)
         spec = EnvSpec.from_config(cfg.env)
         await asyncio.get_running_loop().run_in_executor(None, spaces, spec)  # clear error before spawning
-        self.groups = list(range(cfg.sim.groups))
-        per = cfg.sim.envs_per_group
-        cores = cfg.sim.cores
+        if sched.mode == "async":
+            os.sched_setaffinity(0, sched.sim_cores)  # rollout's share of the machine
+        if sched.core_rebinding:
+            self.stepping = RebindingStepping(sched.sim_cores, on_step=self._on_core_step)
+        else:
+            self.stepping = IndependentStepping() if sched.stepping == "async" else BatchStepping()
+        self.groups = list(range(sched.groups))
+        per = sched.envs_per_group
         self.workers: dict[int, list[EnvWorker]] = {}
         for g in self.groups:
-            self.workers[g] = [
-                EnvWorker(spec, seed=cfg.run.seed * 100_003 + g * per + i,
-                          core=cores[(g * per + i) % len(cores)] if cores else None)
-                for i in range(per)
-            ]
+            self.workers[g] = []
+            for i in range(per):
+                env = g * per + i
+                # Static pinning round-robin over the simulation cores, unless steps are rebound one by one.
+                core = None if sched.core_rebinding else sched.sim_cores[env % len(sched.sim_cores)]
+                worker = EnvWorker(spec, seed=cfg.run.seed * 100_003 + env, core=core)
+                self.workers[g].append(worker)
+                if sched.core_rebinding:
+                    self.stepping.add(env, worker)
         self.actions = {g: self.bus.subscribe(keys.act(self.run_name, g), ActionChunk, capacity=4)
                         for g in self.groups}
         self.returns: collections.deque[float] = collections.deque(maxlen=20)
-        self.chunk_latency: collections.deque[float] = collections.deque(maxlen=200)
+        self.successes: collections.deque[bool] = collections.deque(maxlen=20)
+        self.chunk_latency: collections.deque[float] = collections.deque(maxlen=1000)  # per env and chunk
         self.peers_live: set[str] = set()
         self.bus.watch_liveliness(keys.live_all(self.run_name), self._on_liveliness)
+        psutil.cpu_percent(percpu=True)
+        self.log.info("schedule: %s", sched)
 
     def _on_liveliness(self, key: str, alive: bool) -> None:
         (self.peers_live.add if alive else self.peers_live.discard)(key)
         if not alive and not self.stopping.is_set():
             self.log.warning("%s left the bus", key)
+
+    def _on_core_step(self, core: int, seconds: float) -> None:
+        self.count(f"sim/core{core}_busy_s", seconds)
 
     def _role_live(self, role: str) -> bool:
         return any(keys.parse(k)[3] == role for k in self.peers_live)
@@ -57,27 +77,30 @@ class SimService(Service):
         await asyncio.gather(*(self.run_group(g) for g in self.groups))
 
     async def run_group(self, g: int) -> None:
-        per = self.cfg.sim.envs_per_group
         workers = self.workers[g]
+        per = len(workers)
         env_ids = np.arange(g * per, (g + 1) * per, dtype=np.int64)
         builders = [SegmentBuilder(g, int(e), self.cfg.sim.segment_length) for e in env_ids]
         obs = np.stack(await asyncio.gather(*(w.reset() for w in workers)))
+        rollout_length = self.schedule.rollout_length
         seq = 0
         while True:
             chunk = await self.exchange(g, seq, env_ids, obs)
             start = time.time()
-            results = await asyncio.gather(*(w.chunk(chunk.actions[i]) for i, w in enumerate(workers)))
-            end = time.time()
-            self.publish_span(f"sim.g{g}", "chunk", start, end)
-            self.chunk_latency.append(end - start)
+            results, latencies = await self.stepping.run_chunk(workers, chunk.actions)
+            self.publish_span(f"sim.g{g}", "chunk", start, time.time())
+            self.chunk_latency.extend(latencies)
+            boundary = (seq + 1) % rollout_length == 0
             next_obs = np.empty_like(obs)
             for i, res in enumerate(results):
                 self.count("sim/env_steps", res.steps)
                 if res.episode_return is not None:
                     self.returns.append(res.episode_return)
                     self.count("sim/episodes")
+                if res.episode_success is not None:
+                    self.successes.append(res.episode_success)
                 segment = builders[i].add(obs[i], chunk.actions[i], float(chunk.logprobs[i]),
-                                          float(chunk.values[i]), chunk.policy_version, res)
+                                          float(chunk.values[i]), chunk.policy_version, res, boundary)
                 if segment is not None:
                     await self.bus.put(keys.traj(self.run_name, g), segment)
                     self.count("sim/segments")
@@ -108,15 +131,24 @@ class SimService(Service):
         out = {"sim/envs": float(sum(len(w) for w in self.workers.values()))}
         if self.returns:
             out["sim/episode_return_mean"] = float(np.mean(self.returns))
+        if self.successes:
+            out["sim/success_rate"] = float(np.mean(self.successes))
         if self.chunk_latency:
             lat = np.asarray(self.chunk_latency)
             out["sim/chunk_latency_avg_ms"] = float(lat.mean() * 1e3)
             out["sim/chunk_latency_p50_ms"] = float(np.percentile(lat, 50) * 1e3)
             out["sim/chunk_latency_p99_ms"] = float(np.percentile(lat, 99) * 1e3)
+        if isinstance(self.stepping, RebindingStepping):
+            out["sim/rebinds"] = float(self.stepping.rebinds)
+        for core, percent in enumerate(psutil.cpu_percent(percpu=True)):
+            out[f"cpu/core{core}_percent"] = percent
         return out
 
     def on_affinity(self, cores: list[int]) -> None:
-        super().on_affinity(cores)
+        """A new simulation core budget: rebinding uses it from the next step; static pinning re-pins."""
+        if isinstance(self.stepping, RebindingStepping):
+            self.stepping.set_budget(cores)
+            return
         flat = [w for g in self.groups for w in self.workers[g]]
         for i, worker in enumerate(flat):
             worker.pin(cores[i % len(cores)])

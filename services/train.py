@@ -3,8 +3,10 @@
 from __future__ import annotations
 
 import asyncio
+import dataclasses
 import collections
 import concurrent.futures
+import os
 import time
 
 import numpy as np
@@ -15,6 +17,7 @@ from ebrl.bus import keys
 from ebrl.envs import EnvSpec, spaces
 from ebrl.messages import TrajectorySegment, Weights, encode_message
 from ebrl.policies import make_policy, state_arrays
+from ebrl.sched.modes import resolve
 from ebrl.service import Service, service_main
 
 
@@ -23,6 +26,9 @@ class TrainService(Service):
 
     async def setup(self) -> None:
         cfg = self.cfg
+        self.schedule = resolve(cfg)
+        if self.schedule.train_cores:
+            os.sched_setaffinity(0, self.schedule.train_cores)
         torch.manual_seed(cfg.run.seed)
         torch.set_num_threads(cfg.train.threads)
         obs_space, act_space = await asyncio.get_running_loop().run_in_executor(
@@ -37,6 +43,7 @@ class TrainService(Service):
         self.enough = asyncio.Event()
         self.last: dict[str, float] = {}
         self.returns: collections.deque[float] = collections.deque(maxlen=20)
+        self.staleness_hist = np.zeros(self.schedule.max_staleness + 1, dtype=np.int64)  # decisions per lag
         self.pool = concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix="train-update")
         self.traj = self.bus.subscribe(keys.traj(self.run_name), TrajectorySegment, capacity=256)
         self.encoded_weights = self.encode_weights()
@@ -89,12 +96,21 @@ class TrainService(Service):
                 self.enough.set()
 
     def take_batch(self) -> list[TrajectorySegment]:
+        """Oldest segments first, until batch_size decisions. Decisions more than max_staleness versions
+        behind are dropped (counted): a stale prefix is cut off, which leaves the suffix's GAE exact."""
         segments, steps = [], 0
         while self.pending and steps < self.cfg.train.batch_size:
             seg = self.pending.popleft()
+            self.pending_steps -= len(seg.obs)
+            # Versions never decrease along a segment, so the fresh decisions are a suffix.
+            keep = int((self.version - seg.versions <= self.schedule.max_staleness).sum())
+            if keep < len(seg.obs):
+                self.count("train/stale_dropped", len(seg.obs) - keep)
+                if keep == 0:
+                    continue
+                seg = trim(seg, len(seg.obs) - keep)
             segments.append(seg)
             steps += len(seg.obs)
-        self.pending_steps -= steps
         if self.pending_steps < self.cfg.train.batch_size:
             self.enough.clear()
         return segments
@@ -103,6 +119,7 @@ class TrainService(Service):
         """One PPO update (runs on the update thread)."""
         batch = build_batch(segments, self.model, self.cfg.algo.gamma, self.cfg.algo.gae_lambda)
         staleness = self.version - batch.versions
+        self.staleness_hist += np.bincount(staleness, minlength=len(self.staleness_hist))[:len(self.staleness_hist)]
         out = self.ppo.update(batch)
         out.update(staleness_mean=float(staleness.mean()), staleness_max=float(staleness.max()),
                    batch_size=float(len(batch)))
@@ -121,10 +138,18 @@ class TrainService(Service):
                "train/traj_queue": float(len(self.traj)), **self.last}
         if self.returns:
             out["train/episode_return_mean"] = float(np.mean(self.returns))
+        for lag, n in enumerate(self.staleness_hist):
+            out[f"train/staleness_hist_{lag}"] = float(n)
         return out
 
     async def teardown(self) -> None:
         self.pool.shutdown(wait=True, cancel_futures=True)
+
+
+def trim(seg: TrajectorySegment, start: int) -> TrajectorySegment:
+    """The segment without its first ``start`` decisions."""
+    return dataclasses.replace(seg, **{name: getattr(seg, name)[start:] for name in
+                                       ("obs", "actions", "logprobs", "values", "rewards", "steps", "versions")})
 
 
 def main() -> None:

@@ -28,3 +28,48 @@ async def until(predicate, timeout: float = 10.0, what: str = "condition") -> No
         if time.monotonic() > deadline:
             raise AssertionError(f"timed out after {timeout} s waiting for {what}")
         await asyncio.sleep(0.02)
+
+
+ROOT = __import__("pathlib").Path(__file__).resolve().parent.parent
+
+
+def ebrl_up(out_dir, config: str, *overrides: str, port: int | None = None):
+    """Start a real `ebrl up` on a free loopback port; return (Popen with text stdout, port)."""
+    import json
+    import subprocess
+    import sys
+
+    port = port or free_port()
+    cmd = [sys.executable, "-m", "ebrl.cli", "up", str(ROOT / config), "--set", f"run.output_dir={json.dumps(str(out_dir))}",
+           "--set", f'bus.listen=["tcp/127.0.0.1:{port}"]', "--set", "run.stats_interval=0.5"]
+    for item in overrides:
+        cmd += ["--set", item]
+    proc = subprocess.Popen(cmd, cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    return proc, port
+
+
+def run_collecting_stats(out_dir, config: str, *overrides: str, run: str, timeout: float = 180):
+    """Run `ebrl up` to the end while collecting every stats report; return (returncode, output, stats)
+    with stats as {"<service>/<instance>": [metrics, ...]} in arrival order."""
+    import msgpack
+    import zenoh
+
+    proc, port = ebrl_up(out_dir, config, f"run.name={run}", *overrides)
+    conf = zenoh.Config()
+    conf.insert_json5("scouting/multicast/enabled", "false")
+    conf.insert_json5("connect/endpoints", f'["tcp/127.0.0.1:{port}"]')
+    seen: dict[str, list[dict]] = {}
+
+    def on_sample(sample) -> None:
+        key = str(sample.key_expr).split("/", 3)[3]
+        if not key.startswith("spans/"):
+            seen.setdefault(key, []).append(msgpack.unpackb(sample.payload.to_bytes())["metrics"])
+
+    with zenoh.open(conf) as session:
+        session.declare_subscriber(f"ebrl/stats/{run}/**", on_sample)
+        try:
+            out, _ = proc.communicate(timeout=timeout)
+        except Exception:
+            proc.kill()
+            raise
+    return proc.returncode, out, seen

@@ -10,20 +10,13 @@ import time
 import psutil
 import pytest
 
-from helpers import free_port
+import helpers
 
 ROOT = pathlib.Path(__file__).resolve().parent.parent
-QUICKSTART = str(ROOT / "configs" / "quickstart.toml")
 
 
 def ebrl_up(tmp_path, *overrides, port=None):
-    port = port or free_port()
-    cmd = [sys.executable, "-m", "ebrl.cli", "up", QUICKSTART, "--set", f"run.output_dir={json.dumps(str(tmp_path))}",
-           "--set", f'bus.listen=["tcp/127.0.0.1:{port}"]', "--set", "run.stats_interval=0.5"]
-    for item in overrides:
-        cmd += ["--set", item]
-    proc = subprocess.Popen(cmd, cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
-    return proc, port
+    return helpers.ebrl_up(tmp_path, "configs/quickstart.toml", *overrides, port=port)
 
 
 def run_dir(tmp_path) -> pathlib.Path:
@@ -48,25 +41,14 @@ def test_two_iterations_train_and_the_readme_subscriber_sees_stats(tmp_path):
 
 
 def test_weights_versions_advance_and_trajectories_flow(tmp_path):
-    import msgpack
-    import zenoh
-
-    proc, port = ebrl_up(tmp_path / "runs", "run.iterations=3", "run.name=flow")
-    conf = zenoh.Config()
-    conf.insert_json5("scouting/multicast/enabled", "false")
-    conf.insert_json5("connect/endpoints", f'["tcp/127.0.0.1:{port}"]')
-    seen: dict[str, list[dict]] = {}
-    with zenoh.open(conf) as session:
-        session.declare_subscriber("ebrl/stats/flow/*/*", lambda s: seen.setdefault(
-            str(s.key_expr), []).append(msgpack.unpackb(s.payload.to_bytes())["metrics"]))
-        out, _ = proc.communicate(timeout=120)
-    assert proc.returncode == 0, out
-    gen_versions = [m["gen/policy_version"] for m in seen["ebrl/stats/flow/gen/0"]]
+    code, out, seen = helpers.run_collecting_stats(tmp_path / "runs", "configs/quickstart.toml", "run.iterations=3",
+                                                   run="flow")
+    assert code == 0, out
+    gen_versions = [m["gen/policy_version"] for m in seen["gen/0"]]
     assert gen_versions == sorted(gen_versions) and gen_versions[-1] >= 2  # gen applied new weights
-    train = seen["ebrl/stats/flow/train/0"][-1]
+    train = seen["train/0"][-1]
     assert train["train/policy_version"] == 3 and train["train/segments_received"] > 0
-    assert train["train/staleness_max"] >= 0
-    sim = seen["ebrl/stats/flow/sim/0"][-1]
+    sim = seen["sim/0"][-1]
     assert sim["sim/segments"] >= train["train/segments_received"] > 0
     assert all(m.get("bus/malformed", 0) == 0 for ms in seen.values() for m in ms)
 

@@ -1,9 +1,18 @@
-"""PPO with GAE over chunk decisions (Schulman et al. 2017; CleanRL's ppo_continuous_action).
+"""PPO with GAE over chunk decisions (Schulman et al. 2017; CleanRL's ppo_continuous_action),
+with the decoupled objective for stale data (Hilton et al. 2022, "Batch size-invariance for policy
+optimization", eq. 2; as used by asynchronous RL systems such as AReaL).
 
 One decision is one action chunk of K env steps: its reward is the sum of the
 rewards of the steps it ran, and it is discounted by gamma**k for the k steps
 it took. Segments that ended by time limit or by segment length bootstrap from
 the value of ``last_obs``; terminated ones do not.
+
+Decoupled loss: with pi_behave the policy that acted, pi_prox the policy at the
+start of this update (log-probs recomputed once) and r = pi_theta / pi_prox,
+
+    L = -E[ w * min(r * A, clip(r, 1 - eps, 1 + eps) * A) ],   w = min(pi_prox / pi_behave, cap)
+
+On-policy data has pi_prox = pi_behave, w = 1: plain PPO.
 """
 
 from __future__ import annotations
@@ -85,17 +94,24 @@ class PPO:
         cfg, n = self.cfg, len(batch)
         minibatch = max(1, n // cfg.minibatches)
         stats: dict[str, list[float]] = {k: [] for k in ("policy_loss", "value_loss", "entropy", "approx_kl", "clipfrac")}
+        if getattr(cfg, "decoupled", False):
+            with torch.no_grad():
+                prox = self.model.evaluate(batch.obs, batch.actions)[0]  # log pi_prox, once per update
+            weight = (prox - batch.logprobs).exp().clamp(max=cfg.behave_weight_cap)
+        else:
+            prox, weight = batch.logprobs, torch.ones(n)
+        stats["behave_weight_mean"] = [weight.mean().item()]
         for _ in range(cfg.epochs):
             order = torch.randperm(n, generator=self.generator)
             for start in range(0, n, minibatch):
                 idx = order[start:start + minibatch]
                 newlogprob, entropy, newvalue = self.model.evaluate(batch.obs[idx], batch.actions[idx])
-                logratio = newlogprob - batch.logprobs[idx]
+                logratio = newlogprob - prox[idx]
                 ratio = logratio.exp()
                 adv = batch.advantages[idx]
                 if len(idx) > 1:
                     adv = (adv - adv.mean()) / (adv.std() + 1e-8)
-                pg_loss = torch.max(-adv * ratio, -adv * ratio.clamp(1 - cfg.clip, 1 + cfg.clip)).mean()
+                pg_loss = (weight[idx] * torch.max(-adv * ratio, -adv * ratio.clamp(1 - cfg.clip, 1 + cfg.clip))).mean()
                 v_loss = 0.5 * ((newvalue - batch.returns[idx]) ** 2).mean()
                 ent = entropy.mean()
                 loss = pg_loss - cfg.ent_coef * ent + cfg.vf_coef * v_loss

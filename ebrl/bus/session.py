@@ -147,9 +147,11 @@ class Bus:
         *,
         policy: Literal["block", "latest"] = "block",
         capacity: int = 64,
+        notify: asyncio.Event | None = None,
     ) -> "Subscription[T]":
-        """A bounded, typed async iterator of ``(key, message)`` for samples on ``key``."""
-        sub = Subscription(self, key, cls, policy, capacity)
+        """A bounded, typed async iterator of ``(key, message)`` for samples on ``key``.
+        ``notify`` is set too when a sample arrives, so one task can wait on several subscriptions."""
+        sub = Subscription(self, key, cls, policy, capacity, notify)
         self._declared.append(sub)
         return sub
 
@@ -246,7 +248,8 @@ class Bus:
 class Subscription(Generic[T]):
     """Bounded bridge from a Zenoh subscriber to the event loop (see module docstring)."""
 
-    def __init__(self, bus: Bus, key: str, cls: type[T], policy: str, capacity: int):
+    def __init__(self, bus: Bus, key: str, cls: type[T], policy: str, capacity: int,
+                 notify: asyncio.Event | None = None):
         if policy not in ("block", "latest"):
             raise ValueError(f"unknown queue policy {policy!r}")
         self.bus, self.key, self.cls, self.policy, self.capacity = bus, key, cls, policy, capacity
@@ -255,6 +258,7 @@ class Subscription(Generic[T]):
         self._items: collections.deque[tuple[str, T]] = collections.deque()
         self._cond = threading.Condition()
         self._ready = asyncio.Event()
+        self._notify = notify
         self._closed = False
         self._sub = bus.session.declare_subscriber(key, self._on_sample)
 
@@ -291,7 +295,12 @@ class Subscription(Generic[T]):
             self.received += 1
             was_empty = len(self._items) == 1
         if was_empty:
-            self.bus._call_soon(self._ready.set)
+            self.bus._call_soon(self._signal)
+
+    def _signal(self) -> None:
+        self._ready.set()
+        if self._notify is not None:
+            self._notify.set()
 
     def drain(self, limit: int | None = None) -> list[tuple[str, T]]:
         """Take up to ``limit`` items that are already here, without waiting."""

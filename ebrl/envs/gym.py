@@ -1,4 +1,5 @@
-"""gymnasium adapter: environments by id, including the ``module:EnvId`` form for a user's own envs."""
+"""Build environments from ``[env]``: gymnasium ids (including ``module:EnvId`` for a user's own envs),
+robosuite tasks, and the optional synthetic step latency."""
 
 from __future__ import annotations
 
@@ -18,24 +19,39 @@ class EnvSpec:
     """What a worker needs to build its environment (picklable)."""
 
     id: str
+    backend: str = "gymnasium"
     max_episode_steps: int = 0
     kwargs: dict[str, Any] = field(default_factory=dict)
+    latency: str = "none"
+    latency_mean_ms: float = 16.0
+    latency_sigma: float = 0.3
 
     @classmethod
     def from_config(cls, env_cfg: Any) -> "EnvSpec":
-        return cls(id=env_cfg.id, max_episode_steps=env_cfg.max_episode_steps, kwargs=dict(env_cfg.kwargs))
+        return cls(id=env_cfg.id, backend=env_cfg.backend, max_episode_steps=env_cfg.max_episode_steps,
+                   kwargs=dict(env_cfg.kwargs), latency=env_cfg.latency, latency_mean_ms=env_cfg.latency_mean_ms,
+                   latency_sigma=env_cfg.latency_sigma)
 
 
-def make_env(spec: EnvSpec) -> gym.Env:
+def make_env(spec: EnvSpec, seed: int = 0) -> gym.Env:
     """Build the environment; ``"pkg.module:EnvId-v0"`` imports ``pkg.module`` first (gymnasium's rule)."""
     kwargs = dict(spec.kwargs)
-    if spec.max_episode_steps:
-        kwargs["max_episode_steps"] = spec.max_episode_steps
     try:
-        env = gym.make(spec.id, **kwargs)
-    except (gym.error.Error, ModuleNotFoundError, ImportError) as exc:
-        raise EnvError(f"env.id = {spec.id!r}: {exc}") from exc
+        if spec.backend == "robosuite":
+            from ebrl.envs.robosuite import DEFAULT_HORIZON, RobosuiteEnv
+
+            env: gym.Env = RobosuiteEnv(spec.id, horizon=spec.max_episode_steps or DEFAULT_HORIZON, **kwargs)
+        else:
+            if spec.max_episode_steps:
+                kwargs["max_episode_steps"] = spec.max_episode_steps
+            env = gym.make(spec.id, **kwargs)
+    except Exception as exc:  # gymnasium, robosuite and user modules raise many kinds
+        raise EnvError(f"env.id = {spec.id!r} (backend {spec.backend}): {type(exc).__name__}: {exc}") from exc
     check_spaces(spec.id, env.observation_space, env.action_space)
+    if spec.latency == "lognormal":
+        from ebrl.envs.latency import StepLatency
+
+        env = StepLatency(env, spec.latency_mean_ms, spec.latency_sigma, seed=seed)
     return env
 
 

@@ -20,15 +20,16 @@ import numpy as np
 from ebrl.envs.gym import EnvSpec, as_obs, make_env
 
 _CTX = None
+PRELOAD = {"gymnasium": ["gymnasium", "mujoco"], "robosuite": ["gymnasium", "mujoco", "robosuite"]}
 
 
-def _context() -> mp.context.BaseContext:
-    # forkserver: workers fork from a clean server that has gymnasium and MuJoCo
-    # imported, never from the sim service (whose Zenoh threads must not fork).
+def _context(backend: str) -> mp.context.BaseContext:
+    # forkserver: workers fork from a clean server that has the simulator imported
+    # once, never from the sim service (whose Zenoh threads must not fork).
     global _CTX
     if _CTX is None:
         _CTX = mp.get_context("forkserver")
-        _CTX.set_forkserver_preload(["gymnasium", "mujoco", "ebrl.envs.worker"])
+        _CTX.set_forkserver_preload(PRELOAD.get(backend, []) + ["ebrl.envs.worker", "ebrl.envs.latency"])
     return _CTX
 
 
@@ -44,13 +45,15 @@ class ChunkResult:
     next_obs: np.ndarray  # observation for the next chunk (after auto-reset if the episode ended)
     episode_return: float | None  # set when the episode ended in this chunk
     episode_length: int | None
+    episode_success: bool | None = None  # set at episode end when the env reports info["success"]
 
 
 def _worker_main(conn: Connection, spec: EnvSpec, seed: int) -> None:
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # the sim service decides when workers stop
-    env = make_env(spec)
+    env = make_env(spec, seed=seed)
     low, high = env.action_space.low, env.action_space.high
     episode_return, episode_length, episodes = 0.0, 0, 0
+    success: bool | None = None
     try:
         while True:
             try:
@@ -59,12 +62,14 @@ def _worker_main(conn: Connection, spec: EnvSpec, seed: int) -> None:
                 return
             if cmd == "reset":
                 obs, _ = env.reset(seed=seed)
-                episode_return, episode_length = 0.0, 0
+                episode_return, episode_length, success = 0.0, 0, None
                 conn.send(as_obs(obs))
             elif cmd == "chunk":
                 total, steps, terminated, truncated = 0.0, 0, False, False
                 for action in arg:
-                    obs, reward, terminated, truncated, _ = env.step(np.clip(action, low, high))
+                    obs, reward, terminated, truncated, info = env.step(np.clip(action, low, high))
+                    if "success" in info:
+                        success = bool(success) or bool(info["success"])
                     total += float(reward)
                     steps += 1
                     if terminated or truncated:
@@ -72,14 +77,14 @@ def _worker_main(conn: Connection, spec: EnvSpec, seed: int) -> None:
                 episode_return += total
                 episode_length += steps
                 final_obs = as_obs(obs)
-                ep_ret = ep_len = None
+                ep_ret = ep_len = ep_success = None
                 if terminated or truncated:
-                    ep_ret, ep_len = episode_return, episode_length
+                    ep_ret, ep_len, ep_success = episode_return, episode_length, success
                     episodes += 1
                     obs, _ = env.reset(seed=seed + 7919 * episodes)
-                    episode_return, episode_length = 0.0, 0
+                    episode_return, episode_length, success = 0.0, 0, None
                 conn.send(ChunkResult(total, steps, bool(terminated), bool(truncated), final_obs, as_obs(obs),
-                                      ep_ret, ep_len))
+                                      ep_ret, ep_len, ep_success))
             elif cmd == "close":
                 return
             else:
@@ -92,7 +97,7 @@ class EnvWorker:
     """Parent-side handle of one env worker process."""
 
     def __init__(self, spec: EnvSpec, seed: int, core: int | None = None):
-        ctx = _context()
+        ctx = _context(spec.backend)
         self.conn, child = ctx.Pipe()
         self.proc = ctx.Process(target=_worker_main, args=(child, spec, seed), daemon=True, name="ebrl-env")
         self.proc.start()

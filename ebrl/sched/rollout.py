@@ -31,8 +31,10 @@ class SegmentBuilder:
         return len(self._obs)
 
     def add(self, obs: np.ndarray, action: np.ndarray, logprob: float, value: float, version: int,
-            result: ChunkResult) -> TrajectorySegment | None:
-        """Record one chunk decision and what the environment did; return a finished segment or None."""
+            result: ChunkResult, boundary: bool = False) -> TrajectorySegment | None:
+        """Record one chunk decision and what the environment did; return a finished segment or None.
+        ``boundary`` marks the last decision of an iteration: the segment is cut there so that every
+        decision of the iteration reaches training."""
         self._obs.append(obs)
         self._actions.append(action)
         self._logprobs.append(logprob)
@@ -47,7 +49,7 @@ class SegmentBuilder:
             return self._emit("terminated", result.final_obs)
         if result.truncated:
             return self._emit("truncated", result.final_obs)
-        if len(self._obs) >= self.length:
+        if len(self._obs) >= self.length or boundary:
             return self._emit("cut", result.next_obs)
         return None
 

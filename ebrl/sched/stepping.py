@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import asyncio
 import time
-from typing import Protocol, Sequence
+from typing import Callable, Protocol, Sequence
 
 import numpy as np
 
@@ -36,6 +36,7 @@ def merge(results: Sequence[ChunkResult]) -> ChunkResult:
         next_obs=last.next_obs,
         episode_return=last.episode_return,
         episode_length=last.episode_length,
+        episode_success=last.episode_success,
     )
 
 
@@ -82,15 +83,15 @@ class BatchStepping:
 class RebindingStepping:
     """One instance serves every group of the sim service: the ready set spans all groups."""
 
-    def __init__(self, cores: list[int]):
+    def __init__(self, cores: list[int], on_step: Callable[[int, float], None] | None = None):
         self.sched = CoreRebinding(cores)
+        self.on_step = on_step  # (core, seconds) after every step: per-core busy time
         self.workers: dict[int, EnvWorker] = {}
         self._env_by_worker: dict[int, int] = {}
         self._actions: dict[int, np.ndarray] = {}
         self._steps: dict[int, list[ChunkResult]] = {}
         self._done: dict[int, asyncio.Future] = {}
         self._tasks: set[asyncio.Task] = set()
-        self.core_busy: dict[int, float] = {c: 0.0 for c in cores}  # seconds of steps per core
         self.rebinds = 0
 
     def add(self, env: int, worker: EnvWorker) -> None:
@@ -115,8 +116,6 @@ class RebindingStepping:
 
     def set_budget(self, cores: list[int]) -> None:
         self.sched.set_budget(cores)
-        for core in cores:
-            self.core_busy.setdefault(core, 0.0)
         self._pump()
 
     def _pump(self) -> None:
@@ -140,7 +139,8 @@ class RebindingStepping:
             self._pump()
             return
         latency = time.perf_counter() - t0
-        self.core_busy[core] = self.core_busy.get(core, 0.0) + latency
+        if self.on_step is not None:
+            self.on_step(core, latency)
         self._steps[env].append(result)
         if self.sched.complete(env, latency, chunk_ended=result.terminated or result.truncated):
             self._done[env].set_result(time.perf_counter())

@@ -21,6 +21,15 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--spans", action="store_true", help="also print timeline spans")
     p.add_argument("--count", type=int, default=0, help="exit after this many messages (0: until Ctrl-C)")
 
+    p = sub.add_parser("bench", help="run a config in several modes, interleaved, and compare throughput")
+    p.add_argument("config")
+    p.add_argument("--modes", default="ebrl,colocated,hybrid,async", help="comma-separated modes")
+    p.add_argument("--ablations", action="store_true", help="add ebrl with each mechanism switched off")
+    p.add_argument("--duration", type=float, default=60.0, help="measured seconds per run (after warm-up)")
+    p.add_argument("--repeat", type=int, default=1, help="rounds over all modes")
+    p.add_argument("--json", default="", help="write the results here")
+    p.add_argument("--set", action="append", default=[], dest="overrides", metavar="SECTION.KEY=VALUE")
+
     p = sub.add_parser("schemas", help="write schemas/*.json from ebrl/messages.py")
     p.add_argument("--dir", default="schemas")
 
@@ -37,6 +46,11 @@ def main(argv: list[str] | None = None) -> int:
         from ebrl.stats import watch
 
         return watch(args.connect, args.run, spans=args.spans, count=args.count)
+    if args.command == "bench":
+        from ebrl import bench
+
+        return bench.main(args.config, args.modes, args.ablations, args.duration, args.repeat, args.json,
+                          args.overrides)
     if args.command == "schemas":
         from ebrl.messages import write_schemas
 

@@ -94,6 +94,7 @@ class SimService(Service):
             next_obs = np.empty_like(obs)
             for i, res in enumerate(results):
                 self.count("sim/env_steps", res.steps)
+                self.count("sim/step_busy_s", res.busy_s)
                 if res.episode_return is not None:
                     self.returns.append(res.episode_return)
                     self.count("sim/episodes")

@@ -1,7 +1,9 @@
 """A wrapper that gives any environment a configurable step latency, for controlled scheduler experiments.
 
-The added time is spent busy-waiting, not sleeping: like real physics it
-occupies a core, so core scheduling and pinning matter exactly as they would.
+A step takes the drawn latency of *CPU time* (a busy-wait on the thread's CPU
+clock, counting the wrapped step itself), not of wall time: like real physics it
+occupies a core, and two envs sharing one core take twice as long, so core
+scheduling and pinning matter exactly as they would.
 """
 
 from __future__ import annotations
@@ -25,8 +27,8 @@ class StepLatency(gym.Wrapper):
         self.rng = np.random.default_rng(seed)
 
     def step(self, action):
-        deadline = time.perf_counter() + self.rng.lognormal(self.mu, self.sigma)
+        deadline = time.thread_time() + self.rng.lognormal(self.mu, self.sigma)
         out = self.env.step(action)
-        while time.perf_counter() < deadline:
+        while time.thread_time() < deadline:
             pass
         return out

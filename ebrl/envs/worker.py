@@ -12,6 +12,7 @@ import asyncio
 import multiprocessing as mp
 import os
 import signal
+import time
 from dataclasses import dataclass
 from multiprocessing.connection import Connection
 
@@ -46,6 +47,7 @@ class ChunkResult:
     episode_return: float | None  # set when the episode ended in this chunk
     episode_length: int | None
     episode_success: bool | None = None  # set at episode end when the env reports info["success"]
+    busy_s: float = 0.0  # seconds spent inside env.step (useful work, excluding IPC and waiting)
 
 
 def _worker_main(conn: Connection, spec: EnvSpec, seed: int) -> None:
@@ -66,6 +68,7 @@ def _worker_main(conn: Connection, spec: EnvSpec, seed: int) -> None:
                 conn.send(as_obs(obs))
             elif cmd == "chunk":
                 total, steps, terminated, truncated = 0.0, 0, False, False
+                started = time.perf_counter()
                 for action in arg:
                     obs, reward, terminated, truncated, info = env.step(np.clip(action, low, high))
                     if "success" in info:
@@ -74,6 +77,7 @@ def _worker_main(conn: Connection, spec: EnvSpec, seed: int) -> None:
                     steps += 1
                     if terminated or truncated:
                         break
+                busy = time.perf_counter() - started
                 episode_return += total
                 episode_length += steps
                 final_obs = as_obs(obs)
@@ -84,7 +88,7 @@ def _worker_main(conn: Connection, spec: EnvSpec, seed: int) -> None:
                     obs, _ = env.reset(seed=seed + 7919 * episodes)
                     episode_return, episode_length, success = 0.0, 0, None
                 conn.send(ChunkResult(total, steps, bool(terminated), bool(truncated), final_obs, as_obs(obs),
-                                      ep_ret, ep_len, ep_success))
+                                      ep_ret, ep_len, ep_success, busy))
             elif cmd == "close":
                 return
             else:

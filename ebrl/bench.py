@@ -1,0 +1,206 @@
+"""``ebrl bench``: the same workload in several modes, interleaved, measured from the stats stream.
+
+Each measurement is a real ``ebrl up`` run (a subprocess with its own bus port):
+after every service is live and the first policy update is published, the
+bench process reads ``ebrl/stats/<run>/**`` for ``--duration`` seconds and
+takes the difference of the counters between the first and last report of the
+window. Modes run A B C D A B C D ... so that machine drift hits all alike.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import socket
+import statistics
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+from typing import Any
+
+import msgpack
+import zenoh
+
+from ebrl import config as config_mod
+
+BASELINES = ("colocated", "hybrid", "async")
+ABLATIONS = {  # ebrl with one mechanism switched off
+    "ebrl-no_group_pipeline": ["sim.group_pipeline=false"],
+    "ebrl-no_overlap": ["train.overlap=false"],
+    "ebrl-no_core_rebinding": ["sim.core_rebinding=false"],
+}
+
+
+def _free_port() -> int:
+    with socket.socket() as sock:
+        sock.bind(("127.0.0.1", 0))
+        return sock.getsockname()[1]
+
+
+class StatsWindow:
+    """Collects every stats report of one run (thread-safe; filled by a Zenoh callback)."""
+
+    def __init__(self) -> None:
+        self.lock = threading.Lock()
+        self.reports: list[tuple[str, dict[str, Any]]] = []
+
+    def on_sample(self, sample: zenoh.Sample) -> None:
+        key = str(sample.key_expr).split("/", 3)[3]
+        if key.startswith("spans/"):
+            return
+        try:
+            report = msgpack.unpackb(sample.payload.to_bytes())
+        except Exception:
+            return
+        with self.lock:
+            self.reports.append((key, report))
+
+    def latest(self, source: str, name: str) -> float | None:
+        with self.lock:
+            for key, report in reversed(self.reports):
+                if key == source and name in report["metrics"]:
+                    return report["metrics"][name]
+        return None
+
+    def between(self, t0: float, t1: float) -> dict[str, list[dict[str, Any]]]:
+        with self.lock:
+            out: dict[str, list[dict[str, Any]]] = {}
+            for key, report in self.reports:
+                if t0 <= report["time"] <= t1:
+                    out.setdefault(key, []).append(report)
+            return out
+
+
+def measure(config: str, mode: str, extra: list[str], duration: float, startup_timeout: float = 300.0,
+            out_dir: str = "runs/bench") -> dict[str, Any]:
+    """One run of ``config`` in ``mode``: throughput and latencies over ``duration`` seconds."""
+    port = _free_port()
+    name = f"bench-{mode}".replace("_", "-")[:40]
+    cmd = [sys.executable, "-m", "ebrl.cli", "up", config, "--set", f"run.mode={mode.split('-')[0]}",
+           "--set", "run.iterations=0", "--set", f"run.name={name}", "--set", f"run.output_dir={json.dumps(out_dir)}",
+           "--set", f'bus.listen=["tcp/127.0.0.1:{port}"]', "--set", "run.stats_interval=1.0"]
+    for item in extra:
+        cmd += ["--set", item]
+    window = StatsWindow()
+    conf = zenoh.Config()
+    conf.insert_json5("scouting/multicast/enabled", "false")
+    conf.insert_json5("connect/endpoints", f'["tcp/127.0.0.1:{port}"]')
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    try:
+        with zenoh.open(conf) as session:
+            session.declare_subscriber(f"ebrl/stats/{name}/**", window.on_sample)
+            deadline = time.monotonic() + startup_timeout
+            while (window.latest("train/0", "train/policy_version") or 0) < 1:  # warm: one update done
+                if proc.poll() is not None or time.monotonic() > deadline:
+                    raise RuntimeError(f"{mode}: run ended or never warmed up:\n{proc.stdout.read()}")
+                time.sleep(0.2)
+            t0 = time.time()
+            time.sleep(duration)
+            t1 = time.time()
+    finally:
+        if proc.poll() is None:
+            proc.send_signal(signal.SIGINT)
+        try:
+            proc.wait(30)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+    return summarize(window.between(t0, t1), duration)
+
+
+def _delta(reports: list[dict[str, Any]], name: str) -> float:
+    values = [r["metrics"][name] for r in reports if name in r["metrics"]]
+    return values[-1] - values[0] if len(values) > 1 else 0.0
+
+
+def _span_s(reports: list[dict[str, Any]]) -> float:
+    return reports[-1]["time"] - reports[0]["time"] if len(reports) > 1 else 0.0
+
+
+def summarize(window: dict[str, list[dict[str, Any]]], duration: float) -> dict[str, Any]:
+    sim, gen, train = window.get("sim/0", []), window.get("gen/0", []), window.get("train/0", [])
+    dt = _span_s(sim) or duration
+    out = {
+        "traj_per_s": _delta(sim, "sim/segments") / dt,
+        "env_steps_per_s": _delta(sim, "sim/env_steps") / dt,
+        "updates_per_s": _delta(train, "train/updates") / (_span_s(train) or duration),
+    }
+    last = sim[-1]["metrics"] if sim else {}
+    for q in ("avg", "p50", "p99"):
+        out[f"chunk_latency_{q}_ms"] = last.get(f"sim/chunk_latency_{q}_ms", float("nan"))
+    # Busy fraction of each stage over the window (from spans, via the busy/<lane> metrics).
+    def busy(reports: list[dict[str, Any]], prefix: str) -> float:
+        fractions = [sum(v for k, v in r["metrics"].items() if k.startswith(prefix)) for r in reports[1:]]
+        return statistics.fmean(fractions) if fractions else 0.0
+
+    groups = max(1, sum(1 for k in last if k.startswith("busy/sim.g")))
+    out["busy_sim"] = busy(sim, "busy/sim.g") / groups
+    out["busy_gen"] = busy(gen, "busy/gen")
+    out["busy_train"] = busy(train, "busy/train")
+    out["idle_sim"], out["idle_gen"], out["idle_train"] = (1 - out["busy_sim"], 1 - out["busy_gen"],
+                                                          1 - out["busy_train"])
+    cores = os.cpu_count() or 1
+    steps_busy = _delta(sim, "sim/step_busy_s") / dt  # cores' worth of time inside env.step
+    out["useful_work_utilisation"] = min(1.0, (steps_busy + out["busy_gen"] + out["busy_train"]) / cores)
+    return out
+
+
+def run(config: str, modes: list[str], duration: float, repeat: int, overrides: list[str]) -> dict[str, Any]:
+    config_mod.load(config, overrides)  # fail fast on a bad config
+    results: dict[str, list[dict[str, Any]]] = {m: [] for m in modes}
+    for r in range(repeat):
+        for mode in modes:
+            extra = list(overrides) + ABLATIONS.get(mode, [])
+            print(f"[{r + 1}/{repeat}] {mode} ...", file=sys.stderr, flush=True)
+            results[mode].append(measure(config, mode, extra, duration))
+    return results
+
+
+def table(results: dict[str, list[dict[str, Any]]]) -> str:
+    def med(mode: str, key: str) -> float:
+        return statistics.median(x[key] for x in results[mode])
+
+    baselines = [m for m in results if m in BASELINES]
+    best = max(baselines, key=lambda m: med(m, "traj_per_s")) if baselines else None
+    head = ("mode", "traj/s min-med-max", "env steps/s", "chunk ms avg/p50/p99", "idle sim/gen/train",
+            "useful util", "vs best baseline")
+    rows = [head]
+    for mode, runs in results.items():
+        traj = sorted(x["traj_per_s"] for x in runs)
+        ratio = f"{med(mode, 'traj_per_s') / med(best, 'traj_per_s'):.2f}x" if best else "-"
+        rows.append((
+            mode,
+            f"{traj[0]:.1f}-{statistics.median(traj):.1f}-{traj[-1]:.1f}",
+            f"{med(mode, 'env_steps_per_s'):,.0f}",
+            f"{med(mode, 'chunk_latency_avg_ms'):.0f}/{med(mode, 'chunk_latency_p50_ms'):.0f}/"
+            f"{med(mode, 'chunk_latency_p99_ms'):.0f}",
+            f"{med(mode, 'idle_sim'):.2f}/{med(mode, 'idle_gen'):.2f}/{med(mode, 'idle_train'):.2f}",
+            f"{med(mode, 'useful_work_utilisation'):.2f}",
+            ratio + (" (best)" if mode == best else ""),
+        ))
+    widths = [max(len(str(r[i])) for r in rows) for i in range(len(head))]
+    return "\n".join("  ".join(str(c).ljust(w) for c, w in zip(r, widths)) for r in rows)
+
+
+def main(config: str, modes: str, ablations: bool, duration: float, repeat: int, json_path: str,
+         overrides: list[str]) -> int:
+    names = [m.strip() for m in modes.split(",") if m.strip()]
+    unknown = [m for m in names if m not in ("ebrl", *BASELINES)]
+    if unknown:
+        print(f"ebrl bench: unknown mode(s) {unknown}; choose from ebrl, {', '.join(BASELINES)}", file=sys.stderr)
+        return 2
+    if ablations:
+        names += list(ABLATIONS)
+    try:
+        results = run(config, names, duration, repeat, overrides)
+    except config_mod.ConfigError as exc:
+        print(f"ebrl: config error: {exc}", file=sys.stderr)
+        return 2
+    print(table(results))
+    if json_path:
+        Path(json_path).parent.mkdir(parents=True, exist_ok=True)
+        Path(json_path).write_text(json.dumps({"config": config, "duration_s": duration, "repeat": repeat,
+                                               "overrides": overrides, "results": results}, indent=2) + "\n")
+    return 0

@@ -103,9 +103,11 @@ class Service:
             end = time.time()
             self.publish_span(lane, label, start, end)
 
-    def publish_span(self, lane: str, label: str, start: float, end: float) -> None:
-        with self._counts_lock:
-            self._busy[lane] += end - start
+    def publish_span(self, lane: str, label: str, start: float, end: float, busy: bool = True) -> None:
+        """Publish a span; ``busy=False`` marks time spent waiting (shown, not counted in busy/<lane>)."""
+        if busy:
+            with self._counts_lock:
+                self._busy[lane] += end - start
         self.bus.put_nowait(keys.spans(self.run_name, lane),
                             Span(lane=lane, start=start, end=end, label=label, service=self.role, instance=self.instance))
 

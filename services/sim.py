@@ -122,7 +122,7 @@ class SimService(Service):
                 except asyncio.TimeoutError:
                     break
                 if chunk.seq == seq and chunk.actions.shape[0] == len(env_ids):
-                    self.publish_span(f"sim.g{g}", "wait", start, time.time())
+                    self.publish_span(f"sim.g{g}", "wait", start, time.time(), busy=False)
                     return chunk
                 self.count("sim/stale_actions_dropped")
             self.count("sim/obs_resent")

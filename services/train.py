@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import asyncio
-import dataclasses
 import collections
 import concurrent.futures
 import os
@@ -18,6 +17,7 @@ from ebrl.envs import EnvSpec, spaces
 from ebrl.messages import TrajectorySegment, Weights, encode_message
 from ebrl.policies import make_policy, state_arrays
 from ebrl.sched.modes import resolve
+from ebrl.sched.staleness import fresh_suffix
 from ebrl.service import Service, service_main
 
 
@@ -102,13 +102,11 @@ class TrainService(Service):
         while self.pending and steps < self.cfg.train.batch_size:
             seg = self.pending.popleft()
             self.pending_steps -= len(seg.obs)
-            # Versions never decrease along a segment, so the fresh decisions are a suffix.
-            keep = int((self.version - seg.versions <= self.schedule.max_staleness).sum())
-            if keep < len(seg.obs):
-                self.count("train/stale_dropped", len(seg.obs) - keep)
-                if keep == 0:
-                    continue
-                seg = trim(seg, len(seg.obs) - keep)
+            seg, dropped = fresh_suffix(seg, self.version, self.schedule.max_staleness)
+            if dropped:
+                self.count("train/stale_dropped", dropped)
+            if seg is None:
+                continue
             segments.append(seg)
             steps += len(seg.obs)
         if self.pending_steps < self.cfg.train.batch_size:
@@ -144,12 +142,6 @@ class TrainService(Service):
 
     async def teardown(self) -> None:
         self.pool.shutdown(wait=True, cancel_futures=True)
-
-
-def trim(seg: TrajectorySegment, start: int) -> TrajectorySegment:
-    """The segment without its first ``start`` decisions."""
-    return dataclasses.replace(seg, **{name: getattr(seg, name)[start:] for name in
-                                       ("obs", "actions", "logprobs", "values", "rewards", "steps", "versions")})
 
 
 def main() -> None:

@@ -39,3 +39,33 @@ def test_worker_runs_chunks_and_resets_at_episode_end():
         assert not worker.proc.is_alive()
 
     asyncio.run(scenario())
+
+
+def test_step_latency_spends_cpu_time():
+    import time
+
+    from ebrl.envs.latency import StepLatency
+
+    env = StepLatency(make_env(EnvSpec("user_envs:ShortPendulum-v0")), mean_ms=3.0, sigma=0.0, seed=1)
+    env.reset(seed=0)
+    start = time.thread_time()
+    for _ in range(5):
+        env.step(np.zeros(1, np.float32))
+    assert time.thread_time() - start >= 5 * 3e-3
+
+
+def test_robosuite_lift_steps_resets_and_reports_success():
+    env = make_env(EnvSpec("Lift", backend="robosuite", max_episode_steps=3))
+    obs, _ = env.reset(seed=0)
+    assert obs.shape == env.observation_space.shape and obs.dtype == np.float32
+    assert env.action_space.shape == (7,)
+    for t in range(3):
+        obs, reward, terminated, truncated, info = env.step(env.action_space.sample())
+        assert isinstance(info["success"], bool) and not terminated
+    assert truncated  # the horizon ends the episode
+    env.close()
+
+
+def test_robosuite_unknown_task_is_a_clear_error():
+    with pytest.raises(EnvError, match="NoSuchTask"):
+        make_env(EnvSpec("NoSuchTask", backend="robosuite"))

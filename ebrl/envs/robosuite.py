@@ -27,7 +27,8 @@ class RobosuiteEnv(gym.Env):
         except ImportError as exc:
             raise ImportError(f"env.backend = 'robosuite' needs robosuite ({exc})") from exc
         options = dict(robots="Panda", has_renderer=False, has_offscreen_renderer=False, use_camera_obs=False,
-                       reward_shaping=True, control_freq=20, horizon=horizon, ignore_done=True)
+                       reward_shaping=True, control_freq=20, horizon=horizon, ignore_done=True,
+                       hard_reset=False)  # a hard reset rebuilds the MuJoCo model: ~10x a step, every episode
         options.update(kwargs)
         self.env = robosuite.make(task, **options)
         self.horizon = horizon

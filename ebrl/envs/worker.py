@@ -47,7 +47,7 @@ class ChunkResult:
     episode_return: float | None  # set when the episode ended in this chunk
     episode_length: int | None
     episode_success: bool | None = None  # set at episode end when the env reports info["success"]
-    busy_s: float = 0.0  # seconds spent inside env.step (useful work, excluding IPC and waiting)
+    busy_s: float = 0.0  # CPU seconds spent inside env.step (useful work, excluding IPC and waiting)
 
 
 def _worker_main(conn: Connection, spec: EnvSpec, seed: int) -> None:
@@ -68,7 +68,7 @@ def _worker_main(conn: Connection, spec: EnvSpec, seed: int) -> None:
                 conn.send(as_obs(obs))
             elif cmd == "chunk":
                 total, steps, terminated, truncated = 0.0, 0, False, False
-                started = time.perf_counter()
+                started = time.thread_time()  # CPU time: a descheduled worker is not busy
                 for action in arg:
                     obs, reward, terminated, truncated, info = env.step(np.clip(action, low, high))
                     if "success" in info:
@@ -77,7 +77,7 @@ def _worker_main(conn: Connection, spec: EnvSpec, seed: int) -> None:
                     steps += 1
                     if terminated or truncated:
                         break
-                busy = time.perf_counter() - started
+                busy = time.thread_time() - started
                 episode_return += total
                 episode_length += steps
                 final_obs = as_obs(obs)

@@ -74,21 +74,27 @@ class StatsWindow:
             return out
 
 
-def measure(config: str, mode: str, extra: list[str], duration: float, startup_timeout: float = 300.0,
-            out_dir: str = "runs/bench") -> dict[str, Any]:
-    """One run of ``config`` in ``mode``: throughput and latencies over ``duration`` seconds."""
+def launch(config: str, name: str, overrides: list[str], out_dir: str) -> tuple[subprocess.Popen, zenoh.Config]:
+    """Start ``ebrl up config`` as run ``name`` on a free loopback port; return the process and a
+    Zenoh config that connects to its bus."""
     port = _free_port()
-    name = f"bench-{mode}".replace("_", "-")[:40]
-    cmd = [sys.executable, "-m", "ebrl.cli", "up", config, "--set", f"run.mode={mode.split('-')[0]}",
-           "--set", "run.iterations=0", "--set", f"run.name={name}", "--set", f"run.output_dir={json.dumps(out_dir)}",
-           "--set", f'bus.listen=["tcp/127.0.0.1:{port}"]', "--set", "run.stats_interval=1.0"]
-    for item in extra:
+    cmd = [sys.executable, "-m", "ebrl.cli", "up", config, "--set", f"run.name={name}",
+           "--set", f"run.output_dir={json.dumps(out_dir)}", "--set", f'bus.listen=["tcp/127.0.0.1:{port}"]',
+           "--set", "run.stats_interval=1.0"]
+    for item in overrides:
         cmd += ["--set", item]
-    window = StatsWindow()
     conf = zenoh.Config()
     conf.insert_json5("scouting/multicast/enabled", "false")
     conf.insert_json5("connect/endpoints", f'["tcp/127.0.0.1:{port}"]')
-    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    return subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True), conf
+
+
+def measure(config: str, mode: str, extra: list[str], duration: float, startup_timeout: float = 300.0,
+            out_dir: str = "runs/bench") -> dict[str, Any]:
+    """One run of ``config`` in ``mode``: throughput and latencies over ``duration`` seconds."""
+    name = f"bench-{mode}".replace("_", "-")[:40]
+    proc, conf = launch(config, name, [f"run.mode={mode.split('-')[0]}", "run.iterations=0", *extra], out_dir)
+    window = StatsWindow()
     try:
         with zenoh.open(conf) as session:
             session.declare_subscriber(f"ebrl/stats/{name}/**", window.on_sample)
@@ -108,6 +114,35 @@ def measure(config: str, mode: str, extra: list[str], duration: float, startup_t
         except subprocess.TimeoutExpired:
             proc.kill()
     return summarize(window.between(t0, t1), duration)
+
+
+def learning_curve(config: str, overrides: list[str], name: str, timeout: float = 1800.0,
+                   out_dir: str = "runs/bench") -> list[dict[str, float]]:
+    """Run ``config`` to its end and return the learning curve: one point per sim stats report with
+    wall seconds since launch, env steps, policy version and mean return of the last 20 episodes."""
+    started = time.time()
+    proc, conf = launch(config, name, overrides, out_dir)
+    window = StatsWindow()
+    with zenoh.open(conf) as session:
+        session.declare_subscriber(f"ebrl/stats/{name}/**", window.on_sample)
+        try:
+            out, _ = proc.communicate(timeout=timeout)
+        except subprocess.TimeoutExpired:
+            proc.send_signal(signal.SIGINT)
+            out, _ = proc.communicate(30)
+    if proc.returncode not in (0, 130):
+        raise RuntimeError(f"{name}: ebrl up failed ({proc.returncode}):\n{out}")
+    with window.lock:
+        reports = sorted(window.reports, key=lambda kr: kr[1]["time"])
+    curve, version = [], 0.0
+    for key, report in reports:
+        m = report["metrics"]
+        if key == "train/0":
+            version = m.get("train/policy_version", version)
+        elif key == "sim/0" and "sim/episode_return_mean" in m:
+            curve.append({"wall_s": report["time"] - started, "env_steps": m["sim/env_steps"],
+                          "policy_version": version, "return": m["sim/episode_return_mean"]})
+    return curve
 
 
 def _delta(reports: list[dict[str, Any]], name: str) -> float:

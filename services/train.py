@@ -63,6 +63,8 @@ class TrainService(Service):
             while self.cfg.run.iterations == 0 or self.version < self.cfg.run.iterations:
                 await self.enough.wait()
                 segments = self.take_batch()
+                if not segments:  # everything pending was too stale
+                    continue
                 start = time.time()
                 losses = await asyncio.get_running_loop().run_in_executor(self.pool, self.update, segments)
                 self.publish_span("train", "update", start, time.time())

@@ -28,11 +28,16 @@ def test_two_iterations_train_and_the_readme_subscriber_sees_stats(tmp_path):
     proc, port = ebrl_up(tmp_path / "runs", "run.iterations=2", "run.name=e2e")
     watcher = subprocess.Popen([sys.executable, str(ROOT / "examples" / "subscribe_stats.py"),
                                 f"tcp/127.0.0.1:{port}", "60"], stdout=subprocess.PIPE, text=True)
+    cli = subprocess.Popen([sys.executable, "-m", "ebrl.cli", "stats", "--run", "e2e", "--count", "3",
+                            "--connect", f"tcp/127.0.0.1:{port}"], stdout=subprocess.PIPE, text=True)
     try:
         out, _ = proc.communicate(timeout=120)
+        printed, _ = cli.communicate(timeout=10)
     finally:
         watcher.kill()
+        cli.kill()
     lines, _ = watcher.communicate()
+    assert printed.count("ebrl/stats/e2e/") == 3 and "proc/rss_mb=" in printed  # `ebrl stats` decoded them
     assert proc.returncode == 0, out
     assert "all services live" in out and "run e2e finished: 2 iterations" in out
     summary = json.loads((run_dir(tmp_path / "runs") / "summary.json").read_text())

@@ -125,7 +125,7 @@ def main() -> None:
     parser.add_argument("--warmup", type=int, default=3)
     parser.add_argument("--mean-ms", type=float, default=16.0)
     parser.add_argument("--sigma", type=float, default=0.3)
-    parser.add_argument("--json", default="", help="result file (default benchmarks/results/chunk_latency_<envs>e<cores>c.json)")
+    parser.add_argument("--json", default="", help="result file (default: benchmarks/results/chunk_latency_<envs>e<cores>c_s<sigma>.json)")
     args = parser.parse_args()
     usable = sorted(os.sched_getaffinity(0))
     cores = usable[:args.cores] if args.cores else usable
@@ -158,7 +158,8 @@ def main() -> None:
     }
     result["avg_ratio_of_ideal"] = result["avg_ratio"] / result["ideal_avg_ratio"]
     result["p99_ratio_of_ideal"] = result["p99_ratio"] / result["ideal_p99_ratio"]
-    path = Path(args.json or Path(__file__).parent / "results" / f"chunk_latency_{args.envs}e{len(cores)}c.json")
+    path = Path(args.json or Path(__file__).parent / "results" /
+                f"chunk_latency_{args.envs}e{len(cores)}c_s{args.sigma:g}.json")
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text(json.dumps(result, indent=2) + "\n")
     print(f"chunk latency, {args.envs} envs on {len(cores)} cores, sigma {args.sigma}: rebinding vs {best_batch} "

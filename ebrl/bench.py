@@ -236,6 +236,7 @@ def main(config: str, modes: str, ablations: bool, duration: float, repeat: int,
     print(table(results))
     if json_path:
         Path(json_path).parent.mkdir(parents=True, exist_ok=True)
-        Path(json_path).write_text(json.dumps({"config": config, "duration_s": duration, "repeat": repeat,
+        Path(json_path).write_text(json.dumps({"command": "ebrl " + " ".join(sys.argv[1:]),
+                                               "machine": f"{os.cpu_count()} cores visible", "config": config, "duration_s": duration, "repeat": repeat,
                                                "overrides": overrides, "results": results}, indent=2) + "\n")
     return 0

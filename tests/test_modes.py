@@ -49,3 +49,23 @@ def test_robosuite_lift_runs_in_every_mode(tmp_path, mode):
     assert code == 0, out
     assert stats["train/0"][-1]["train/policy_version"] == 2
     assert "sim/success_rate" in stats["sim/0"][-1]  # robosuite's own success check is exported
+
+
+@pytest.mark.slow
+def test_ebrl_bench_prints_the_table_and_writes_json(tmp_path):
+    import json
+    import subprocess
+    import sys
+
+    from helpers import ROOT
+
+    out_json = tmp_path / "bench.json"
+    proc = subprocess.run([sys.executable, "-m", "ebrl.cli", "bench", "configs/quickstart.toml", "--modes",
+                           "ebrl,colocated", "--duration", "4", "--json", str(out_json),
+                           "--set", f"run.output_dir={json.dumps(str(tmp_path / 'runs'))}"],
+                          cwd=ROOT, capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr
+    assert "vs best baseline" in proc.stdout and "colocated" in proc.stdout and "(best)" in proc.stdout
+    results = json.loads(out_json.read_text())["results"]
+    assert set(results) == {"ebrl", "colocated"}
+    assert all(r[0]["env_steps_per_s"] > 0 for r in results.values())

@@ -276,6 +276,19 @@ def _toml_value(value: Any) -> str:
     raise TypeError(f"cannot write {value!r} as TOML")
 
 
+def _type_name(tp: Any) -> str:
+    """``int``, ``list[int]``, ``"a" | "b"``, ``bool, optional`` — for ``ebrl config``."""
+    args = typing.get_args(tp)
+    if typing.get_origin(tp) is Literal:
+        return " | ".join(_toml_value(a) for a in args)
+    if type(None) in args:
+        (inner,) = [a for a in args if a is not type(None)]
+        return _type_name(inner) + ", optional"
+    if args:
+        return f"{tp.__origin__.__name__}[{', '.join(_type_name(a) for a in args)}]"
+    return getattr(tp, "__name__", str(tp))
+
+
 def describe() -> str:
     """Every section and key with its type, default and docstring (``ebrl config --fields``)."""
     out = []
@@ -284,7 +297,7 @@ def describe() -> str:
         hints = typing.get_type_hints(cls)
         for f in dataclasses.fields(cls):
             default = f.default if f.default is not dataclasses.MISSING else f.default_factory()
-            tp = getattr(hints[f.name], "__name__", None) or str(hints[f.name]).replace("typing.", "")
+            tp = _type_name(hints[f.name])
             shown = "absent" if default is None else _toml_value(default)
             out.append(f"  {f.name} ({tp}, default {shown}): {f.metadata['doc']}")
     return "\n".join(out)

@@ -71,3 +71,13 @@ def test_ebrl_up_with_a_typo_exits_2_and_starts_nothing(tmp_path):
     assert proc.returncode == 2
     assert "train.batch_sise" in proc.stderr
     assert not (tmp_path / "runs").exists()
+
+
+def test_describe_lists_every_key_with_type_and_default():
+    text = config.describe()
+    for name, cls in config.SECTIONS.items():
+        assert f"[{name}]" in text
+        for f in config.dataclasses.fields(cls):
+            assert f"  {f.name} (" in text
+    assert 'mode ("ebrl" | "colocated" | "hybrid" | "async", default "ebrl")' in text
+    assert "target_return (float, optional, default absent)" in text

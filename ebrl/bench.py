@@ -176,7 +176,7 @@ def summarize(window: dict[str, list[dict[str, Any]]], duration: float) -> dict[
     out["busy_train"] = busy(train, "busy/train")
     out["idle_sim"], out["idle_gen"], out["idle_train"] = (1 - out["busy_sim"], 1 - out["busy_gen"],
                                                           1 - out["busy_train"])
-    cores = os.cpu_count() or 1
+    cores = len(os.sched_getaffinity(0))  # the cores runs may use, not every core of the host
     steps_busy = _delta(sim, "sim/step_busy_s") / dt  # cores' worth of time inside env.step
     out["useful_work_utilisation"] = min(1.0, (steps_busy + out["busy_gen"] + out["busy_train"]) / cores)
     return out
@@ -237,6 +237,6 @@ def main(config: str, modes: str, ablations: bool, duration: float, repeat: int,
     if json_path:
         Path(json_path).parent.mkdir(parents=True, exist_ok=True)
         Path(json_path).write_text(json.dumps({"command": "ebrl " + " ".join(sys.argv[1:]),
-                                               "machine": f"{os.cpu_count()} cores visible", "config": config, "duration_s": duration, "repeat": repeat,
+                                               "machine": f"{len(os.sched_getaffinity(0))} usable cores", "config": config, "duration_s": duration, "repeat": repeat,
                                                "overrides": overrides, "results": results}, indent=2) + "\n")
     return 0

@@ -61,7 +61,8 @@ class GenService(Service):
                     self.count("gen/throttled")
                 await self.wake.wait()  # new observations or new weights
                 continue
-            self.waiting = [m for m in self.waiting if all(m is not b for b in batch)]
+            served = {id(m) for m in batch}
+            self.waiting = [m for m in self.waiting if id(m) not in served]
             await self.serve(batch)
 
     async def serve(self, batch: list[Observation]) -> None:

@@ -1,4 +1,4 @@
-"""``ebrl`` command line: up, stats, schemas, config."""
+"""``ebrl`` command line: up, stats, report, bench, schemas, config."""
 
 from __future__ import annotations
 
@@ -14,6 +14,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("config", help="path to a config, e.g. configs/quickstart.toml")
     p.add_argument("--set", action="append", default=[], dest="overrides", metavar="SECTION.KEY=VALUE",
                    help="override one config value (TOML syntax), e.g. --set run.iterations=2")
+    p.add_argument("--viz", nargs="?", const="spawn", default=None, choices=("spawn", "serve", "save", "off"),
+                   help="live rerun timeline: spawn a viewer (the default of a bare --viz), serve for a viewer "
+                        "to connect, save RUN_DIR/timeline.rrd, or off (sets viz.rerun)")
 
     p = sub.add_parser("stats", help="print decoded ebrl/stats/** messages live")
     p.add_argument("--run", default=None, help="only this run (default: every run)")
@@ -30,6 +33,13 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--json", default="", help="write the results here")
     p.add_argument("--set", action="append", default=[], dest="overrides", metavar="SECTION.KEY=VALUE")
 
+    p = sub.add_parser("report", help="write a run's Gantt PNG, throughput PNG and report.md from its recording")
+    p.add_argument("run_dir", help="a run directory (holds stats.msgpack)")
+    p.add_argument("--start", type=float, default=None, help="window start, seconds after the run's first record")
+    p.add_argument("--end", type=float, default=None, help="window end, seconds after the run's first record")
+    p.add_argument("--last", type=float, default=None, help="window: the last S seconds of the run")
+    p.add_argument("--out", default=None, help="output directory (default RUN_DIR/report)")
+
     p = sub.add_parser("schemas", help="write schemas/*.json from ebrl/messages.py")
     p.add_argument("--dir", default="schemas")
 
@@ -41,7 +51,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.command == "up":
         from ebrl.launch import up
 
-        return up(args.config, args.overrides)
+        return up(args.config, args.overrides, viz=args.viz)
     if args.command == "stats":
         from ebrl.stats import watch
 
@@ -51,6 +61,17 @@ def main(argv: list[str] | None = None) -> int:
 
         return bench.main(args.config, args.modes, args.ablations, args.duration, args.repeat, args.json,
                           args.overrides)
+    if args.command == "report":
+        from ebrl.viz import report
+
+        try:
+            paths = report.write(args.run_dir, start=args.start, end=args.end, last=args.last, out=args.out)
+        except (OSError, ValueError) as exc:
+            print(f"ebrl: report: {exc}", file=sys.stderr)
+            return 2
+        for path in paths.values():
+            print(path)
+        return 0
     if args.command == "schemas":
         from ebrl.messages import write_schemas
 

@@ -130,6 +130,20 @@ class TrainSection:
     cores: list[int] = doc("cores for the training process; empty: the mode's choice", factory=list)
 
 
+@dataclass
+class VizSection:
+    rerun: Literal["spawn", "serve", "save", "off"] = doc(
+        "live timeline in rerun: spawn a viewer, serve over gRPC for a viewer to connect (even late), save to "
+        "RUN_DIR/timeline.rrd, or off (no viz service)", "off")
+    port: int = doc("gRPC port of the rerun server (serve) or of the spawned viewer (spawn)", 9876)
+    memory_limit: str = doc("rerun server memory (serve): what a late viewer can still see", "2GiB")
+    window_s: float = doc("seconds of history the live Gantt shows while following the present", 20.0)
+    spans: bool = doc("publish timeline spans; false keeps only the busy/<lane> stats (for overhead measurements)",
+                      True)
+    record: bool = doc("record every stats report, span and event of the run to RUN_DIR/stats.msgpack", True)
+    report: bool = doc("write RUN_DIR/report/ (Gantt PNG, throughput PNG, report.md) when the run ends", True)
+
+
 SECTIONS: dict[str, type] = {
     "run": RunSection,
     "bus": BusSection,
@@ -139,6 +153,7 @@ SECTIONS: dict[str, type] = {
     "gen": GenSection,
     "algo": AlgoSection,
     "train": TrainSection,
+    "viz": VizSection,
 }
 
 
@@ -152,6 +167,7 @@ class Config:
     gen: GenSection = field(default_factory=GenSection)
     algo: AlgoSection = field(default_factory=AlgoSection)
     train: TrainSection = field(default_factory=TrainSection)
+    viz: VizSection = field(default_factory=VizSection)
 
     @property
     def num_envs(self) -> int:
@@ -233,7 +249,7 @@ def _check_semantics(cfg: Config) -> None:
         raise ConfigError(f"run.iterations = {cfg.run.iterations}: must be >= 0")
     for path in ("sim.groups", "sim.envs_per_group", "sim.segment_length", "policy.chunk", "algo.epochs",
                  "algo.minibatches", "train.batch_size", "train.lr", "train.threads", "gen.threads",
-                 "run.stats_interval", "train.max_pending"):
+                 "run.stats_interval", "train.max_pending", "viz.window_s", "viz.port"):
         section, key = path.split(".")
         positive(path, getattr(getattr(cfg, section), key))
     if not 0 < cfg.algo.gamma <= 1:

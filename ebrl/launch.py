@@ -24,11 +24,17 @@ from pathlib import Path
 
 from ebrl import config as config_mod
 from ebrl.bus import Bus, BusOptions, keys
-from ebrl.messages import StatsReport, Stop
+from ebrl.messages import Event, StatsReport, Stop
+from ebrl.viz import record
 
 log = logging.getLogger("ebrl.launch")
 
 SERVICES = ("train", "gen", "sim")  # started in this order; each is `python -m services.<role>`
+
+
+def services_for(cfg: config_mod.Config) -> tuple[str, ...]:
+    """The roles a run starts, in start order (viz first, so that it sees the run from its start)."""
+    return (("viz",) if cfg.viz.rerun != "off" else ()) + SERVICES
 STOP_GRACE_S = 5.0  # after the stop message, before SIGTERM
 SHUTDOWN_S = 8.0  # after which anything left is SIGKILLed
 LOG_TAIL = 20
@@ -112,10 +118,14 @@ class Launcher:
         self.bus = Bus(BusOptions(mode="peer", listen=listen, connect=list(self.cfg.bus.connect),
                                   config_file=self.cfg.bus.config_file))
         (self.run_dir / "bus.json").write_text(json.dumps({"listen": listen, "run": self.run_name}) + "\n")
+        self.recorder = record.Recorder(self.run_dir / record.FILENAME) if self.cfg.viz.record else None
+        if self.recorder is not None:
+            self.bus.subscribe_raw(keys.stats_all(self.run_name), self.recorder.write)
         self.bus.watch_liveliness(keys.live_all(self.run_name), self._on_liveliness)
         self.bus.declare_token(keys.live(self.run_name, "launcher", 0))
         stats_tasks = [asyncio.create_task(self._collect(self.bus.subscribe(
-            keys.stats(self.run_name, role, "*"), StatsReport, policy="latest", capacity=64))) for role in SERVICES]
+            keys.stats(self.run_name, role, "*"), StatsReport, policy="latest", capacity=64)))
+            for role in services_for(self.cfg)]
         code = 1
         try:
             self._say(f"run {self.run_name}: {self.run_dir}  (bus {self.endpoint or ', '.join(self.cfg.bus.connect)})")
@@ -123,12 +133,20 @@ class Launcher:
             if await self.wait_live():
                 code = await self.supervise()
         finally:
+            self.event("stopping", self.failure or self.stop_reason or "run finished")
             await self.shutdown()
             for task in stats_tasks:
                 task.cancel()
             await self.bus.close()
+            if self.recorder is not None:
+                self.recorder.close()
         self.write_summary(code)
+        self.write_report()
         return code
+
+    def event(self, kind: str, text: str) -> None:
+        self.bus.put_nowait(keys.events(self.run_name, "launcher"),
+                            Event(time=time.time(), service="launcher", instance=0, kind=kind, text=text))
 
     # --- processes ----------------------------------------------------------------
 
@@ -137,7 +155,7 @@ class Launcher:
         env = dict(os.environ, PYTHONUNBUFFERED="1")
         root = str(Path(__file__).resolve().parent.parent)
         env["PYTHONPATH"] = root + os.pathsep + env.get("PYTHONPATH", "")  # `services` beside `ebrl`
-        for role in SERVICES:
+        for role in services_for(self.cfg):
             log_path = self.run_dir / "logs" / f"{role}-0.log"
             cmd = [sys.executable, "-m", f"services.{role}", "--config", str(config_path), "--instance", "0"]
             if self.endpoint:
@@ -166,6 +184,12 @@ class Launcher:
             await asyncio.sleep(0.05)
         self._say(f"all services live after {time.monotonic() - self.started:.1f} s: "
                   + ", ".join(c.name for c in self.children))
+        self.event("live", f"{', '.join(c.name for c in self.children)} live after "
+                           f"{time.monotonic() - self.started:.1f} s")
+        if self.cfg.viz.rerun != "off":
+            self._say(f"viz: rerun {self.cfg.viz.rerun} -> {self.run_dir / 'timeline.rrd'}"
+                      + (f" (viewer: rerun --connect rerun+http://127.0.0.1:{self.cfg.viz.port}/proxy)"
+                         if self.cfg.viz.rerun == "serve" else ""))
         return True
 
     def check_children(self) -> bool:
@@ -174,6 +198,7 @@ class Launcher:
             rc = child.proc.poll()
             if rc is not None:
                 self.failure = f"{child.name} exited with status {rc}"
+                self.event("exited", self.failure)
                 self._say(f"\nebrl: {self.failure}; last lines of {child.log_path}:\n{child.tail()}")
                 return True
         return False
@@ -308,13 +333,30 @@ class Launcher:
                   f"mean return {final} (best {best}); summary in {self.run_dir / 'summary.json'}")
 
 
+    def write_report(self) -> None:
+        """The headless report of the run (``ebrl report``), from the recording; never fails the run."""
+        if not (self.cfg.viz.report and self.recorder is not None and self.recorder.samples):
+            return
+        from ebrl.viz import report
+
+        try:
+            paths = report.write(self.run_dir)
+        except Exception as exc:  # a report is a convenience: say why, keep the exit code
+            self._say(f"ebrl: no report: {exc}")
+            return
+        self._say(f"report: {paths['markdown']} (Gantt: {paths['gantt']})")
+
+
 def _clock(seconds: float) -> str:
     s = int(seconds)
     return f"{s // 3600}:{s // 60 % 60:02d}:{s % 60:02d}"
 
 
-def up(config_path: str, overrides: list[str]) -> int:
-    """``ebrl up``: exit 2 on a config error (nothing started), else the run's exit code."""
+def up(config_path: str, overrides: list[str], viz: str | None = None) -> int:
+    """``ebrl up``: exit 2 on a config error (nothing started), else the run's exit code.
+    ``viz`` (``--viz``) sets ``viz.rerun``."""
+    if viz is not None:
+        overrides = [*overrides, f'viz.rerun="{viz}"']
     try:
         cfg = config_mod.load(config_path, overrides)
     except config_mod.ConfigError as exc:

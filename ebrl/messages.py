@@ -128,6 +128,18 @@ class Span:
     instance: int = doc("instance index of that service")
 
 
+@dataclass
+class Event:
+    """Something worth a line in the run's event log: a service came up, re-allocation, restart, ..."""
+
+    KEY = "ebrl/stats/<run>/events/<service>"
+    time: float = doc("epoch seconds")
+    service: str = doc("service role that reports it")
+    instance: int = doc("instance index of that service")
+    kind: str = doc("short machine-readable kind, e.g. live, exited, quota, affinity, realloc")
+    text: str = doc("one human-readable line")
+
+
 # --- control -----------------------------------------------------------------------
 
 
@@ -166,6 +178,7 @@ MESSAGES: tuple[type, ...] = (
     Weights,
     StatsReport,
     Span,
+    Event,
     Stop,
     Affinity,
     Quota,
@@ -220,6 +233,14 @@ def _hints(cls: type) -> dict[str, Any]:
     if cls not in _HINTS:
         _HINTS[cls] = typing.get_type_hints(cls, include_extras=True)
     return _HINTS[cls]
+
+
+def decode_stats_sample(key: str, payload: bytes | memoryview) -> "StatsReport | Span | Event":
+    """Decode a sample from ``ebrl/stats/<run>/**``: a ``Span`` on ``spans/<lane>``, an ``Event``
+    on ``events/<service>``, else a ``StatsReport``; raise :class:`MessageError` if it is none."""
+    family = key.split("/")[3] if key.count("/") >= 4 else ""
+    cls = Span if family == "spans" else Event if family == "events" else StatsReport
+    return decode_message(cls, payload)  # type: ignore[return-value]
 
 
 # --- JSON Schema ------------------------------------------------------------------------

@@ -32,7 +32,7 @@ import psutil
 
 from ebrl import config as config_mod
 from ebrl.bus import Bus, BusOptions, keys
-from ebrl.messages import Affinity, Quota, Span, StatsReport, Stop, encode_message
+from ebrl.messages import Affinity, Event, Quota, Span, StatsReport, Stop, encode_message
 
 STOP_GRACE_S = 5.0
 
@@ -40,8 +40,10 @@ STOP_GRACE_S = 5.0
 class Service:
     role = "service"
 
-    def __init__(self, cfg: config_mod.Config, instance: int = 0, bus_options: BusOptions | None = None):
+    def __init__(self, cfg: config_mod.Config, instance: int = 0, bus_options: BusOptions | None = None,
+                 run_dir: str | None = None):
         self.cfg = cfg
+        self.run_dir = run_dir or "."  # the run directory (where the launcher put the resolved config)
         self.run_name = cfg.run.name
         self.instance = instance
         self.bus_options = bus_options or BusOptions(mode=cfg.bus.mode, connect=list(cfg.bus.connect),
@@ -78,6 +80,10 @@ class Service:
         """Apply a CPU affinity; the default pins this process."""
         os.sched_setaffinity(0, cores)
 
+    def cores_in_use(self) -> list[int]:
+        """The cores this service works on (reported as ``quota/cores``); the default: its affinity."""
+        return sorted(os.sched_getaffinity(0))
+
     def on_quota(self, quota: Quota) -> None:
         """Apply a resource quota; the default sets torch's thread count."""
         if quota.threads:
@@ -108,8 +114,14 @@ class Service:
         if busy:
             with self._counts_lock:
                 self._busy[lane] += end - start
-        self.bus.put_nowait(keys.spans(self.run_name, lane),
-                            Span(lane=lane, start=start, end=end, label=label, service=self.role, instance=self.instance))
+        if self.cfg.viz.spans:
+            self.bus.put_nowait(keys.spans(self.run_name, lane), Span(lane=lane, start=start, end=end, label=label,
+                                                                    service=self.role, instance=self.instance))
+
+    def event(self, kind: str, text: str) -> None:
+        """Add a line to the run's event log (``ebrl/stats/<run>/events/<role>``), from any thread."""
+        self.bus.put_nowait(keys.events(self.run_name, self.role),
+                            Event(time=time.time(), service=self.role, instance=self.instance, kind=kind, text=text))
 
     def key(self, kind: str) -> str:
         return keys.ctl(self.run_name, self.role, self.instance, kind)
@@ -188,6 +200,7 @@ class Service:
         self._control_versions[kind] = msg.version
         self.count(f"ctl/{kind}_applied")
         self.log.info("applied %s version %d", kind, msg.version)
+        self.event(kind, f"{self.role}/{self.instance} applied {kind} v{msg.version}: {_describe_control(msg)}")
 
     async def _stats_loop(self) -> None:
         self._last_stats = (time.monotonic(), dict(self._counts), dict(self._busy))
@@ -221,6 +234,9 @@ class Service:
         metrics["proc/cpu_percent"] = self._proc.cpu_percent()
         metrics["proc/rss_mb"] = self._proc.memory_info().rss / 2**20
         metrics["proc/uptime_s"] = time.time() - self.started_at
+        metrics["quota/cores"] = float(len(self.cores_in_use()))
+        if "torch" in sys.modules:
+            metrics["quota/threads"] = float(sys.modules["torch"].get_num_threads())
         metrics.update(self.metrics())
         if now > last_t:
             self._last_stats = (now, counts, busy)
@@ -228,6 +244,13 @@ class Service:
                              seq=self._stats_seq, metrics=metrics)
         self._stats_seq += 1
         return report
+
+
+def _describe_control(msg: Any) -> str:
+    if isinstance(msg, Affinity):
+        return f"cores {msg.cores}"
+    fields = {k: v for k, v in vars(msg).items() if k != "version" and v is not None}
+    return " ".join(f"{k}={v}" for k, v in fields.items()) or "-"
 
 
 def service_main(cls: type[Service], argv: list[str] | None = None) -> None:
@@ -247,5 +270,5 @@ def service_main(cls: type[Service], argv: list[str] | None = None) -> None:
                         format=f"%(asctime)s {cls.role}/{args.instance} %(levelname)s %(name)s: %(message)s")
     options = BusOptions(mode=cfg.bus.mode, connect=args.connect + list(cfg.bus.connect),
                          listen=["tcp/127.0.0.1:0"], config_file=cfg.bus.config_file)
-    service = cls(cfg, args.instance, options)
+    service = cls(cfg, args.instance, options, run_dir=os.path.dirname(os.path.abspath(args.config)))
     sys.exit(asyncio.run(service.main()))

@@ -13,6 +13,7 @@ import psutil
 from ebrl.bus import keys
 from ebrl.envs import EnvSpec, EnvWorker, spaces
 from ebrl.messages import ActionChunk, Observation
+from ebrl.resources.nvml import GpuMonitor
 from ebrl.sched.modes import resolve
 from ebrl.sched.rollout import SegmentBuilder
 from ebrl.sched.stepping import BatchStepping, IndependentStepping, RebindingStepping
@@ -58,6 +59,7 @@ class SimService(Service):
         self.peers_live: set[str] = set()
         self.bus.watch_liveliness(keys.live_all(self.run_name), self._on_liveliness)
         psutil.cpu_percent(percpu=True)
+        self.gpus = GpuMonitor()
         self.log.info("schedule: %s", sched)
 
     def _on_liveliness(self, key: str, alive: bool) -> None:
@@ -143,7 +145,14 @@ class SimService(Service):
             out["sim/rebinds"] = float(self.stepping.rebinds)
         for core, percent in enumerate(psutil.cpu_percent(percpu=True)):
             out[f"cpu/core{core}_percent"] = percent
+        out.update(self.gpus.sample())  # one sim service per host: it reports the host's GPUs
         return out
+
+    def cores_in_use(self) -> list[int]:
+        if isinstance(self.stepping, RebindingStepping):
+            return sorted(self.stepping.sched.budget)
+        return sorted({w.core for g in self.groups for w in self.workers[g] if w.core is not None}) \
+            or super().cores_in_use()
 
     def on_affinity(self, cores: list[int]) -> None:
         """A new simulation core budget: rebinding uses it from the next step; static pinning re-pins."""

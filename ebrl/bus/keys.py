@@ -83,6 +83,16 @@ def spans(run: str, lane: str = "*") -> str:
     return f"{ROOT}/stats/{run}/spans/{lane}"
 
 
+def events(run: str, service: str = "*") -> str:
+    """``ebrl/stats/<run>/events/<service>``: the run's event log (``events`` is reserved too)."""
+    return f"{ROOT}/stats/{run}/events/{service}"
+
+
+def stats_all(run: str) -> str:
+    """Everything under ``ebrl/stats/<run>/``: stats reports, spans and events of one run."""
+    return f"{ROOT}/stats/{run}/**"
+
+
 def live(run: str, service: str = "*", instance: int | str = "*") -> str:
     """``ebrl/live/<run>/<service>/<instance>``: liveliness token; vanishes when the process dies."""
     return f"{ROOT}/live/{run}/{service}/{instance}"

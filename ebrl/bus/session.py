@@ -143,17 +143,33 @@ class Bus:
     def subscribe(
         self,
         key: str,
-        cls: type[T],
+        cls: type[T] | Callable[[str, bytes], T],
         *,
         policy: Literal["block", "latest"] = "block",
         capacity: int = 64,
         notify: asyncio.Event | None = None,
     ) -> "Subscription[T]":
         """A bounded, typed async iterator of ``(key, message)`` for samples on ``key``.
-        ``notify`` is set too when a sample arrives, so one task can wait on several subscriptions."""
+
+        ``cls`` is a message class, or a function ``(key, payload) -> message`` for keys that
+        carry several types (``messages.decode_stats_sample``); either raises ``MessageError``
+        on a malformed payload. ``notify`` is set too when a sample arrives, so one task can
+        wait on several subscriptions."""
         sub = Subscription(self, key, cls, policy, capacity, notify)
         self._declared.append(sub)
         return sub
+
+    def subscribe_raw(self, key: str, callback: Callable[[str, bytes], None]) -> None:
+        """Call ``callback(key, payload)`` on a Zenoh thread for every sample: no decoding, no
+        queue. For recorders that must stay cheap; the callback must be fast and never raise."""
+
+        def on_sample(sample: zenoh.Sample) -> None:
+            try:
+                callback(str(sample.key_expr), sample.payload.to_bytes())
+            except Exception as exc:  # never let an exception escape into Zenoh
+                log.warning("raw subscriber on %s: %s", key, exc)
+
+        self._declared.append(self.session.declare_subscriber(key, on_sample))
 
     def count_malformed(self, key: str, error: Exception) -> None:
         self.malformed[key] += 1
@@ -248,11 +264,15 @@ class Bus:
 class Subscription(Generic[T]):
     """Bounded bridge from a Zenoh subscriber to the event loop (see module docstring)."""
 
-    def __init__(self, bus: Bus, key: str, cls: type[T], policy: str, capacity: int,
+    def __init__(self, bus: Bus, key: str, cls: type[T] | Callable[[str, bytes], T], policy: str, capacity: int,
                  notify: asyncio.Event | None = None):
         if policy not in ("block", "latest"):
             raise ValueError(f"unknown queue policy {policy!r}")
-        self.bus, self.key, self.cls, self.policy, self.capacity = bus, key, cls, policy, capacity
+        self.bus, self.key, self.policy, self.capacity = bus, key, policy, capacity
+        if isinstance(cls, type):
+            self._decode: Callable[[str, bytes], T] = lambda _key, payload: messages.decode_message(cls, payload)
+        else:
+            self._decode = cls
         self.received = 0
         self.dropped = 0
         self._items: collections.deque[tuple[str, T]] = collections.deque()
@@ -268,7 +288,7 @@ class Subscription(Generic[T]):
     def _on_sample(self, sample: zenoh.Sample) -> None:  # runs on a Zenoh thread
         key = str(sample.key_expr)
         try:
-            msg = messages.decode_message(self.cls, sample.payload.to_bytes())
+            msg = self._decode(key, sample.payload.to_bytes())
         except messages.MessageError as exc:
             self.bus.count_malformed(key, exc)
             return

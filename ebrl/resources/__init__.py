@@ -1,0 +1,1 @@
+"""Hardware the stages run on: CPU cores and GPUs (NVML)."""

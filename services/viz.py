@@ -1,0 +1,72 @@
+"""viz service: the bus -> rerun bridge. Subscribes to ``ebrl/stats/<run>/**`` and logs the live Gantt and plots.
+
+The only EBRL process that imports rerun-sdk. It never slows the run: its
+inbox drops the oldest samples when it falls behind (counted as ``viz/dropped``).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import os
+import threading
+
+from ebrl.bus import keys
+from ebrl.messages import Event, Span, decode_stats_sample
+from ebrl.service import Service, service_main
+from ebrl.viz.rerun_bridge import RerunBridge, make_blueprint, open_recording
+
+FLUSH_S = 0.25
+INBOX = 50_000
+
+
+class VizService(Service):
+    role = "viz"
+
+    async def setup(self) -> None:
+        viz = self.cfg.viz
+        self.rrd_path = os.path.join(self.run_dir, "timeline.rrd")
+        self.rec, where = open_recording(viz.rerun, self.rrd_path, self.run_name, viz.port, viz.memory_limit,
+                                         make_blueprint(viz.window_s))
+        self.bridge = RerunBridge(self.rec)
+        self.lock = threading.Lock()  # the executor thread and teardown both log
+        self.log.info("rerun: %s", where)
+        self.event("viz", where)
+        self.inbox = self.bus.subscribe(keys.stats_all(self.run_name), decode_stats_sample, policy="latest",
+                                        capacity=INBOX)
+
+    async def run(self) -> None:
+        loop = asyncio.get_running_loop()
+        while True:
+            await asyncio.sleep(FLUSH_S)
+            items = self.inbox.drain()
+            if items:
+                await loop.run_in_executor(None, self.log_items, items)  # rerun calls off the event loop
+
+    def log_items(self, items) -> None:
+        with self.lock:
+            for _, msg in items:
+                if isinstance(msg, Span):
+                    self.bridge.on_span(msg)
+                elif isinstance(msg, Event):
+                    self.bridge.on_event(msg)
+                else:
+                    self.bridge.on_stats(msg)
+            self.bridge.flush()
+
+    def metrics(self) -> dict[str, float]:
+        return {"viz/spans": float(self.bridge.spans), "viz/reports": float(self.bridge.reports),
+                "viz/events": float(self.bridge.events), "viz/dropped": float(self.inbox.dropped)}
+
+    async def teardown(self) -> None:
+        items = self.inbox.drain()
+        self.log_items(items)
+        self.rec.flush(timeout_sec=5.0)
+        self.rec.disconnect()  # closes the file sink: the .rrd gets its footer
+
+
+def main() -> None:
+    service_main(VizService)
+
+
+if __name__ == "__main__":
+    main()

@@ -49,7 +49,7 @@ class StatsWindow:
 
     def on_sample(self, sample: zenoh.Sample) -> None:
         key = str(sample.key_expr).split("/", 3)[3]
-        if key.startswith("spans/"):
+        if key.startswith(("spans/", "events/")):  # timeline spans and the event log are not stats
             return
         try:
             report = msgpack.unpackb(sample.payload.to_bytes())

@@ -62,7 +62,7 @@ def run_collecting_stats(out_dir, config: str, *overrides: str, run: str, timeou
 
     def on_sample(sample) -> None:
         key = str(sample.key_expr).split("/", 3)[3]
-        if not key.startswith("spans/"):
+        if not key.startswith(("spans/", "events/")):
             seen.setdefault(key, []).append(msgpack.unpackb(sample.payload.to_bytes())["metrics"])
 
     with zenoh.open(conf) as session:

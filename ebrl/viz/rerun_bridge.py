@@ -175,6 +175,8 @@ def make_blueprint(window_s: float = 20.0) -> rrb.Blueprint:
             column_shares=[1, 1],
         ),
         rrb.TimePanel(timeline="wall", play_state="following"),
+        rrb.BlueprintPanel(state="collapsed"),
+        rrb.SelectionPanel(state="collapsed"),
     )
 
 

@@ -1,0 +1,278 @@
+"""Observability: the rerun bridge (read back from .rrd), the run recording, the static report, `--viz save` end to end,
+and (slow) a real headless rerun viewer screenshotted during a real run."""
+
+from __future__ import annotations
+
+import os
+import pathlib
+import socket
+import subprocess
+import sys
+import time
+
+import numpy as np
+import pyarrow as pa
+import pytest
+
+import helpers
+from ebrl.messages import Event, Span, StatsReport, encode_message
+from ebrl.bus import keys
+from ebrl.viz import record, report, timeline
+
+T0 = 1_800_000_000.0
+
+
+def span(lane, start, end, label, service="sim"):
+    return Span(lane=lane, start=T0 + start, end=T0 + end, label=label, service=service, instance=0)
+
+
+def scripted_stream():
+    """Two sim groups chunk/wait, gen forwards (two overlapping), train updates, weights publishes, stats, an event."""
+    spans, stats = [], []
+    for i in range(10):
+        t = float(i)
+        spans += [span("sim.g0", t, t + 0.5, "chunk"), span("sim.g0", t + 0.5, t + 1.0, "wait"),
+                  span("sim.g1", t + 0.25, t + 0.75, "chunk"),
+                  span("gen", t + 0.5, t + 0.6, "forward", "gen")]
+        stats.append(StatsReport(run="r", service="sim", instance=0, time=T0 + t, seq=i,
+                                 metrics={"sim/segments_per_s": 2.0, "sim/env_steps_per_s": 100.0 + i,
+                                          "busy/sim.g0": 0.5, "cpu/core0_percent": 50.0, "other/x": 1.0}))
+        stats.append(StatsReport(run="r", service="train", instance=0, time=T0 + t, seq=i,
+                                 metrics={"train/policy_loss": 0.1, "train/policy_version": float(i)}))
+    spans.append(span("gen", 3.55, 3.65, "forward", "gen"))  # overlaps the gen forward at 3.5-3.6
+    spans += [span("train", 2.0, 4.0, "update", "train"), span("weights", 4.0, 4.01, "v1", "train"),
+              span("train", 6.0, 7.0, "update", "train"), span("weights", 7.0, 7.01, "v2", "train")]
+    events = [Event(time=T0 + 0.1, service="launcher", instance=0, kind="live", text="all live")]
+    return spans, stats, events
+
+
+# --- timeline arithmetic ------------------------------------------------------------------
+
+
+def test_union_intersect_and_lane_order():
+    merged = timeline.union([(3, 4), (0, 1), (0.5, 2), (5, 9)], lo=0.0, hi=6.0)
+    assert merged == [(0, 2), (3, 4), (5, 6)] and timeline.total(merged) == 4
+    assert timeline.intersect(merged, [(1, 3.5), (5.5, 7)]) == [(1, 2), (3, 3.5), (5.5, 6)]
+    lanes = ["weights", "gen", "sim.g10", "custom", "train", "sim.g2", "alloc"]
+    assert sorted(lanes, key=timeline.lane_order) == ["sim.g2", "sim.g10", "gen", "train", "weights", "alloc",
+                                                       "custom"]
+    assert timeline.state_of(span("weights", 0, 1, "v7", "train")) == "publish"
+    assert not timeline.is_busy(span("sim.g0", 0, 1, "wait"))
+
+
+# --- the rerun bridge ---------------------------------------------------------------------
+
+
+def states_by_entity(path):
+    """{entity: [(seconds from T0, state), ...]} of every StateChange in a saved .rrd."""
+    from rerun.chunk import RrdReader
+
+    out: dict[str, list] = {}
+    for chunk in RrdReader(path).stream().to_chunks():
+        batch = chunk.to_record_batch()
+        if "StateChange:state" not in batch.schema.names or chunk.is_static:
+            continue
+        times = batch.column("wall").cast(pa.int64()).to_pylist()
+        states = [v[0] if v else None for v in batch.column("StateChange:state").to_pylist()]
+        out.setdefault(str(chunk.entity_path), []).extend(
+            (round(t / 1e9 - T0, 3), s) for t, s in zip(times, states))
+    return {k: sorted(v) for k, v in out.items()}
+
+
+def test_bridge_turns_spans_stats_and_events_into_entities(tmp_path):
+    import rerun as rr
+
+    from ebrl.viz.rerun_bridge import RerunBridge, describe_recording, make_blueprint
+
+    path = str(tmp_path / "t.rrd")
+    rec = rr.RecordingStream("ebrl", recording_id="test")
+    rec.save(path, default_blueprint=make_blueprint(15.0))
+    bridge = RerunBridge(rec)
+    spans, stats, events = scripted_stream()
+    for i, s in enumerate(spans):
+        bridge.on_span(s)
+        if i % 7 == 0:
+            bridge.flush()  # spans of one lane split across flushes
+    for r in stats:
+        bridge.on_stats(r)
+    for e in events:
+        bridge.on_event(e)
+    bridge.flush()
+    rec.flush()
+    rec.disconnect()
+
+    entities = describe_recording(path)
+    for lane in ("/timeline/1_sim/g00", "/timeline/1_sim/g01", "/timeline/2_gen", "/timeline/2_gen_1",
+                 "/timeline/3_train", "/timeline/4_weights", "/plots/traj_per_s/sim0/sim.segments_per_s",
+                 "/plots/env_steps_per_s/sim0/sim.env_steps_per_s", "/plots/busy/sim0/sim.g0",
+                 "/plots/cpu/sim0/core0_percent", "/plots/losses/train0/train.policy_loss",
+                 "/plots/policy_version/train0/train.policy_version", "/metrics/sim0/other/x", "/events"):
+        assert lane in entities, (lane, sorted(entities))
+    states = states_by_entity(path)
+    assert states["/timeline/3_train"] == [(2.0, "update"), (4.0, ""), (6.0, "update"), (7.0, "")]
+    assert states["/timeline/4_weights"] == [(4.0, "publish"), (4.01, ""), (7.0, "publish"), (7.01, "")]
+    assert states["/timeline/2_gen_1"] == [(3.55, "forward"), (3.65, "")]  # the overlapping span got a sub-lane
+    assert len(states["/timeline/2_gen"]) == 20
+    sim = states["/timeline/1_sim/g00"]
+    assert (0.5, "wait") in sim and (0.0, "chunk") in sim and len(sim) == 40
+    assert entities["/events"] >= 3  # the event and two weights publications
+
+
+# --- recording and report ---------------------------------------------------------------------
+
+
+def write_recording(path, spans, stats, events, garbage=True):
+    rec = record.Recorder(path)
+    for s in spans:
+        rec.write(keys.spans("r", s.lane), encode_message(s))
+    for r in stats:
+        rec.write(keys.stats("r", r.service, r.instance), encode_message(r))
+    for e in events:
+        rec.write(keys.events("r", e.service), encode_message(e))
+    if garbage:
+        rec.write(keys.spans("r", "gen"), b"\xc1not msgpack")
+        rec.write(keys.stats("r", "sim", 0), encode_message(spans[0]))  # a span on a stats key: wrong type
+    rec.close()
+
+
+def test_recording_round_trip_counts_malformed_and_survives_a_cut_file(tmp_path):
+    spans, stats, events = scripted_stream()
+    path = tmp_path / record.FILENAME
+    write_recording(path, spans, stats, events)
+    with open(path, "ab") as fh:
+        fh.write(b"\x93\xcb")  # a record cut short by a crash
+    got = record.read(tmp_path)
+    assert len(got.spans) == len(spans) and len(got.stats) == len(stats) and got.events == events
+    assert got.malformed == 2
+    assert got.lanes == ["sim.g0", "sim.g1", "gen", "train", "weights"]
+    assert [s.start for s in got.spans] == sorted(s.start for s in spans)
+
+
+def test_report_numbers_and_files(tmp_path):
+    spans, stats, events = scripted_stream()
+    write_recording(tmp_path / record.FILENAME, spans, stats, events, garbage=False)
+    rec = record.read(tmp_path)
+    lo, hi = T0, T0 + 10.0
+    rows = {r["lane"]: r for r in report.lane_table(rec, lo, hi)}
+    assert rows["sim.g0"]["busy"] == pytest.approx(0.5) and rows["sim.g0"]["waiting"] == pytest.approx(0.5)
+    assert rows["sim.g0"]["idle"] == pytest.approx(0.0, abs=1e-9)
+    assert rows["train"]["busy"] == pytest.approx(0.3) and rows["train"]["spans"] == 2
+    ov = report.overlap(rec, lo, hi)
+    # train 2-4 and 6-7; sim busy [t, t+0.75] each second -> 0.75 s per second of training
+    assert ov["train_busy_s"] == pytest.approx(3.0) and ov["both_s"] == pytest.approx(2.25)
+    assert ov["of_training"] == pytest.approx(0.75)
+    assert report.window_of(rec, None, None, 2.0) == pytest.approx((T0 + 8.01, T0 + 10.01))
+    with pytest.raises(ValueError, match="empty window"):
+        report.window_of(rec, 5.0, 4.0, None)
+
+    paths = report.write(tmp_path, start=0.0, end=10.0)
+    for key in ("gantt", "gantt_zoom", "throughput", "markdown"):
+        assert paths[key].exists() and paths[key].stat().st_size > 1000, key
+    text = paths["markdown"].read_text()
+    assert "| sim.g0 | 20 | 50.0% | 50.0% | 0.0% |" in text
+    assert "75% of training ran while rollout went on" in text and "launcher/0 live: all live" in text
+
+
+def test_report_command_errors_clearly(tmp_path):
+    out = subprocess.run([sys.executable, "-m", "ebrl.cli", "report", str(tmp_path)], capture_output=True, text=True)
+    assert out.returncode == 2 and "stats.msgpack not found" in out.stderr
+
+
+def hue_pixels(png) -> dict[str, int]:
+    """Pixels of each bar colour family in a screenshot (rendered colours are dimmed and blended with the
+    dark background where spans are thin, so match by dominant channel, not by exact value)."""
+    import matplotlib.image
+
+    img = (matplotlib.image.imread(png)[..., :3] * 255).astype(int)
+    r, g, b = img[..., 0], img[..., 1], img[..., 2]
+    return {"chunk": int(((b > 60) & (b > 1.15 * r) & (b > 1.1 * g)).sum()),  # blue
+            "forward": int(((r > 25) & (r > 1.3 * g) & (g > 1.5 * b)).sum()),  # orange
+            "update": int(((g > 60) & (g > 1.3 * r) & (g > 1.3 * b)).sum())}  # green
+
+
+# --- end to end ----------------------------------------------------------------------------------
+
+
+def test_up_with_viz_save_writes_timeline_and_report(tmp_path):
+    proc, _ = helpers.ebrl_up(tmp_path / "runs", "configs/quickstart.toml", "run.iterations=3", "run.name=vizsave",
+                              'viz.rerun="save"')
+    out, _ = proc.communicate(timeout=150)
+    assert proc.returncode == 0, out
+    (run_dir,) = (tmp_path / "runs").iterdir()
+    assert (run_dir / "timeline.rrd").exists(), out
+    from ebrl.viz.rerun_bridge import describe_recording
+
+    entities = describe_recording(str(run_dir / "timeline.rrd"))
+    for lane in ("/timeline/1_sim/g00", "/timeline/1_sim/g01", "/timeline/2_gen", "/timeline/3_train",
+                 "/timeline/4_weights", "/plots/traj_per_s/sim0/sim.segments_per_s", "/events"):
+        assert entities.get(lane, 0) > 2, (lane, sorted(entities))
+    rec = record.read(run_dir)
+    assert rec.lanes[:5] == ["sim.g0", "sim.g1", "gen", "train", "weights"] and rec.malformed == 0
+    assert {e.kind for e in rec.events} >= {"live", "viz", "stopping"}
+    assert {r.service for r in rec.stats} >= {"sim", "gen", "train", "viz"}
+    md = (run_dir / "report" / "report.md").read_text()
+    for lane in ("sim.g0", "sim.g1", "gen", "train", "weights"):
+        assert f"| {lane} |" in md
+    assert "report:" in out and (run_dir / "report" / "gantt.png").exists()
+
+
+# --- slow: a real headless viewer -------------------------------------------------------------------
+
+
+def _free_port() -> int:
+    with socket.socket() as sock:
+        sock.bind(("127.0.0.1", 0))
+        return sock.getsockname()[1]
+
+
+@pytest.fixture
+def viewer(tmp_path, monkeypatch):
+    icd = "/usr/share/vulkan/icd.d"
+    if not (os.path.isdir(icd) and os.listdir(icd)):
+        pytest.skip("no Vulkan driver: install mesa-vulkan-drivers and libvulkan1 (.ci/run does)")
+    from rerun.experimental import ViewerClient
+
+    monkeypatch.setenv("XDG_RUNTIME_DIR", str(tmp_path))
+    monkeypatch.setenv("RUST_LOG", "error")
+    exe = os.path.join(os.path.dirname(sys.executable), "rerun")
+    client = ViewerClient.spawn(headless=True, port=_free_port(), hide_welcome_screen=True,
+                                executable_path=exe if os.path.exists(exe) else None)
+    try:
+        client.get_state()
+    except ConnectionError as exc:
+        client.quit()
+        pytest.skip(f"headless rerun viewer unusable here: {exc}")
+    yield client
+    client.quit()
+
+
+@pytest.mark.slow
+def test_live_gantt_in_a_headless_viewer_shows_every_lane(tmp_path, viewer):
+    port = int(viewer.url.rsplit(":", 1)[1].split("/")[0])
+    proc, _ = helpers.ebrl_up(tmp_path / "runs", "configs/quickstart.toml", "run.iterations=0", "run.name=vizlive",
+                              f"viz.port={port}", 'viz.rerun="spawn"')
+    try:
+        deadline = time.monotonic() + 120
+        view = None
+        while time.monotonic() < deadline:  # wait for the run's spans to reach the viewer
+            state = viewer.get_state()
+            view = next((v for v in state.views if v.view_class == "StateTimeline"), None)
+            wall = [t for r in state.recordings for t in r.timelines if t.name == "wall" and t.end]
+            if view is not None and wall and wall[0].end - wall[0].start > 8e9:
+                break
+            time.sleep(0.5)
+        assert view is not None, "no StateTimeline view in the live viewer"
+        time.sleep(1.0)
+        png = tmp_path / "gantt.png"
+        png.write_bytes(viewer.take_screenshot(view.view_id))
+        (tmp_path / "viewer.png").write_bytes(viewer.take_screenshot())  # the whole layout, for a human look
+    finally:
+        proc.send_signal(2)
+        out, _ = proc.communicate(timeout=60)
+    assert "streaming to the viewer already listening" in (tmp_path / "runs").joinpath(
+        next((tmp_path / "runs").iterdir()).name, "logs", "viz-0.log").read_text()
+    # Every stage's bars are on screen: sim chunks (blue), gen forwards (orange), train updates (green).
+    pixels = hue_pixels(png)
+    for state, count in pixels.items():
+        assert count > 300, f"no {state} bars in the live Gantt ({png}): {pixels}"
+    assert proc.returncode in (0, 130), out

@@ -80,7 +80,7 @@ def launch(config: str, name: str, overrides: list[str], out_dir: str) -> tuple[
     port = _free_port()
     cmd = [sys.executable, "-m", "ebrl.cli", "up", config, "--set", f"run.name={name}",
            "--set", f"run.output_dir={json.dumps(out_dir)}", "--set", f'bus.listen=["tcp/127.0.0.1:{port}"]',
-           "--set", "run.stats_interval=1.0"]
+           "--set", "run.stats_interval=1.0", "--set", "viz.report=false"]
     for item in overrides:
         cmd += ["--set", item]
     conf = zenoh.Config()

@@ -133,8 +133,8 @@ class TrainSection:
 @dataclass
 class VizSection:
     rerun: Literal["spawn", "serve", "save", "off"] = doc(
-        "live timeline in rerun: spawn a viewer, serve over gRPC for a viewer to connect (even late), save to "
-        "RUN_DIR/timeline.rrd, or off (no viz service)", "off")
+        "live timeline in rerun: spawn a viewer, serve over gRPC for a viewer to connect (even late), save only, "
+        "or off (no viz service); every mode but off also writes RUN_DIR/timeline.rrd", "off")
     port: int = doc("gRPC port of the rerun server (serve) or of the spawned viewer (spawn)", 9876)
     memory_limit: str = doc("rerun server memory (serve): what a late viewer can still see", "2GiB")
     window_s: float = doc("seconds of history the live Gantt shows while following the present", 20.0)

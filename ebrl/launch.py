@@ -30,14 +30,14 @@ from ebrl.viz import record
 log = logging.getLogger("ebrl.launch")
 
 SERVICES = ("train", "gen", "sim")  # started in this order; each is `python -m services.<role>`
+STOP_GRACE_S = 5.0  # after the stop message, before SIGTERM
+SHUTDOWN_S = 8.0  # after which anything left is SIGKILLed
+LOG_TAIL = 20
 
 
 def services_for(cfg: config_mod.Config) -> tuple[str, ...]:
     """The roles a run starts, in start order (viz first, so that it sees the run from its start)."""
     return (("viz",) if cfg.viz.rerun != "off" else ()) + SERVICES
-STOP_GRACE_S = 5.0  # after the stop message, before SIGTERM
-SHUTDOWN_S = 8.0  # after which anything left is SIGKILLed
-LOG_TAIL = 20
 
 
 @dataclasses.dataclass
@@ -331,7 +331,6 @@ class Launcher:
         self._say(f"run {self.run_name} {'finished' if code == 0 else 'stopped'}: {summary['iterations']} iterations "
                   f"in {elapsed:.0f} s, {summary['env_steps']:,} env steps ({summary['env_steps_per_s']:,.0f}/s), "
                   f"mean return {final} (best {best}); summary in {self.run_dir / 'summary.json'}")
-
 
     def write_report(self) -> None:
         """The headless report of the run (``ebrl report``), from the recording; never fails the run."""

@@ -116,16 +116,38 @@ class StatsReport:
 
 
 @dataclass
-class Span:
-    """One timeline span: a stage was busy with `label` from `start` to `end`."""
+class SpanBatch:
+    """Timeline spans of one lane, batched (a service publishes each lane every 0.2 s): span i was busy
+    with ``label[i]`` from ``start[i]`` to ``end[i]``."""
 
     KEY = "ebrl/stats/<run>/spans/<lane>"
     lane: str = doc("timeline lane, e.g. sim.g0, gen, train, weights")
-    start: float = doc("epoch seconds")
-    end: float = doc("epoch seconds")
-    label: str = doc("what ran, e.g. chunk, forward, update, publish")
-    service: str = doc("service role that recorded it")
+    service: str = doc("service role that recorded the spans")
     instance: int = doc("instance index of that service")
+    start: list[float] = doc("epoch seconds, one per span")
+    end: list[float] = doc("epoch seconds, one per span")
+    label: list[str] = doc("what ran, one per span: chunk, wait, forward, update, v<version>")
+
+    def __post_init__(self) -> None:
+        if not len(self.start) == len(self.end) == len(self.label):
+            raise MessageError(f"SpanBatch: start, end and label differ in length "
+                               f"({len(self.start)}, {len(self.end)}, {len(self.label)})")
+
+    def spans(self) -> list["Span"]:
+        return [Span(self.lane, a, b, label, self.service, self.instance)
+                for a, b, label in zip(self.start, self.end, self.label)]
+
+
+@dataclass
+class Span:
+    """One span of a :class:`SpanBatch`, as readers use it (not a wire message of its own)."""
+
+    lane: str
+    start: float
+    end: float
+    label: str
+    service: str
+    instance: int
 
 
 @dataclass
@@ -177,7 +199,7 @@ MESSAGES: tuple[type, ...] = (
     TrajectorySegment,
     Weights,
     StatsReport,
-    Span,
+    SpanBatch,
     Event,
     Stop,
     Affinity,
@@ -235,11 +257,11 @@ def _hints(cls: type) -> dict[str, Any]:
     return _HINTS[cls]
 
 
-def decode_stats_sample(key: str, payload: bytes | memoryview) -> "StatsReport | Span | Event":
-    """Decode a sample from ``ebrl/stats/<run>/**``: a ``Span`` on ``spans/<lane>``, an ``Event``
+def decode_stats_sample(key: str, payload: bytes | memoryview) -> "StatsReport | SpanBatch | Event":
+    """Decode a sample from ``ebrl/stats/<run>/**``: a ``SpanBatch`` on ``spans/<lane>``, an ``Event``
     on ``events/<service>``, else a ``StatsReport``; raise :class:`MessageError` if it is none."""
     family = key.split("/")[3] if key.count("/") >= 4 else ""
-    cls = Span if family == "spans" else Event if family == "events" else StatsReport
+    cls = SpanBatch if family == "spans" else Event if family == "events" else StatsReport
     return decode_message(cls, payload)  # type: ignore[return-value]
 
 

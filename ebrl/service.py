@@ -10,7 +10,8 @@ base owns everything else:
   ``setup`` has finished, so "live" means "ready";
 * stats are published every ``run.stats_interval`` seconds; ``count(name, n)``
   counters become ``name`` (total) and ``name_per_s`` (rate over the interval);
-* ``with self.span(label, lane):`` publishes a timeline span from any thread;
+* ``with self.span(label, lane):`` records a timeline span from any thread; spans are
+  published in one ``SpanBatch`` per lane every ``SPAN_FLUSH_S``;
 * control messages (stop, affinity, quota) are versioned and applied once.
 """
 
@@ -32,9 +33,11 @@ import psutil
 
 from ebrl import config as config_mod
 from ebrl.bus import Bus, BusOptions, keys
-from ebrl.messages import Affinity, Event, Quota, Span, StatsReport, Stop, encode_message
+from ebrl.messages import Affinity, Event, Quota, SpanBatch, StatsReport, Stop, encode_message
 
 STOP_GRACE_S = 5.0
+SPAN_FLUSH_S = 0.2  # spans are published in one batch per lane this often (one message per span costs too much)
+SPAN_BATCH_MAX = 4096  # ... or as soon as a lane has this many
 
 
 class Service:
@@ -54,6 +57,7 @@ class Service:
         self._counts: collections.Counter[str] = collections.Counter()
         self._counts_lock = threading.Lock()
         self._busy: collections.Counter[str] = collections.Counter()
+        self._spans: collections.defaultdict[str, list[tuple[float, float, str]]] = collections.defaultdict(list)
         self._control_versions: dict[str, int] = {}
         self._tasks: set[asyncio.Task] = set()
         self._stats_seq = 0
@@ -100,7 +104,7 @@ class Service:
 
     @contextlib.contextmanager
     def span(self, label: str, lane: str | None = None) -> Iterator[None]:
-        """Time a block and publish it as a span on ``ebrl/stats/<run>/spans/<lane>``."""
+        """Time a block and record it as a span of ``lane`` (published on ``ebrl/stats/<run>/spans/<lane>``)."""
         lane = lane or self.role
         start = time.time()
         try:
@@ -110,13 +114,29 @@ class Service:
             self.publish_span(lane, label, start, end)
 
     def publish_span(self, lane: str, label: str, start: float, end: float, busy: bool = True) -> None:
-        """Publish a span; ``busy=False`` marks time spent waiting (shown, not counted in busy/<lane>)."""
-        if busy:
-            with self._counts_lock:
+        """Record a span for the next batch; ``busy=False`` marks time spent waiting (shown, not counted
+        in busy/<lane>). With ``viz.spans = false`` only busy/<lane> is kept."""
+        with self._counts_lock:
+            if busy:
                 self._busy[lane] += end - start
-        if self.cfg.viz.spans:
-            self.bus.put_nowait(keys.spans(self.run_name, lane), Span(lane=lane, start=start, end=end, label=label,
-                                                                    service=self.role, instance=self.instance))
+            if not self.cfg.viz.spans:
+                return
+            rows = self._spans[lane]
+            rows.append((start, end, label))
+            full = len(rows) >= SPAN_BATCH_MAX
+        if full:
+            self.flush_spans()
+
+    def flush_spans(self) -> None:
+        """Publish the spans recorded since the last flush, one ``SpanBatch`` per lane (any thread)."""
+        with self._counts_lock:
+            pending, self._spans = self._spans, collections.defaultdict(list)
+        for lane, rows in pending.items():
+            if rows:
+                starts, ends, labels = zip(*rows)
+                self.bus.put_nowait(keys.spans(self.run_name, lane), SpanBatch(
+                    lane=lane, service=self.role, instance=self.instance, start=list(starts), end=list(ends),
+                    label=list(labels)))
 
     def event(self, kind: str, text: str) -> None:
         """Add a line to the run's event log (``ebrl/stats/<run>/events/<role>``), from any thread."""
@@ -141,6 +161,7 @@ class Service:
             self.bus.declare_token(keys.live(self.run_name, self.role, self.instance))
             self.log.info("%s/%d ready", self.role, self.instance)
             stats_task = asyncio.create_task(self._stats_loop())
+            spans_task = asyncio.create_task(self._spans_loop())
             run_task = asyncio.create_task(self.run())
             stop_task = asyncio.create_task(self.stopping.wait())
             done, _ = await asyncio.wait({run_task, stop_task}, return_when=asyncio.FIRST_COMPLETED)
@@ -155,7 +176,9 @@ class Service:
                     await asyncio.wait_for(run_task, STOP_GRACE_S)
             stop_task.cancel()
             stats_task.cancel()
+            spans_task.cancel()
             await self.teardown()
+            self.flush_spans()
             await self._publish_stats()
         finally:
             await self.bus.close()
@@ -201,6 +224,11 @@ class Service:
         self.count(f"ctl/{kind}_applied")
         self.log.info("applied %s version %d", kind, msg.version)
         self.event(kind, f"{self.role}/{self.instance} applied {kind} v{msg.version}: {_describe_control(msg)}")
+
+    async def _spans_loop(self) -> None:
+        while True:
+            await asyncio.sleep(SPAN_FLUSH_S)
+            self.flush_spans()
 
     async def _stats_loop(self) -> None:
         self._last_stats = (time.monotonic(), dict(self._counts), dict(self._busy))

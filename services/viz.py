@@ -11,7 +11,7 @@ import os
 import threading
 
 from ebrl.bus import keys
-from ebrl.messages import Event, Span, decode_stats_sample
+from ebrl.messages import Event, SpanBatch, decode_stats_sample
 from ebrl.service import Service, service_main
 from ebrl.viz.rerun_bridge import RerunBridge, make_blueprint, open_recording
 
@@ -45,8 +45,8 @@ class VizService(Service):
     def log_items(self, items) -> None:
         with self.lock:
             for _, msg in items:
-                if isinstance(msg, Span):
-                    self.bridge.on_span(msg)
+                if isinstance(msg, SpanBatch):
+                    self.bridge.on_spans(msg)
                 elif isinstance(msg, Event):
                     self.bridge.on_event(msg)
                 else:

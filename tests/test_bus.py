@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from ebrl.bus import keys
-from ebrl.messages import Observation, Span, StatsReport
+from ebrl.messages import Event, Observation, StatsReport
 from helpers import free_port, loopback_bus, until
 
 HERE = pathlib.Path(__file__).resolve().parent
@@ -71,8 +71,8 @@ def test_malformed_messages_are_counted_and_dropped():
     async def scenario():
         port = free_port()
         bus = loopback_bus(port)
-        sub = bus.subscribe("test/spans/*", Span, capacity=16)
-        good = Span(lane="gen", start=1.0, end=2.0, label="forward", service="gen", instance=0)
+        sub = bus.subscribe("test/spans/*", Event, capacity=16)
+        good = Event(time=1.0, service="gen", instance=0, kind="forward", text="a forward pass")
         await bus.put_bytes("test/spans/a", b"\xc1garbage")
         await bus.put("test/spans/a", StatsReport(run="r", service="s", instance=0, time=0.0, seq=0, metrics={}))
         await bus.put_bytes("test/spans/b", os.urandom(64))
@@ -89,12 +89,12 @@ def test_latest_policy_keeps_the_newest_and_block_policy_loses_nothing():
     async def scenario():
         port = free_port()
         bus = loopback_bus(port)
-        latest = bus.subscribe("test/latest", Span, policy="latest", capacity=2)
+        latest = bus.subscribe("test/latest", Event, policy="latest", capacity=2)
         blocking = bus.subscribe("test/block", Observation, policy="block", capacity=2)
         for i in range(10):
-            await bus.put("test/latest", Span(lane="x", start=float(i), end=float(i), label="", service="s", instance=0))
+            await bus.put("test/latest", Event(time=float(i), service="s", instance=0, kind="k", text=""))
         await until(lambda: latest.received >= 2 and latest.dropped + latest.received >= 10, 5, "latest samples")
-        assert [m.start for _, m in latest.drain()] == [8.0, 9.0]
+        assert [m.time for _, m in latest.drain()] == [8.0, 9.0]
         for seq in range(50):
             await bus.put("test/block", observation(seq))
         seen = []

@@ -54,7 +54,17 @@ def test_invalid_messages_are_rejected_with_the_field(mutate, error):
 
 def test_garbage_is_a_message_error():
     with pytest.raises(m.MessageError):
-        m.decode_message(m.Span, b"\x00\x01garbage")
+        m.decode_message(m.Event, b"\x00\x01garbage")
+
+
+def test_span_batch_columns_must_agree():
+    batch = m.SpanBatch(lane="gen", service="gen", instance=0, start=[1.0, 2.0], end=[1.5, 2.5], label=["forward"] * 2)
+    again = m.decode_message(m.SpanBatch, m.encode_message(batch))
+    assert again == batch and again.spans()[1] == m.Span("gen", 2.0, 2.5, "forward", "gen", 0)
+    wire = m.to_wire(batch)
+    wire["end"] = [1.5]
+    with pytest.raises(m.MessageError, match="differ in length"):
+        m.decode_message(m.SpanBatch, codec.encode(wire))
 
 
 def test_literal_and_optional_fields():

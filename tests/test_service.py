@@ -5,7 +5,7 @@ import os
 
 from ebrl import config
 from ebrl.bus import BusOptions, keys
-from ebrl.messages import Affinity, Span, StatsReport, Stop, decode_message
+from ebrl.messages import Affinity, SpanBatch, StatsReport, Stop, decode_message
 from ebrl.service import Service
 from helpers import free_port, loopback_bus, until
 
@@ -29,12 +29,13 @@ def test_lifecycle_stats_spans_control_and_stop():
         live = {}
         bus.watch_liveliness(keys.live_all("svc"), lambda k, a: live.__setitem__(k, a))
         stats = bus.subscribe(keys.stats("svc", "ticker", 0), StatsReport, policy="latest", capacity=4)
-        spans = bus.subscribe(keys.spans("svc", "ticker"), Span, capacity=1000)
+        spans = bus.subscribe(keys.spans("svc", "ticker"), SpanBatch, capacity=1000)
         service = Ticker(cfg, 0, BusOptions(listen=["tcp/127.0.0.1:0"], connect=[f"tcp/127.0.0.1:{port}"]))
         task = asyncio.create_task(service.main())
         await until(lambda: live.get(keys.live("svc", "ticker", 0)), 10, "the service token")
         _, report = await asyncio.wait_for(stats.next(), 5)
-        _, span = await asyncio.wait_for(spans.next(), 5)
+        _, batch = await asyncio.wait_for(spans.next(), 5)
+        span = batch.spans()[0]
         assert span.label == "tick" and span.end >= span.start and span.service == "ticker"
 
         cores = sorted(os.sched_getaffinity(0))

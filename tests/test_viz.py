@@ -15,7 +15,7 @@ import pyarrow as pa
 import pytest
 
 import helpers
-from ebrl.messages import Event, Span, StatsReport, encode_message
+from ebrl.messages import Event, Span, SpanBatch, StatsReport, encode_message
 from ebrl.bus import keys
 from ebrl.viz import record, report, timeline
 
@@ -123,15 +123,16 @@ def test_bridge_turns_spans_stats_and_events_into_entities(tmp_path):
 
 def write_recording(path, spans, stats, events, garbage=True):
     rec = record.Recorder(path)
-    for s in spans:
-        rec.write(keys.spans("r", s.lane), encode_message(s))
+    for s in spans:  # one span per batch here; services batch per lane (test_service)
+        rec.write(keys.spans("r", s.lane), encode_message(SpanBatch(lane=s.lane, service=s.service, instance=s.instance,
+                                                                    start=[s.start], end=[s.end], label=[s.label])))
     for r in stats:
         rec.write(keys.stats("r", r.service, r.instance), encode_message(r))
     for e in events:
         rec.write(keys.events("r", e.service), encode_message(e))
     if garbage:
         rec.write(keys.spans("r", "gen"), b"\xc1not msgpack")
-        rec.write(keys.stats("r", "sim", 0), encode_message(spans[0]))  # a span on a stats key: wrong type
+        rec.write(keys.stats("r", "sim", 0), encode_message(events[0]))  # an event on a stats key: wrong type
     rec.close()
 
 

@@ -17,7 +17,7 @@ from pathlib import Path
 
 import msgpack
 
-from ebrl.messages import Event, MessageError, Span, StatsReport, decode_stats_sample
+from ebrl.messages import Event, MessageError, Span, SpanBatch, StatsReport, decode_stats_sample
 from ebrl.viz.timeline import lane_order
 
 FILENAME = "stats.msgpack"
@@ -94,8 +94,8 @@ def read(path: str | Path) -> Recording:
             except (MessageError, TypeError, ValueError):
                 out.malformed += 1
                 continue
-            if isinstance(msg, Span):
-                out.spans.append(msg)
+            if isinstance(msg, SpanBatch):
+                out.spans.extend(msg.spans())
             elif isinstance(msg, Event):
                 out.events.append(msg)
             else:

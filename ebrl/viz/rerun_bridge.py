@@ -31,7 +31,7 @@ import numpy as np
 import rerun as rr
 import rerun.blueprint as rrb
 
-from ebrl.messages import Event, Span, StatsReport
+from ebrl.messages import Event, Span, SpanBatch, StatsReport
 from ebrl.viz.timeline import STAGE_ORDER, STATE_COLORS, state_of
 
 # topic -> (view title, metric names or prefixes ending in "/")
@@ -87,6 +87,10 @@ class RerunBridge:
         self.events = 0
 
     # --- spans ------------------------------------------------------------------------
+
+    def on_spans(self, batch: SpanBatch) -> None:
+        for span in batch.spans():
+            self.on_span(span)
 
     def on_span(self, span: Span) -> None:
         ends = self._sublanes.setdefault(span.lane, [])

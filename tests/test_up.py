@@ -43,6 +43,7 @@ def test_two_iterations_train_and_the_readme_subscriber_sees_stats(tmp_path):
     summary = json.loads((run_dir(tmp_path / "runs") / "summary.json").read_text())
     assert summary["iterations"] == 2 and summary["segments"] > 0 and summary["env_steps"] > 0
     assert "e2e:" in lines and "env steps/s" in lines  # decoded stats reached a plain zenoh script
+    assert len((ROOT / "examples" / "subscribe_stats.py").read_text().splitlines()) < 15  # README's promise
 
 
 def test_weights_versions_advance_and_trajectories_flow(tmp_path):

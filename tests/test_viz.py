@@ -89,7 +89,10 @@ def test_bridge_turns_spans_stats_and_events_into_entities(tmp_path):
     rec.save(path, default_blueprint=make_blueprint(15.0))
     bridge = RerunBridge(rec)
     spans, stats, events = scripted_stream()
-    for i, s in enumerate(spans):
+    g1 = [s for s in spans if s.lane == "sim.g1"]
+    bridge.on_spans(SpanBatch(lane="sim.g1", service="sim", instance=0, start=[s.start for s in g1],
+                              end=[s.end for s in g1], label=[s.label for s in g1]))  # as services publish them
+    for i, s in enumerate(x for x in spans if x.lane != "sim.g1"):
         bridge.on_span(s)
         if i % 7 == 0:
             bridge.flush()  # spans of one lane split across flushes
@@ -115,6 +118,7 @@ def test_bridge_turns_spans_stats_and_events_into_entities(tmp_path):
     assert len(states["/timeline/2_gen"]) == 20
     sim = states["/timeline/1_sim/g00"]
     assert (0.5, "wait") in sim and (0.0, "chunk") in sim and len(sim) == 40
+    assert len(states["/timeline/1_sim/g01"]) == 20
     assert entities["/events"] >= 3  # the event and two weights publications
 
 

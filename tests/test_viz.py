@@ -281,3 +281,30 @@ def test_live_gantt_in_a_headless_viewer_shows_every_lane(tmp_path, viewer):
     for state, count in pixels.items():
         assert count > 300, f"no {state} bars in the live Gantt ({png}): {pixels}"
     assert proc.returncode in (0, 130), out
+
+
+@pytest.mark.slow
+def test_serve_lets_a_viewer_that_connects_late_see_the_whole_run(tmp_path, viewer):
+    port = _free_port()
+    started = time.time()
+    proc, _ = helpers.ebrl_up(tmp_path / "runs", "configs/quickstart.toml", "run.iterations=0", "run.name=vizserve",
+                              f"viz.port={port}", 'viz.rerun="serve"')
+    try:
+        time.sleep(20)  # the run goes on with nobody watching
+        assert proc.poll() is None
+        viewer.open(f"rerun+http://127.0.0.1:{port}/proxy")
+        deadline, span = time.monotonic() + 60, None
+        while time.monotonic() < deadline:
+            state = viewer.get_state()
+            wall = [t for r in state.recordings for t in r.timelines if t.name == "wall" and t.end]
+            if wall:
+                span = (wall[0].start / 1e9 - started, wall[0].end / 1e9 - started)
+                if span[1] > 20:
+                    break
+            time.sleep(0.5)
+    finally:
+        proc.send_signal(2)
+        out, _ = proc.communicate(timeout=60)
+    assert span is not None, "the late viewer got no data"
+    assert span[0] < 15 and span[1] > 20, f"the late viewer sees {span[0]:.1f}-{span[1]:.1f} s of the run"
+    assert proc.returncode == 130, out

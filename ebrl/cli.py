@@ -1,4 +1,4 @@
-"""``ebrl`` command line: up, stats, report, bench, schemas, config."""
+"""``ebrl`` command line: up, stats, profile, report, bench, schemas, config."""
 
 from __future__ import annotations
 
@@ -33,6 +33,13 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--json", default="", help="write the results here")
     p.add_argument("--set", action="append", default=[], dest="overrides", metavar="SECTION.KEY=VALUE")
 
+    p = sub.add_parser("profile", help="profile each stage alone and print the tables and Algorithm 1's allocation")
+    p.add_argument("config")
+    p.add_argument("--force", action="store_true", help="measure even if a fresh profile of this machine exists")
+    p.add_argument("--seconds", type=float, default=None, help="seconds per grid point (default alloc.profile_seconds)")
+    p.add_argument("--out", default=None, help="profile file (default alloc.profile_path or runs/profiles/<name>.json)")
+    p.add_argument("--set", action="append", default=[], dest="overrides", metavar="SECTION.KEY=VALUE")
+
     p = sub.add_parser("report", help="write a run's Gantt PNG, throughput PNG and report.md from its recording")
     p.add_argument("run_dir", help="a run directory (holds stats.msgpack)")
     p.add_argument("--start", type=float, default=None, help="window start, seconds after the run's first record")
@@ -61,6 +68,10 @@ def main(argv: list[str] | None = None) -> int:
 
         return bench.main(args.config, args.modes, args.ablations, args.duration, args.repeat, args.json,
                           args.overrides)
+    if args.command == "profile":
+        from ebrl.alloc.cli import profile_command
+
+        return profile_command(args.config, args.overrides, force=args.force, seconds=args.seconds, out=args.out)
     if args.command == "report":
         from ebrl.viz import report
 

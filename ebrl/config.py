@@ -43,6 +43,9 @@ class RunSection:
     stats_interval: float = doc("seconds between stats reports of each service", 1.0)
     startup_timeout: float = doc("seconds to wait for every service to come up", 120.0)
     log_level: Literal["debug", "info", "warning"] = doc("log level of the services", "info")
+    slowdown: str = doc("inject a slowdown for experiments: \"<service>=<factor>@<seconds>\" stretches every busy "
+                        "span of that service by factor (CPU busy-wait) from that many seconds after it started, "
+                        "e.g. \"train=1.3@30\"; empty: none", "")
 
 
 @dataclass
@@ -131,6 +134,25 @@ class TrainSection:
 
 
 @dataclass
+class AllocSection:
+    enabled: bool = doc("profile the stages, pick core quotas with Algorithm 1 at start, and re-balance them while "
+                        "the run goes on (the allocator service); false keeps the mode's static cores", False)
+    gpu_pool: Literal["mps", "mig", "none"] = doc("how GPU shares are enforced: MPS quotas, MIG instances, whole GPUs",
+                                                  "none")
+    cpu_pool: Literal["numa", "flat"] = doc("keep a stage's cores on one NUMA node (numa) or ignore topology (flat)",
+                                            "flat")
+    window: int = doc("stats reports in the moving averages of rollout and training throughput", 20)
+    gap: float = doc("re-allocate when rollout and training capacity differ by more than this fraction of the "
+                     "faster one ...", 0.15)
+    patience: int = doc("... for this many consecutive stats reports", 20)
+    min_gen_cores: int = doc("fewest cores generation may get", 1)
+    min_train_cores: int = doc("fewest cores training may get", 1)
+    profile_path: str = doc("stage profile file; empty: <run.output_dir>/profiles/<run.name>.json", "")
+    profile_max_age_h: float = doc("re-profile when the stored profile is older than this (hours)", 168.0)
+    profile_seconds: float = doc("seconds measured per profile grid point", 1.0)
+
+
+@dataclass
 class VizSection:
     rerun: Literal["spawn", "serve", "save", "off"] = doc(
         "live timeline in rerun: spawn a viewer, serve over gRPC for a viewer to connect (even late), save only, "
@@ -153,6 +175,7 @@ SECTIONS: dict[str, type] = {
     "gen": GenSection,
     "algo": AlgoSection,
     "train": TrainSection,
+    "alloc": AllocSection,
     "viz": VizSection,
 }
 
@@ -167,6 +190,7 @@ class Config:
     gen: GenSection = field(default_factory=GenSection)
     algo: AlgoSection = field(default_factory=AlgoSection)
     train: TrainSection = field(default_factory=TrainSection)
+    alloc: AllocSection = field(default_factory=AllocSection)
     viz: VizSection = field(default_factory=VizSection)
 
     @property
@@ -262,8 +286,29 @@ def _check_semantics(cfg: Config) -> None:
                           "decisions per iteration")
     if cfg.algo.max_staleness < 0:
         raise ConfigError(f"algo.max_staleness = {cfg.algo.max_staleness}: must be >= 0")
+    if cfg.run.slowdown:
+        try:
+            parse_slowdown(cfg.run.slowdown)
+        except ValueError as exc:
+            raise ConfigError(f"run.slowdown = {cfg.run.slowdown!r}: {exc}") from None
+    for path in ("alloc.window", "alloc.patience", "alloc.gap", "alloc.min_gen_cores", "alloc.min_train_cores",
+                 "alloc.profile_seconds"):
+        section, key = path.split(".")
+        positive(path, getattr(getattr(cfg, section), key))
     if cfg.train.max_pending < cfg.train.batch_size:
         raise ConfigError(f"train.max_pending = {cfg.train.max_pending}: must be >= train.batch_size ({cfg.train.batch_size})")
+
+
+def parse_slowdown(text: str) -> tuple[str, float, float]:
+    """``"train=1.3@30"`` -> ``("train", 1.3, 30.0)``."""
+    service, eq, rest = text.partition("=")
+    factor, at, after = rest.partition("@")
+    if not (eq and at and service):
+        raise ValueError('expected "<service>=<factor>@<seconds>", e.g. "train=1.3@30"')
+    value, seconds = float(factor), float(after)
+    if value < 1 or seconds < 0:
+        raise ValueError("the factor must be >= 1 and the seconds >= 0")
+    return service.strip(), value, seconds
 
 
 def dump_toml(cfg: Config) -> str:

@@ -58,6 +58,9 @@ class Service:
         self._counts_lock = threading.Lock()
         self._busy: collections.Counter[str] = collections.Counter()
         self._spans: collections.defaultdict[str, list[tuple[float, float, str]]] = collections.defaultdict(list)
+        service, factor, after_s = config_mod.parse_slowdown(cfg.run.slowdown) if cfg.run.slowdown else ("", 1, 0)
+        self._slowdown = (factor, after_s) if service == self.role and factor > 1 else None
+        self._slowdown_announced = False
         self._control_versions: dict[str, int] = {}
         self._tasks: set[asyncio.Task] = set()
         self._stats_seq = 0
@@ -115,7 +118,10 @@ class Service:
 
     def publish_span(self, lane: str, label: str, start: float, end: float, busy: bool = True) -> None:
         """Record a span for the next batch; ``busy=False`` marks time spent waiting (shown, not counted
-        in busy/<lane>). With ``viz.spans = false`` only busy/<lane> is kept."""
+        in busy/<lane>). With ``viz.spans = false`` only busy/<lane> is kept. An injected slowdown
+        (``run.slowdown``) stretches busy spans here, by busy-waiting in the caller's thread."""
+        if busy and self._slowdown is not None:
+            end = self._stretch(start, end)
         with self._counts_lock:
             if busy:
                 self._busy[lane] += end - start
@@ -126,6 +132,19 @@ class Service:
             full = len(rows) >= SPAN_BATCH_MAX
         if full:
             self.flush_spans()
+
+    def _stretch(self, start: float, end: float) -> float:
+        factor, after_s = self._slowdown
+        if time.time() - self.started_at < after_s:
+            return end
+        if not self._slowdown_announced:
+            self._slowdown_announced = True
+            self.event("slowdown", f"{self.role}/{self.instance}: injected slowdown x{factor:g} from now on")
+        until = time.perf_counter() + (factor - 1.0) * (end - start)
+        while time.perf_counter() < until:  # CPU time, like real work
+            pass
+        self.count("slowdown/injected_s", (factor - 1.0) * (end - start))
+        return end + (factor - 1.0) * (end - start)
 
     def flush_spans(self) -> None:
         """Publish the spans recorded since the last flush, one ``SpanBatch`` per lane (any thread)."""

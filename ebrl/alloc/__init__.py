@@ -1,0 +1,1 @@
+"""Elastic resource allocation: profiles, Algorithm 1, runtime adaptation."""

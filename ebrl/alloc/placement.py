@@ -1,0 +1,156 @@
+"""``EmbodiPlacement``: the programming API of the allocator (the paper's listing), runnable on CPU.
+
+    pool = ResourcePool(gpu_pool="none")
+    prof = profile(pool, cfg)                       # or load_or_profile(...)
+    placement = EmbodiPlacement(pool=pool, profile=prof)
+    placement.apply()                               # initial plan: bindings in the pool
+    for it in range(iters):
+        placement.balance(rates).apply()           # re-plans only after a sustained imbalance
+
+* The initial plan is Algorithm 1 (:mod:`ebrl.alloc.algorithm`): on a GPU
+  machine SM quotas, on a CPU-only one cores (``allocate_cpu``; a machine with
+  fewer cores than simulator + generation + training lets generation and
+  training time-share their cores).
+* ``balance(rates)`` takes one observation of the stages' measured capacities
+  (decisions per second) and keeps ``window``-long moving averages of rollout
+  (``min(sim, gen)``) and training. When they differ by more than ``gap`` of the
+  faster one for ``patience`` consecutive observations, it refines the tables
+  with the measurements (``refine``) and reruns Algorithm 1; a different plan
+  becomes pending, and ``apply()`` binds it (and hands it to ``on_apply``, which
+  the allocator service uses to push affinities and quotas to the services).
+"""
+
+from __future__ import annotations
+
+import collections
+import dataclasses
+import math
+from typing import Callable
+
+from ebrl.alloc.algorithm import Allocation, InfeasibleError, Profiles, allocate, allocate_cpu, refine
+from ebrl.resources.pool import ResourcePool, WorkerResourceBinding
+
+
+@dataclasses.dataclass
+class StageRates:
+    """Measured capacity of each stage (decisions/s it could sustain while busy), one observation."""
+
+    sim: float
+    gen: float
+    train: float
+
+    @property
+    def rollout(self) -> float:
+        return min(self.sim, self.gen)
+
+
+@dataclasses.dataclass
+class Plan:
+    """A concrete allocation: cores and threads per stage, batch sizes, what Algorithm 1 predicted."""
+
+    version: int
+    allocation: Allocation
+    cores: dict[str, list[int]]
+    threads: dict[str, int]
+    gen_batch: int
+    train_batch: int
+    reason: str
+
+    def same_resources(self, other: "Plan | None") -> bool:
+        return other is not None and self.cores == other.cores and self.threads == other.threads \
+            and self.gen_batch == other.gen_batch
+
+
+class EmbodiPlacement:
+    def __init__(self, pool: ResourcePool, profile: Profiles, *, window: int = 20, gap: float = 0.15,
+                 patience: int = 20, s_g_min: int = 1, s_t_min: int = 1,
+                 on_apply: Callable[[Plan], None] | None = None):
+        self.pool, self.profiles = pool, profile
+        self.window, self.gap, self.patience = window, gap, patience
+        self.s_g_min, self.s_t_min = s_g_min, s_t_min
+        self.on_apply = on_apply
+        self.rollout: collections.deque[float] = collections.deque(maxlen=window)
+        self.train: collections.deque[float] = collections.deque(maxlen=window)
+        self.imbalanced = 0  # consecutive observations over the gap
+        self.history: list[Plan] = []
+        self.applied: Plan | None = None
+        self.pending: Plan | None = self._plan(self._allocate(profile), "initial allocation")
+
+    # --- Algorithm 1 -> a concrete plan --------------------------------------------------------
+
+    def _allocate(self, profiles: Profiles) -> Allocation:
+        n = len(self.pool.cores)
+        if self.pool.gpus and self.pool.gpu_pool != "none":
+            return allocate(profiles, N=n, s_g_min=self.s_g_min, s_t_min=self.s_t_min)
+        shared = 1 if n < self.s_g_min + self.s_t_min + 1 else None  # too few cores to pin gen and train apart
+        try:
+            return allocate_cpu(profiles, N=n, s_g_min=self.s_g_min, s_t_min=self.s_t_min, shared_model_cores=shared)
+        except InfeasibleError as exc:
+            raise InfeasibleError(f"{exc} (pool: {self.pool.describe()})") from None
+
+    def _plan(self, alloc: Allocation, reason: str) -> Plan:
+        cores = self.pool.core_ids
+        if alloc.method == "shared":  # gen and train time-share the cores the simulator leaves
+            sim = cores[:alloc.s_sim]
+            model = cores[alloc.s_sim:alloc.s_sim + alloc.s_gen]
+            split = {"sim": sim, "gen": model, "train": model}
+        elif self.pool.gpus and self.pool.gpu_pool != "none":  # GPU quotas; CPU cores all to the simulator
+            split = {"sim": cores, "gen": cores[:1], "train": cores[-1:]}
+        else:
+            split = self.pool.partition({"sim": alloc.s_sim, "gen": alloc.s_gen, "train": alloc.s_train})
+        threads = {stage: max(1, len(c)) for stage, c in split.items()}
+        version = (self.history[-1].version + 1) if self.history else 1
+        return Plan(version, alloc, split, threads, alloc.B_gen, alloc.B_train, reason)
+
+    # --- the API -----------------------------------------------------------------------------
+
+    @property
+    def plan(self) -> Plan:
+        return self.pending or self.applied  # type: ignore[return-value]
+
+    def apply(self) -> "EmbodiPlacement":
+        """Bind the pending plan (if any) in the pool and hand it to ``on_apply``; no-op otherwise."""
+        plan, self.pending = self.pending, None
+        if plan is None:
+            return self
+        for stage in ("sim", "gen", "train"):
+            self.pool.bind(f"{stage}/0", stage, plan.cores[stage], threads=plan.threads[stage])
+        if self.pool.gpus and self.pool.gpu_pool == "mps":
+            alloc = plan.allocation
+            for stage, share in (("sim", alloc.s_sim), ("gen", alloc.s_gen), ("train", alloc.s_train)):
+                if share > 0:
+                    self.pool.set_quota(stage, 0, share)
+        self.applied = plan
+        self.history.append(plan)
+        if self.on_apply is not None:
+            self.on_apply(plan)
+        return self
+
+    def bindings(self) -> dict[str, WorkerResourceBinding]:
+        return dict(self.pool.bindings)
+
+    def balance(self, rates: StageRates) -> "EmbodiPlacement":
+        """One observation of measured stage capacities; re-plan after a sustained imbalance."""
+        if not all(math.isfinite(x) and x > 0 for x in (rates.sim, rates.gen, rates.train)):
+            return self  # a stage that did nothing in this interval tells nothing about its capacity
+        self.rollout.append(rates.rollout)
+        self.train.append(rates.train)
+        if len(self.rollout) < self.window:
+            return self
+        rollout, train = sum(self.rollout) / len(self.rollout), sum(self.train) / len(self.train)
+        if abs(rollout - train) > self.gap * max(rollout, train):
+            self.imbalanced += 1
+        else:
+            self.imbalanced = 0
+        if self.imbalanced < self.patience:
+            return self
+        self.imbalanced = 0
+        current = (self.applied or self.pending).allocation  # type: ignore[union-attr]
+        self.profiles = refine(self.profiles, current, rollout, train)
+        plan = self._plan(self._allocate(self.profiles),
+                          f"rollout {rollout:,.0f} vs training {train:,.0f} decisions/s for {self.patience} reports")
+        if not plan.same_resources(self.applied):
+            self.pending = plan
+        self.rollout.clear()
+        self.train.clear()
+        return self

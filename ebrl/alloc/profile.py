@@ -1,0 +1,263 @@
+"""Stage profiling: each stage alone over a grid, into the lookup tables P_sim, P_gen, P_train.
+
+Every rate is in one unit, **decisions per second** (a decision is one action
+chunk of one environment, i.e. K env steps), so that the allocator can compare
+stages directly:
+
+* simulation: E environments (real env worker processes, each pinned to its own
+  core(s), ``c_env`` cores per env) running action chunks concurrently; rate =
+  chunks completed per second. On CPU-only hosts the simulator's quota is its
+  core count ``E * c_env``.
+* generation: the policy's batched forward pass (``act``) on ``s`` cores with
+  ``s`` torch threads at batch ``B``; rate = ``B`` / seconds per forward.
+* training: one PPO update (``algo.epochs`` x ``algo.minibatches``) on a batch of
+  ``B`` decisions on ``s`` cores; rate = ``B`` / seconds per update — new data
+  absorbed per second, so sample reuse (epochs) is accounted for.
+
+Tables are stored as JSON tagged with a fingerprint of the machine and the
+workload (:func:`fingerprint`); :func:`load_or_profile` reuses a stored table
+until the fingerprint changes or it is older than ``max_age_s``.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import hashlib
+import json
+import os
+import platform
+import sys
+import time
+from pathlib import Path
+from typing import Any, Callable, Iterator
+
+import numpy as np
+
+from ebrl import config as config_mod
+from ebrl.alloc.algorithm import Profiles
+from ebrl.resources.pool import ResourcePool
+
+PROFILE_VERSION = 1
+
+
+def fingerprint(pool: ResourcePool, cfg: config_mod.Config) -> dict[str, Any]:
+    """What a profile depends on: the machine and the workload (not the run's name or length)."""
+    import torch
+
+    cpu_model = ""
+    with contextlib.suppress(OSError):
+        cpu_model = next((line.split(":", 1)[1].strip() for line in open("/proc/cpuinfo")
+                          if line.startswith("model name")), "")
+    workload = {"env": dataclass_dict(cfg.env), "policy": dataclass_dict(cfg.policy),
+                "algo": {k: getattr(cfg.algo, k) for k in ("epochs", "minibatches")},
+                "envs_per_group": cfg.sim.envs_per_group, "groups": cfg.sim.groups, "batch_size": cfg.train.batch_size}
+    return {"version": PROFILE_VERSION, "host": platform.node(), "cpu": cpu_model, "cores": pool.core_ids,
+            "gpus": [g.uuid for g in pool.gpus], "torch": torch.__version__, "python": sys.version.split()[0],
+            "workload": hashlib.sha1(json.dumps(workload, sort_keys=True, default=str).encode()).hexdigest()[:16]}
+
+
+def dataclass_dict(obj: Any) -> dict[str, Any]:
+    import dataclasses
+
+    return dataclasses.asdict(obj)
+
+
+def default_path(cfg: config_mod.Config) -> Path:
+    return Path(cfg.alloc.profile_path) if cfg.alloc.profile_path else Path(cfg.run.output_dir) / "profiles" / \
+        f"{cfg.run.name}.json"
+
+
+# --- grids -----------------------------------------------------------------------------------
+
+
+def grids(pool: ResourcePool, cfg: config_mod.Config) -> dict[str, list]:
+    """Default grids: every concurrency 1..cores for simulation, every core count for gen and train,
+    batches of whole groups for generation and the configured batch for training."""
+    n = len(pool.cores)
+    per, groups = cfg.sim.envs_per_group, cfg.sim.groups
+    return {"sim_envs": list(range(1, min(n, cfg.num_envs) + 1)),
+            "cores": list(range(1, n + 1)),
+            "gen_batch": sorted({per * k for k in range(1, groups + 1)}),
+            "train_batch": [cfg.train.batch_size]}
+
+
+# --- measurements ------------------------------------------------------------------------------
+
+
+@contextlib.contextmanager
+def pinned(cores: list[int], threads: int) -> Iterator[None]:
+    """Run this process on ``cores`` with ``threads`` torch threads; restore both afterwards."""
+    import torch
+
+    before, before_threads = os.sched_getaffinity(0), torch.get_num_threads()
+    os.sched_setaffinity(0, cores)
+    torch.set_num_threads(threads)
+    try:
+        yield
+    finally:
+        os.sched_setaffinity(0, before)
+        torch.set_num_threads(before_threads)
+
+
+def timed(fn: Callable[[], Any], seconds: float, min_reps: int = 3) -> float:
+    """Seconds per call of ``fn`` (after one warm-up call), repeated for about ``seconds``."""
+    fn()
+    reps, start = 0, time.perf_counter()
+    while reps < min_reps or time.perf_counter() - start < seconds:
+        fn()
+        reps += 1
+    return (time.perf_counter() - start) / reps
+
+
+def measure_sim(cfg: config_mod.Config, cores: list[int], envs: int, seconds: float) -> float:
+    """Decisions/s of ``envs`` env workers, each pinned round-robin to ``cores``, running chunks concurrently."""
+    from ebrl.envs import EnvSpec, EnvWorker, spaces
+
+    spec = EnvSpec.from_config(cfg.env)
+    _, act_space = spaces(spec)
+    rng = np.random.default_rng(0)
+
+    async def run() -> float:
+        workers = [EnvWorker(spec, seed=i, core=cores[i % len(cores)]) for i in range(envs)]
+        try:
+            await asyncio.gather(*(w.reset() for w in workers))
+            chunk = lambda: rng.uniform(act_space.low, act_space.high,  # noqa: E731
+                                        (cfg.policy.chunk, act_space.shape[0])).astype(np.float32)
+            await asyncio.gather(*(w.chunk(chunk()) for w in workers))  # warm-up
+            done, start = 0, time.perf_counter()
+
+            async def loop(w) -> None:
+                nonlocal done
+                while time.perf_counter() - start < seconds:
+                    await w.chunk(chunk())
+                    done += 1
+
+            await asyncio.gather(*(loop(w) for w in workers))
+            return done / (time.perf_counter() - start)
+        finally:
+            for w in workers:
+                w.close(timeout=1.0)
+
+    return asyncio.run(run())
+
+
+def _model(cfg: config_mod.Config):
+    from ebrl.envs import EnvSpec, spaces
+    from ebrl.policies import make_policy
+
+    obs_space, act_space = spaces(EnvSpec.from_config(cfg.env))
+    return make_policy(cfg.policy, obs_space.shape, act_space.shape[0]), obs_space.shape, act_space.shape[0]
+
+
+def measure_gen(cfg: config_mod.Config, cores: list[int], batch: int, seconds: float) -> float:
+    """Decisions/s of the policy's batched forward pass at ``batch`` on ``cores``."""
+    import torch
+
+    model, obs_shape, _ = _model(cfg)
+    model.eval()
+    obs = np.random.default_rng(0).standard_normal((batch, *obs_shape)).astype(np.float32)
+    with pinned(cores, len(cores)), torch.no_grad():
+        return batch / timed(lambda: model.act(obs), seconds)
+
+
+def measure_train(cfg: config_mod.Config, cores: list[int], batch: int, seconds: float) -> float:
+    """Decisions/s absorbed by PPO updates (epochs x minibatches) of ``batch`` decisions on ``cores``."""
+    import torch
+
+    from ebrl.algos.ppo import PPO, Batch
+
+    model, obs_shape, action_dim = _model(cfg)
+    ppo = PPO(model, cfg.algo, cfg.train.lr)
+    g = torch.Generator().manual_seed(0)
+    data = Batch(obs=torch.randn((batch, *obs_shape), generator=g),
+                 actions=torch.randn((batch, cfg.policy.chunk, action_dim), generator=g),
+                 logprobs=torch.randn(batch, generator=g) - 5, advantages=torch.randn(batch, generator=g),
+                 returns=torch.randn(batch, generator=g), values=torch.randn(batch, generator=g),
+                 versions=np.zeros(batch, dtype=np.int64))
+    with pinned(cores, len(cores)):
+        return batch / timed(lambda: ppo.update(data), seconds, min_reps=2)
+
+
+# --- the profile -------------------------------------------------------------------------------
+
+
+class Progress:
+    """A one-line progress bar on stderr (plain lines when stderr is not a terminal)."""
+
+    def __init__(self, total: int, out=sys.stderr):
+        self.total, self.done, self.out = total, 0, out
+        self.tty = out.isatty()
+        self.start = time.monotonic()
+
+    def step(self, what: str) -> None:
+        self.done += 1
+        width = 30
+        filled = int(width * self.done / self.total)
+        line = (f"profiling [{'#' * filled}{'.' * (width - filled)}] {self.done}/{self.total} "
+                f"{time.monotonic() - self.start:4.0f} s  {what}")
+        if self.tty:
+            self.out.write("\r\033[K" + line + ("\n" if self.done == self.total else ""))
+        else:
+            self.out.write(line + "\n")
+        self.out.flush()
+
+
+def profile(pool: ResourcePool, cfg: config_mod.Config, seconds: float = 1.0,
+            grid: dict[str, list] | None = None, progress: bool = True) -> Profiles:
+    """Measure each stage alone over ``grid`` (default :func:`grids`) on the pool's cores (CPU-only:
+    quotas are core counts; c_env is 1 because one env worker process is single-threaded)."""
+    grid = grid or grids(pool, cfg)
+    cores = pool.core_ids
+    jobs = ([("sim", e, None) for e in grid["sim_envs"]]
+            + [("gen", s, b) for s in grid["cores"] for b in grid["gen_batch"]]
+            + [("train", s, b) for s in grid["cores"] for b in grid["train_batch"]])
+    bar = Progress(len(jobs)) if progress else None
+    sim: dict[tuple[int, int, int], float] = {}
+    gen: dict[tuple[int, int], float] = {}
+    train: dict[tuple[int, int], float] = {}
+    for stage, a, b in jobs:
+        if stage == "sim":
+            sim[(1, a, a)] = rate = measure_sim(cfg, cores[:a], a, seconds)
+            what = f"sim: {a} envs on {a} cores: {rate:,.0f} decisions/s"
+        elif stage == "gen":
+            gen[(a, b)] = rate = measure_gen(cfg, cores[:a], b, seconds)
+            what = f"gen: {a} cores, batch {b}: {rate:,.0f} decisions/s"
+        else:
+            train[(a, b)] = rate = measure_train(cfg, cores[:a], b, seconds)
+            what = f"train: {a} cores, batch {b}: {rate:,.0f} decisions/s"
+        if bar:
+            bar.step(what)
+    return Profiles(sim=sim, gen=gen, train=train)
+
+
+def save(path: Path, profiles: Profiles, tag: dict[str, Any]) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_suffix(".tmp")
+    tmp.write_text(json.dumps({"fingerprint": tag, "created": time.time(), "profiles": profiles.to_json()}, indent=1))
+    tmp.replace(path)  # atomic: a reader sees the old file or the new one
+
+
+def load(path: Path, tag: dict[str, Any], max_age_s: float) -> Profiles | None:
+    """The stored tables if they match ``tag`` and are fresh enough, else None."""
+    try:
+        stored = json.loads(path.read_text())
+    except (OSError, ValueError):
+        return None
+    if stored.get("fingerprint") != tag or time.time() - stored.get("created", 0) > max_age_s:
+        return None
+    return Profiles.from_json(stored["profiles"])
+
+
+def load_or_profile(pool: ResourcePool, cfg: config_mod.Config, path: Path | None = None, force: bool = False,
+                    seconds: float = 1.0, progress: bool = True) -> tuple[Profiles, Path, bool]:
+    """(tables, file, measured_now): reuse a fresh stored profile of this machine and workload, else measure."""
+    path = path or default_path(cfg)
+    tag = fingerprint(pool, cfg)
+    if not force:
+        stored = load(path, tag, cfg.alloc.profile_max_age_h * 3600)
+        if stored is not None:
+            return stored, path, False
+    profiles = profile(pool, cfg, seconds=seconds, progress=progress)
+    save(path, profiles, tag)
+    return profiles, path, True

@@ -1,0 +1,104 @@
+"""The allocator's programming API (EmbodiPlacement) and stage profiles on CPU: real pools, synthetic rates."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+
+from ebrl import config
+from ebrl.alloc import profile as profile_mod
+from ebrl.alloc.algorithm import Profiles
+from ebrl.alloc.placement import EmbodiPlacement, StageRates
+from ebrl.resources.pool import Core, ResourcePool
+
+
+def cpu_profiles(n: int, sim_per_core=100.0, gen_per_core=150.0, train_per_core=120.0) -> Profiles:
+    """Linear stages on a CPU-only host: E envs on E cores, gen and train on c cores (decisions/s)."""
+    return Profiles(sim={(1, e, e): sim_per_core * e for e in range(1, n + 1)},
+                    gen={(c, b): gen_per_core * c * (1 if b == 8 else 0.8) for c in range(1, n + 1) for b in (4, 8)},
+                    train={(c, 64): train_per_core * c for c in range(1, n + 1)})
+
+
+def pool_of(n: int) -> ResourcePool:
+    return ResourcePool(cores=[Core(i, 0) for i in range(n)], num_gpus=0)
+
+
+def test_initial_plan_partitions_cores_and_apply_binds_them():
+    applied = []
+    placement = EmbodiPlacement(pool_of(8), cpu_profiles(8), on_apply=applied.append)
+    plan = placement.plan
+    alloc = plan.allocation
+    assert alloc.s_sim + alloc.s_gen + alloc.s_train == 8 and alloc.B_gen == 8
+    assert sorted(plan.cores["sim"] + plan.cores["gen"] + plan.cores["train"]) == list(range(8))
+    assert alloc.theta == pytest.approx(min(100 * alloc.s_sim, 150 * alloc.s_gen, 120 * alloc.s_train))
+    placement.apply()
+    assert applied == [plan] and placement.pending is None
+    assert placement.bindings()["train/0"].cores == plan.cores["train"]
+    assert placement.bindings()["gen/0"].threads == len(plan.cores["gen"])
+    placement.apply()  # nothing pending: no-op
+    assert len(applied) == 1
+
+
+def test_two_cores_time_share_generation_and_training():
+    plan = EmbodiPlacement(pool_of(2), cpu_profiles(2)).plan
+    assert plan.allocation.method == "shared"
+    assert plan.cores == {"sim": [0], "gen": [1], "train": [1]}
+
+
+def test_balance_waits_for_a_sustained_gap_then_gives_the_slow_stage_more():
+    steady = EmbodiPlacement(pool_of(8), cpu_profiles(8), window=5, gap=0.15, patience=5).apply()
+    a = steady.applied.allocation
+    for _ in range(30):  # measured as predicted: whatever Algorithm 1 reruns, the plan stays
+        steady.balance(StageRates(sim=a.T_sim, gen=a.T_gen, train=a.T_train)).apply()
+    assert steady.history == [steady.applied]
+
+    placement = EmbodiPlacement(pool_of(8), cpu_profiles(8), window=5, gap=0.15, patience=5).apply()
+    before = placement.applied
+    slow = StageRates(sim=a.T_sim, gen=a.T_gen, train=a.T_train / 3)  # training got 3x slower
+    for i in range(8):  # 4 to fill the window, then 5 over the gap
+        placement.balance(slow)
+        assert placement.pending is None, f"re-planned after only {i + 1} observations"
+    placement.balance(slow)
+    assert placement.pending is not None and "for 5 reports" in placement.pending.reason
+    placement.apply()
+    after = placement.applied
+    assert after.version == before.version + 1 and placement.history == [before, after]
+    assert len(after.cores["train"]) > len(before.cores["train"])
+    assert placement.balance(StageRates(sim=0.0, gen=1.0, train=1.0)) is placement  # an idle stage tells nothing
+
+
+def test_profile_file_is_reused_until_the_machine_or_workload_changes(tmp_path, monkeypatch):
+    cfg = config.from_dict({"run": {"output_dir": str(tmp_path)}})
+    pool = pool_of(2)
+    calls = []
+
+    def fake_profile(pool, cfg, seconds, progress):  # the measuring itself is exercised by `ebrl profile` below
+        calls.append(seconds)
+        return cpu_profiles(2)
+
+    monkeypatch.setattr(profile_mod, "profile", fake_profile)
+    first, path, measured = profile_mod.load_or_profile(pool, cfg, progress=False)
+    assert measured and path == tmp_path / "profiles" / "quickstart.json" and calls == [1.0]
+    again, _, measured = profile_mod.load_or_profile(pool, cfg, progress=False)
+    assert not measured and again.sim == first.sim and len(calls) == 1
+    stored = json.loads(path.read_text())
+    assert stored["fingerprint"]["cores"] == [0, 1] and "workload" in stored["fingerprint"]
+    other = config.from_dict({"run": {"output_dir": str(tmp_path)}, "policy": {"hidden": [32]}})
+    _, _, measured = profile_mod.load_or_profile(pool, other, progress=False)
+    assert measured  # another policy size: stale
+    _, _, measured = profile_mod.load_or_profile(pool_of(1), other, progress=False)
+    assert measured  # another machine: stale
+
+
+def test_ebrl_profile_measures_real_stages_and_prints_an_allocation(tmp_path):
+    import subprocess
+    import sys
+
+    out = subprocess.run([sys.executable, "-m", "ebrl.cli", "profile", "configs/quickstart.toml", "--seconds", "0.2",
+                          "--out", str(tmp_path / "p.json")], capture_output=True, text=True, timeout=180,
+                         cwd=str(__import__("pathlib").Path(__file__).resolve().parent.parent))
+    assert out.returncode == 0, out.stdout + out.stderr
+    assert "profiling [" in out.stderr and "Algorithm 1 (" in out.stdout
+    stored = Profiles.from_json(json.loads((tmp_path / "p.json").read_text())["profiles"])
+    assert all(rate > 0 for table in (stored.sim, stored.gen, stored.train) for rate in table.values())

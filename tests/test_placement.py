@@ -13,11 +13,13 @@ from ebrl.alloc.placement import EmbodiPlacement, StageRates
 from ebrl.resources.pool import Core, ResourcePool
 
 
-def cpu_profiles(n: int, sim_per_core=100.0, gen_per_core=150.0, train_per_core=120.0) -> Profiles:
-    """Linear stages on a CPU-only host: E envs on E cores, gen and train on c cores (decisions/s)."""
+def cpu_profiles(n: int, sim_per_core=100.0, gen_per_core=150.0, train_per_core=120.0, saturate=4) -> Profiles:
+    """A CPU-only host: E envs on E cores scale linearly; generation and training stop scaling at ``saturate``
+    cores (small models do), in decisions/s."""
     return Profiles(sim={(1, e, e): sim_per_core * e for e in range(1, n + 1)},
-                    gen={(c, b): gen_per_core * c * (1 if b == 8 else 0.8) for c in range(1, n + 1) for b in (4, 8)},
-                    train={(c, 64): train_per_core * c for c in range(1, n + 1)})
+                    gen={(c, b): gen_per_core * min(c, saturate) * (1 if b == 8 else 0.8)
+                         for c in range(1, n + 1) for b in (4, 8)},
+                    train={(c, 64): train_per_core * min(c, saturate) for c in range(1, n + 1)})
 
 
 def pool_of(n: int) -> ResourcePool:
@@ -40,10 +42,14 @@ def test_initial_plan_partitions_cores_and_apply_binds_them():
     assert len(applied) == 1
 
 
-def test_two_cores_time_share_generation_and_training():
-    plan = EmbodiPlacement(pool_of(2), cpu_profiles(2)).plan
-    assert plan.allocation.method == "shared"
-    assert plan.cores == {"sim": [0], "gen": [1], "train": [1]}
+def test_two_cores_choose_between_sharing_every_core_and_isolating_the_simulator():
+    # Stages that scale with cores share the two best; isolating the simulator wins when the models do not scale.
+    shared = EmbodiPlacement(pool_of(2), cpu_profiles(2, saturate=2)).plan
+    assert shared.allocation.method == "all_shared" and shared.cores == {"sim": [0, 1], "gen": [0, 1], "train": [0, 1]}
+    assert shared.allocation.theta == pytest.approx(1 / (1 / 200 + 1 / 300 + 1 / 240))
+    isolated = EmbodiPlacement(pool_of(2), cpu_profiles(2, gen_per_core=300, train_per_core=300, saturate=1)).plan
+    assert isolated.allocation.method == "shared"  # gen and train time-share core 1
+    assert isolated.cores == {"sim": [0], "gen": [1], "train": [1]}
 
 
 def test_balance_waits_for_a_sustained_gap_then_gives_the_slow_stage_more():

@@ -10,7 +10,8 @@
 * The initial plan is Algorithm 1 (:mod:`ebrl.alloc.algorithm`): on a GPU
   machine SM quotas, on a CPU-only one cores (``allocate_cpu``; a machine with
   fewer cores than simulator + generation + training lets generation and
-  training time-share their cores).
+  training time-share their cores), compared with not partitioning at all
+  (:func:`all_shared`); the higher predicted Theta wins.
 * ``balance(rates)`` takes one observation of the stages' measured capacities
   (decisions per second) and keeps ``window``-long moving averages of rollout
   (``min(sim, gen)``) and training. When they differ by more than ``gap`` of the
@@ -61,6 +62,25 @@ class Plan:
             and self.gen_batch == other.gen_batch
 
 
+def all_shared(profiles: Profiles, n: int) -> Allocation:
+    """The CPU-only alternative to partitioning: every stage on all ``n`` cores, time-sharing them.
+
+    Each decision then costs the cores 1/P_sim + 1/P_gen + 1/P_train seconds (every stage measured alone
+    on all n cores), so Theta is the harmonic combination. T_sim, T_gen, T_train keep the stand-alone rates,
+    which is what measured capacities (rate while busy) are compared against when the tables are refined.
+    Sharing wins when no stage dominates; partitioning wins when one stage would crowd out the others.
+    """
+    E = max((e for c, e in profiles._sim_curves if c == 1 and e <= n), default=0)
+    T_sim = profiles.P_sim(1, E, E) if E else 0.0
+    B_g = max(profiles._gen_curves, key=lambda b: profiles.P_gen(n, b))
+    B_t = max(profiles._train_curves, key=lambda b: profiles.P_train(n, b))
+    T_gen, T_train = profiles.P_gen(n, B_g), profiles.P_train(n, B_t)
+    rates = (T_sim, T_gen, T_train)
+    theta_ = 1.0 / sum(1.0 / r for r in rates) if all(r > 0 for r in rates) else 0.0
+    return Allocation(c_env=1, E=E, s_sim=n, s_gen=n, s_train=n, B_gen=B_g, B_train=B_t, T_sim=T_sim, T_gen=T_gen,
+                      T_train=T_train, theta=theta_, evaluations=1, method="all_shared")
+
+
 class EmbodiPlacement:
     def __init__(self, pool: ResourcePool, profile: Profiles, *, window: int = 20, gap: float = 0.15,
                  patience: int = 20, s_g_min: int = 1, s_t_min: int = 1,
@@ -85,14 +105,23 @@ class EmbodiPlacement:
             # (benchmarks/allocator_quality.py); scanning the simulator quota reaches it everywhere
             return allocate(profiles, N=n, s_g_min=self.s_g_min, s_t_min=self.s_t_min, scan_sim=True)
         shared = 1 if n < self.s_g_min + self.s_t_min + 1 else None  # too few cores to pin gen and train apart
+        candidates = [all_shared(profiles, n)]
         try:
-            return allocate_cpu(profiles, N=n, s_g_min=self.s_g_min, s_t_min=self.s_t_min, shared_model_cores=shared)
-        except InfeasibleError as exc:
-            raise InfeasibleError(f"{exc} (pool: {self.pool.describe()})") from None
+            candidates.append(allocate_cpu(profiles, N=n, s_g_min=self.s_g_min, s_t_min=self.s_t_min,
+                                           shared_model_cores=shared))
+        except InfeasibleError:
+            pass
+        best = max(candidates, key=lambda a: a.theta)
+        if best.theta <= 0:
+            raise InfeasibleError(f"no allocation of {n} cores gives every stage a profiled rate "
+                                  f"(pool: {self.pool.describe()})")
+        return best
 
     def _plan(self, alloc: Allocation, reason: str) -> Plan:
         cores = self.pool.core_ids
-        if alloc.method == "shared":  # gen and train time-share the cores the simulator leaves
+        if alloc.method == "all_shared":  # no partition: every stage may run on every core
+            split = {"sim": cores, "gen": cores, "train": cores}
+        elif alloc.method == "shared":  # gen and train time-share the cores the simulator leaves
             sim = cores[:alloc.s_sim]
             model = cores[alloc.s_sim:alloc.s_sim + alloc.s_gen]
             split = {"sim": sim, "gen": model, "train": model}

@@ -36,8 +36,9 @@ LOG_TAIL = 20
 
 
 def services_for(cfg: config_mod.Config) -> tuple[str, ...]:
-    """The roles a run starts, in start order (viz first, so that it sees the run from its start)."""
-    return (("viz",) if cfg.viz.rerun != "off" else ()) + SERVICES
+    """The roles a run starts, in start order (viz first, so that it sees the run from its start; the
+    allocator last, as it only reads the others' stats)."""
+    return (("viz",) if cfg.viz.rerun != "off" else ()) + SERVICES + (("alloc",) if cfg.alloc.enabled else ())
 
 
 @dataclasses.dataclass
@@ -361,6 +362,17 @@ def up(config_path: str, overrides: list[str], viz: str | None = None) -> int:
     except config_mod.ConfigError as exc:
         print(f"ebrl: config error: {exc}", file=sys.stderr)
         return 2
+    if cfg.alloc.enabled:  # profile (or reuse a profile) and start every service inside Algorithm 1's plan
+        from ebrl.alloc.algorithm import InfeasibleError
+        from ebrl.alloc.runtime import initial_config
+        from ebrl.resources.pool import ResourceError
+
+        try:
+            cfg, _, line = initial_config(cfg)
+        except (InfeasibleError, ResourceError) as exc:
+            print(f"ebrl: allocator: {exc}", file=sys.stderr)
+            return 2
+        print(line, flush=True)
     run_dir = make_run_dir(cfg)
     (run_dir / "config.toml").write_text(config_mod.dump_toml(cfg))
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")

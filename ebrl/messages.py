@@ -191,6 +191,7 @@ class Quota:
     threads: int | None = doc("torch intra-op threads", default=None)
     sm_percent: float | None = doc("GPU SM share in percent", default=None)
     mem_bytes: int | None = doc("GPU memory budget in bytes", default=None)
+    batch: int | None = doc("batch size the stage should use (gen: most envs per forward pass)", default=None)
 
 
 MESSAGES: tuple[type, ...] = (

@@ -19,7 +19,7 @@ import torch
 
 from ebrl.bus import keys
 from ebrl.envs import EnvSpec, spaces
-from ebrl.messages import ActionChunk, MessageError, Observation, Weights, decode_message
+from ebrl.messages import ActionChunk, MessageError, Observation, Quota, Weights, decode_message
 from ebrl.policies import load_arrays, make_policy
 from ebrl.sched.modes import resolve
 from ebrl.service import Service, service_main
@@ -107,6 +107,12 @@ class GenService(Service):
         load_arrays(self.policy, weights.params)
         self.version = weights.version
         self.count("gen/weights_applied")
+
+    def on_quota(self, quota: Quota) -> None:
+        """Threads as the base does; ``batch`` caps the envs of one forward pass (whole groups, at least one)."""
+        super().on_quota(quota)
+        if quota.batch:
+            self.max_groups = max(1, quota.batch // self.schedule.envs_per_group)
 
     def metrics(self) -> dict[str, float]:
         return {"gen/policy_version": float(self.version), "gen/obs_queue": float(len(self.obs)),

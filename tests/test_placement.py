@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 
 import pytest
@@ -72,6 +73,40 @@ def test_balance_waits_for_a_sustained_gap_then_gives_the_slow_stage_more():
     assert after.version == before.version + 1 and placement.history == [before, after]
     assert len(after.cores["train"]) > len(before.cores["train"])
     assert placement.balance(StageRates(sim=0.0, gen=1.0, train=1.0)) is placement  # an idle stage tells nothing
+
+
+def test_a_re_plan_that_achieves_less_is_reverted_and_not_tried_again_soon():
+    placement = EmbodiPlacement(pool_of(8), cpu_profiles(8), window=5, gap=0.15, patience=5).apply()
+    first = placement.applied
+    a = first.allocation
+    slow = StageRates(sim=a.T_sim, gen=a.T_gen, train=a.T_train / 3, achieved=100.0)
+    while placement.pending is None:
+        placement.balance(slow)
+    placement.apply()
+    tried = placement.applied
+    assert tried.signature != first.signature and placement.trial is not None
+    for _ in range(4):  # the new plan does worse than the 100 decisions/s measured before it
+        placement.balance(dataclasses.replace(slow, achieved=80.0))
+        assert placement.pending is None
+    placement.balance(dataclasses.replace(slow, achieved=80.0))
+    assert placement.pending is not None and placement.pending.reason.startswith("reverted: plan v2 achieved 80")
+    placement.apply()
+    assert placement.applied.signature == first.signature and placement.applied.version == 3
+    for _ in range(30):  # the same imbalance again: the tried plan stays excluded
+        placement.balance(slow).apply()
+    assert placement.applied.signature != tried.signature
+
+
+def test_a_re_plan_that_achieves_as_much_is_kept():
+    placement = EmbodiPlacement(pool_of(8), cpu_profiles(8), window=5, gap=0.15, patience=5).apply()
+    a = placement.applied.allocation
+    slow = StageRates(sim=a.T_sim, gen=a.T_gen, train=a.T_train / 3, achieved=100.0)
+    while placement.pending is None:
+        placement.balance(slow)
+    tried = placement.apply().applied
+    for _ in range(10):
+        placement.balance(dataclasses.replace(slow, achieved=130.0)).apply()
+    assert placement.applied is tried and placement.trial is None
 
 
 def test_profile_file_is_reused_until_the_machine_or_workload_changes(tmp_path, monkeypatch):

@@ -19,6 +19,10 @@
   with the measurements (``refine``) and reruns Algorithm 1; a different plan
   becomes pending, and ``apply()`` binds it (and hands it to ``on_apply``, which
   the allocator service uses to push affinities and quotas to the services).
+* A re-plan is a trial: profiles taken alone misjudge stages that share a
+  machine, so after ``window`` observations the end-to-end rate it achieved is
+  compared with the previous plan's; if it is worse, the previous plan comes
+  back and the tried one is excluded for a while.
 """
 
 from __future__ import annotations
@@ -39,6 +43,7 @@ class StageRates:
     sim: float
     gen: float
     train: float
+    achieved: float = 0.0  # end-to-end decisions/s actually reached (0: unknown); judges a re-plan
 
     @property
     def rollout(self) -> float:
@@ -57,9 +62,12 @@ class Plan:
     train_batch: int
     reason: str
 
+    @property
+    def signature(self) -> tuple:
+        return tuple((stage, tuple(cores)) for stage, cores in sorted(self.cores.items())) + (self.gen_batch,)
+
     def same_resources(self, other: "Plan | None") -> bool:
-        return other is not None and self.cores == other.cores and self.threads == other.threads \
-            and self.gen_batch == other.gen_batch
+        return other is not None and self.signature == other.signature
 
 
 def all_shared(profiles: Profiles, n: int) -> Allocation:
@@ -81,6 +89,10 @@ def all_shared(profiles: Profiles, n: int) -> Allocation:
                       T_train=T_train, theta=theta_, evaluations=1, method="all_shared")
 
 
+TRIAL_TOLERANCE = 0.05  # a re-plan that achieves more than 5 % less than the plan before is reverted
+REJECT_FOR = 10  # ... and its plan is not chosen again for REJECT_FOR x patience observations
+
+
 class EmbodiPlacement:
     def __init__(self, pool: ResourcePool, profile: Profiles, *, window: int = 20, gap: float = 0.15,
                  patience: int = 20, s_g_min: int = 1, s_t_min: int = 1,
@@ -92,6 +104,9 @@ class EmbodiPlacement:
         self.rollout: collections.deque[float] = collections.deque(maxlen=window)
         self.train: collections.deque[float] = collections.deque(maxlen=window)
         self.imbalanced = 0  # consecutive observations over the gap
+        self.achieved: collections.deque[float] = collections.deque(maxlen=window)
+        self.trial: tuple[Plan, float] | None = None  # (plan before the re-plan, its achieved rate)
+        self.rejected: dict[tuple, int] = {}  # plan signature -> observations it stays excluded
         self.history: list[Plan] = []
         self.applied: Plan | None = None
         self.pending: Plan | None = self._plan(self._allocate(profile), "initial allocation")
@@ -111,7 +126,8 @@ class EmbodiPlacement:
                                            shared_model_cores=shared))
         except InfeasibleError:
             pass
-        best = max(candidates, key=lambda a: a.theta)
+        allowed = [a for a in candidates if self._plan(a, "").signature not in self.rejected] or candidates
+        best = max(allowed, key=lambda a: a.theta)
         if best.theta <= 0:
             raise InfeasibleError(f"no allocation of {n} cores gives every stage a profiled rate "
                                   f"(pool: {self.pool.describe()})")
@@ -144,6 +160,11 @@ class EmbodiPlacement:
         plan, self.pending = self.pending, None
         if plan is None:
             return self
+        if self.applied is not None and not plan.reason.startswith("reverted"):
+            # A re-plan is a trial: judged against what the previous plan really achieved.
+            baseline = sum(self.achieved) / len(self.achieved) if self.achieved else 0.0
+            self.trial = (self.applied, baseline) if baseline > 0 else None
+        self.achieved.clear()
         for stage in ("sim", "gen", "train"):
             self.pool.bind(f"{stage}/0", stage, plan.cores[stage], threads=plan.threads[stage])
         if self.pool.gpus and self.pool.gpu_pool == "mps":
@@ -164,6 +185,11 @@ class EmbodiPlacement:
         """One observation of measured stage capacities; re-plan after a sustained imbalance."""
         if not all(math.isfinite(x) and x > 0 for x in (rates.sim, rates.gen, rates.train)):
             return self  # a stage that did nothing in this interval tells nothing about its capacity
+        self.rejected = {sig: left - 1 for sig, left in self.rejected.items() if left > 1}
+        if rates.achieved > 0:
+            self.achieved.append(rates.achieved)
+        if self.trial is not None:
+            return self._judge_trial()
         self.rollout.append(rates.rollout)
         self.train.append(rates.train)
         if len(self.rollout) < self.window:
@@ -182,6 +208,25 @@ class EmbodiPlacement:
                           f"rollout {rollout:,.0f} vs training {train:,.0f} decisions/s for {self.patience} reports")
         if not plan.same_resources(self.applied):
             self.pending = plan
+        self.rollout.clear()
+        self.train.clear()
+        return self
+
+    def _judge_trial(self) -> "EmbodiPlacement":
+        """After a re-plan, wait ``window`` observations; keep the plan unless it achieved less than the one
+        before (by more than TRIAL_TOLERANCE), else go back and exclude the tried plan for a while."""
+        previous, baseline = self.trial  # type: ignore[misc]
+        if len(self.achieved) < self.window:
+            return self
+        now = sum(self.achieved) / len(self.achieved)
+        self.trial = None
+        if now >= (1 - TRIAL_TOLERANCE) * baseline:
+            return self
+        tried: Plan = self.applied  # type: ignore[assignment]
+        self.rejected[tried.signature] = REJECT_FOR * self.patience
+        reason = (f"reverted: plan v{tried.version} achieved {now:,.0f} decisions/s, "
+                  f"v{previous.version} {baseline:,.0f}")
+        self.pending = dataclasses.replace(previous, version=self.history[-1].version + 1, reason=reason)
         self.rollout.clear()
         self.train.clear()
         return self

@@ -1,0 +1,97 @@
+"""The allocator at run time: the initial plan before services start, then measured capacities -> re-plans.
+
+* :func:`initial_config` (the launcher, before spawning): the pool, the stage
+  profile (reused or measured), Algorithm 1's plan, written into the resolved
+  config (``sim.cores``, ``gen.cores``/``threads``/``max_batch_groups``,
+  ``train.cores``/``threads``) so every service starts inside its share.
+* :func:`capacities` (the allocator service, every stats report): what each
+  stage could sustain on its cores, in decisions/s, from the services' stats
+  (decisions per CPU-second times its cores).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+from typing import Any
+
+from ebrl import config as config_mod
+from ebrl.alloc.placement import EmbodiPlacement, Plan, StageRates
+from ebrl.alloc.profile import default_path, load_or_profile
+from ebrl.resources.pool import ResourcePool
+
+MIN_CPU = 0.05  # cores' worth of CPU below which a stage was idle: its capacity cannot be told
+
+
+def make_placement(cfg: config_mod.Config, *, measure: bool, progress: bool = True) -> tuple[EmbodiPlacement, Path, bool]:
+    """The pool, profile (measured only if ``measure`` and nothing fresh is stored) and placement of ``cfg``."""
+    pool = ResourcePool(gpu_pool=cfg.alloc.gpu_pool, cpu_pool=cfg.alloc.cpu_pool)
+    path = Path(cfg.alloc.profile_path) if cfg.alloc.profile_path else default_path(cfg)
+    if not measure and not path.exists():
+        raise FileNotFoundError(f"no stage profile at {path}")
+    profiles, path, measured = load_or_profile(pool, cfg, path, seconds=cfg.alloc.profile_seconds, progress=progress)
+    placement = EmbodiPlacement(pool, profiles, window=cfg.alloc.window, gap=cfg.alloc.gap,
+                                patience=cfg.alloc.patience, s_g_min=cfg.alloc.min_gen_cores,
+                                s_t_min=cfg.alloc.min_train_cores)
+    return placement, path, measured
+
+
+def initial_config(cfg: config_mod.Config) -> tuple[config_mod.Config, Plan, str]:
+    """``cfg`` with the initial plan's cores, threads and batch written in; the plan; a line for the user."""
+    placement, path, measured = make_placement(cfg, measure=True)
+    plan = placement.plan
+    per = cfg.sim.envs_per_group
+    new = dataclasses.replace(
+        cfg,
+        sim=dataclasses.replace(cfg.sim, cores=plan.cores["sim"]),
+        gen=dataclasses.replace(cfg.gen, cores=plan.cores["gen"], threads=plan.threads["gen"],
+                                max_batch_groups=max(1, plan.gen_batch // per)),
+        train=dataclasses.replace(cfg.train, cores=plan.cores["train"], threads=plan.threads["train"]),
+        alloc=dataclasses.replace(cfg.alloc, profile_path=str(path)),
+    )
+    return new, plan, f"allocator: {'profiled' if measured else 'reused profile'} {path}; {describe(plan)}"
+
+
+def describe(plan: Plan) -> str:
+    a = plan.allocation
+    return (f"plan v{plan.version} ({a.method}): " + ", ".join(f"{s} cores {c}" for s, c in plan.cores.items())
+            + f", gen batch {plan.gen_batch}; predicted {a.theta:,.0f} decisions/s")
+
+
+def capacities(sim: dict[str, float], gen: dict[str, float], train: dict[str, float], *, chunk: int,
+               cores: dict[str, int], batch_size: int) -> StageRates | None:
+    """Measured stage capacities from one stats report of each service, or None when a stage did too little
+    in the interval to tell.
+
+    A stage's capacity is its decisions per CPU-second times the cores its plan gives it: CPU time, not
+    wall-clock busy time, so that stages time-sharing cores are not charged for each other's turns, and
+    the numbers compare with the profiles (each stage measured alone on its cores). Simulation counts the
+    env workers' CPU inside steps; generation and training their processes' CPU.
+    """
+    sim_rate, sim_cpu = sim.get("sim/env_steps_per_s", 0.0) / chunk, sim.get("sim/step_busy_s_per_s", 0.0)
+    gen_rate, gen_cpu = gen.get("gen/envs_served_per_s", 0.0), gen.get("proc/cpu_percent", 0.0) / 100
+    train_rate = train.get("train/updates_per_s", 0.0) * batch_size
+    train_cpu = train.get("proc/cpu_percent", 0.0) / 100
+    if min(sim_cpu, gen_cpu, train_cpu) < MIN_CPU or min(sim_rate, gen_rate, train_rate) <= 0:
+        return None
+    return StageRates(sim=sim_rate / sim_cpu * cores["sim"], gen=gen_rate / gen_cpu * cores["gen"],
+                      train=train_rate / train_cpu * cores["train"], achieved=sim_rate)
+
+
+def metrics_of(placement: EmbodiPlacement, rates: StageRates | None) -> dict[str, Any]:
+    plan = placement.applied
+    out: dict[str, float] = {"alloc/plan_version": float(plan.version) if plan else 0.0,
+                             "alloc/imbalanced_reports": float(placement.imbalanced)}
+    if plan is not None:
+        out["alloc/theta_predicted"] = plan.allocation.theta
+        for stage, cores in plan.cores.items():
+            out[f"alloc/cores_{stage}"] = float(len(cores))
+    if rates is not None:
+        out.update({"alloc/sim_capacity": rates.sim, "alloc/gen_capacity": rates.gen,
+                    "alloc/train_capacity": rates.train})
+    if placement.rollout:
+        rollout = sum(placement.rollout) / len(placement.rollout)
+        train = sum(placement.train) / len(placement.train)
+        out.update({"alloc/rollout_avg": rollout, "alloc/train_avg": train,
+                    "alloc/gap": abs(rollout - train) / max(rollout, train)})
+    return out

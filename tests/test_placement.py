@@ -143,3 +143,16 @@ def test_ebrl_profile_measures_real_stages_and_prints_an_allocation(tmp_path):
     assert "profiling [" in out.stderr and "Algorithm 1 (" in out.stdout
     stored = Profiles.from_json(json.loads((tmp_path / "p.json").read_text())["profiles"])
     assert all(rate > 0 for table in (stored.sim, stored.gen, stored.train) for rate in table.values())
+
+
+def test_the_readme_programming_api_example_runs_on_cpu():
+    import pathlib
+    import subprocess
+    import sys
+
+    root = pathlib.Path(__file__).resolve().parent.parent
+    out = subprocess.run([sys.executable, "examples/placement.py"], cwd=root, capture_output=True, text=True,
+                         timeout=300)
+    assert out.returncode == 0, out.stderr[-3000:]
+    assert out.stdout.count("iteration ") == 4 and "plan v1" in out.stdout
+    assert (root / "examples/placement.py").read_text() in (root / "README.md").read_text()  # README shows it whole

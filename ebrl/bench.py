@@ -182,14 +182,39 @@ def summarize(window: dict[str, list[dict[str, Any]]], duration: float) -> dict[
     return out
 
 
-def run(config: str, modes: list[str], duration: float, repeat: int, overrides: list[str]) -> dict[str, Any]:
+def raw_capacity(config: str, modes: list[str], overrides: list[str], seconds: float) -> dict[str, dict[str, Any]]:
+    """The physical limit of each mode: raw env steps/s of the cores its simulation holds (measured once per
+    distinct core set, before the runs, with nothing else running)."""
+    from ebrl.envs.gym import EnvSpec
+    from ebrl.envs.worker import raw_steps_per_s
+    from ebrl.sched.modes import resolve
+
+    measured: dict[tuple[int, ...], float] = {}
+    out = {}
+    for mode in modes:
+        cfg = config_mod.load(config, [*overrides, f"run.mode={mode.split('-')[0]}", *ABLATIONS.get(mode, [])])
+        cores = tuple(resolve(cfg).sim_cores)
+        if cores not in measured:
+            print(f"raw simulator capacity of cores {list(cores)} ...", file=sys.stderr, flush=True)
+            measured[cores] = raw_steps_per_s(EnvSpec.from_config(cfg.env), list(cores), seconds)
+        out[mode] = {"sim_cores": list(cores), "raw_env_steps_per_s": measured[cores]}
+    return out
+
+
+def run(config: str, modes: list[str], duration: float, repeat: int, overrides: list[str],
+        raw_seconds: float = 10.0) -> dict[str, Any]:
     config_mod.load(config, overrides)  # fail fast on a bad config
+    raw = raw_capacity(config, modes, overrides, raw_seconds) if raw_seconds > 0 else {}
     results: dict[str, list[dict[str, Any]]] = {m: [] for m in modes}
     for r in range(repeat):
         for mode in modes:
             extra = list(overrides) + ABLATIONS.get(mode, [])
             print(f"[{r + 1}/{repeat}] {mode} ...", file=sys.stderr, flush=True)
-            results[mode].append(measure(config, mode, extra, duration))
+            result = measure(config, mode, extra, duration)
+            if mode in raw:  # sim efficiency: achieved env steps/s over the raw capacity of sim's cores
+                result.update(raw[mode])
+                result["sim_efficiency"] = result["env_steps_per_s"] / raw[mode]["raw_env_steps_per_s"]
+            results[mode].append(result)
     return results
 
 
@@ -199,7 +224,7 @@ def table(results: dict[str, list[dict[str, Any]]]) -> str:
 
     baselines = [m for m in results if m in BASELINES]
     best = max(baselines, key=lambda m: med(m, "traj_per_s")) if baselines else None
-    head = ("mode", "traj/s min-med-max", "env steps/s", "chunk ms avg/p50/p99", "idle sim/gen/train",
+    head = ("mode", "traj/s min-med-max", "env steps/s", "sim eff", "chunk ms avg/p50/p99", "idle sim/gen/train",
             "useful util", "vs best baseline")
     rows = [head]
     for mode, runs in results.items():
@@ -209,6 +234,7 @@ def table(results: dict[str, list[dict[str, Any]]]) -> str:
             mode,
             f"{traj[0]:.1f}-{statistics.median(traj):.1f}-{traj[-1]:.1f}",
             f"{med(mode, 'env_steps_per_s'):,.0f}",
+            f"{med(mode, 'sim_efficiency'):.2f}" if "sim_efficiency" in runs[0] else "-",
             f"{med(mode, 'chunk_latency_avg_ms'):.0f}/{med(mode, 'chunk_latency_p50_ms'):.0f}/"
             f"{med(mode, 'chunk_latency_p99_ms'):.0f}",
             f"{med(mode, 'idle_sim'):.2f}/{med(mode, 'idle_gen'):.2f}/{med(mode, 'idle_train'):.2f}",
@@ -220,7 +246,7 @@ def table(results: dict[str, list[dict[str, Any]]]) -> str:
 
 
 def main(config: str, modes: str, ablations: bool, duration: float, repeat: int, json_path: str,
-         overrides: list[str]) -> int:
+         overrides: list[str], raw_seconds: float = 10.0) -> int:
     names = [m.strip() for m in modes.split(",") if m.strip()]
     unknown = [m for m in names if m not in ("ebrl", *BASELINES)]
     if unknown:
@@ -229,14 +255,15 @@ def main(config: str, modes: str, ablations: bool, duration: float, repeat: int,
     if ablations:
         names += list(ABLATIONS)
     try:
-        results = run(config, names, duration, repeat, overrides)
+        results = run(config, names, duration, repeat, overrides, raw_seconds)
     except config_mod.ConfigError as exc:
         print(f"ebrl: config error: {exc}", file=sys.stderr)
         return 2
     print(table(results))
     if json_path:
         Path(json_path).parent.mkdir(parents=True, exist_ok=True)
-        Path(json_path).write_text(json.dumps({"command": "ebrl " + " ".join(sys.argv[1:]),
-                                               "machine": f"{len(os.sched_getaffinity(0))} usable cores", "config": config, "duration_s": duration, "repeat": repeat,
-                                               "overrides": overrides, "results": results}, indent=2) + "\n")
+        Path(json_path).write_text(json.dumps({
+            "command": "ebrl " + " ".join(sys.argv[1:]), "machine": f"{len(os.sched_getaffinity(0))} usable cores",
+            "config": config, "duration_s": duration, "repeat": repeat, "overrides": overrides, "results": results,
+        }, indent=2) + "\n")
     return 0

@@ -31,6 +31,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--duration", type=float, default=60.0, help="measured seconds per run (after warm-up)")
     p.add_argument("--repeat", type=int, default=1, help="rounds over all modes")
     p.add_argument("--json", default="", help="write the results here")
+    p.add_argument("--raw-seconds", type=float, default=10.0,
+                   help="seconds to measure the raw simulator capacity (the physical limit; 0 skips it)")
     p.add_argument("--set", action="append", default=[], dest="overrides", metavar="SECTION.KEY=VALUE")
 
     p = sub.add_parser("profile", help="profile each stage alone and print the tables and Algorithm 1's allocation")
@@ -67,7 +69,7 @@ def main(argv: list[str] | None = None) -> int:
         from ebrl import bench
 
         return bench.main(args.config, args.modes, args.ablations, args.duration, args.repeat, args.json,
-                          args.overrides)
+                          args.overrides, args.raw_seconds)
     if args.command == "profile":
         from ebrl.alloc.cli import profile_command
 

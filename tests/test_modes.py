@@ -61,11 +61,16 @@ def test_ebrl_bench_prints_the_table_and_writes_json(tmp_path):
 
     out_json = tmp_path / "bench.json"
     proc = subprocess.run([sys.executable, "-m", "ebrl.cli", "bench", "configs/quickstart.toml", "--modes",
-                           "ebrl,colocated", "--duration", "4", "--json", str(out_json),
+                           "ebrl,colocated,async", "--duration", "4", "--json", str(out_json), "--raw-seconds", "2",
                            "--set", f"run.output_dir={json.dumps(str(tmp_path / 'runs'))}"],
                           cwd=ROOT, capture_output=True, text=True, timeout=300)
     assert proc.returncode == 0, proc.stderr
     assert "vs best baseline" in proc.stdout and "colocated" in proc.stdout and "(best)" in proc.stdout
     results = json.loads(out_json.read_text())["results"]
-    assert set(results) == {"ebrl", "colocated"}
+    assert set(results) == {"ebrl", "colocated", "async"}
     assert all(r[0]["env_steps_per_s"] > 0 for r in results.values())
+    # the physical limit: raw capacity of the cores each mode's simulation holds (async holds half of them)
+    assert "sim eff" in proc.stdout and "raw simulator capacity" in proc.stderr
+    ebrl, asy = results["ebrl"][0], results["async"][0]
+    assert ebrl["raw_env_steps_per_s"] > 0 and 0 < ebrl["sim_efficiency"] < 1.5
+    assert len(asy["sim_cores"]) <= len(ebrl["sim_cores"])

@@ -308,3 +308,14 @@ def test_serve_lets_a_viewer_that_connects_late_see_the_whole_run(tmp_path, view
     assert span is not None, "the late viewer got no data"
     assert span[0] < 15 and span[1] > 20, f"the late viewer sees {span[0]:.1f}-{span[1]:.1f} s of the run"
     assert proc.returncode == 130, out
+
+
+def test_spawn_without_a_display_falls_back_to_saving(tmp_path, monkeypatch):
+    from ebrl.viz.rerun_bridge import make_blueprint, open_recording
+
+    monkeypatch.delenv("DISPLAY", raising=False)
+    monkeypatch.delenv("WAYLAND_DISPLAY", raising=False)
+    rec, where = open_recording("spawn", str(tmp_path / "t.rrd"), "nodisplay", _free_port(), "64MiB",
+                                make_blueprint())
+    rec.disconnect()
+    assert where.startswith("no display") and (tmp_path / "t.rrd").exists()

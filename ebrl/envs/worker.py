@@ -154,3 +154,38 @@ class EnvWorker:
             self.proc.kill()
             self.proc.join(1.0)
         self.conn.close()
+
+
+# --- the physical limit ---------------------------------------------------------------------
+
+
+def _raw_loop(spec: EnvSpec, seed: int, core: int, seconds: float, out) -> None:
+    os.sched_setaffinity(0, {core})
+    env = make_env(spec, seed=seed)
+    env.reset(seed=seed)
+    steps, start = 0, time.perf_counter()
+    while time.perf_counter() - start < seconds:
+        _, _, terminated, truncated, _ = env.step(env.action_space.sample())
+        steps += 1
+        if terminated or truncated:
+            env.reset()
+    out.put(steps / (time.perf_counter() - start))
+    env.close()
+
+
+def raw_steps_per_s(spec: EnvSpec, cores: list[int], seconds: float = 10.0) -> float:
+    """Raw simulator capacity of ``cores``: one environment per core, pinned, stepping random actions in a
+    tight loop with no framework around it, all cores at once; env steps/s summed over the cores."""
+    ctx = _context(spec.backend)
+    out = ctx.Queue()
+    procs = [ctx.Process(target=_raw_loop, args=(spec, i, core, seconds, out), daemon=True, name="ebrl-raw")
+             for i, core in enumerate(cores)]
+    for proc in procs:
+        proc.start()
+    try:
+        return float(sum(out.get(timeout=seconds + 120) for _ in procs))
+    finally:
+        for proc in procs:
+            proc.join(5)
+            if proc.is_alive():
+                proc.kill()

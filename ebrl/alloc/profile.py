@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import dataclasses
 import hashlib
 import json
 import os
@@ -49,18 +50,12 @@ def fingerprint(pool: ResourcePool, cfg: config_mod.Config) -> dict[str, Any]:
     with contextlib.suppress(OSError):
         cpu_model = next((line.split(":", 1)[1].strip() for line in open("/proc/cpuinfo")
                           if line.startswith("model name")), "")
-    workload = {"env": dataclass_dict(cfg.env), "policy": dataclass_dict(cfg.policy),
+    workload = {"env": dataclasses.asdict(cfg.env), "policy": dataclasses.asdict(cfg.policy),
                 "algo": {k: getattr(cfg.algo, k) for k in ("epochs", "minibatches")},
                 "envs_per_group": cfg.sim.envs_per_group, "groups": cfg.sim.groups, "batch_size": cfg.train.batch_size}
     return {"version": PROFILE_VERSION, "host": platform.node(), "cpu": cpu_model, "cores": pool.core_ids,
             "gpus": [g.uuid for g in pool.gpus], "torch": torch.__version__, "python": sys.version.split()[0],
             "workload": hashlib.sha1(json.dumps(workload, sort_keys=True, default=str).encode()).hexdigest()[:16]}
-
-
-def dataclass_dict(obj: Any) -> dict[str, Any]:
-    import dataclasses
-
-    return dataclasses.asdict(obj)
 
 
 def default_path(cfg: config_mod.Config) -> Path:

@@ -30,6 +30,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from ebrl.alloc.algorithm import Allocation, Profiles, allocate, allocate_cpu, exhaustive  # noqa: E402
+from ebrl.alloc.synthetic import random_tables  # noqa: E402
 
 RESULTS = Path(__file__).resolve().parent / "results"
 GB = 1e9
@@ -69,29 +70,9 @@ def non_monotonic_cases() -> Iterator[tuple[Profiles, dict]]:
         yield with_dips(p, rng), kwargs
 
 
-def random_tables(seed: int, monotone: bool) -> tuple[Profiles, dict]:
-    """Random shapes, +-10 % noise per entry (a running maximum restores monotonicity when asked), random
-    simulator knees; every other table has a memory budget that binds."""
-    rng = np.random.default_rng(seed)
-    grid = np.arange(10, 101, 10)
-
-    def curve(B: int, alpha_range: tuple[float, float]) -> np.ndarray:
-        rate = rng.uniform(50, 150) * B / (B + rng.uniform(4, 32)) * (grid / 100) ** rng.uniform(*alpha_range)
-        rate = rate * (1 + rng.uniform(-0.1, 0.1, len(grid)))
-        return np.maximum.accumulate(rate) if monotone else rate
-
-    gen, train = {}, {}
-    for B in (8, 16, 32):
-        gen.update({(int(s), B): float(r) for s, r in zip(grid, curve(B, (0.5, 1.2)))})
-        train.update({(int(s), B): float(r) for s, r in zip(grid, curve(B, (0.7, 1.1)))})
-    cap, knee = rng.uniform(20, 120), rng.choice([20, 30, 40])
-    sim = {}
-    for c_env in (1, 2):
-        for E in (4, 8):
-            top, sharpness = cap * E / 8 * rng.uniform(0.7, 1.3), rng.uniform(0.5, 2.0)
-            sim.update({(c_env, E, s): float(top * min(1.0, s / knee) ** sharpness) for s in range(10, 60, 10)})
-    p = Profiles(sim, gen, train, {8: 8.0, 16: 16.0, 32: 32.0}, {8: 16.0, 16: 32.0, 32: 64.0})
-    return p, dict(N=8, s_g_min=5, s_t_min=5, M_gpu=60.0 if seed % 2 else math.inf)
+def random_cases(seed: int, monotone: bool) -> tuple[Profiles, dict]:
+    """Random shapes (ebrl.alloc.synthetic.random_tables); every other table has a memory budget that binds."""
+    return random_tables(seed, monotone), dict(N=8, s_g_min=5, s_t_min=5, M_gpu=60.0 if seed % 2 else math.inf)
 
 
 def realistic(N: int, sim_speed: float, gen_speed: float, train_speed: float, M_gpu: float) -> tuple[Profiles, dict]:
@@ -226,8 +207,8 @@ def main() -> None:
     cases = [
         run_case("synthetic-monotone", list(synthetic_cases())),
         run_case("synthetic-non-monotonic", list(non_monotonic_cases())),
-        run_case("random-monotone", [random_tables(seed, monotone=True) for seed in range(args.seeds)]),
-        run_case("random-noisy", [random_tables(seed, monotone=False) for seed in range(args.seeds)]),
+        run_case("random-monotone", [random_cases(seed, monotone=True) for seed in range(args.seeds)]),
+        run_case("random-noisy", [random_cases(seed, monotone=False) for seed in range(args.seeds)]),
         run_case("synthetic-realistic", list(realistic_cases())),
         run_case("cpu-random-16-cores", [cpu_tables(seed, 16) for seed in range(args.seeds)], cpu=True),
         run_case("cpu-random-3-to-8-cores", [cpu_tables(seed, N) for seed in range(args.seeds // 4)

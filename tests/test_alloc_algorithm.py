@@ -5,8 +5,9 @@ from __future__ import annotations
 import json
 import math
 
-import numpy as np
 import pytest
+
+from ebrl.alloc.synthetic import random_tables
 
 from ebrl.alloc.algorithm import (
     Allocation,
@@ -34,30 +35,6 @@ def gpu_tables(a: float = 3.0, c: float = 2.0, cap: float = 60.0, step: int = 10
     gen = {(s, B): a * s * B / (B + 16) for s in quotas for B in BATCHES}
     train = {(s, B): c * s * B / (B + 8) for s in quotas for B in BATCHES}
     return Profiles(sim, gen, train, gen_mem={B: 1.0 * B for B in BATCHES}, train_mem={B: 2.0 * B for B in BATCHES})
-
-
-def random_tables(seed: int, monotone: bool) -> Profiles:
-    """Random tables: gen/train ~ scale * s^alpha * B / (B + b) with +-10 % noise per entry (made monotone by a
-    running maximum when ``monotone``), simulators saturating at a random knee; memory grows with batch."""
-    rng = np.random.default_rng(seed)
-    grid = np.arange(10, 101, 10)
-
-    def curve(B: int, alpha_range: tuple[float, float]) -> np.ndarray:
-        rate = rng.uniform(50, 150) * B / (B + rng.uniform(4, 32)) * (grid / 100) ** rng.uniform(*alpha_range)
-        rate = rate * (1 + rng.uniform(-0.1, 0.1, len(grid)))
-        return np.maximum.accumulate(rate) if monotone else rate
-
-    gen, train = {}, {}
-    for B in (8, 16, 32):
-        gen.update({(int(s), B): float(r) for s, r in zip(grid, curve(B, (0.5, 1.2)))})
-        train.update({(int(s), B): float(r) for s, r in zip(grid, curve(B, (0.7, 1.1)))})
-    cap, knee = rng.uniform(20, 120), rng.choice([20, 30, 40])
-    sim = {}
-    for c_env in (1, 2):
-        for E in (4, 8):
-            top, sharpness = cap * E / 8 * rng.uniform(0.7, 1.3), rng.uniform(0.5, 2.0)
-            sim.update({(c_env, E, s): float(top * min(1.0, s / knee) ** sharpness) for s in range(10, 60, 10)})
-    return Profiles(sim, gen, train, gen_mem={8: 8.0, 16: 16.0, 32: 32.0}, train_mem={8: 16.0, 16: 32.0, 32: 64.0})
 
 
 def cpu_tables(N: int = 16, gen_scale: float = 40.0, train_scale: float = 30.0, per_env: float = 6.0) -> Profiles:

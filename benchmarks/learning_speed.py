@@ -30,7 +30,10 @@ def main() -> None:
     parser.add_argument("--config", default="configs/quickstart.toml")
     parser.add_argument("--modes", default="ebrl,colocated")
     parser.add_argument("--iterations", type=int, default=150)
+    parser.add_argument("--out", default=str(RESULTS), help="directory for learning_speed.{json,png}")
     args = parser.parse_args()
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
     cfg = config.load(args.config)
     budget = args.iterations * cfg.train.batch_size * cfg.policy.chunk
     curves, summary = {}, {}
@@ -42,15 +45,14 @@ def main() -> None:
         summary[mode] = {"final_return_last5": statistics.fmean(p["return"] for p in curve[-5:]),
                          "best_return": max(p["return"] for p in curve), "wall_s": curve[-1]["wall_s"],
                          "env_steps": curve[-1]["env_steps"]}
-    plot(curves, args, budget)
+    plot(curves, args, budget, out / "learning_speed.png")
     result = {"command": "python benchmarks/learning_speed.py " + " ".join(sys.argv[1:]), "config": args.config,
               "iterations": args.iterations, "env_step_budget": budget, "summary": summary, "curves": curves}
-    RESULTS.mkdir(exist_ok=True)
-    (RESULTS / "learning_speed.json").write_text(json.dumps(result, indent=2) + "\n")
+    (out / "learning_speed.json").write_text(json.dumps(result, indent=2) + "\n")
     print(json.dumps(summary, indent=2))
 
 
-def plot(curves: dict, args, budget: int) -> None:
+def plot(curves: dict, args, budget: int, path: Path) -> None:
     import matplotlib
 
     matplotlib.use("Agg")
@@ -64,7 +66,7 @@ def plot(curves: dict, args, budget: int) -> None:
     ax.set_title(f"{Path(args.config).stem}: {args.iterations} updates, {budget:,} env steps each")
     ax.legend()
     fig.tight_layout()
-    fig.savefig(RESULTS / "learning_speed.png", dpi=100)
+    fig.savefig(path, dpi=100)
 
 
 if __name__ == "__main__":

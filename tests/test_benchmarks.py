@@ -1,4 +1,5 @@
-"""The outside peers of the benchmarks run (a short smoke run each; the comparisons are in benchmarks/)."""
+"""Benchmark scripts run: the outside peer and the learning-speed comparison (short smoke runs; the recorded
+comparisons are in benchmarks/results/)."""
 
 import json
 import subprocess
@@ -20,3 +21,14 @@ def test_cleanrl_style_ppo_peer_runs_learns_and_writes_json(tmp_path):
     summary = result["summary"]
     assert summary["stop_reason"] == "max_seconds" and summary["env_steps"] > 5000 and summary["updates"] >= 2
     assert result["hyperparameters"]["action_chunk"] == 1 and "command" in result
+
+
+@pytest.mark.slow
+def test_learning_speed_benchmark_writes_curves_and_a_plot(tmp_path):
+    proc = subprocess.run([sys.executable, "benchmarks/learning_speed.py", "--iterations", "3", "--out", str(tmp_path)],
+                          cwd=ROOT, capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    result = json.loads((tmp_path / "learning_speed.json").read_text())
+    assert set(result["summary"]) == {"ebrl", "colocated"} and result["env_step_budget"] == 3 * 1024 * 4
+    assert all(s["env_steps"] > 0 for s in result["summary"].values())
+    assert (tmp_path / "learning_speed.png").stat().st_size > 1000

@@ -12,12 +12,13 @@
 from __future__ import annotations
 
 import dataclasses
+import math
 from pathlib import Path
 from typing import Any
 
 from ebrl import config as config_mod
 from ebrl.alloc.placement import EmbodiPlacement, Plan, StageRates
-from ebrl.alloc.profile import default_path, load_or_profile
+from ebrl.alloc.profile import default_path, fingerprint, load, load_or_profile
 from ebrl.resources.pool import ResourcePool
 
 MIN_CPU = 0.05  # cores' worth of CPU below which a stage was idle: its capacity cannot be told
@@ -27,9 +28,14 @@ def make_placement(cfg: config_mod.Config, *, measure: bool, progress: bool = Tr
     """The pool, profile (measured only if ``measure`` and nothing fresh is stored) and placement of ``cfg``."""
     pool = ResourcePool(gpu_pool=cfg.alloc.gpu_pool, cpu_pool=cfg.alloc.cpu_pool)
     path = Path(cfg.alloc.profile_path) if cfg.alloc.profile_path else default_path(cfg)
-    if not measure and not path.exists():
-        raise FileNotFoundError(f"no stage profile at {path}")
-    profiles, path, measured = load_or_profile(pool, cfg, path, seconds=cfg.alloc.profile_seconds, progress=progress)
+    if measure:
+        profiles, path, measured = load_or_profile(pool, cfg, path, seconds=cfg.alloc.profile_seconds,
+                                                   progress=progress)
+    else:  # the allocator service: the launcher profiled just now; never measure while the run goes on
+        stored, measured = load(path, fingerprint(pool, cfg), math.inf), False
+        if stored is None:
+            raise FileNotFoundError(f"no stage profile of this machine and workload at {path}")
+        profiles = stored
     placement = EmbodiPlacement(pool, profiles, window=cfg.alloc.window, gap=cfg.alloc.gap,
                                 patience=cfg.alloc.patience, s_g_min=cfg.alloc.min_gen_cores,
                                 s_t_min=cfg.alloc.min_train_cores)

@@ -130,6 +130,9 @@ class RerunBridge:
         self.reports += 1
         who = f"{report.service}{report.instance}"
         iteration = report.metrics.get("train/policy_version")
+        losses = []
+        self.rec.reset_time()
+        self.rec.set_time("wall", timestamp=report.time)
         for metric, value in report.metrics.items():
             if not np.isfinite(value):
                 continue
@@ -140,10 +143,13 @@ class RerunBridge:
                 entity = f"plots/{topic}/{who}/{metric.split('/', 1)[1]}"
             else:
                 entity = f"plots/{topic}/{who}/{metric.replace('/', '.')}"
-            self.rec.reset_time()
-            self.rec.set_time("wall", timestamp=report.time)
-            if topic == "losses" and iteration is not None:
-                self.rec.set_time("iteration", sequence=int(iteration))
+            if topic == "losses":
+                losses.append((entity, value))
+            else:
+                self.rec.log(entity, rr.Scalars(float(value)))
+        if losses and iteration is not None:  # losses also on the iteration timeline
+            self.rec.set_time("iteration", sequence=int(iteration))
+        for entity, value in losses:
             self.rec.log(entity, rr.Scalars(float(value)))
 
     # --- events -----------------------------------------------------------------------

@@ -122,3 +122,25 @@ def test_keys_put_the_run_in_every_key():
         keys.ctl("r1", "gen", 0, "reboot")
     with pytest.raises(ValueError):
         keys.check_chunk("Bad Name", "run.name")
+
+
+def test_a_bus_left_open_does_not_hang_interpreter_exit(tmp_path):
+    # zenoh-python's callback threads are non-daemon: before the exit hook, a
+    # failure before bus.close() hung the process (and once, a CI run) forever.
+    script = tmp_path / "forgets_to_close.py"
+    script.write_text(
+        "import asyncio, sys\n"
+        "from ebrl.bus import keys\n"
+        "from ebrl.messages import Observation\n"
+        "from helpers import free_port, loopback_bus\n"
+        "async def main():\n"
+        "    bus = loopback_bus(free_port())\n"
+        "    bus.watch_liveliness(keys.live('t', 'x', '*'), lambda k, alive: None)\n"
+        "    bus.subscribe('t/x/*', Observation)\n"
+        "    await bus.get('t/q', timeout=0.2)\n"
+        "    raise SystemExit(3)\n"
+        "asyncio.run(main())\n"
+    )
+    env = dict(os.environ, PYTHONPATH=f"{HERE.parent}{os.pathsep}{HERE}")
+    proc = subprocess.run([sys.executable, str(script)], env=env, timeout=60, capture_output=True)
+    assert proc.returncode == 3, proc.stderr.decode()

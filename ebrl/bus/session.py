@@ -16,12 +16,14 @@ a put with blocking congestion control can block its thread. So:
 from __future__ import annotations
 
 import asyncio
+import atexit
 import collections
 import json
 import logging
 import queue
 import threading
 import time
+import weakref
 from dataclasses import dataclass, field
 from typing import Any, AsyncIterator, Awaitable, Callable, Generic, Literal, TypeVar
 
@@ -31,6 +33,20 @@ from ebrl import messages  # module import: messages itself imports ebrl.bus.cod
 
 log = logging.getLogger("ebrl.bus")
 T = TypeVar("T")
+_open_buses: weakref.WeakSet[Bus] = weakref.WeakSet()
+
+
+def _close_forgotten_buses() -> None:
+    # zenoh-python runs Python callbacks on non-daemon threads that live until
+    # the subscriber is undeclared, so a session left open (a test that failed
+    # before bus.close(), a service that crashed) would hang interpreter exit.
+    # threading's exit hooks run before it joins those threads.
+    for bus in list(_open_buses):
+        bus._close_now()
+
+
+_register_exit = getattr(threading, "_register_atexit", atexit.register)
+_register_exit(_close_forgotten_buses)
 
 # Zenoh closes a link whose blocking put waits longer than 5 s; a consumer that
 # is full for this long drops the sample (counted) so the link survives.
@@ -81,6 +97,7 @@ class Bus:
         self._closed = False
         self._declared: list[Any] = []
         self._tasks: set[asyncio.Future] = set()
+        _open_buses.add(self)
 
     # --- publishing -------------------------------------------------------------
 
@@ -255,6 +272,15 @@ class Bus:
                 obj.close()
         self._outbox.put(None)
         await self.loop.run_in_executor(None, self._sender.join, 2.0)
+        self._close_now()
+
+    def _close_now(self) -> None:
+        """Close without flushing (the synchronous tail of close; also run at interpreter exit)."""
+        self._closed = True
+        _open_buses.discard(self)
+        for obj in self._declared:
+            if isinstance(obj, Subscription):
+                obj.close()
         try:
             self.session.close()
         except Exception as exc:

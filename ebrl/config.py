@@ -90,10 +90,20 @@ class SimSection:
 
 @dataclass
 class PolicySection:
-    kind: Literal["mlp"] = doc("policy model", "mlp")
+    kind: Literal["mlp", "cnn", "flow"] = doc(
+        "policy model: mlp (Gaussian chunk from a flat observation), cnn (conv image encoder + proprioception + "
+        "instruction embedding, Gaussian chunk), flow (flow-matching action head: the chunk by denoising)", "mlp")
     chunk: int = doc("K: actions per chunk, executed open-loop", 4)
     hidden: list[int] = doc("hidden layer widths", factory=lambda: [64, 64])
-    init_log_std: float = doc("initial log standard deviation of the Gaussian", -0.5)
+    init_log_std: float = doc("initial log standard deviation of the Gaussian (flow: of the stochastic final "
+                              "step)", -0.5)
+    channels: list[int] = doc("cnn/flow on images: conv channels per layer of the image encoder",
+                              factory=lambda: [16, 32, 32])
+    embed_dim: int = doc("cnn/flow: width of the instruction embedding", 32)
+    denoise_steps: int = doc("flow: N, denoising (Euler) steps per chunk; cost grows with N, the interface does "
+                             "not change", 4)
+    checkpoint: str = doc("safetensors file to start from (relative paths: from the config's directory); empty: "
+                          "fresh weights", "")
 
 
 @dataclass
@@ -273,7 +283,8 @@ def _check_semantics(cfg: Config) -> None:
         raise ConfigError(f"run.iterations = {cfg.run.iterations}: must be >= 0")
     for path in ("sim.groups", "sim.envs_per_group", "sim.segment_length", "policy.chunk", "algo.epochs",
                  "algo.minibatches", "train.batch_size", "train.lr", "train.threads", "gen.threads",
-                 "run.stats_interval", "train.max_pending", "viz.window_s", "viz.port"):
+                 "run.stats_interval", "train.max_pending", "viz.window_s", "viz.port", "policy.embed_dim",
+                 "policy.denoise_steps"):
         section, key = path.split(".")
         positive(path, getattr(getattr(cfg, section), key))
     if not 0 < cfg.algo.gamma <= 1:

@@ -18,7 +18,7 @@ import numpy as np
 import torch
 
 from ebrl.bus import keys
-from ebrl.envs import EnvSpec, spaces
+from ebrl.envs import EnvSpec, describe
 from ebrl.messages import ActionChunk, MessageError, Observation, Quota, Weights, decode_message
 from ebrl.policies import load_arrays, make_policy
 from ebrl.sched.modes import resolve
@@ -34,9 +34,8 @@ class GenService(Service):
         if self.schedule.gen_cores:
             os.sched_setaffinity(0, self.schedule.gen_cores)
         torch.set_num_threads(cfg.gen.threads)
-        obs_space, act_space = await asyncio.get_running_loop().run_in_executor(
-            None, spaces, EnvSpec.from_config(cfg.env))
-        self.policy = make_policy(cfg.policy, obs_space.shape, act_space.shape[0])
+        info = await asyncio.get_running_loop().run_in_executor(None, describe, EnvSpec.from_config(cfg.env))
+        self.policy = make_policy(cfg.policy, info.layout, info.action_dim)
         self.policy.eval()
         self.version = -1
         self.max_groups = cfg.gen.max_batch_groups or self.schedule.groups

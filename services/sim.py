@@ -11,7 +11,7 @@ import numpy as np
 import psutil
 
 from ebrl.bus import keys
-from ebrl.envs import EnvSpec, EnvWorker, spaces
+from ebrl.envs import EnvSpec, EnvWorker, describe
 from ebrl.messages import ActionChunk, Observation
 from ebrl.resources.nvml import GpuMonitor
 from ebrl.sched.modes import resolve
@@ -31,7 +31,7 @@ class SimService(Service):
         cfg = self.cfg
         self.schedule = sched = resolve(cfg)
         spec = EnvSpec.from_config(cfg.env)
-        await asyncio.get_running_loop().run_in_executor(None, spaces, spec)  # clear error before spawning
+        await asyncio.get_running_loop().run_in_executor(None, describe, spec)  # clear error before spawning
         if sched.mode == "async":
             os.sched_setaffinity(0, sched.sim_cores)  # rollout's share of the machine
         if sched.core_rebinding:

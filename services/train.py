@@ -13,7 +13,7 @@ import torch
 
 from ebrl.algos.ppo import PPO, build_batch
 from ebrl.bus import keys
-from ebrl.envs import EnvSpec, spaces
+from ebrl.envs import EnvSpec, describe
 from ebrl.messages import TrajectorySegment, Weights, encode_message
 from ebrl.policies import make_policy, state_arrays
 from ebrl.sched.modes import resolve
@@ -31,11 +31,10 @@ class TrainService(Service):
             os.sched_setaffinity(0, self.schedule.train_cores)
         torch.manual_seed(cfg.run.seed)
         torch.set_num_threads(cfg.train.threads)
-        obs_space, act_space = await asyncio.get_running_loop().run_in_executor(
-            None, spaces, EnvSpec.from_config(cfg.env))
-        self.obs_shape = tuple(obs_space.shape)
-        self.action_shape = (cfg.policy.chunk, act_space.shape[0])
-        self.model = make_policy(cfg.policy, obs_space.shape, act_space.shape[0])
+        info = await asyncio.get_running_loop().run_in_executor(None, describe, EnvSpec.from_config(cfg.env))
+        self.obs_shape = info.obs_shape
+        self.action_shape = (cfg.policy.chunk, info.action_dim)
+        self.model = make_policy(cfg.policy, info.layout, info.action_dim)
         self.ppo = PPO(self.model, cfg.algo, cfg.train.lr, seed=cfg.run.seed)
         self.version = 0
         self.pending: collections.deque[TrajectorySegment] = collections.deque()

@@ -5,13 +5,13 @@ import asyncio
 import numpy as np
 import pytest
 
-from ebrl.envs import EnvSpec, EnvWorker, make_env, spaces
+from ebrl.envs import EnvSpec, EnvWorker, describe, make_env
 from ebrl.envs.gym import EnvError
 
 
 def test_module_colon_id_imports_the_users_module():
-    obs_space, act_space = spaces(EnvSpec("user_envs:ShortPendulum-v0"))
-    assert obs_space.shape == (4,) and act_space.shape == (1,)
+    info = describe(EnvSpec("user_envs:ShortPendulum-v0"))
+    assert info.obs_shape == (4,) and info.action_dim == 1 and info.layout.describe() == "state:vector[4]"
 
 
 def test_unknown_env_is_a_clear_error():

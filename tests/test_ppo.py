@@ -4,6 +4,7 @@ import numpy as np
 import torch
 from types import SimpleNamespace
 
+from ebrl.envs.obs import ObsLayout
 from ebrl.algos.ppo import PPO, build_batch, gae
 from ebrl.envs.worker import ChunkResult
 from ebrl.policies import load_arrays, make_policy, state_arrays
@@ -53,7 +54,7 @@ def test_segments_end_on_termination_truncation_and_length():
 
 def test_terminated_segments_do_not_bootstrap():
     torch.manual_seed(0)
-    model = make_policy(POLICY, (4,), 1)
+    model = make_policy(POLICY, ObsLayout.vector(4), 1)
     b = SegmentBuilder(0, 0, 8)
     obs, act = np.ones(4, np.float32), np.zeros((3, 1), np.float32)
     term = b.add(obs, act, 0.0, 0.0, 0, result(reward=1.0, terminated=True, ep=1.0))
@@ -66,7 +67,7 @@ def test_terminated_segments_do_not_bootstrap():
 
 def test_log_prob_is_the_same_in_gen_and_train():
     torch.manual_seed(1)
-    gen_model, train_model = make_policy(POLICY, (4,), 2), make_policy(POLICY, (4,), 2)
+    gen_model, train_model = make_policy(POLICY, ObsLayout.vector(4), 2), make_policy(POLICY, ObsLayout.vector(4), 2)
     load_arrays(gen_model, state_arrays(train_model))  # what a Weights message carries
     obs = np.random.default_rng(0).normal(size=(5, 4)).astype(np.float32)
     actions, logprobs, values = gen_model.act(obs)
@@ -77,8 +78,8 @@ def test_log_prob_is_the_same_in_gen_and_train():
 
 
 def test_load_arrays_rejects_mismatched_weights():
-    model = make_policy(POLICY, (4,), 2)
-    other = make_policy(SimpleNamespace(**{**vars(POLICY), "hidden": [8]}), (4,), 2)
+    model = make_policy(POLICY, ObsLayout.vector(4), 2)
+    other = make_policy(SimpleNamespace(**{**vars(POLICY), "hidden": [8]}), ObsLayout.vector(4), 2)
     try:
         load_arrays(model, state_arrays(other))
     except ValueError as exc:
@@ -89,7 +90,7 @@ def test_load_arrays_rejects_mismatched_weights():
 
 def test_ppo_update_moves_probability_towards_advantaged_actions():
     torch.manual_seed(2)
-    model = make_policy(POLICY, (4,), 1)
+    model = make_policy(POLICY, ObsLayout.vector(4), 1)
     obs = np.zeros((64, 4), np.float32)
     actions, logprobs, values = model.act(obs)
     good = actions.reshape(64, -1).mean(1) > 0  # reward chunks whose mean action is positive

@@ -5,6 +5,7 @@ import pytest
 import torch
 from types import SimpleNamespace
 
+from ebrl.envs.obs import ObsLayout
 from ebrl import config
 from ebrl.algos.ppo import PPO, build_batch
 from ebrl.messages import TrajectorySegment
@@ -79,7 +80,7 @@ POLICY = SimpleNamespace(kind="mlp", chunk=2, hidden=[8], init_log_std=-0.5)
 
 def trained(decoupled: bool, stale: bool) -> torch.Tensor:
     torch.manual_seed(0)
-    model = make_policy(POLICY, (4,), 1)
+    model = make_policy(POLICY, ObsLayout.vector(4), 1)
     seg = segment([0] * 16)
     obs = torch.as_tensor(seg.obs)
     actions = torch.randn(16, 2, 1)

@@ -107,10 +107,10 @@ def timed(fn: Callable[[], Any], seconds: float, min_reps: int = 3) -> float:
 
 def measure_sim(cfg: config_mod.Config, cores: list[int], envs: int, seconds: float) -> float:
     """Decisions/s of ``envs`` env workers, each pinned round-robin to ``cores``, running chunks concurrently."""
-    from ebrl.envs import EnvSpec, EnvWorker, spaces
+    from ebrl.envs import EnvSpec, EnvWorker, describe
 
     spec = EnvSpec.from_config(cfg.env)
-    _, act_space = spaces(spec)
+    act_space = describe(spec).action_space
     rng = np.random.default_rng(0)
 
     async def run() -> float:
@@ -138,11 +138,11 @@ def measure_sim(cfg: config_mod.Config, cores: list[int], envs: int, seconds: fl
 
 
 def _model(cfg: config_mod.Config):
-    from ebrl.envs import EnvSpec, spaces
+    from ebrl.envs import EnvSpec, describe
     from ebrl.policies import make_policy
 
-    obs_space, act_space = spaces(EnvSpec.from_config(cfg.env))
-    return make_policy(cfg.policy, obs_space.shape, act_space.shape[0]), obs_space.shape, act_space.shape[0]
+    info = describe(EnvSpec.from_config(cfg.env))
+    return make_policy(cfg.policy, info.layout, info.action_dim), info.obs_shape, info.action_dim
 
 
 def measure_gen(cfg: config_mod.Config, cores: list[int], batch: int, seconds: float) -> float:

@@ -3,11 +3,14 @@ robosuite tasks, and the optional synthetic step latency."""
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 from typing import Any
 
 import gymnasium as gym
 import numpy as np
+
+from ebrl.envs.obs import ObsLayout
 
 
 class EnvError(ValueError):
@@ -62,11 +65,35 @@ def check_spaces(env_id: str, obs_space: gym.Space, act_space: gym.Space) -> Non
         raise EnvError(f"{env_id}: action space {act_space} is not a 1-d Box (continuous actions are supported)")
 
 
-def spaces(spec: EnvSpec) -> tuple[gym.spaces.Box, gym.spaces.Box]:
-    """Observation and action spaces of the environment (builds it once, then closes it)."""
+@dataclass(frozen=True)
+class EnvInfo:
+    """What gen and train need to know about the environment: spaces, observation layout, instruction."""
+
+    observation_space: gym.spaces.Box
+    action_space: gym.spaces.Box
+    layout: ObsLayout
+    instruction: str = ""
+
+    @property
+    def obs_shape(self) -> tuple[int, ...]:
+        return tuple(self.observation_space.shape)
+
+    @property
+    def action_dim(self) -> int:
+        return int(self.action_space.shape[0])
+
+
+def describe(spec: EnvSpec) -> EnvInfo:
+    """Build the environment once, read what policies need to know, close it. An environment may declare
+    ``obs_layout`` (an :class:`ObsLayout`) and ``instruction``; otherwise its Box shape decides the layout."""
     env = make_env(spec)
     try:
-        return env.observation_space, env.action_space
+        base = env.unwrapped
+        layout = getattr(base, "obs_layout", None) or ObsLayout.for_shape(env.observation_space.shape)
+        if layout.size != math.prod(env.observation_space.shape):
+            raise EnvError(f"{spec.id}: obs_layout {layout.describe()} has {layout.size} values, "
+                           f"the observation space {env.observation_space.shape}")
+        return EnvInfo(env.observation_space, env.action_space, layout, getattr(base, "instruction", ""))
     finally:
         env.close()
 

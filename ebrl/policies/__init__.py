@@ -7,12 +7,13 @@ from typing import Any
 import numpy as np
 import torch
 
+from ebrl.envs.obs import ObsLayout
 from ebrl.policies.mlp import ChunkGaussianMLP
 
 
-def make_policy(policy_cfg: Any, obs_shape: tuple[int, ...], action_dim: int) -> ChunkGaussianMLP:
+def make_policy(policy_cfg: Any, layout: ObsLayout, action_dim: int) -> ChunkGaussianMLP:
     if policy_cfg.kind == "mlp":
-        return ChunkGaussianMLP(int(np.prod(obs_shape)), action_dim, policy_cfg.chunk, list(policy_cfg.hidden),
+        return ChunkGaussianMLP(layout.size, action_dim, policy_cfg.chunk, list(policy_cfg.hidden),
                                 policy_cfg.init_log_std)
     raise ValueError(f"policy.kind = {policy_cfg.kind!r} is not available")
 

@@ -102,8 +102,8 @@ class PolicySection:
     embed_dim: int = doc("cnn/flow: width of the instruction embedding", 32)
     denoise_steps: int = doc("flow: N, denoising (Euler) steps per chunk; cost grows with N, the interface does "
                              "not change", 4)
-    checkpoint: str = doc("safetensors file to start from (relative paths: from the config's directory); empty: "
-                          "fresh weights", "")
+    checkpoint: str = doc("safetensors policy checkpoint to start training from (relative to the working "
+                          "directory); empty: fresh weights", "")
 
 
 @dataclass
@@ -115,7 +115,10 @@ class GenSection:
 
 @dataclass
 class AlgoSection:
-    name: Literal["ppo"] = doc("learning algorithm", "ppo")
+    name: Literal["ppo", "grpo"] = doc(
+        "learning algorithm: ppo (GAE with a critic) or grpo (group-relative advantages over group_size "
+        "rollouts from the same initial state, no critic)", "ppo")
+    group_size: int = doc("grpo: rollouts per group; envs env_id // group_size share their reset seeds", 8)
     max_staleness: int = doc("most policy versions between the weights that act and the update that learns, "
                              "when rollout and training overlap", 1)
     decoupled: bool = doc("decoupled PPO for stale data: clip around the proximal policy, weight by "
@@ -295,6 +298,11 @@ def _check_semantics(cfg: Config) -> None:
         raise ConfigError(f"train.batch_size = {cfg.train.batch_size}: must be a multiple of the number of envs "
                           f"(sim.groups x sim.envs_per_group = {cfg.num_envs}); each env runs batch_size / envs "
                           "decisions per iteration")
+    if cfg.algo.name == "grpo":
+        envs = cfg.sim.groups * cfg.sim.envs_per_group
+        if cfg.algo.group_size < 2 or envs % cfg.algo.group_size:
+            raise ConfigError(f"algo.group_size = {cfg.algo.group_size}: grpo needs at least 2 rollouts per group "
+                              f"and the {envs} envs (sim.groups x sim.envs_per_group) to split into whole groups")
     if cfg.algo.max_staleness < 0:
         raise ConfigError(f"algo.max_staleness = {cfg.algo.max_staleness}: must be >= 0")
     if cfg.run.slowdown:

@@ -65,6 +65,9 @@ class ActionChunk:
     actions: Annotated[np.ndarray, Array("float32", 3)] = doc("actions, shape [E, K, action_dim]")
     logprobs: Annotated[np.ndarray, Array("float32", 1)] = doc("log-probability of each whole chunk, shape [E]")
     values: Annotated[np.ndarray, Array("float32", 1)] = doc("value estimate at the observation, shape [E]")
+    latents: Annotated[np.ndarray, Array("float32")] = doc(
+        "the policy's sampling state that training needs to recompute the exact log-prob (flow policies: the "
+        "initial noise), shape [E, *latent_shape]; [E, 0] for Gaussian policies")
 
 
 @dataclass
@@ -74,8 +77,10 @@ class TrajectorySegment:
     KEY = "ebrl/data/<run>/traj/<group>"
     group: int = doc("group index")
     env_id: int = doc("global env id")
+    episode: int = doc("index of the env's episode this segment belongs to, from 0 (a segment never spans two)")
     obs: Annotated[np.ndarray, Array("float32")] = doc("observation before each chunk, shape [T, *obs_shape]")
     actions: Annotated[np.ndarray, Array("float32", 3)] = doc("chunks sent, shape [T, K, action_dim]")
+    latents: Annotated[np.ndarray, Array("float32")] = doc("policy sampling state of each chunk, shape [T, *latent_shape]")
     logprobs: Annotated[np.ndarray, Array("float32", 1)] = doc("behaviour log-prob of each chunk, shape [T]")
     values: Annotated[np.ndarray, Array("float32", 1)] = doc("value estimate at each chunk start, shape [T]")
     rewards: Annotated[np.ndarray, Array("float32", 1)] = doc("sum of env rewards over each chunk, shape [T]")

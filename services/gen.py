@@ -67,7 +67,7 @@ class GenService(Service):
     async def serve(self, batch: list[Observation]) -> None:
         obs = np.concatenate([m.obs for m in batch])
         start = time.time()
-        actions, logprobs, values = await asyncio.get_running_loop().run_in_executor(
+        actions, logprobs, values, latents = await asyncio.get_running_loop().run_in_executor(
             self.pool, self.policy.act, obs)
         self.publish_span("gen", "forward", start, time.time())
         row = 0
@@ -75,7 +75,7 @@ class GenService(Service):
             n = len(m.env_ids)
             chunk = ActionChunk(group=m.group, seq=m.seq, policy_version=self.version,
                                 actions=actions[row:row + n], logprobs=logprobs[row:row + n],
-                                values=values[row:row + n])
+                                values=values[row:row + n], latents=latents[row:row + n])
             await self.bus.put(keys.act(self.run_name, m.group), chunk, express=True)
             row += n
         self.count("gen/batches")

@@ -47,7 +47,9 @@ class SimService(Service):
                 env = g * per + i
                 # Static pinning round-robin over the simulation cores, unless steps are rebound one by one.
                 core = None if sched.core_rebinding else sched.sim_cores[env % len(sched.sim_cores)]
-                worker = EnvWorker(spec, seed=cfg.run.seed * 100_003 + env, core=core)
+                # GRPO compares rollouts from the same initial states: a group's envs share reset seeds.
+                share = cfg.algo.group_size if cfg.algo.name == "grpo" else 1
+                worker = EnvWorker(spec, seed=cfg.run.seed * 100_003 + env // share, core=core)
                 self.workers[g].append(worker)
                 if sched.core_rebinding:
                     self.stepping.add(env, worker)
@@ -102,7 +104,7 @@ class SimService(Service):
                     self.count("sim/episodes")
                 if res.episode_success is not None:
                     self.successes.append(res.episode_success)
-                segment = builders[i].add(obs[i], chunk.actions[i], float(chunk.logprobs[i]),
+                segment = builders[i].add(obs[i], chunk.actions[i], chunk.latents[i], float(chunk.logprobs[i]),
                                           float(chunk.values[i]), chunk.policy_version, res, boundary)
                 if segment is not None:
                     await self.bus.put(keys.traj(self.run_name, g), segment)
@@ -123,7 +125,7 @@ class SimService(Service):
                     _, chunk = await asyncio.wait_for(self.actions[g].next(), deadline - time.monotonic())
                 except asyncio.TimeoutError:
                     break
-                if chunk.seq == seq and chunk.actions.shape[0] == len(env_ids):
+                if chunk.seq == seq and chunk.actions.shape[0] == len(env_ids) == chunk.latents.shape[0]:
                     self.publish_span(f"sim.g{g}", "wait", start, time.time(), busy=False)
                     return chunk
                 self.count("sim/stale_actions_dropped")

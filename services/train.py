@@ -11,13 +11,13 @@ import time
 import numpy as np
 import torch
 
-from ebrl.algos.ppo import PPO, build_batch
+from ebrl.algos.grpo import GroupCollector
+from ebrl.algos.ppo import PPO, SegmentCollector
 from ebrl.bus import keys
 from ebrl.envs import EnvSpec, describe
 from ebrl.messages import TrajectorySegment, Weights, encode_message
 from ebrl.policies import make_policy, state_arrays
 from ebrl.sched.modes import resolve
-from ebrl.sched.staleness import fresh_suffix
 from ebrl.service import Service, service_main
 
 
@@ -35,10 +35,11 @@ class TrainService(Service):
         self.obs_shape = info.obs_shape
         self.action_shape = (cfg.policy.chunk, info.action_dim)
         self.model = make_policy(cfg.policy, info.layout, info.action_dim)
+        self.latent_shape = tuple(self.model.latent_shape)
         self.ppo = PPO(self.model, cfg.algo, cfg.train.lr, seed=cfg.run.seed)
         self.version = 0
-        self.pending: collections.deque[TrajectorySegment] = collections.deque()
-        self.pending_steps = 0
+        collector = GroupCollector if cfg.algo.name == "grpo" else SegmentCollector
+        self.collector = collector(cfg.algo, cfg.train.max_pending, self.schedule.max_staleness, self.count)
         self.enough = asyncio.Event()
         self.last: dict[str, float] = {}
         self.returns: collections.deque[float] = collections.deque(maxlen=20)
@@ -61,11 +62,13 @@ class TrainService(Service):
             await self.publish_weights()
             while self.cfg.run.iterations == 0 or self.version < self.cfg.run.iterations:
                 await self.enough.wait()
-                segments = self.take_batch()
-                if not segments:  # everything pending was too stale
+                items = self.collector.take(self.version, self.cfg.train.batch_size)
+                if self.collector.ready_steps < self.cfg.train.batch_size:
+                    self.enough.clear()
+                if not items:  # everything pending was too stale
                     continue
                 start = time.time()
-                losses = await asyncio.get_running_loop().run_in_executor(self.pool, self.update, segments)
+                losses = await asyncio.get_running_loop().run_in_executor(self.pool, self.update, items)
                 self.publish_span("train", "update", start, time.time())
                 self.version += 1
                 self.last = {f"train/{k}": v for k, v in losses.items()}
@@ -78,45 +81,23 @@ class TrainService(Service):
             receiver.cancel()
 
     async def receive(self) -> None:
-        """Drain trajectories all the time (also during updates), into a bounded pending buffer."""
-        max_pending = self.cfg.train.max_pending
+        """Drain trajectories all the time (also during updates) into the algorithm's bounded collector."""
         async for key, seg in self.traj:
+            n = len(seg.obs)
             if seg.obs.shape[1:] != self.obs_shape or seg.actions.shape[1:] != self.action_shape \
-                    or not len(seg.obs) == len(seg.actions) == len(seg.rewards) == len(seg.versions):
+                    or seg.latents.shape[1:] != self.latent_shape \
+                    or not n == len(seg.actions) == len(seg.latents) == len(seg.rewards) == len(seg.versions):
                 self.bus.count_malformed(key, ValueError("segment shapes do not match the policy"))
                 continue
-            self.pending.append(seg)
-            self.pending_steps += len(seg.obs)
+            self.collector.add(seg)
             self.returns.extend(seg.episode_returns)
             self.count("train/segments_received")
-            while self.pending_steps - len(self.pending[0].obs) >= max_pending:
-                dropped = self.pending.popleft()
-                self.pending_steps -= len(dropped.obs)
-                self.count("train/segments_dropped_overflow")
-            if self.pending_steps >= self.cfg.train.batch_size:
+            if self.collector.ready_steps >= self.cfg.train.batch_size:
                 self.enough.set()
 
-    def take_batch(self) -> list[TrajectorySegment]:
-        """Oldest segments first, until batch_size decisions. Decisions more than max_staleness versions
-        behind are dropped (counted): a stale prefix is cut off, which leaves the suffix's GAE exact."""
-        segments, steps = [], 0
-        while self.pending and steps < self.cfg.train.batch_size:
-            seg = self.pending.popleft()
-            self.pending_steps -= len(seg.obs)
-            seg, dropped = fresh_suffix(seg, self.version, self.schedule.max_staleness)
-            if dropped:
-                self.count("train/stale_dropped", dropped)
-            if seg is None:
-                continue
-            segments.append(seg)
-            steps += len(seg.obs)
-        if self.pending_steps < self.cfg.train.batch_size:
-            self.enough.clear()
-        return segments
-
-    def update(self, segments: list[TrajectorySegment]) -> dict[str, float]:
-        """One PPO update (runs on the update thread)."""
-        batch = build_batch(segments, self.model, self.cfg.algo.gamma, self.cfg.algo.gae_lambda)
+    def update(self, items: list) -> dict[str, float]:
+        """One update (runs on the update thread)."""
+        batch = self.collector.build(items, self.model)
         staleness = self.version - batch.versions
         self.staleness_hist += np.bincount(staleness, minlength=len(self.staleness_hist))[:len(self.staleness_hist)]
         out = self.ppo.update(batch)
@@ -133,7 +114,7 @@ class TrainService(Service):
         self.count("train/weights_published")
 
     def metrics(self) -> dict[str, float]:
-        out = {"train/policy_version": float(self.version), "train/pending_steps": float(self.pending_steps),
+        out = {"train/policy_version": float(self.version), "train/pending_steps": float(self.collector.pending_steps),
                "train/traj_queue": float(len(self.traj)), **self.last}
         if self.returns:
             out["train/episode_return_mean"] = float(np.mean(self.returns))

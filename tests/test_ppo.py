@@ -38,17 +38,17 @@ def result(steps=3, reward=1.0, terminated=False, truncated=False, ep=None):
 def test_segments_end_on_termination_truncation_and_length():
     b = SegmentBuilder(group=0, env_id=5, length=3)
     obs, act = np.zeros(4, np.float32), np.zeros((3, 1), np.float32)
-    assert b.add(obs, act, -1.0, 0.0, 0, result()) is None
-    seg = b.add(obs, act, -1.0, 0.0, 1, result(steps=2, terminated=True, ep=7.0))
+    assert b.add(obs, act, np.zeros(0, np.float32), -1.0, 0.0, 0, result()) is None
+    seg = b.add(obs, act, np.zeros(0, np.float32), -1.0, 0.0, 1, result(steps=2, terminated=True, ep=7.0))
     assert seg.end == "terminated" and list(seg.versions) == [0, 1] and list(seg.steps) == [3, 2]
     assert seg.episode_returns == [7.0] and len(b) == 0
     np.testing.assert_array_equal(seg.last_obs, np.ones(4))  # final obs, not the reset one
     for _ in range(2):
-        assert b.add(obs, act, -1.0, 0.0, 2, result()) is None
-    seg = b.add(obs, act, -1.0, 0.0, 2, result())
+        assert b.add(obs, act, np.zeros(0, np.float32), -1.0, 0.0, 2, result()) is None
+    seg = b.add(obs, act, np.zeros(0, np.float32), -1.0, 0.0, 2, result())
     assert seg.end == "cut" and len(seg.obs) == 3
     np.testing.assert_array_equal(seg.last_obs, np.zeros(4))  # next obs to bootstrap from
-    seg = b.add(obs, act, -1.0, 0.0, 3, result(truncated=True, ep=30.0))
+    seg = b.add(obs, act, np.zeros(0, np.float32), -1.0, 0.0, 3, result(truncated=True, ep=30.0))
     assert seg.end == "truncated" and len(seg.obs) == 1
 
 
@@ -57,9 +57,9 @@ def test_terminated_segments_do_not_bootstrap():
     model = make_policy(POLICY, ObsLayout.vector(4), 1)
     b = SegmentBuilder(0, 0, 8)
     obs, act = np.ones(4, np.float32), np.zeros((3, 1), np.float32)
-    term = b.add(obs, act, 0.0, 0.0, 0, result(reward=1.0, terminated=True, ep=1.0))
+    term = b.add(obs, act, np.zeros(0, np.float32), 0.0, 0.0, 0, result(reward=1.0, terminated=True, ep=1.0))
     b2 = SegmentBuilder(0, 1, 1)
-    cut = b2.add(obs, act, 0.0, 0.0, 0, result(reward=1.0))
+    cut = b2.add(obs, act, np.zeros(0, np.float32), 0.0, 0.0, 0, result(reward=1.0))
     batch = build_batch([term, cut], model, gamma=0.9, lam=1.0)
     last_v = model.value(torch.as_tensor(cut.last_obs[None])).item()
     np.testing.assert_allclose(batch.returns.numpy(), [1.0, 1.0 + 0.9 ** 3 * last_v], rtol=1e-5)
@@ -70,9 +70,9 @@ def test_log_prob_is_the_same_in_gen_and_train():
     gen_model, train_model = make_policy(POLICY, ObsLayout.vector(4), 2), make_policy(POLICY, ObsLayout.vector(4), 2)
     load_arrays(gen_model, state_arrays(train_model))  # what a Weights message carries
     obs = np.random.default_rng(0).normal(size=(5, 4)).astype(np.float32)
-    actions, logprobs, values = gen_model.act(obs)
-    assert actions.shape == (5, 3, 2)
-    lp, _, v = train_model.evaluate(torch.as_tensor(obs), torch.as_tensor(actions))
+    actions, logprobs, values, latents = gen_model.act(obs)
+    assert actions.shape == (5, 3, 2) and latents.shape == (5, 0)
+    lp, _, v = train_model.evaluate(torch.as_tensor(obs), torch.as_tensor(actions), torch.as_tensor(latents))
     np.testing.assert_allclose(lp.detach().numpy(), logprobs, rtol=1e-5, atol=1e-5)
     np.testing.assert_allclose(v.detach().numpy(), values, rtol=1e-5, atol=1e-5)
 
@@ -92,12 +92,12 @@ def test_ppo_update_moves_probability_towards_advantaged_actions():
     torch.manual_seed(2)
     model = make_policy(POLICY, ObsLayout.vector(4), 1)
     obs = np.zeros((64, 4), np.float32)
-    actions, logprobs, values = model.act(obs)
+    actions, logprobs, values, latents = model.act(obs)
     good = actions.reshape(64, -1).mean(1) > 0  # reward chunks whose mean action is positive
     b = SegmentBuilder(0, 0, 64)
     seg = None
     for i in range(64):
-        seg = b.add(obs[i], actions[i], float(logprobs[i]), float(values[i]), 0,
+        seg = b.add(obs[i], actions[i], latents[i], float(logprobs[i]), float(values[i]), 0,
                     result(reward=float(good[i]), terminated=(i == 63), ep=1.0 if i == 63 else None))
     batch = build_batch([seg], model, gamma=0.0, lam=0.0)
     before = model.dist(torch.zeros(1, 4)).mean.mean().item()

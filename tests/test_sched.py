@@ -57,8 +57,8 @@ def test_batch_size_must_divide_over_envs():
 def segment(versions, T=None):
     T = len(versions)
     return TrajectorySegment(
-        group=0, env_id=0, obs=np.arange(T * 4, dtype=np.float32).reshape(T, 4),
-        actions=np.zeros((T, 2, 1), np.float32), logprobs=np.zeros(T, np.float32), values=np.zeros(T, np.float32),
+        group=0, env_id=0, episode=0, obs=np.arange(T * 4, dtype=np.float32).reshape(T, 4),
+        actions=np.zeros((T, 2, 1), np.float32), latents=np.zeros((T, 0), np.float32), logprobs=np.zeros(T, np.float32), values=np.zeros(T, np.float32),
         rewards=np.arange(T, dtype=np.float32), steps=np.full(T, 2, np.int32), versions=np.asarray(versions, np.int64),
         end="cut", last_obs=np.zeros(4, np.float32), episode_returns=[], episode_lengths=[])
 
@@ -85,7 +85,7 @@ def trained(decoupled: bool, stale: bool) -> torch.Tensor:
     obs = torch.as_tensor(seg.obs)
     actions = torch.randn(16, 2, 1)
     with torch.no_grad():
-        logp = model.evaluate(obs, actions)[0].numpy()
+        logp = model.evaluate(obs, actions, torch.zeros(16, 0))[0].numpy()
     if stale:
         logp = logp - 0.3  # the behaviour policy was another one
     seg = TrajectorySegment(**{**seg.__dict__, "actions": actions.numpy(), "logprobs": logp.astype(np.float32),

@@ -17,14 +17,16 @@ On-policy data has pi_prox = pi_behave, w = 1: plain PPO.
 
 from __future__ import annotations
 
+import collections
 from dataclasses import dataclass
-from typing import Any, Sequence
+from typing import Any, Callable, Sequence
 
 import numpy as np
 import torch
 from torch import nn
 
 from ebrl.messages import TrajectorySegment
+from ebrl.sched.staleness import fresh_suffix
 
 
 def gae(rewards: np.ndarray, values: np.ndarray, discounts: np.ndarray, last_value: float,
@@ -50,11 +52,13 @@ def gae(rewards: np.ndarray, values: np.ndarray, discounts: np.ndarray, last_val
 class Batch:
     obs: torch.Tensor
     actions: torch.Tensor
+    latents: torch.Tensor
     logprobs: torch.Tensor
     advantages: torch.Tensor
-    returns: torch.Tensor
+    returns: torch.Tensor | None  # value targets; None: no critic to train (GRPO)
     values: torch.Tensor
     versions: np.ndarray
+    normalize_advantages: bool = True  # per minibatch (PPO); GRPO's are normalised per group already
 
     def __len__(self) -> int:
         return self.obs.shape[0]
@@ -77,7 +81,7 @@ def build_batch(segments: Sequence[TrajectorySegment], model: nn.Module, gamma: 
     def cat(name: str) -> torch.Tensor:
         return torch.as_tensor(np.concatenate([getattr(s, name) for s in segments]))
 
-    return Batch(obs=cat("obs"), actions=cat("actions"), logprobs=cat("logprobs"),
+    return Batch(obs=cat("obs"), actions=cat("actions"), latents=cat("latents"), logprobs=cat("logprobs"),
                  advantages=torch.as_tensor(np.concatenate(advs)), returns=torch.as_tensor(np.concatenate(rets)),
                  values=cat("values"), versions=np.concatenate([s.versions for s in segments]))
 
@@ -96,7 +100,7 @@ class PPO:
         stats: dict[str, list[float]] = {k: [] for k in ("policy_loss", "value_loss", "entropy", "approx_kl", "clipfrac")}
         if getattr(cfg, "decoupled", False):
             with torch.no_grad():
-                prox = self.model.evaluate(batch.obs, batch.actions)[0]  # log pi_prox, once per update
+                prox = self.model.evaluate(batch.obs, batch.actions, batch.latents)[0]  # log pi_prox, once per update
             weight = (prox - batch.logprobs).exp().clamp(max=cfg.behave_weight_cap)
         else:
             prox, weight = batch.logprobs, torch.ones(n)
@@ -105,14 +109,18 @@ class PPO:
             order = torch.randperm(n, generator=self.generator)
             for start in range(0, n, minibatch):
                 idx = order[start:start + minibatch]
-                newlogprob, entropy, newvalue = self.model.evaluate(batch.obs[idx], batch.actions[idx])
+                newlogprob, entropy, newvalue = self.model.evaluate(batch.obs[idx], batch.actions[idx],
+                                                                    batch.latents[idx])
                 logratio = newlogprob - prox[idx]
                 ratio = logratio.exp()
                 adv = batch.advantages[idx]
-                if len(idx) > 1:
+                if batch.normalize_advantages and len(idx) > 1:
                     adv = (adv - adv.mean()) / (adv.std() + 1e-8)
                 pg_loss = (weight[idx] * torch.max(-adv * ratio, -adv * ratio.clamp(1 - cfg.clip, 1 + cfg.clip))).mean()
-                v_loss = 0.5 * ((newvalue - batch.returns[idx]) ** 2).mean()
+                if batch.returns is None:
+                    v_loss = torch.zeros(())
+                else:
+                    v_loss = 0.5 * ((newvalue - batch.returns[idx]) ** 2).mean()
                 ent = entropy.mean()
                 loss = pg_loss - cfg.ent_coef * ent + cfg.vf_coef * v_loss
                 self.optimizer.zero_grad()
@@ -126,3 +134,45 @@ class PPO:
                     stats["approx_kl"].append(((ratio - 1) - logratio).mean().item())
                     stats["clipfrac"].append(((ratio - 1.0).abs() > cfg.clip).float().mean().item())
         return {k: float(np.mean(v)) for k, v in stats.items()}
+
+
+class SegmentCollector:
+    """PPO's side of the train service: segments in arrival order, at most ``max_pending`` decisions
+    (beyond it the oldest segments are dropped, counted); a batch is the oldest decisions up to
+    ``batch_size``, decisions more than ``max_staleness`` versions behind cut off (counted)."""
+
+    def __init__(self, algo_cfg: Any, max_pending: int, max_staleness: int, count: Callable[[str, float], None]):
+        self.cfg, self.max_pending, self.max_staleness, self.count = algo_cfg, max_pending, max_staleness, count
+        self.pending: collections.deque[TrajectorySegment] = collections.deque()
+        self.pending_steps = 0
+
+    @property
+    def ready_steps(self) -> int:
+        return self.pending_steps
+
+    def add(self, seg: TrajectorySegment) -> None:
+        self.pending.append(seg)
+        self.pending_steps += len(seg.obs)
+        while self.pending_steps - len(self.pending[0].obs) >= self.max_pending:
+            dropped = self.pending.popleft()
+            self.pending_steps -= len(dropped.obs)
+            self.count("train/segments_dropped_overflow", 1)
+
+    def take(self, version: int, batch_size: int) -> list[TrajectorySegment]:
+        """Oldest segments first, until ``batch_size`` decisions. A stale prefix is cut off, which leaves
+        the suffix's GAE exact."""
+        segments, steps = [], 0
+        while self.pending and steps < batch_size:
+            seg = self.pending.popleft()
+            self.pending_steps -= len(seg.obs)
+            seg, dropped = fresh_suffix(seg, version, self.max_staleness)
+            if dropped:
+                self.count("train/stale_dropped", dropped)
+            if seg is None:
+                continue
+            segments.append(seg)
+            steps += len(seg.obs)
+        return segments
+
+    def build(self, segments: list[TrajectorySegment], model: nn.Module) -> Batch:
+        return build_batch(segments, model, self.cfg.gamma, self.cfg.gae_lambda)

@@ -48,9 +48,12 @@ class ChunkResult:
     episode_length: int | None
     episode_success: bool | None = None  # set at episode end when the env reports info["success"]
     busy_s: float = 0.0  # CPU seconds spent inside env.step (useful work, excluding IPC and waiting)
+    episode: int = 0  # index of the episode these steps belong to (per env, from 0)
 
 
 def _worker_main(conn: Connection, spec: EnvSpec, seed: int) -> None:
+    """Episode ``k`` starts from ``env.reset(seed=seed + 7919 * k)``: workers given the same ``seed`` replay
+    the same sequence of initial states (GRPO groups)."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # the sim service decides when workers stop
     env = make_env(spec, seed=seed)
     low, high = env.action_space.low, env.action_space.high
@@ -63,6 +66,7 @@ def _worker_main(conn: Connection, spec: EnvSpec, seed: int) -> None:
             except (EOFError, OSError):
                 return
             if cmd == "reset":
+                episodes = 0
                 obs, _ = env.reset(seed=seed)
                 episode_return, episode_length, success = 0.0, 0, None
                 conn.send(as_obs(obs))
@@ -82,13 +86,14 @@ def _worker_main(conn: Connection, spec: EnvSpec, seed: int) -> None:
                 episode_length += steps
                 final_obs = as_obs(obs)
                 ep_ret = ep_len = ep_success = None
+                episode = episodes
                 if terminated or truncated:
                     ep_ret, ep_len, ep_success = episode_return, episode_length, success
                     episodes += 1
                     obs, _ = env.reset(seed=seed + 7919 * episodes)
                     episode_return, episode_length, success = 0.0, 0, None
                 conn.send(ChunkResult(total, steps, bool(terminated), bool(truncated), final_obs, as_obs(obs),
-                                      ep_ret, ep_len, ep_success, busy))
+                                      ep_ret, ep_len, ep_success, busy, episode))
             elif cmd == "close":
                 return
             else:

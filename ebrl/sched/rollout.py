@@ -19,6 +19,7 @@ class SegmentBuilder:
     length: int
     _obs: list[np.ndarray] = field(default_factory=list)
     _actions: list[np.ndarray] = field(default_factory=list)
+    _latents: list[np.ndarray] = field(default_factory=list)
     _logprobs: list[float] = field(default_factory=list)
     _values: list[float] = field(default_factory=list)
     _rewards: list[float] = field(default_factory=list)
@@ -26,17 +27,21 @@ class SegmentBuilder:
     _versions: list[int] = field(default_factory=list)
     _returns: list[float] = field(default_factory=list)
     _lengths: list[int] = field(default_factory=list)
+    _episode: int = 0
 
     def __len__(self) -> int:
         return len(self._obs)
 
-    def add(self, obs: np.ndarray, action: np.ndarray, logprob: float, value: float, version: int,
-            result: ChunkResult, boundary: bool = False) -> TrajectorySegment | None:
+    def add(self, obs: np.ndarray, action: np.ndarray, latent: np.ndarray, logprob: float, value: float,
+            version: int, result: ChunkResult, boundary: bool = False) -> TrajectorySegment | None:
         """Record one chunk decision and what the environment did; return a finished segment or None.
         ``boundary`` marks the last decision of an iteration: the segment is cut there so that every
         decision of the iteration reaches training."""
+        if not self._obs:
+            self._episode = result.episode
         self._obs.append(obs)
         self._actions.append(action)
+        self._latents.append(latent)
         self._logprobs.append(logprob)
         self._values.append(value)
         self._rewards.append(result.reward)
@@ -57,8 +62,10 @@ class SegmentBuilder:
         segment = TrajectorySegment(
             group=self.group,
             env_id=self.env_id,
+            episode=self._episode,
             obs=np.stack(self._obs).astype(np.float32),
             actions=np.stack(self._actions).astype(np.float32),
+            latents=np.stack(self._latents).astype(np.float32),
             logprobs=np.asarray(self._logprobs, dtype=np.float32),
             values=np.asarray(self._values, dtype=np.float32),
             rewards=np.asarray(self._rewards, dtype=np.float32),
@@ -69,7 +76,7 @@ class SegmentBuilder:
             episode_returns=list(self._returns),
             episode_lengths=list(self._lengths),
         )
-        for buf in (self._obs, self._actions, self._logprobs, self._values, self._rewards, self._steps,
+        for buf in (self._obs, self._actions, self._latents, self._logprobs, self._values, self._rewards, self._steps,
                     self._versions, self._returns, self._lengths):
             buf.clear()
         return segment

@@ -6,7 +6,7 @@ import dataclasses
 
 from ebrl.messages import TrajectorySegment
 
-PER_DECISION = ("obs", "actions", "logprobs", "values", "rewards", "steps", "versions")
+PER_DECISION = ("obs", "actions", "latents", "logprobs", "values", "rewards", "steps", "versions")
 
 
 def fresh_suffix(seg: TrajectorySegment, version: int, max_staleness: int) -> tuple[TrajectorySegment | None, int]:

@@ -38,6 +38,7 @@ def merge(results: Sequence[ChunkResult]) -> ChunkResult:
         episode_length=last.episode_length,
         episode_success=last.episode_success,
         busy_s=float(sum(r.busy_s for r in results)),
+        episode=results[0].episode,
     )
 
 

@@ -1,0 +1,71 @@
+"""The policy interface every kind implements: ``act`` for generation, ``evaluate`` and ``value`` for training.
+
+A policy maps one flat float32 observation per env (``[B, layout.size]``, or
+``[B, *obs_shape]`` of the same size) to a chunk of K actions. ``act`` samples
+and also returns the *latents*: whatever randomness, beyond the actions
+themselves, training needs to recompute the exact log-prob of the chunk
+(``[B, *latent_shape]``; empty for a Gaussian policy, the initial noise x0 of a
+flow policy). The training service stores them beside the actions and passes
+them back to ``evaluate``.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+from torch import nn
+from torch.distributions import Normal
+
+from ebrl.envs.obs import ObsLayout
+
+Tensors3 = tuple[torch.Tensor, torch.Tensor, torch.Tensor]
+
+
+class ChunkPolicy(nn.Module):
+    """pi(a_{t:t+K} | o_t, z): what the generation and training services call."""
+
+    kind: str  # policy.kind of the config; stored in checkpoints
+    layout: ObsLayout
+    chunk: int  # K
+    action_dim: int  # A
+    latent_shape: tuple[int, ...]
+
+    def act(self, obs: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """Sample chunks (no gradients): actions [B, K, A], log-probs [B], values [B], latents [B, *latent_shape]."""
+        raise NotImplementedError
+
+    def evaluate(self, obs: torch.Tensor, actions: torch.Tensor, latents: torch.Tensor) -> Tensors3:
+        """Log-prob of the given chunks, entropy and value, all [B], with gradients (training)."""
+        raise NotImplementedError
+
+    def value(self, obs: torch.Tensor) -> torch.Tensor:
+        """V(o_t), [B]."""
+        raise NotImplementedError
+
+    def flat(self, obs: torch.Tensor | np.ndarray) -> torch.Tensor:
+        """Observations as a float32 tensor [B, layout.size]."""
+        o = torch.as_tensor(obs, dtype=torch.float32)
+        return o.reshape(o.shape[0], self.layout.size)
+
+
+class GaussianChunkPolicy(ChunkPolicy):
+    """A diagonal Gaussian over the whole chunk (K x A means, learned log-std); no latents."""
+
+    latent_shape = (0,)
+
+    def heads(self, obs: torch.Tensor) -> tuple[Normal, torch.Tensor]:
+        """The chunk distribution over flat K*A actions and the value, from one pass over ``obs``."""
+        raise NotImplementedError
+
+    @torch.no_grad()
+    def act(self, obs: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        d, v = self.heads(self.flat(obs))
+        a = d.sample()
+        batch = a.shape[0]
+        return (a.reshape(batch, self.chunk, self.action_dim).numpy(), d.log_prob(a).sum(-1).numpy(), v.numpy(),
+                np.zeros((batch, 0), np.float32))
+
+    def evaluate(self, obs: torch.Tensor, actions: torch.Tensor, latents: torch.Tensor) -> Tensors3:
+        d, v = self.heads(self.flat(obs))
+        flat = actions.reshape(actions.shape[0], -1)
+        return d.log_prob(flat).sum(-1), d.entropy().sum(-1), v

@@ -99,7 +99,8 @@ class PolicySection:
                               "step)", -0.5)
     channels: list[int] = doc("cnn/flow on images: conv channels per layer of the image encoder",
                               factory=lambda: [16, 32, 32])
-    embed_dim: int = doc("cnn/flow: width of the instruction embedding", 32)
+    embed_dim: int = doc("cnn/flow: feature width of each observation part (image projection, proprioception, "
+                         "instruction embedding)", 32)
     denoise_steps: int = doc("flow: N, denoising (Euler) steps per chunk; cost grows with N, the interface does "
                              "not change", 4)
     checkpoint: str = doc("safetensors policy checkpoint to start training from (relative to the working "

@@ -1,40 +1,41 @@
-"""Policy models behind one interface: ``act`` for generation, ``evaluate`` for training."""
+"""Policy models behind one interface: ``act`` for generation, ``evaluate`` and ``value`` for training.
+
+Three kinds (``policy.kind``): ``mlp`` (Gaussian chunk from the flat observation),
+``cnn`` (conv image encoder + proprioception + instruction embedding, Gaussian
+chunk) and ``flow`` (flow-matching action head, the chunk by N denoising steps).
+The interface is :class:`ebrl.policies.base.ChunkPolicy`.
+"""
 
 from __future__ import annotations
 
 from typing import Any
 
-import numpy as np
-import torch
-
 from ebrl.envs.obs import ObsLayout
+from ebrl.policies.base import ChunkPolicy
+from ebrl.policies.checkpoint import load_arrays, load_checkpoint, save_checkpoint, state_arrays
+from ebrl.policies.cnn import ChunkGaussianCNN
+from ebrl.policies.flow import FlowPolicy
 from ebrl.policies.mlp import ChunkGaussianMLP
 
 
-def make_policy(policy_cfg: Any, layout: ObsLayout, action_dim: int) -> ChunkGaussianMLP:
-    if policy_cfg.kind == "mlp":
-        return ChunkGaussianMLP(layout.size, action_dim, policy_cfg.chunk, list(policy_cfg.hidden),
-                                policy_cfg.init_log_std)
-    raise ValueError(f"policy.kind = {policy_cfg.kind!r} is not available")
+def make_policy(policy_cfg: Any, layout: ObsLayout, action_dim: int) -> ChunkPolicy:
+    """The policy ``policy_cfg`` (a PolicySection) describes, for observations of ``layout``; loads
+    ``policy_cfg.checkpoint`` (a path, resolved by the caller) when it is set."""
+    cfg = policy_cfg
+    if cfg.kind == "mlp":
+        model: ChunkPolicy = ChunkGaussianMLP(layout, action_dim, cfg.chunk, list(cfg.hidden), cfg.init_log_std)
+    elif cfg.kind == "cnn":
+        model = ChunkGaussianCNN(layout, action_dim, cfg.chunk, list(cfg.hidden), list(cfg.channels), cfg.embed_dim,
+                                 cfg.init_log_std)
+    elif cfg.kind == "flow":
+        model = FlowPolicy(layout, action_dim, cfg.chunk, list(cfg.hidden), list(cfg.channels), cfg.embed_dim,
+                           cfg.denoise_steps, cfg.init_log_std)
+    else:
+        raise ValueError(f"policy.kind = {cfg.kind!r} is not available (mlp, cnn, flow)")
+    if getattr(cfg, "checkpoint", ""):  # getattr: tests build mlp configs without the newer fields
+        load_checkpoint(model, cfg.checkpoint)
+    return model
 
 
-def state_arrays(model: torch.nn.Module) -> dict[str, np.ndarray]:
-    """The model's state dict as numpy arrays (what the Weights message carries)."""
-    return {name: t.detach().cpu().numpy().copy() for name, t in model.state_dict().items()}
-
-
-def load_arrays(model: torch.nn.Module, params: dict[str, np.ndarray]) -> None:
-    """Load arrays from a Weights message; raise ValueError if names or shapes do not match."""
-    state = model.state_dict()
-    if set(params) != set(state):
-        raise ValueError(f"weights do not match the model: missing {sorted(set(state) - set(params))}, "
-                         f"unexpected {sorted(set(params) - set(state))}")
-    with torch.no_grad():
-        for name, tensor in state.items():
-            value = params[name]
-            if tuple(value.shape) != tuple(tensor.shape):
-                raise ValueError(f"weights {name}: shape {value.shape}, model has {tuple(tensor.shape)}")
-            tensor.copy_(torch.from_numpy(np.array(value)))
-
-
-__all__ = ["ChunkGaussianMLP", "load_arrays", "make_policy", "state_arrays"]
+__all__ = ["ChunkGaussianCNN", "ChunkGaussianMLP", "ChunkPolicy", "FlowPolicy", "load_arrays", "load_checkpoint",
+           "make_policy", "save_checkpoint", "state_arrays"]

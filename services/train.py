@@ -16,9 +16,12 @@ from ebrl.algos.ppo import PPO, SegmentCollector
 from ebrl.bus import keys
 from ebrl.envs import EnvSpec, describe
 from ebrl.messages import TrajectorySegment, Weights, encode_message
-from ebrl.policies import make_policy, state_arrays
+from ebrl.policies import make_policy, save_checkpoint, state_arrays
 from ebrl.sched.modes import resolve
 from ebrl.service import Service, service_main
+
+
+POLICY_FILE = "policy.safetensors"
 
 
 class TrainService(Service):
@@ -124,6 +127,10 @@ class TrainService(Service):
 
     async def teardown(self) -> None:
         self.pool.shutdown(wait=True, cancel_futures=True)
+        if self.version > 0:  # the trained policy, for `--set policy.checkpoint=RUN_DIR/policy.safetensors`
+            path = os.path.join(self.run_dir, POLICY_FILE)
+            save_checkpoint(self.model, path, {"run": self.run_name, "version": str(self.version)})
+            self.log.info("policy v%d saved to %s", self.version, path)
 
 
 def main() -> None:

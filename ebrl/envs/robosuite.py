@@ -1,7 +1,14 @@
-"""robosuite adapter: a task (Lift, ...) with state observations as a gymnasium environment.
+"""robosuite adapter: a manipulation task (Lift, PickPlaceCan, Stack, ...) as a gymnasium environment.
 
-Observations are ``robot0_proprio-state`` followed by ``object-state``; the
-episode is truncated at the horizon (robosuite tasks do not terminate), and
+Two observation modes, each one flat float32 vector laid out by ``obs_layout``:
+
+- ``obs = "state"``: ``state`` = ``robot0_proprio-state`` followed by ``object-state``
+  (privileged object poses), plus the ``instruction`` tokens if asked for;
+- ``obs = "rgb"``: ``image`` (3, H, W) from one camera in [0, 1], right side up,
+  ``proprio`` = ``robot0_proprio-state`` (no object state: the camera has to see it),
+  and the ``instruction`` tokens.
+
+The episode is truncated at the horizon (robosuite tasks do not terminate), and
 ``info["success"]`` is the task's own success check.
 """
 
@@ -13,38 +20,99 @@ from typing import Any
 import gymnasium as gym
 import numpy as np
 
+from ebrl.envs.obs import ObsField, ObsLayout, tokenize
+
 DEFAULT_HORIZON = 200
-OBS_KEYS = ("robot0_proprio-state", "object-state")
+OBS_MODES = ("state", "rgb")
+PROPRIO_KEY = "robot0_proprio-state"
+OBJECT_KEY = "object-state"
+# what each task asks for, with the objects' colours as robosuite 1.5.1 builds them (lift.py, stack.py, pick_place.py)
+INSTRUCTIONS = {
+    "Lift": "lift the red cube",
+    "PickPlaceCan": "pick up the can and place it in its bin",
+    "Stack": "stack the red cube on the green cube",
+}
 
 
 class RobosuiteEnv(gym.Env):
+    """One robosuite task with a Panda arm. ``kwargs`` not named here go to ``robosuite.make``."""
+
     metadata = {"render_modes": []}
 
-    def __init__(self, task: str, horizon: int = DEFAULT_HORIZON, **kwargs: Any):
+    def __init__(self, task: str, horizon: int = DEFAULT_HORIZON, *, obs: str = "state", camera: str = "agentview",
+                 image_size: int = 64, instruction: str | None = None, instruction_tokens: bool | None = None,
+                 **kwargs: Any):
+        if obs not in OBS_MODES:
+            raise ValueError(f"robosuite obs = {obs!r}: expected one of {', '.join(map(repr, OBS_MODES))}")
+        if isinstance(image_size, bool) or not isinstance(image_size, int) or image_size <= 0:
+            raise ValueError(f"robosuite image_size = {image_size!r}: expected a positive integer (pixels per side)")
+        if instruction_tokens is not None and not isinstance(instruction_tokens, bool):
+            raise ValueError(f"robosuite instruction_tokens = {instruction_tokens!r}: expected true or false")
+        self.obs_mode = obs
+        self.camera = camera
+        self.instruction = INSTRUCTIONS.get(task, "") if instruction is None else str(instruction)
+        # tokens by default only with camera observations: a state policy learns one task, the instruction is constant
+        with_tokens = obs == "rgb" if instruction_tokens is None else instruction_tokens
+        if obs == "rgb":
+            from ebrl.envs.render import choose_gl
+
+            gl = choose_gl()  # before robosuite imports mujoco, whose GL backend is fixed on import
         try:
             logging.getLogger("robosuite_logs").setLevel(logging.ERROR)
             import robosuite
+            from robosuite import macros
         except ImportError as exc:
             raise ImportError(f"env.backend = 'robosuite' needs robosuite ({exc})") from exc
         options = dict(robots="Panda", has_renderer=False, has_offscreen_renderer=False, use_camera_obs=False,
                        reward_shaping=True, control_freq=20, horizon=horizon, ignore_done=True,
                        hard_reset=False)  # a hard reset rebuilds the MuJoCo model: ~10x a step, every episode
+        if obs == "rgb":
+            _use_gl(gl)
+            options.update(has_offscreen_renderer=True, use_camera_obs=True, use_object_obs=False,
+                           camera_names=camera, camera_heights=image_size, camera_widths=image_size,
+                           camera_depths=False)
         options.update(kwargs)
-        self.env = robosuite.make(task, **options)
+        try:
+            self.env = robosuite.make(task, **options)
+        except ValueError as exc:  # robosuite's word for an unknown camera is "invalid sensor"
+            if obs == "rgb" and f"{camera}_image" in str(exc):
+                raise ValueError(f"robosuite camera = {camera!r}: {task} has no such camera ({exc})") from exc
+            raise
         self.horizon = horizon
+        self._upside_down = macros.IMAGE_CONVENTION == "opengl"  # MuJoCo renders bottom row first
+        self._tokens = tokenize(self.instruction)
         low, high = self.env.action_spec
         self.action_space = gym.spaces.Box(low.astype(np.float32), high.astype(np.float32), dtype=np.float32)
-        obs = self._obs(self.env.reset())
-        self.observation_space = gym.spaces.Box(-np.inf, np.inf, obs.shape, dtype=np.float32)
+        self.obs_layout = self._layout(self.env.reset(), with_tokens)
+        self.observation_space = gym.spaces.Box(-np.inf, np.inf, (self.obs_layout.size,), dtype=np.float32)
         self.t = 0
 
+    def _layout(self, raw: dict[str, np.ndarray], with_tokens: bool) -> ObsLayout:
+        proprio = np.size(raw[PROPRIO_KEY])
+        if self.obs_mode == "rgb":
+            height, width, channels = raw[f"{self.camera}_image"].shape
+            fields = [ObsField("image", "image", (channels, height, width)), ObsField("proprio", "vector", (proprio,))]
+        else:
+            fields = [ObsField("state", "vector", (proprio + np.size(raw[OBJECT_KEY]),))]
+        if with_tokens:
+            fields.append(ObsField("instruction", "tokens", self._tokens.shape))
+        return ObsLayout(tuple(fields))
+
     def _obs(self, raw: dict[str, np.ndarray]) -> np.ndarray:
-        return np.concatenate([np.asarray(raw[k], dtype=np.float32).ravel() for k in OBS_KEYS])
+        if self.obs_mode == "rgb":
+            image = raw[f"{self.camera}_image"]  # (H, W, 3) uint8
+            if self._upside_down:
+                image = image[::-1]
+            parts = {"image": image.transpose(2, 0, 1) / np.float32(255), "proprio": raw[PROPRIO_KEY]}
+        else:
+            parts = {"state": np.concatenate([np.ravel(raw[PROPRIO_KEY]), np.ravel(raw[OBJECT_KEY])])}
+        parts["instruction"] = self._tokens  # packed only if the layout has the field
+        return self.obs_layout.pack(parts)
 
     def reset(self, *, seed: int | None = None, options: dict | None = None):
         super().reset(seed=seed)
         if seed is not None:
-            np.random.seed(seed)  # robosuite's placement samplers draw from numpy's global generator
+            np.random.seed(seed)  # robosuite's placement samplers and joint noise draw from numpy's global generator
         self.t = 0
         return self._obs(self.env.reset()), {}
 
@@ -56,3 +124,14 @@ class RobosuiteEnv(gym.Env):
 
     def close(self) -> None:
         self.env.close()
+
+
+def _use_gl(backend: str) -> None:
+    # robosuite builds its render context from binding_utils._MUJOCO_GL, read from MUJOCO_GL when robosuite was
+    # first imported (and set to "egl" there when unset). In a process that imported robosuite before the backend
+    # was chosen (a state env, a test run) that value is stale; contexts are built lazily, on the first camera
+    # observation, so setting it here still takes effect, as long as no other GL platform was loaded meanwhile.
+    from robosuite.utils import binding_utils
+
+    if getattr(binding_utils, "_MUJOCO_GL", backend) != backend:
+        binding_utils._MUJOCO_GL = backend

@@ -19,18 +19,22 @@ from multiprocessing.connection import Connection
 import numpy as np
 
 from ebrl.envs.gym import EnvSpec, as_obs, make_env
+from ebrl.envs.render import ensure_gl_for
 
 _CTX = None
 PRELOAD = {"gymnasium": ["gymnasium", "mujoco"], "robosuite": ["gymnasium", "mujoco", "robosuite"]}
 
 
-def _context(backend: str) -> mp.context.BaseContext:
+def _context(spec: EnvSpec) -> mp.context.BaseContext:
     # forkserver: workers fork from a clean server that has the simulator imported
-    # once, never from the sim service (whose Zenoh threads must not fork).
+    # once, never from the sim service (whose Zenoh threads must not fork). Camera
+    # observations: the GL backend is decided (into os.environ) before the server
+    # starts, since the server imports mujoco and workers inherit its environment.
     global _CTX
+    ensure_gl_for(spec)
     if _CTX is None:
         _CTX = mp.get_context("forkserver")
-        _CTX.set_forkserver_preload(PRELOAD.get(backend, []) + ["ebrl.envs.worker", "ebrl.envs.latency"])
+        _CTX.set_forkserver_preload(PRELOAD.get(spec.backend, []) + ["ebrl.envs.worker", "ebrl.envs.latency"])
     return _CTX
 
 
@@ -106,7 +110,7 @@ class EnvWorker:
     """Parent-side handle of one env worker process."""
 
     def __init__(self, spec: EnvSpec, seed: int, core: int | None = None):
-        ctx = _context(spec.backend)
+        ctx = _context(spec)
         self.conn, child = ctx.Pipe()
         self.proc = ctx.Process(target=_worker_main, args=(child, spec, seed), daemon=True, name="ebrl-env")
         self.proc.start()
@@ -181,7 +185,7 @@ def _raw_loop(spec: EnvSpec, seed: int, core: int, seconds: float, out) -> None:
 def raw_steps_per_s(spec: EnvSpec, cores: list[int], seconds: float = 10.0) -> float:
     """Raw simulator capacity of ``cores``: one environment per core, pinned, stepping random actions in a
     tight loop with no framework around it, all cores at once; env steps/s summed over the cores."""
-    ctx = _context(spec.backend)
+    ctx = _context(spec)
     out = ctx.Queue()
     procs = [ctx.Process(target=_raw_loop, args=(spec, i, core, seconds, out), daemon=True, name="ebrl-raw")
              for i, core in enumerate(cores)]

@@ -1,0 +1,377 @@
+"""ManiSkill3 adapter: one task (PickCube-v1, PushCube-v1, StackCube-v1, ...) as a gymnasium environment.
+
+One environment per worker process (``num_envs = 1``); ManiSkill's batched torch
+tensors become one flat float32 numpy vector, laid out by ``obs_layout``:
+
+- ``obs = "state"``: ``state`` = ManiSkill's flat state observation (robot
+  proprioception, task extras and privileged object poses), plus the
+  ``instruction`` tokens if asked for;
+- ``obs = "rgb"``: ``image`` (3, H, W) from one camera in [0, 1], ``proprio`` =
+  ``obs["agent"]`` (qpos, qvel) followed by ``obs["extra"]`` (the task's vectors,
+  e.g. the TCP pose and the goal position, which the cameras do not show), as
+  ManiSkill's own RGB baselines flatten them, and the ``instruction`` tokens.
+
+Reward is the task's ``normalized_dense`` reward; ``terminated`` is ManiSkill's
+(success, or failure where a task defines it), ``truncated`` its time limit, and
+``info["success"]`` the task's own success check.
+
+ManiSkill renders with SAPIEN, which needs a Vulkan GPU even for state
+observations: :func:`preflight` says so in well under a second, before any
+process starts, instead of a worker failing deep inside SAPIEN.
+"""
+
+from __future__ import annotations
+
+import glob
+import importlib.util
+import json
+import logging
+import os
+import subprocess
+import sys
+from collections.abc import Mapping
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import gymnasium as gym
+import numpy as np
+
+from ebrl.envs.gym import EnvError, EnvSpec
+from ebrl.envs.obs import ObsField, ObsLayout, tokenize
+
+OBS_MODES = ("state", "rgb")
+SIM_BACKENDS = ("physx_cpu", "physx_cuda")  # "physx_cuda:N" picks GPU N
+# ManiSkill's PPO baselines use joint deltas, and every robot it ships supports them (end-effector modes vary)
+DEFAULT_CONTROL_MODE = "pd_joint_delta_pos"
+DEFAULT_IMAGE_SIZE = 64
+# what each task asks for, with the objects' colours as ManiSkill 3.0.1 builds them (envs/tasks/tabletop/*.py)
+INSTRUCTIONS = {
+    "PickCube-v1": "pick up the red cube and move it to the goal",
+    "PushCube-v1": "push the blue cube to the goal region",
+    "PullCube-v1": "pull the blue cube to the goal region",
+    "StackCube-v1": "stack the red cube on top of the green cube",
+    "PokeCube-v1": "use the peg to push the red cube to the goal",
+    "LiftPegUpright-v1": "lift the peg and stand it upright",
+    "PegInsertionSide-v1": "insert the peg into the hole from the side",
+    "PlaceSphere-v1": "place the sphere into the bin",
+    "RollBall-v1": "roll the ball to the goal region",
+    "PushT-v1": "push the T block onto the target",
+    "PlugCharger-v1": "plug the charger into the receptacle",
+}
+
+SKIP_PREFLIGHT_VAR = "EBRL_MANISKILL_SKIP_PREFLIGHT"
+CPU_CONFIGS = ("configs/quickstart.toml", "configs/robosuite_lift.toml", "configs/robosuite_lift_rgb.toml")
+# where the Vulkan loader looks for driver manifests (ICDs) on Linux, relative to the root
+ICD_DIRS = ("etc/vulkan/icd.d", "usr/local/share/vulkan/icd.d", "usr/share/vulkan/icd.d")
+# where SAPIEN's fallback ICD (an NVIDIA driver installed without its manifest) finds the driver's Vulkan library
+NVIDIA_LIB = "libGLX_nvidia.so.0"
+LIB_DIRS = ("usr/lib/x86_64-linux-gnu", "usr/lib64", "usr/lib", "usr/local/nvidia/lib64")
+CPU_DRIVERS = ("lvp", "lavapipe", "llvmpipe", "swiftshader", "swrast")  # software Vulkan: not a GPU
+
+
+class ManiSkillEnv(gym.Env):
+    """One ManiSkill task. ``kwargs`` not named here go to ``gym.make`` (e.g. ``robot_uids``, ``render_backend``,
+    ``sim_config``, ``reward_mode``)."""
+
+    metadata = {"render_modes": []}
+
+    def __init__(self, task: str, max_episode_steps: int | None = None, *, obs: str = "state",
+                 sim_backend: str | None = None, image_size: int = DEFAULT_IMAGE_SIZE,
+                 control_mode: str = DEFAULT_CONTROL_MODE, camera: str | None = None,
+                 instruction: str | None = None, instruction_tokens: bool | None = None, **kwargs: Any):
+        check_kwargs({"obs": obs, "image_size": image_size, "sim_backend": sim_backend, **kwargs})
+        self.obs_mode = obs
+        self.instruction = INSTRUCTIONS.get(task, "") if instruction is None else str(instruction)
+        # tokens by default only with camera observations: a state policy learns one task, the instruction is constant
+        with_tokens = obs == "rgb" if instruction_tokens is None else bool(instruction_tokens)
+        options: dict[str, Any] = dict(num_envs=1, obs_mode=obs, reward_mode="normalized_dense",
+                                       control_mode=control_mode, sim_backend=sim_backend or default_sim_backend())
+        if max_episode_steps:
+            options["max_episode_steps"] = int(max_episode_steps)  # else the task's registered limit
+        if obs == "rgb":  # every camera at image_size, under the caller's own sensor_configs
+            options["sensor_configs"] = {"width": image_size, "height": image_size, **kwargs.pop("sensor_configs", {})}
+        options.update(kwargs)
+        self.env = _make_maniskill(task, **options)
+        self.sim_backend = options["sim_backend"]
+        self.camera = camera
+        self._tokens = tokenize(self.instruction)
+        space = self.env.unwrapped.single_action_space
+        if not isinstance(space, gym.spaces.Box) or len(space.shape) != 1:
+            raise EnvError(f"{task}: control_mode = {control_mode!r} gives the action space {space}; a flat Box is "
+                           "supported (one robot, one controller)")
+        self.action_space = gym.spaces.Box(np.asarray(space.low, np.float32), np.asarray(space.high, np.float32),
+                                           dtype=np.float32)
+        raw, _ = self.env.reset()
+        self.obs_layout = self._layout(raw, with_tokens)
+        self.observation_space = gym.spaces.Box(-np.inf, np.inf, (self.obs_layout.size,), dtype=np.float32)
+
+    def _image(self, raw: dict[str, Any]) -> np.ndarray:
+        cameras = raw["sensor_data"]
+        name = self.camera or next(iter(cameras))
+        if name not in cameras:
+            raise EnvError(f"ManiSkill camera = {name!r}: this task's cameras are {', '.join(cameras)}")
+        image = _numpy(cameras[name]["rgb"])[0]  # (H, W, 3), uint8 in every shader pack
+        scale = np.float32(255) if image.dtype == np.uint8 else np.float32(1)
+        return image.transpose(2, 0, 1).astype(np.float32) / scale
+
+    def _parts(self, raw: Any) -> dict[str, np.ndarray]:
+        if self.obs_mode == "rgb":
+            parts = {"image": self._image(raw), "proprio": np.concatenate([_flat(raw["agent"]), _flat(raw["extra"])])}
+        else:
+            parts = {"state": _numpy(raw)[0]}
+        parts["instruction"] = self._tokens  # packed only if the layout has the field
+        return parts
+
+    def _layout(self, raw: Any, with_tokens: bool) -> ObsLayout:
+        parts = self._parts(raw)
+        if self.obs_mode == "rgb":
+            fields = [ObsField("image", "image", parts["image"].shape), ObsField("proprio", "vector",
+                                                                                 (parts["proprio"].size,))]
+        else:
+            fields = [ObsField("state", "vector", (parts["state"].size,))]
+        if with_tokens:
+            fields.append(ObsField("instruction", "tokens", self._tokens.shape))
+        return ObsLayout(tuple(fields))
+
+    def _obs(self, raw: Any) -> np.ndarray:
+        return self.obs_layout.pack(self._parts(raw))
+
+    def reset(self, *, seed: int | None = None, options: dict | None = None):
+        super().reset(seed=seed)
+        raw, info = self.env.reset(seed=seed, options=options)
+        return self._obs(raw), _info(info)
+
+    def step(self, action):
+        raw, reward, terminated, truncated, info = self.env.step(np.asarray(action, dtype=np.float32))
+        return self._obs(raw), float(_numpy(reward).reshape(-1)[0]), _bool(terminated), _bool(truncated), _info(info)
+
+    def close(self) -> None:
+        self.env.close()
+
+
+def _make_maniskill(task: str, **kwargs: Any) -> gym.Env:
+    """``gym.make`` of a ManiSkill task (the one place that imports ManiSkill; tests replace it with a fake)."""
+    import mani_skill.envs  # noqa: F401  registers the tasks with gymnasium
+
+    return gym.make(task, **kwargs)
+
+
+def _numpy(value: Any) -> np.ndarray:
+    if hasattr(value, "detach"):  # a torch tensor, on the CPU or the GPU
+        value = value.detach().cpu().numpy()
+    return np.asarray(value)
+
+
+def _flat(tree: Any) -> np.ndarray:
+    """A dict of batched [1, ...] values, depth first in insertion order, as one float32 vector."""
+    if isinstance(tree, Mapping):
+        parts = [_flat(v) for v in tree.values()]
+        return np.concatenate(parts) if parts else np.zeros(0, np.float32)
+    return _numpy(tree).astype(np.float32).reshape(-1)
+
+
+def _bool(value: Any) -> bool:
+    return bool(_numpy(value).reshape(-1)[0])
+
+
+def _info(info: Mapping[str, Any]) -> dict[str, Any]:
+    """ManiSkill's info with its one-element tensors as Python scalars (``success`` a bool); other values dropped."""
+    out: dict[str, Any] = {}
+    for key, value in info.items():
+        array = _numpy(value)
+        if array.size == 1 and array.dtype.kind in "biuf":
+            out[key] = array.reshape(-1)[0].item()
+    if "success" in out:
+        out["success"] = bool(out["success"])
+    return out
+
+
+def cuda_available() -> bool:
+    import torch
+
+    return torch.cuda.is_available()
+
+
+def default_sim_backend() -> str:
+    """``physx_cuda`` where torch sees a CUDA GPU, else ``physx_cpu``."""
+    return "physx_cuda" if cuda_available() else "physx_cpu"
+
+
+def check_kwargs(kwargs: Mapping[str, Any]) -> None:
+    """Reject ``env.kwargs`` the adapter cannot use, naming the key."""
+    obs = kwargs.get("obs", "state")
+    if obs not in OBS_MODES:
+        raise EnvError(f"ManiSkill obs = {obs!r}: expected one of {', '.join(map(repr, OBS_MODES))}")
+    size = kwargs.get("image_size", DEFAULT_IMAGE_SIZE)
+    if isinstance(size, bool) or not isinstance(size, int) or size <= 0:
+        raise EnvError(f"ManiSkill image_size = {size!r}: expected a positive integer (pixels per side)")
+    backend = kwargs.get("sim_backend")  # None: the default
+    if backend is not None and not (backend == "physx_cpu" or str(backend).startswith("physx_cuda")):
+        raise EnvError(f"ManiSkill sim_backend = {backend!r}: expected one of {', '.join(map(repr, SIM_BACKENDS))} "
+                       "(or \"physx_cuda:N\")")
+    if "num_envs" in kwargs:
+        raise EnvError("ManiSkill num_envs: the adapter runs one environment per worker process; "
+                       "set sim.envs_per_group instead")
+
+
+# --- preflight --------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class VulkanScan:
+    """What the machine offers SAPIEN, read from device nodes and Vulkan driver manifests without loading Vulkan."""
+
+    gpu: str | None  # the GPU found, described; None: no GPU
+    nvidia: bool  # the GPU is NVIDIA's (SAPIEN renders on it through CUDA)
+    software: tuple[str, ...]  # manifests of software drivers (lavapipe, ...), which SAPIEN may or may not accept
+    summary: str  # what was looked at, for the error message
+
+
+def mani_skill_installed() -> bool:
+    return importlib.util.find_spec("mani_skill") is not None
+
+
+def preflight(spec: EnvSpec, *, root: str | Path = "/", environ: Mapping[str, str] | None = None) -> None:
+    """Raise :class:`EnvError` when ManiSkill cannot run here: no Vulkan device SAPIEN can render on, ManiSkill not
+    installed, or no CUDA torch for what ``spec`` asks of the GPU. Takes well under a second where there is a GPU
+    or nothing at all; only a machine with nothing but a software Vulkan driver costs a ~2 s SAPIEN probe.
+    ``root`` and ``environ`` are where the machine is read from (tests point them elsewhere);
+    ``EBRL_MANISKILL_SKIP_PREFLIGHT=1`` skips the checks."""
+    environ = os.environ if environ is None else environ
+    if environ.get(SKIP_PREFLIGHT_VAR) == "1":
+        return
+    check_kwargs(spec.kwargs)
+    where = f"env.id = {spec.id!r} (backend maniskill)"
+    scan = scan_vulkan(root, environ)
+    installed = mani_skill_installed()
+    if scan.gpu is None:  # checked first: on a machine without a GPU, installing ManiSkill would not help
+        failure = probe_software_rendering(environ) if scan.software and installed else None
+        if failure is not None or not scan.software or not installed:
+            tried = f"; SAPIEN rejects the CPU driver ({failure}; Mesa 25's lavapipe works, 22.3's does not)" \
+                if failure else ""
+            raise EnvError(
+                f"{where}: ManiSkill needs a Vulkan-capable GPU (an NVIDIA driver with its Vulkan ICD; SAPIEN renders "
+                f"even for state observations), and none was found: {scan.summary}{tried}. On a CPU-only machine "
+                f"use {', '.join(CPU_CONFIGS[:-1])} or {CPU_CONFIGS[-1]} instead ({SKIP_PREFLIGHT_VAR}=1 skips "
+                "this check)")
+        logging.getLogger(__name__).warning(
+            "%s: no Vulkan GPU here; SAPIEN renders on the CPU (%s): fine for state observations, slow for cameras",
+            where, ", ".join(Path(p).name for p in scan.software))
+    if not installed:
+        raise EnvError(f"{where}: ManiSkill is not installed; pip install -e '.[maniskill]'")
+    need = _needs_cuda_torch(spec.kwargs, scan.nvidia)
+    if need and not cuda_available():
+        raise EnvError(f"{where}: {need} needs torch with CUDA, and torch.cuda.is_available() is False here; "
+                       "install a CUDA build of torch, or use obs = \"state\" with sim_backend = \"physx_cpu\"")
+
+
+def _needs_cuda_torch(kwargs: Mapping[str, Any], nvidia: bool) -> str:
+    """What in ``kwargs`` hands torch CUDA tensors (empty: nothing). Camera images rendered on a CUDA device (an
+    NVIDIA GPU, ManiSkill's default render backend there) come back as CUDA tensors whatever the sim backend
+    (ManiSkill's RenderCamera.get_picture)."""
+    backend = str(kwargs.get("sim_backend") or "")
+    if backend.startswith("physx_cuda"):
+        return f"sim_backend = {backend!r}"
+    render = str(kwargs.get("render_backend", "gpu"))  # ManiSkill's aliases; "sapien_cuda:N" picks GPU N
+    if nvidia and kwargs.get("obs", "state") == "rgb" and render.split(":")[0] in ("gpu", "cuda", "sapien_cuda"):
+        return f"obs = \"rgb\" rendered on the GPU (render_backend = {render!r})"
+    return ""
+
+
+_PROBE = "import sapien; sapien.render.RenderSystem(sapien.Device('cpu'))"
+
+
+def probe_software_rendering(environ: Mapping[str, str], timeout: float = 60.0) -> str | None:
+    """Whether SAPIEN renders on a software Vulkan driver here, tried in a fresh interpreter (~2 s): None if it
+    does, else why not (SAPIEN's own error, e.g. 'Failed to find a supported physical device "cpu"')."""
+    try:
+        done = subprocess.run([sys.executable, "-c", _PROBE], env=dict(environ), capture_output=True, text=True,
+                              timeout=timeout)
+    except subprocess.TimeoutExpired:
+        return f"the SAPIEN probe timed out after {timeout:.0f} s"
+    if done.returncode == 0:
+        return None
+    lines = [line.strip() for line in done.stderr.splitlines() if line.strip()]
+    errors = [line for line in lines if line.split(":")[0].endswith(("Error", "Exception"))]
+    return (errors or lines or [f"exit status {done.returncode}"])[-1]
+
+
+def scan_vulkan(root: str | Path = "/", environ: Mapping[str, str] | None = None) -> VulkanScan:
+    """The Vulkan devices SAPIEN could render on: an NVIDIA GPU (a /dev/nvidiaN node and the driver's Vulkan ICD,
+    or its libGLX_nvidia.so.0, for which SAPIEN supplies a manifest), another vendor's GPU (a /dev/dri render node
+    and a hardware Vulkan driver), and software drivers (lavapipe, llvmpipe, SwiftShader), which are no GPU."""
+    environ = os.environ if environ is None else environ
+    root = Path(root)
+    icds, where, overridden = _icd_manifests(root, environ)
+    kinds = {path: _icd_kind(path) for path in icds}
+    software = tuple(p for p, kind in kinds.items() if kind == "cpu")
+    nvidia_nodes = sorted(p for p in glob.glob(str(root / "dev" / "nvidia*")) if Path(p).name[6:].isdigit())
+    render_nodes = sorted(glob.glob(str(root / "dev" / "dri" / "renderD*")))
+    nvidia_icds = [p for p, kind in kinds.items() if kind == "nvidia"]
+    gpu_icds = [p for p, kind in kinds.items() if kind == "gpu"]
+    if nvidia_nodes:
+        node = "/dev/" + Path(nvidia_nodes[0]).name
+        if nvidia_icds:
+            return VulkanScan(f"NVIDIA GPU {node} with the Vulkan ICD {_shown(root, nvidia_icds[0])}", True,
+                              software, "")
+        if not overridden and _find_lib(root, environ, NVIDIA_LIB):
+            return VulkanScan(f"NVIDIA GPU {node} ({NVIDIA_LIB}; SAPIEN supplies the ICD manifest)", True,
+                              software, "")
+    if render_nodes and gpu_icds:
+        node = "/dev/dri/" + Path(render_nodes[0]).name
+        return VulkanScan(f"GPU {node} with the Vulkan ICD {_shown(root, gpu_icds[0])}", False, software, "")
+    seen = ", ".join(Path(p).name + (" (CPU)" if kinds[p] == "cpu" else "") for p in icds) or "none"
+    if nvidia_nodes:
+        devices = (f"/dev/{Path(nvidia_nodes[0]).name} is there but not the driver's Vulkan part "
+                   f"(no nvidia ICD manifest, no {NVIDIA_LIB})")
+    else:
+        devices = "no NVIDIA device (/dev/nvidia[0-9]*)"
+    dri = "no /dev/dri/renderD* node" if not render_nodes else "/dev/dri render node(s) but no GPU Vulkan driver"
+    return VulkanScan(None, False, software, f"{devices}, {dri}; Vulkan ICDs in {where}: {seen}")
+
+
+def _icd_manifests(root: Path, environ: Mapping[str, str]) -> tuple[list[str], str, bool]:
+    """The driver manifests the Vulkan loader would read, where they came from, and whether an environment
+    variable chose them (VK_DRIVER_FILES, or the older VK_ICD_FILENAMES, replace the search directories)."""
+    chosen = environ.get("VK_DRIVER_FILES") or environ.get("VK_ICD_FILENAMES")
+    if chosen:
+        entries, where = chosen.split(os.pathsep), "VK_DRIVER_FILES/VK_ICD_FILENAMES"
+    else:
+        entries, where = [str(root / d) for d in ICD_DIRS], ", ".join("/" + d for d in ICD_DIRS)
+    entries += [e for e in environ.get("VK_ADD_DRIVER_FILES", "").split(os.pathsep) if e]
+    files: list[str] = []
+    for entry in entries:
+        if os.path.isdir(entry):
+            files += sorted(glob.glob(os.path.join(entry, "*.json")))
+        elif os.path.isfile(entry):
+            files.append(entry)
+    return files, where, bool(chosen)
+
+
+def _icd_kind(path: str) -> str:
+    """"nvidia", "cpu" (a software rasterizer) or "gpu" (another vendor's driver), from the manifest."""
+    try:
+        with open(path) as fh:
+            library = str(json.load(fh).get("ICD", {}).get("library_path", ""))
+    except (OSError, ValueError, AttributeError):
+        library = ""
+    names = f"{Path(path).name} {Path(library).name}".lower()
+    if "nvidia" in names:
+        return "nvidia"
+    if any(marker in names for marker in CPU_DRIVERS):
+        return "cpu"
+    return "gpu"
+
+
+def _find_lib(root: Path, environ: Mapping[str, str], name: str) -> bool:
+    dirs = [d for d in environ.get("LD_LIBRARY_PATH", "").split(os.pathsep) if d] + [str(root / d) for d in LIB_DIRS]
+    return any(os.path.exists(os.path.join(d, name)) for d in dirs)
+
+
+def _shown(root: Path, path: str) -> str:
+    """``path`` as it is on the machine (without a test's root)."""
+    try:
+        return "/" + str(Path(path).relative_to(root))
+    except ValueError:
+        return path

@@ -61,11 +61,14 @@ class BusSection:
 
 @dataclass
 class EnvSection:
-    backend: Literal["gymnasium", "robosuite"] = doc("simulator adapter", "gymnasium")
-    id: str = doc("environment id: a gymnasium id (InvertedPendulum-v5, my_pkg.envs:MyEnv-v0) or a robosuite "
-                  "task (Lift)", "InvertedPendulum-v5")
+    backend: Literal["gymnasium", "robosuite", "maniskill"] = doc(
+        "simulator adapter (maniskill: the optional extra, `pip install -e '.[maniskill]'`, needs a Vulkan GPU)",
+        "gymnasium")
+    id: str = doc("environment id: a gymnasium id (InvertedPendulum-v5, my_pkg.envs:MyEnv-v0), a robosuite "
+                  "task (Lift, PickPlaceCan, Stack) or a ManiSkill task (PickCube-v1)", "InvertedPendulum-v5")
     max_episode_steps: int = doc("time limit in env steps; 0 keeps the environment's own", 0)
-    kwargs: dict[str, Any] = doc("extra keyword arguments for the environment constructor", factory=dict)
+    kwargs: dict[str, Any] = doc("extra keyword arguments for the environment constructor (robosuite and ManiSkill: "
+                                 "obs = \"state\" | \"rgb\", image_size, camera, instruction, ...)", factory=dict)
     latency: Literal["none", "lognormal"] = doc(
         "add a synthetic step latency (CPU busy-wait) drawn from this distribution, for scheduler experiments", "none")
     latency_mean_ms: float = doc("mean of the added step latency in milliseconds", 16.0)

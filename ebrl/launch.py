@@ -352,6 +352,19 @@ def _clock(seconds: float) -> str:
     return f"{s // 3600}:{s // 60 % 60:02d}:{s % 60:02d}"
 
 
+def preflight(cfg: config_mod.Config) -> str | None:
+    """What would make the run fail at start, found before any process starts (None: nothing)."""
+    from ebrl.envs import EnvError, EnvSpec, preflight as env_preflight
+
+    if cfg.policy.checkpoint and not os.path.isfile(cfg.policy.checkpoint):
+        return f"policy.checkpoint = {cfg.policy.checkpoint!r}: no such file"
+    try:
+        env_preflight(EnvSpec.from_config(cfg.env))  # e.g. ManiSkill without a GPU; picks the GL backend for cameras
+    except EnvError as exc:
+        return str(exc)
+    return None
+
+
 def up(config_path: str, overrides: list[str], viz: str | None = None) -> int:
     """``ebrl up``: exit 2 on a config error (nothing started), else the run's exit code.
     ``viz`` (``--viz``) sets ``viz.rerun``."""
@@ -361,6 +374,10 @@ def up(config_path: str, overrides: list[str], viz: str | None = None) -> int:
         cfg = config_mod.load(config_path, overrides)
     except config_mod.ConfigError as exc:
         print(f"ebrl: config error: {exc}", file=sys.stderr)
+        return 2
+    problem = preflight(cfg)
+    if problem:
+        print(f"ebrl: {problem}", file=sys.stderr)
         return 2
     if cfg.alloc.enabled:  # profile (or reuse a profile) and start every service inside Algorithm 1's plan
         from ebrl.alloc.algorithm import InfeasibleError

@@ -158,6 +158,38 @@ def test_rgb_env_runs_in_a_worker_process(gl):
     asyncio.run(scenario())
 
 
+def test_camera_renders_only_observations_that_are_read(gl):
+    env = robosuite_env("Lift", steps=20, obs="rgb", image_size=64).unwrapped
+    image = lambda obs: parts(env, obs)["image"]  # noqa: E731
+    env.reset(seed=0)
+    env.skip_observation = True  # a step inside a chunk: nobody reads its observation
+    skipped, *_ = env.step(np.zeros(7))
+    assert not image(skipped).any()
+    seen = env.observe()  # the chunk's last state, rendered on demand
+    env.skip_observation = False
+    full, *_ = env.step(np.zeros(7))
+    assert image(seen).mean() > 0.1 and np.abs(image(full) - image(seen)).mean() < 0.05
+
+    async def scenario():  # through the worker: a chunk's observation and an episode's final one are real images
+        spec = EnvSpec("Lift", backend="robosuite", max_episode_steps=6, kwargs={"obs": "rgb", "image_size": 64})
+        worker = EnvWorker(spec, seed=1)
+        try:
+            await worker.reset()
+            first = await worker.chunk(np.zeros((4, 7), np.float32))
+            ended = await worker.chunk(np.zeros((4, 7), np.float32))  # the 6-step limit falls inside it
+            assert first.steps == 4 and ended.steps == 2 and ended.truncated
+            for obs in (first.next_obs, ended.final_obs, ended.next_obs):
+                assert image(obs).mean() > 0.1
+            inside = await worker.chunk(np.zeros((1, 7), np.float32), observe=False)  # a step inside a chunk
+            assert not image(inside.next_obs).any()  # was not rendered
+            last = await worker.chunk(np.zeros((1, 7), np.float32), observe=True)
+            assert image(last.next_obs).mean() > 0.1
+        finally:
+            worker.close()
+
+    asyncio.run(scenario())
+
+
 def test_choose_gl_uses_an_explicit_mujoco_gl_untried(monkeypatch):
     for var in GL_VARS:
         monkeypatch.delenv(var, raising=False)

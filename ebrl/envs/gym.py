@@ -44,6 +44,10 @@ def make_env(spec: EnvSpec, seed: int = 0) -> gym.Env:
             from ebrl.envs.robosuite import DEFAULT_HORIZON, RobosuiteEnv
 
             env: gym.Env = RobosuiteEnv(spec.id, horizon=spec.max_episode_steps or DEFAULT_HORIZON, **kwargs)
+        elif spec.backend == "maniskill":
+            from ebrl.envs.maniskill import ManiSkillEnv
+
+            env = ManiSkillEnv(spec.id, max_episode_steps=spec.max_episode_steps or None, **kwargs)
         else:
             if spec.max_episode_steps:
                 kwargs["max_episode_steps"] = spec.max_episode_steps
@@ -56,6 +60,21 @@ def make_env(spec: EnvSpec, seed: int = 0) -> gym.Env:
 
         env = StepLatency(env, spec.latency_mean_ms, spec.latency_sigma, seed=seed)
     return env
+
+
+def preflight(spec: EnvSpec) -> None:
+    """Fail fast, before any process starts, when the simulator cannot run on this machine (raises EnvError).
+    Camera observations also decide the offscreen GL backend here, once, for every process of the run."""
+    if spec.backend == "maniskill":
+        from ebrl.envs.maniskill import preflight as maniskill_preflight
+
+        maniskill_preflight(spec)
+    from ebrl.envs.render import RenderingUnavailable, ensure_gl_for
+
+    try:
+        ensure_gl_for(spec)
+    except RenderingUnavailable as exc:
+        raise EnvError(f"env.id = {spec.id!r} (backend {spec.backend}): {exc}") from None
 
 
 def check_spaces(env_id: str, obs_space: gym.Space, act_space: gym.Space) -> None:

@@ -15,9 +15,11 @@ Reward is the task's ``normalized_dense`` reward; ``terminated`` is ManiSkill's
 (success, or failure where a task defines it), ``truncated`` its time limit, and
 ``info["success"]`` the task's own success check.
 
-ManiSkill renders with SAPIEN, which needs a Vulkan GPU even for state
-observations: :func:`preflight` says so in well under a second, before any
-process starts, instead of a worker failing deep inside SAPIEN.
+ManiSkill renders with SAPIEN, which needs a Vulkan device even for state
+observations: a GPU, or a software driver SAPIEN accepts (Mesa 25's lavapipe
+does, Debian 12's Mesa 22.3 does not). :func:`preflight` says in a second or
+less, before any process starts, when there is none, instead of a worker
+failing deep inside SAPIEN.
 """
 
 from __future__ import annotations
@@ -194,8 +196,9 @@ def cuda_available() -> bool:
 
 
 def default_sim_backend() -> str:
-    """``physx_cuda`` where torch sees a CUDA GPU, else ``physx_cpu``."""
-    return "physx_cuda" if cuda_available() else "physx_cpu"
+    """``physx_cpu``: one env per worker process, pinned to a core. GPU PhysX pays off for thousands of envs in
+    one process, not one per process; ask for it with ``sim_backend = "physx_cuda"``."""
+    return "physx_cpu"
 
 
 def check_kwargs(kwargs: Mapping[str, Any]) -> None:
@@ -234,8 +237,9 @@ def mani_skill_installed() -> bool:
 
 def preflight(spec: EnvSpec, *, root: str | Path = "/", environ: Mapping[str, str] | None = None) -> None:
     """Raise :class:`EnvError` when ManiSkill cannot run here: no Vulkan device SAPIEN can render on, ManiSkill not
-    installed, or no CUDA torch for what ``spec`` asks of the GPU. Takes well under a second where there is a GPU
-    or nothing at all; only a machine with nothing but a software Vulkan driver costs a ~2 s SAPIEN probe.
+    installed, or no CUDA torch for what ``spec`` asks of the GPU. Reads files only (well under a second), except
+    on a machine whose only Vulkan driver is a software one with ManiSkill installed: that costs a SAPIEN probe
+    in a subprocess (1-2 s).
     ``root`` and ``environ`` are where the machine is read from (tests point them elsewhere);
     ``EBRL_MANISKILL_SKIP_PREFLIGHT=1`` skips the checks."""
     environ = os.environ if environ is None else environ
@@ -246,10 +250,11 @@ def preflight(spec: EnvSpec, *, root: str | Path = "/", environ: Mapping[str, st
     scan = scan_vulkan(root, environ)
     installed = mani_skill_installed()
     if scan.gpu is None:  # checked first: on a machine without a GPU, installing ManiSkill would not help
+        # a software driver will do if SAPIEN accepts it, which only an installed SAPIEN can tell
         failure = probe_software_rendering(environ) if scan.software and installed else None
-        if failure is not None or not scan.software or not installed:
-            tried = f"; SAPIEN rejects the CPU driver ({failure}; Mesa 25's lavapipe works, 22.3's does not)" \
-                if failure else ""
+        if not (scan.software and installed and failure is None):
+            tried = (f"; SAPIEN rejects the CPU driver ({failure}; Mesa 25's lavapipe works, 22.3's does not)"
+                     if failure else "")
             raise EnvError(
                 f"{where}: ManiSkill needs a Vulkan-capable GPU (an NVIDIA driver with its Vulkan ICD; SAPIEN renders "
                 f"even for state observations), and none was found: {scan.summary}{tried}. On a CPU-only machine "
@@ -283,7 +288,7 @@ _PROBE = "import sapien; sapien.render.RenderSystem(sapien.Device('cpu'))"
 
 
 def probe_software_rendering(environ: Mapping[str, str], timeout: float = 60.0) -> str | None:
-    """Whether SAPIEN renders on a software Vulkan driver here, tried in a fresh interpreter (~2 s): None if it
+    """Whether SAPIEN renders on a software Vulkan driver here, tried in a fresh interpreter (1-2 s): None if it
     does, else why not (SAPIEN's own error, e.g. 'Failed to find a supported physical device "cpu"')."""
     try:
         done = subprocess.run([sys.executable, "-c", _PROBE], env=dict(environ), capture_output=True, text=True,
@@ -350,7 +355,7 @@ def _icd_manifests(root: Path, environ: Mapping[str, str]) -> tuple[list[str], s
 
 
 def _icd_kind(path: str) -> str:
-    """"nvidia", "cpu" (a software rasterizer) or "gpu" (another vendor's driver), from the manifest."""
+    """The driver's kind, from its manifest: nvidia, cpu (a software rasterizer) or gpu (another vendor's)."""
     try:
         with open(path) as fh:
             library = str(json.load(fh).get("ICD", {}).get("library_path", ""))

@@ -10,6 +10,14 @@ Two observation modes, each one flat float32 vector laid out by ``obs_layout``:
 
 The episode is truncated at the horizon (robosuite tasks do not terminate), and
 ``info["success"]`` is the task's own success check.
+
+Rendering is most of the cost of a camera step, and inside an action chunk only
+the last step's observation is read. So robosuite's camera observable stays
+disabled while the simulation steps, and the camera renders the state after a
+step only when its observation is wanted: the env honours ``skip_observation``
+(the image part is then zeros) and ``observe()`` renders the current state on
+demand. The env worker sets it for every step of a chunk but the last, and
+calls ``observe()`` when an episode ends mid-chunk (ebrl/envs/worker.py).
 """
 
 from __future__ import annotations
@@ -86,6 +94,9 @@ class RobosuiteEnv(gym.Env):
         self.obs_layout = self._layout(self.env.reset(), with_tokens)
         self.observation_space = gym.spaces.Box(-np.inf, np.inf, (self.obs_layout.size,), dtype=np.float32)
         self.t = 0
+        self.skip_observation = False  # set by the env worker on steps whose observation nobody reads
+        if obs == "rgb":  # the camera renders on demand (observe), never inside env.step
+            self.env.modify_observable(f"{camera}_image", "enabled", False)
 
     def _layout(self, raw: dict[str, np.ndarray], with_tokens: bool) -> ObsLayout:
         proprio = np.size(raw[PROPRIO_KEY])
@@ -100,10 +111,12 @@ class RobosuiteEnv(gym.Env):
 
     def _obs(self, raw: dict[str, np.ndarray]) -> np.ndarray:
         if self.obs_mode == "rgb":
-            image = raw[f"{self.camera}_image"]  # (H, W, 3) uint8
-            if self._upside_down:
-                image = image[::-1]
-            parts = {"image": image.transpose(2, 0, 1) / np.float32(255), "proprio": raw[PROPRIO_KEY]}
+            image = raw.get(f"{self.camera}_image")  # (H, W, 3) uint8; absent while the camera is off
+            if image is None:
+                parts = {"image": np.zeros(self.obs_layout.fields[0].shape, np.float32)}
+            else:
+                parts = {"image": (image[::-1] if self._upside_down else image).transpose(2, 0, 1) / np.float32(255)}
+            parts["proprio"] = raw[PROPRIO_KEY]
         else:
             parts = {"state": np.concatenate([np.ravel(raw[PROPRIO_KEY]), np.ravel(raw[OBJECT_KEY])])}
         parts["instruction"] = self._tokens  # packed only if the layout has the field
@@ -114,13 +127,26 @@ class RobosuiteEnv(gym.Env):
         if seed is not None:
             np.random.seed(seed)  # robosuite's placement samplers and joint noise draw from numpy's global generator
         self.t = 0
-        return self._obs(self.env.reset()), {}
+        raw = self.env.reset()
+        return (self.observe() if self.obs_mode == "rgb" else self._obs(raw)), {}
 
     def step(self, action):
         raw, reward, _, info = self.env.step(np.asarray(action, dtype=np.float64))
         self.t += 1
         info = dict(info, success=bool(self.env._check_success()))
-        return self._obs(raw), float(reward), False, self.t >= self.horizon, info
+        obs = self.observe() if self.obs_mode == "rgb" and not self.skip_observation else self._obs(raw)
+        return obs, float(reward), False, self.t >= self.horizon, info
+
+    def observe(self) -> np.ndarray:
+        """The full observation of the current state; with a camera, renders it now."""
+        if self.obs_mode != "rgb":
+            return self._obs(self.env._get_observations())
+        name = f"{self.camera}_image"
+        self.env.modify_observable(name, "enabled", True)
+        try:
+            return self._obs(self.env._get_observations(force_update=True))
+        finally:
+            self.env.modify_observable(name, "enabled", False)
 
     def close(self) -> None:
         self.env.close()

@@ -22,7 +22,8 @@ from ebrl.envs.gym import EnvSpec, as_obs, make_env
 from ebrl.envs.render import ensure_gl_for
 
 _CTX = None
-PRELOAD = {"gymnasium": ["gymnasium", "mujoco"], "robosuite": ["gymnasium", "mujoco", "robosuite"]}
+PRELOAD = {"gymnasium": ["gymnasium", "mujoco"], "robosuite": ["gymnasium", "mujoco", "robosuite"],
+           "maniskill": ["gymnasium", "torch", "mani_skill.envs"]}
 
 
 def _context(spec: EnvSpec) -> mp.context.BaseContext:
@@ -61,6 +62,8 @@ def _worker_main(conn: Connection, spec: EnvSpec, seed: int) -> None:
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # the sim service decides when workers stop
     env = make_env(spec, seed=seed)
     low, high = env.action_space.low, env.action_space.high
+    base = env.unwrapped
+    lazy = callable(getattr(base, "observe", None)) and hasattr(base, "skip_observation")
     episode_return, episode_length, episodes = 0.0, 0, 0
     success: bool | None = None
     try:
@@ -77,7 +80,10 @@ def _worker_main(conn: Connection, spec: EnvSpec, seed: int) -> None:
             elif cmd == "chunk":
                 total, steps, terminated, truncated = 0.0, 0, False, False
                 started = time.thread_time()  # CPU time: a descheduled worker is not busy
-                for action in arg:
+                actions, observe = arg
+                for k, action in enumerate(actions):
+                    if lazy:  # only the chunk's last observation is read: skip rendering the others
+                        base.skip_observation = k < len(actions) - 1 or not observe
                     obs, reward, terminated, truncated, info = env.step(np.clip(action, low, high))
                     if "success" in info:
                         success = bool(success) or bool(info["success"])
@@ -85,6 +91,8 @@ def _worker_main(conn: Connection, spec: EnvSpec, seed: int) -> None:
                     steps += 1
                     if terminated or truncated:
                         break
+                if lazy and base.skip_observation and (terminated or truncated):  # an episode's end is always read
+                    obs = base.observe()
                 busy = time.thread_time() - started
                 episode_return += total
                 episode_length += steps
@@ -150,8 +158,11 @@ class EnvWorker:
     async def reset(self) -> np.ndarray:
         return await self.request("reset")  # type: ignore[return-value]
 
-    async def chunk(self, actions: np.ndarray) -> ChunkResult:
-        return await self.request("chunk", actions)  # type: ignore[return-value]
+    async def chunk(self, actions: np.ndarray, observe: bool = True) -> ChunkResult:
+        """Run ``actions`` (stopping early at an episode end). ``observe=False``: the caller will not read the
+        observation after the last action (more steps of the same chunk follow), so an env that can skip
+        rendering does; an episode that ends is always observed."""
+        return await self.request("chunk", (actions, observe))  # type: ignore[return-value]
 
     def close(self, timeout: float = 2.0) -> None:
         try:

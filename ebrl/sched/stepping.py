@@ -70,7 +70,9 @@ class BatchStepping:
         for k in range(actions.shape[1]):
             if not active:
                 break
-            results = await asyncio.gather(*(workers[i].chunk(actions[i, k:k + 1]) for i in active))  # barrier
+            last = k == actions.shape[1] - 1
+            results = await asyncio.gather(*(workers[i].chunk(actions[i, k:k + 1], observe=last)
+                                             for i in active))  # barrier
             now = time.perf_counter()
             still = []
             for i, result in zip(active, results):
@@ -134,7 +136,8 @@ class RebindingStepping:
         s = self.sched.envs[env].s
         t0 = time.perf_counter()
         try:
-            result = await worker.chunk(self._actions[env][s:s + 1])
+            chunk = self._actions[env]
+            result = await worker.chunk(chunk[s:s + 1], observe=s == len(chunk) - 1)
         except Exception as exc:
             self.sched.complete(env, time.perf_counter() - t0, chunk_ended=True)
             self._done[env].set_exception(exc)

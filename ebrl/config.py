@@ -307,6 +307,12 @@ def _check_semantics(cfg: Config) -> None:
         if cfg.algo.group_size < 2 or envs % cfg.algo.group_size:
             raise ConfigError(f"algo.group_size = {cfg.algo.group_size}: grpo needs at least 2 rollouts per group "
                               f"and the {envs} envs (sim.groups x sim.envs_per_group) to split into whole groups")
+        from ebrl.sched.modes import PRESETS
+
+        if not (PRESETS[cfg.run.mode]["overlap"] if cfg.train.overlap is None else cfg.train.overlap):
+            raise ConfigError(f"algo.name = \"grpo\" with run.mode = {cfg.run.mode!r}: grpo learns from whole "
+                              "episodes, which a rollout -> train barrier of fixed length cannot wait for; use "
+                              "run.mode = \"ebrl\" or \"async\" (or train.overlap = true)")
     if cfg.algo.max_staleness < 0:
         raise ConfigError(f"algo.max_staleness = {cfg.algo.max_staleness}: must be >= 0")
     if cfg.run.slowdown:

@@ -39,6 +39,9 @@ class TrainService(Service):
         self.action_shape = (cfg.policy.chunk, info.action_dim)
         self.model = make_policy(cfg.policy, info.layout, info.action_dim)
         self.latent_shape = tuple(self.model.latent_shape)
+        if cfg.policy.checkpoint:
+            self.log.info("policy initialised from %s", cfg.policy.checkpoint)
+            self.event("checkpoint", f"policy initialised from {cfg.policy.checkpoint}")
         self.ppo = PPO(self.model, cfg.algo, cfg.train.lr, seed=cfg.run.seed)
         self.version = 0
         collector = GroupCollector if cfg.algo.name == "grpo" else SegmentCollector

@@ -13,6 +13,7 @@ from ebrl.algos.ppo import PPO
 from ebrl.envs import EnvSpec, EnvWorker, ObsLayout
 from ebrl.messages import TrajectorySegment
 from ebrl.policies import make_policy
+from ebrl.sched.modes import resolve
 
 ALGO = SimpleNamespace(name="grpo", group_size=2, gamma=1.0, gae_lambda=1.0, clip=0.2, epochs=4, minibatches=1,
                        ent_coef=0.0, vf_coef=0.5, max_grad_norm=0.5, decoupled=True, behave_weight_cap=5.0)
@@ -130,3 +131,13 @@ def test_grpo_config_checks_the_group_size():
         config.from_dict(raw)
     raw["algo"]["group_size"] = 4
     assert config.from_dict(raw).algo.name == "grpo"
+
+
+def test_grpo_needs_rollout_and_training_to_overlap():
+    raw = {"run": {"mode": "colocated"}, "algo": {"name": "grpo", "group_size": 4},
+           "sim": {"groups": 2, "envs_per_group": 4}, "train": {"batch_size": 64}}
+    with pytest.raises(config.ConfigError, match="whole episodes"):
+        config.from_dict(raw)
+    raw["train"]["overlap"] = True
+    schedule = resolve(config.from_dict(raw), cores=[0, 1])
+    assert not schedule.throttle and schedule.min_version(10_000) == -1  # generation is never held back

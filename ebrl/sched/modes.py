@@ -39,6 +39,10 @@ class Schedule:
     sim_cores: list[int]
     gen_cores: list[int]  # empty: not pinned
     train_cores: list[int]  # empty: not pinned
+    # False for episodic algorithms (GRPO): a group must finish whole episodes before training can use them,
+    # which a fixed decision budget per iteration cannot promise, so generation is never held back by
+    # iteration; the staleness bound is kept by training alone (older decisions are dropped, counted).
+    throttle: bool = True
 
     def iteration_of(self, seq: int) -> int:
         """The iteration a group's chunk ``seq`` belongs to."""
@@ -47,6 +51,8 @@ class Schedule:
     def min_version(self, seq: int) -> int:
         """Oldest policy version allowed to answer chunk ``seq``: iteration i may be acted by version
         i - max_staleness or newer, so the update that learns from it is at most max_staleness ahead."""
+        if not self.throttle:
+            return -1
         return self.iteration_of(seq) - self.max_staleness
 
 
@@ -85,4 +91,5 @@ def resolve(cfg: Any, cores: list[int] | None = None) -> Schedule:
         sim_cores=sim_cores or cores,
         gen_cores=gen_cores,
         train_cores=train_cores,
+        throttle=cfg.algo.name != "grpo",
     )

@@ -1,0 +1,72 @@
+"""Each workload config runs as a real `ebrl up` for a few iterations; checkpoints carry a policy between runs;
+ManiSkill without a GPU stops at once with a message that names the CPU configs."""
+
+import pathlib
+import subprocess
+import sys
+import time
+
+import pytest
+
+from helpers import ROOT, run_collecting_stats
+
+
+def only_run_dir(root: pathlib.Path) -> pathlib.Path:
+    (path,) = [p for p in root.iterdir() if p.is_dir() and p.name != "profiles"]
+    return path
+
+
+def test_grpo_config_trains(tmp_path):
+    code, out, stats = run_collecting_stats(tmp_path / "runs", "configs/grpo_pendulum.toml", "run.iterations=3",
+                                            "train.batch_size=64", run="grpo-e2e")
+    assert code == 0, out
+    train = stats["train/0"][-1]
+    assert train["train/policy_version"] == 3 and train["train/grpo_groups"] >= 1
+    assert "train/value_loss" in train and train["train/value_loss"] == 0.0  # no critic is trained
+
+
+def test_flow_policy_trains_and_its_checkpoint_starts_the_next_run(tmp_path):
+    code, out, stats = run_collecting_stats(tmp_path / "a", "configs/quickstart.toml", "run.iterations=2",
+                                            'policy.kind="flow"', "policy.denoise_steps=3", "train.batch_size=256",
+                                            run="flow-e2e")
+    assert code == 0, out
+    assert stats["train/0"][-1]["train/policy_version"] == 2
+    checkpoint = only_run_dir(tmp_path / "a") / "policy.safetensors"
+    assert checkpoint.is_file(), out
+    code, out, stats = run_collecting_stats(tmp_path / "b", "configs/quickstart.toml", "run.iterations=1",
+                                            'policy.kind="flow"', "policy.denoise_steps=5", "train.batch_size=256",
+                                            f'policy.checkpoint="{checkpoint}"', run="flow-e2e2")
+    assert code == 0, out  # N changed between runs: same parameters, the checkpoint loads
+    log = (only_run_dir(tmp_path / "b") / "logs" / "train-0.log").read_text()
+    assert f"from {checkpoint}" in log
+    code, out, _ = run_collecting_stats(tmp_path / "c", "configs/quickstart.toml", "run.iterations=1",
+                                        f'policy.checkpoint="{checkpoint}"', run="flow-e2e3")  # an mlp policy
+    assert code != 0 and "checkpoint" in out and "kind" in out
+
+
+def test_robosuite_camera_config_trains(tmp_path):
+    code, out, stats = run_collecting_stats(
+        tmp_path / "runs", "configs/robosuite_lift_rgb.toml", "run.iterations=2", "train.batch_size=16",
+        "policy.denoise_steps=2", "env.max_episode_steps=24", run="rgb-e2e", timeout=300)
+    assert code == 0, out
+    assert stats["train/0"][-1]["train/policy_version"] == 2
+    assert "sim/success_rate" in stats["sim/0"][-1]
+
+
+def test_maniskill_without_a_gpu_stops_at_once_naming_the_cpu_configs(tmp_path):
+    from ebrl.envs import EnvSpec, preflight
+    from ebrl.envs.gym import EnvError
+
+    try:
+        preflight(EnvSpec("PickCube-v1", backend="maniskill"))
+    except EnvError:
+        pass
+    else:
+        pytest.skip("ManiSkill can run on this machine")
+    start = time.monotonic()
+    proc = subprocess.run([sys.executable, "-m", "ebrl.cli", "up", str(ROOT / "configs" / "maniskill.toml"),
+                           "--set", f'run.output_dir="{tmp_path}"'], capture_output=True, text=True, timeout=60)
+    assert time.monotonic() - start < 15
+    assert proc.returncode == 2 and "Traceback" not in proc.stderr
+    assert "ManiSkill needs a Vulkan-capable GPU" in proc.stderr and "configs/robosuite_lift.toml" in proc.stderr
+    assert not list(tmp_path.iterdir())  # nothing started, no run directory

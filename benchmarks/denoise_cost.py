@@ -9,7 +9,9 @@ instruction). Action dimension 7, chunk K = 8, hidden [64, 64], the config's
 default conv channels and embedding width. Each measurement is the policy's
 ``act`` (what the generation service calls: forward pass, sampling, numpy out)
 at one batch size with one torch thread: warm-up calls, then timed calls for
-``--seconds``; the median is reported, with the ratio to the flow policy at N = 1.
+``--seconds``. The variants of one layout and batch size are measured in
+``--rounds`` interleaved rounds; the median over rounds is reported, with the
+ratio to the flow policy at N = 1.
 
 Results go to benchmarks/results/denoise_cost.json.
 """
@@ -68,7 +70,9 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--steps", type=int, nargs="+", default=[1, 2, 4, 8, 16], help="flow denoising steps N")
     parser.add_argument("--batches", type=int, nargs="+", default=[1, 16], help="observations per forward pass")
-    parser.add_argument("--seconds", type=float, default=1.0, help="timed seconds per measurement")
+    parser.add_argument("--seconds", type=float, default=0.4, help="timed seconds per measurement")
+    parser.add_argument("--rounds", type=int, default=3,
+                        help="rounds over all variants of a layout and batch (order rotating); the median is reported")
     parser.add_argument("--warmup", type=int, default=5, help="untimed calls before each measurement")
     parser.add_argument("--out", default=str(RESULTS / "denoise_cost.json"))
     args = parser.parse_args()
@@ -81,15 +85,25 @@ def main() -> None:
             obs = observations(layout, batch)
             variants = [(REFERENCE[layout_name], None)] + [("flow", n) for n in args.steps]
             base = None
+            models = []
             for kind, steps in variants:
                 torch.manual_seed(0)
                 cfg = PolicySection(kind=kind, chunk=CHUNK, hidden=HIDDEN, denoise_steps=steps or 1)
-                model = make_policy(cfg, layout, ACTION_DIM)
-                ms, calls = median_ms(model, obs, args.warmup, args.seconds)
+                models.append(make_policy(cfg, layout, ACTION_DIM))
+            runs: list[list[float]] = [[] for _ in variants]
+            calls = [0] * len(variants)
+            for r in range(args.rounds):  # interleaved, so that drifting machine load hits every variant alike
+                for i in [(r + j) % len(variants) for j in range(len(variants))]:
+                    ms, n = median_ms(models[i], obs, args.warmup, args.seconds)
+                    runs[i].append(ms)
+                    calls[i] += n
+            for (kind, steps), times, n in zip(variants, runs, calls):
+                ms = statistics.median(times)
                 if kind == "flow" and steps == 1:
                     base = ms
                 rows.append({"layout": layout_name, "batch": batch, "policy": kind, "denoise_steps": steps,
-                             "median_ms_per_act": ms, "median_ms_per_chunk": ms / batch, "timed_calls": calls})
+                             "median_ms_per_act": ms, "median_ms_per_chunk": ms / batch, "timed_calls": n,
+                             "round_medians_ms": times})
             for row in rows[-len(variants):]:
                 row["ratio_to_flow_n1"] = row["median_ms_per_act"] / base if base else None
                 name = row["policy"] + (f" N={row['denoise_steps']}" if row["denoise_steps"] else "")
@@ -102,7 +116,7 @@ def main() -> None:
         "machine": f"{platform.machine()}, {os.cpu_count()} cores visible, torch {torch.__version__}, 1 thread",
         "action_dim": ACTION_DIM, "chunk": CHUNK, "hidden": HIDDEN,
         "layouts": {name: layout.describe() for name, layout in LAYOUTS.items()},
-        "seconds_per_measurement": args.seconds, "warmup_calls": args.warmup,
+        "seconds_per_measurement": args.seconds, "rounds": args.rounds, "warmup_calls": args.warmup,
         "rows": rows,
     }
     path = Path(args.out)

@@ -70,3 +70,18 @@ def test_maniskill_without_a_gpu_stops_at_once_naming_the_cpu_configs(tmp_path):
     assert proc.returncode == 2 and "Traceback" not in proc.stderr
     assert "ManiSkill needs a Vulkan-capable GPU" in proc.stderr and "configs/robosuite_lift.toml" in proc.stderr
     assert not list(tmp_path.iterdir())  # nothing started, no run directory
+
+
+@pytest.mark.slow
+def test_flow_policy_learns_the_quickstart_task(tmp_path):
+    """The learning check of the flow-matching policy (BENCHMARKS.md): InvertedPendulum to a mean return of 900."""
+    import json
+
+    from helpers import ebrl_up
+
+    proc, _ = ebrl_up(tmp_path / "runs", "configs/quickstart.toml", "run.name=flow-learn", 'policy.kind="flow"')
+    out, _ = proc.communicate(timeout=900)
+    assert proc.returncode == 0, out
+    summary = json.loads((only_run_dir(tmp_path / "runs") / "summary.json").read_text())
+    assert summary["target_reached"] is not None, out
+    assert summary["target_reached"]["return"] >= 900 and summary["target_reached"]["wall_s"] < 600

@@ -167,6 +167,7 @@ def measure_train(cfg: config_mod.Config, cores: list[int], batch: int, seconds:
     g = torch.Generator().manual_seed(0)
     data = Batch(obs=torch.randn((batch, *obs_shape), generator=g),
                  actions=torch.randn((batch, cfg.policy.chunk, action_dim), generator=g),
+                 latents=torch.randn((batch, *model.latent_shape), generator=g),
                  logprobs=torch.randn(batch, generator=g) - 5, advantages=torch.randn(batch, generator=g),
                  returns=torch.randn(batch, generator=g), values=torch.randn(batch, generator=g),
                  versions=np.zeros(batch, dtype=np.int64))

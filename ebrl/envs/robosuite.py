@@ -23,6 +23,7 @@ calls ``observe()`` when an episode ends mid-chunk (ebrl/envs/worker.py).
 from __future__ import annotations
 
 import logging
+import os
 from typing import Any
 
 import gymnasium as gym
@@ -65,12 +66,18 @@ class RobosuiteEnv(gym.Env):
             from ebrl.envs.render import choose_gl
 
             gl = choose_gl()  # before robosuite imports mujoco, whose GL backend is fixed on import
+        gl_before = os.environ.get("MUJOCO_GL")
         try:
             logging.getLogger("robosuite_logs").setLevel(logging.ERROR)
             import robosuite
             from robosuite import macros
         except ImportError as exc:
             raise ImportError(f"env.backend = 'robosuite' needs robosuite ({exc})") from exc
+        finally:  # robosuite's import sets MUJOCO_GL=egl for the whole process and every child it starts
+            if gl_before is None:
+                os.environ.pop("MUJOCO_GL", None)
+            else:
+                os.environ["MUJOCO_GL"] = gl_before
         options = dict(robots="Panda", has_renderer=False, has_offscreen_renderer=False, use_camera_obs=False,
                        reward_shaping=True, control_freq=20, horizon=horizon, ignore_done=True,
                        hard_reset=False)  # a hard reset rebuilds the MuJoCo model: ~10x a step, every episode

@@ -17,6 +17,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--viz", nargs="?", const="spawn", default=None, choices=("spawn", "serve", "save", "off"),
                    help="live rerun timeline: spawn a viewer (the default of a bare --viz), serve for a viewer "
                         "to connect, save RUN_DIR/timeline.rrd, or off (sets viz.rerun)")
+    p.add_argument("--resume", default=None, metavar="RUN_DIR",
+                   help="continue a stopped run in its directory, from its latest checkpoint (policy, optimizer, "
+                        "version); run.iterations counts from the run's start")
 
     p = sub.add_parser("stats", help="print decoded ebrl/stats/** messages live")
     p.add_argument("--run", default=None, help="only this run (default: every run)")
@@ -60,7 +63,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.command == "up":
         from ebrl.launch import up
 
-        return up(args.config, args.overrides, viz=args.viz)
+        return up(args.config, args.overrides, viz=args.viz, resume=args.resume)
     if args.command == "stats":
         from ebrl.stats import watch
 

@@ -46,6 +46,10 @@ class RunSection:
     slowdown: str = doc("inject a slowdown for experiments: \"<service>=<factor>@<seconds>\" stretches every busy "
                         "span of that service by factor (CPU busy-wait) from that many seconds after it started, "
                         "e.g. \"train=1.3@30\"; empty: none", "")
+    restart: Literal["on-failure", "never"] = doc(
+        "a service that dies is started again (on-failure, with backoff, at most max_restarts times per service) "
+        "or the run stops (never)", "on-failure")
+    max_restarts: int = doc("most restarts of one service before the run stops", 3)
 
 
 @dataclass
@@ -89,6 +93,9 @@ class SimSection:
     group_pipeline: bool | None = doc(
         "pipeline groups through generation; false makes all envs one group; absent: the mode's choice", None)
     segment_length: int = doc("chunk decisions per trajectory segment sent to training", 32)
+    step_timeout: float = doc("seconds an env worker may take for one request (a chunk, or a step when steps are "
+                              "dispatched one by one) before it is killed and replaced; 0: automatic, 20x the "
+                              "measured P99 chunk latency and at least 20 s (120 s until 50 chunks were seen)", 0.0)
 
 
 @dataclass
@@ -148,6 +155,8 @@ class TrainSection:
     overlap: bool | None = doc("train while rollout goes on (bounded by algo.max_staleness); false restores the "
                                "rollout -> train barrier; absent: the mode's choice", None)
     cores: list[int] = doc("cores for the training process; empty: the mode's choice", factory=list)
+    checkpoint_every: int = doc("write a checkpoint (policy, optimizer, version, random state) every this many "
+                                "updates, and always at the end; 0: only at the end", 10)
 
 
 @dataclass
@@ -286,6 +295,8 @@ def _check_semantics(cfg: Config) -> None:
         keys.check_chunk(cfg.run.name, "run.name")
     except ValueError as exc:
         raise ConfigError(str(exc)) from None
+    if cfg.train.checkpoint_every < 0 or cfg.run.max_restarts < 0:
+        raise ConfigError("train.checkpoint_every and run.max_restarts must be >= 0")
     if cfg.run.iterations < 0:
         raise ConfigError(f"run.iterations = {cfg.run.iterations}: must be >= 0")
     for path in ("sim.groups", "sim.envs_per_group", "sim.segment_length", "policy.chunk", "algo.epochs",

@@ -47,6 +47,8 @@ class Child:
     instance: int
     proc: subprocess.Popen
     log_path: Path
+    restarts: int = 0
+    restart_at: float | None = None  # monotonic time of a scheduled restart
 
     @property
     def name(self) -> str:
@@ -107,6 +109,7 @@ class Launcher:
         self.started = time.monotonic()
         self.tty = hasattr(out, "isatty") and out.isatty()
         self._last_line = 0.0
+        self._stats_seq = 0
 
     async def main(self) -> int:
         self.stopping = asyncio.Event()
@@ -152,19 +155,23 @@ class Launcher:
     # --- processes ----------------------------------------------------------------
 
     def spawn_all(self) -> None:
-        config_path = self.run_dir / "config.toml"
-        env = dict(os.environ, PYTHONUNBUFFERED="1")
-        root = str(Path(__file__).resolve().parent.parent)
-        env["PYTHONPATH"] = root + os.pathsep + env.get("PYTHONPATH", "")  # `services` beside `ebrl`
         for role in services_for(self.cfg):
             log_path = self.run_dir / "logs" / f"{role}-0.log"
-            cmd = [sys.executable, "-m", f"services.{role}", "--config", str(config_path), "--instance", "0"]
-            if self.endpoint:
-                cmd += ["--connect", self.endpoint]
-            with open(log_path, "wb") as fh:
-                proc = subprocess.Popen(cmd, stdout=fh, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
-                                        env=env, preexec_fn=_die_with_parent)
-            self.children.append(Child(role, 0, proc, log_path))
+            self.children.append(Child(role, 0, self.spawn(role, 0, log_path), log_path))
+
+    def spawn(self, role: str, instance: int, log_path: Path, extra_env: dict[str, str] | None = None
+              ) -> subprocess.Popen:
+        """Start ``python -m services.<role>``; its output is appended to ``log_path``."""
+        env = dict(os.environ, PYTHONUNBUFFERED="1", **(extra_env or {}))
+        root = str(Path(__file__).resolve().parent.parent)
+        env["PYTHONPATH"] = root + os.pathsep + env.get("PYTHONPATH", "")  # `services` beside `ebrl`
+        cmd = [sys.executable, "-m", f"services.{role}", "--config", str(self.run_dir / "config.toml"),
+               "--instance", str(instance)]
+        if self.endpoint:
+            cmd += ["--connect", self.endpoint]
+        with open(log_path, "ab") as fh:
+            return subprocess.Popen(cmd, stdout=fh, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
+                                    env=env, preexec_fn=_die_with_parent)
 
     async def wait_live(self) -> bool:
         wanted = {keys.live(self.run_name, c.role, c.instance) for c in self.children}
@@ -193,22 +200,67 @@ class Launcher:
                          if self.cfg.viz.rerun == "serve" else ""))
         return True
 
-    def check_children(self) -> bool:
-        """Report a child that exited on its own; True if one did."""
+    def check_children(self, restart: bool = False) -> bool:
+        """Notice a child that exited on its own: restart it (``run.restart``, with backoff, at most
+        ``run.max_restarts`` times) when ``restart``, else report it; True when the run must stop."""
+        now = time.monotonic()
         for child in self.children:
+            if child.restart_at is not None:
+                if now >= child.restart_at:
+                    self.restart(child)
+                continue
             rc = child.proc.poll()
-            if rc is not None:
-                self.failure = f"{child.name} exited with status {rc}"
-                self.event("exited", self.failure)
-                self._say(f"\nebrl: {self.failure}; last lines of {child.log_path}:\n{child.tail()}")
-                return True
+            if rc is None:
+                continue
+            what = f"{child.name} exited with status {rc}"
+            if restart and self.cfg.run.restart == "on-failure" and child.restarts < self.cfg.run.max_restarts:
+                delay = min(2.0 ** child.restarts, 30.0)
+                child.restart_at = now + delay
+                self.event("exited", f"{what}; restart {child.restarts + 1}/{self.cfg.run.max_restarts} in "
+                                     f"{delay:.0f} s")
+                self._say(f"\nebrl: {what}; restarting it in {delay:.0f} s "
+                          f"({child.restarts + 1}/{self.cfg.run.max_restarts}); last lines of {child.log_path}:"
+                          f"\n{child.tail(8)}")
+                continue
+            self.failure = what + (f" (after {child.restarts} restarts)" if child.restarts else "")
+            self.event("exited", self.failure)
+            self._say(f"\nebrl: {self.failure}; last lines of {child.log_path}:\n{child.tail()}")
+            return True
         return False
+
+    def restart(self, child: Child) -> None:
+        child.restarts += 1
+        child.restart_at = None
+        extra = {}
+        if child.role == "train":  # never reuse a version: the new train starts past every one seen
+            extra["EBRL_VERSION_FLOOR"] = str(max(self.version(), int(self.metric("gen/policy_version", "max") or 0)))
+        with open(child.log_path, "ab") as fh:
+            fh.write(f"\n--- restart {child.restarts} by the launcher ---\n".encode())
+        child.proc = self.spawn(child.role, child.instance, child.log_path, extra)
+        self.event("restart", f"{child.name} restarted ({child.restarts}/{self.cfg.run.max_restarts})")
+
+    def restarts(self) -> int:
+        return sum(c.restarts for c in self.children)
+
+    def publish_stats(self) -> None:
+        """The launcher's own stats report: restarts per service, services up."""
+        metrics = {"launcher/restarts": float(self.restarts()),
+                   "launcher/services_live": float(sum(1 for k in self.live if "/launcher/" not in k))}
+        metrics.update({f"launcher/restarts_{c.role}": float(c.restarts) for c in self.children})
+        self.bus.put_nowait(keys.stats(self.run_name, "launcher", 0), StatsReport(
+            run=self.run_name, service="launcher", instance=0, time=time.time(), seq=self._stats_seq,
+            metrics=metrics))
+        self._stats_seq += 1
 
     async def supervise(self) -> int:
         target = self.cfg.run.iterations
+        last_stats = 0.0
         while not self.stopping.is_set():
-            if self.check_children():
+            if self.check_children(restart=True):
                 return 1
+            if time.monotonic() - last_stats >= self.cfg.run.stats_interval:
+                self.publish_stats()
+                last_stats = time.monotonic()
             self.progress()
             if target and self.version() >= target:
                 self.progress(force=True)
@@ -291,6 +343,7 @@ class Launcher:
             f"policy v{max(int(self.metric('gen/policy_version', 'max') or 0), 0)}",
             f"staleness {self.metric('train/staleness_mean', 'mean') or 0:.2f}",
             f"return {ret:.1f}" if ret is not None else "return -",
+            *([f"restarts {self.restarts()}"] if self.restarts() else []),
             _clock(time.monotonic() - self.started),
         ]
         line = " | ".join(fields)
@@ -323,6 +376,7 @@ class Launcher:
             "final_return": self.metric("sim/episode_return_mean", "mean"),
             "best_return": self.best_return,
             "target_return": self.cfg.run.target_return,
+            "restarts": {c.name: c.restarts for c in self.children if c.restarts},
             "target_reached": None if self.reached is None else
             {"iteration": self.reached[0], "wall_s": round(self.reached[1], 2), "return": self.reached[2]},
         }
@@ -365,9 +419,9 @@ def preflight(cfg: config_mod.Config) -> str | None:
     return None
 
 
-def up(config_path: str, overrides: list[str], viz: str | None = None) -> int:
+def up(config_path: str, overrides: list[str], viz: str | None = None, resume: str | None = None) -> int:
     """``ebrl up``: exit 2 on a config error (nothing started), else the run's exit code.
-    ``viz`` (``--viz``) sets ``viz.rerun``."""
+    ``viz`` (``--viz``) sets ``viz.rerun``; ``resume`` (``--resume RUN_DIR``) continues that run."""
     if viz is not None:
         overrides = [*overrides, f'viz.rerun="{viz}"']
     try:
@@ -390,7 +444,18 @@ def up(config_path: str, overrides: list[str], viz: str | None = None) -> int:
             print(f"ebrl: allocator: {exc}", file=sys.stderr)
             return 2
         print(line, flush=True)
-    run_dir = make_run_dir(cfg)
+    if resume is not None:
+        from ebrl.algos import checkpoint
+
+        run_dir = Path(resume)
+        found = checkpoint.latest(run_dir)
+        if found is None:
+            print(f"ebrl: --resume {resume}: no checkpoint there ({run_dir / checkpoint.DIRNAME}/latest)",
+                  file=sys.stderr)
+            return 2
+        print(f"resuming {run_dir} from {found.name}", flush=True)
+    else:
+        run_dir = make_run_dir(cfg)
     (run_dir / "config.toml").write_text(config_mod.dump_toml(cfg))
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
     return asyncio.run(Launcher(cfg, run_dir).main())

@@ -12,6 +12,7 @@ import psutil
 
 from ebrl.bus import keys
 from ebrl.envs import EnvSpec, EnvWorker, describe
+from ebrl.envs.worker import WorkerFailed
 from ebrl.messages import ActionChunk, Observation
 from ebrl.resources.nvml import GpuMonitor
 from ebrl.sched.modes import resolve
@@ -47,9 +48,7 @@ class SimService(Service):
                 env = g * per + i
                 # Static pinning round-robin over the simulation cores, unless steps are rebound one by one.
                 core = None if sched.core_rebinding else sched.sim_cores[env % len(sched.sim_cores)]
-                # GRPO compares rollouts from the same initial states: a group's envs share reset seeds.
-                share = cfg.algo.group_size if cfg.algo.name == "grpo" else 1
-                worker = EnvWorker(spec, seed=cfg.run.seed * 100_003 + env // share, core=core)
+                worker = EnvWorker(spec, seed=self.env_seed(env), core=core)
                 self.workers[g].append(worker)
                 if sched.core_rebinding:
                     self.stepping.add(env, worker)
@@ -59,6 +58,7 @@ class SimService(Service):
         self.successes: collections.deque[bool] = collections.deque(maxlen=20)
         self.chunk_latency: collections.deque[float] = collections.deque(maxlen=1000)  # per env and chunk
         self.peers_live: set[str] = set()
+        self.gen_epoch = 0
         self.bus.watch_liveliness(keys.live_all(self.run_name), self._on_liveliness)
         psutil.cpu_percent(percpu=True)
         self.gpus = GpuMonitor()
@@ -68,6 +68,8 @@ class SimService(Service):
         (self.peers_live.add if alive else self.peers_live.discard)(key)
         if not alive and not self.stopping.is_set():
             self.log.warning("%s left the bus", key)
+        if alive and keys.parse(key)[3] == "gen":
+            self.gen_epoch += 1  # a (re)started gen has none of the observations in flight: publish them again
 
     def _on_core_step(self, core: int, seconds: float) -> None:
         self.count(f"sim/core{core}_busy_s", seconds)
@@ -86,17 +88,25 @@ class SimService(Service):
         env_ids = np.arange(g * per, (g + 1) * per, dtype=np.int64)
         builders = [SegmentBuilder(g, int(e), self.cfg.sim.segment_length) for e in env_ids]
         obs = np.stack(await asyncio.gather(*(w.reset() for w in workers)))
+        episode = [0] * per  # index of each env's current episode
         rollout_length = self.schedule.rollout_length
         seq = 0
         while True:
             chunk = await self.exchange(g, seq, env_ids, obs)
             start = time.time()
+            self.stepping.timeout = self.step_timeout()
             results, latencies = await self.stepping.run_chunk(workers, chunk.actions)
             self.publish_span(f"sim.g{g}", "chunk", start, time.time())
-            self.chunk_latency.extend(latencies)
             boundary = (seq + 1) % rollout_length == 0
             next_obs = np.empty_like(obs)
             for i, res in enumerate(results):
+                if isinstance(res, WorkerFailed):  # replaced; its episode so far is dropped, never published
+                    next_obs[i] = await self.replace_worker(g, i, int(env_ids[i]), res, episode[i] + 1)
+                    self.count("sim/partial_decisions_dropped", len(builders[i]))
+                    builders[i] = SegmentBuilder(g, int(env_ids[i]), self.cfg.sim.segment_length)
+                    continue
+                self.chunk_latency.append(latencies[i])
+                episode[i] = res.episode + int(res.terminated or res.truncated)
                 self.count("sim/env_steps", res.steps)
                 self.count("sim/step_busy_s", res.busy_s)
                 if res.episode_return is not None:
@@ -109,28 +119,59 @@ class SimService(Service):
                 if segment is not None:
                     await self.bus.put(keys.traj(self.run_name, g), segment)
                     self.count("sim/segments")
+                    if not self._role_live("train"):  # nobody hears it: counted, training restarts soon
+                        self.count("sim/segments_while_train_down")
                 next_obs[i] = res.next_obs
             obs = next_obs
             seq += 1
+
+    def env_seed(self, env: int) -> int:
+        # GRPO compares rollouts from the same initial states: a group's envs share reset seeds.
+        share = self.cfg.algo.group_size if self.cfg.algo.name == "grpo" else 1
+        return self.cfg.run.seed * 100_003 + env // share
+
+    def step_timeout(self) -> float:
+        if self.cfg.sim.step_timeout > 0:
+            return self.cfg.sim.step_timeout
+        if len(self.chunk_latency) < 50:
+            return 120.0
+        return max(20.0, 20 * float(np.percentile(self.chunk_latency, 99)))
+
+    async def replace_worker(self, g: int, i: int, env: int, failure: WorkerFailed, episode: int) -> np.ndarray:
+        """Kill a dead or hung env worker, start a new one for the same env (same seed and core) and start
+        episode ``episode`` there (the episode numbering, hence GRPO's groups, carries on)."""
+        old = self.workers[g][i]
+        self.log.warning("env %d: %s; replacing its worker (the episode in progress is dropped)", env, failure)
+        self.event("worker", f"env {env}: {failure}; worker replaced")
+        self.count("sim/worker_restarts")
+        old.kill()
+        worker = EnvWorker(EnvSpec.from_config(self.cfg.env), seed=self.env_seed(env),
+                           core=old.core if not self.schedule.core_rebinding else None)
+        self.workers[g][i] = worker
+        if isinstance(self.stepping, RebindingStepping):
+            self.stepping.replace(env, worker)
+        return await worker.reset(episode)
 
     async def exchange(self, g: int, seq: int, env_ids: np.ndarray, obs: np.ndarray) -> ActionChunk:
         """Publish this group's observations and wait for the action chunk that answers them."""
         message = Observation(group=g, seq=seq, env_ids=env_ids, obs=obs, sent_at=time.time())
         while True:
             await self.bus.put(keys.obs(self.run_name, g), message, express=True)
-            start = time.time()
+            start, epoch = time.time(), self.gen_epoch
             deadline = time.monotonic() + ACTION_TIMEOUT_S
-            while time.monotonic() < deadline:
+            while time.monotonic() < deadline and epoch == self.gen_epoch:
                 try:
-                    _, chunk = await asyncio.wait_for(self.actions[g].next(), deadline - time.monotonic())
+                    _, chunk = await asyncio.wait_for(self.actions[g].next(), min(1.0, deadline - time.monotonic()))
                 except asyncio.TimeoutError:
-                    break
+                    continue
                 if chunk.seq == seq and chunk.actions.shape[0] == len(env_ids) == chunk.latents.shape[0]:
                     self.publish_span(f"sim.g{g}", "wait", start, time.time(), busy=False)
                     return chunk
                 self.count("sim/stale_actions_dropped")
             self.count("sim/obs_resent")
-            self.log.warning("group %d: no actions for seq %d after %.0f s, publishing again", g, seq, ACTION_TIMEOUT_S)
+            if epoch == self.gen_epoch:
+                self.log.warning("group %d: no actions for seq %d after %.0f s, publishing again", g, seq,
+                                 ACTION_TIMEOUT_S)
 
     def metrics(self) -> dict[str, float]:
         out = {"sim/envs": float(sum(len(w) for w in self.workers.values()))}

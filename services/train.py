@@ -11,6 +11,7 @@ import time
 import numpy as np
 import torch
 
+from ebrl.algos import checkpoint
 from ebrl.algos.grpo import GroupCollector
 from ebrl.algos.ppo import PPO, SegmentCollector
 from ebrl.bus import keys
@@ -22,6 +23,7 @@ from ebrl.service import Service, service_main
 
 
 POLICY_FILE = "policy.safetensors"
+VERSION_FLOOR_VAR = "EBRL_VERSION_FLOOR"  # set by the launcher when it restarts train: the newest version seen
 
 
 class TrainService(Service):
@@ -44,6 +46,8 @@ class TrainService(Service):
             self.event("checkpoint", f"policy initialised from {cfg.policy.checkpoint}")
         self.ppo = PPO(self.model, cfg.algo, cfg.train.lr, seed=cfg.run.seed)
         self.version = 0
+        self.saved_version = -1
+        self.resume()
         collector = GroupCollector if cfg.algo.name == "grpo" else SegmentCollector
         self.collector = collector(cfg.algo, cfg.train.max_pending, self.schedule.max_staleness, self.count)
         self.enough = asyncio.Event()
@@ -81,6 +85,9 @@ class TrainService(Service):
                 self.last["train/update_s"] = time.time() - start
                 self.count("train/updates")
                 await self.publish_weights()
+                every = self.cfg.train.checkpoint_every
+                if every and self.version % every == 0:
+                    await asyncio.get_running_loop().run_in_executor(self.pool, self.save_checkpoint)
             self.log.info("reached run.iterations = %d; idle until stopped", self.cfg.run.iterations)
             await self.stopping.wait()
         finally:
@@ -128,8 +135,40 @@ class TrainService(Service):
             out[f"train/staleness_hist_{lag}"] = float(n)
         return out
 
+    def resume(self) -> None:
+        """Carry on from the run's latest checkpoint, if any (a restart after a crash, or ``ebrl up --resume``).
+        Versions never go back or repeat: after a crash the launcher passes the newest version anyone saw
+        (EBRL_VERSION_FLOOR), which may be past the checkpoint; the restored weights then get the next one."""
+        found = checkpoint.latest(self.run_dir)
+        if found is not None:
+            restored = checkpoint.restore(found, self.model, self.ppo.optimizer, {"ppo": self.ppo.generator})
+            self.version = self.saved_version = restored.version
+            self.log.info("resumed from %s (policy v%d)", found, restored.version)
+        floor = int(os.environ.get(VERSION_FLOOR_VAR, "-1"))
+        if floor >= self.version and floor > 0:
+            self.log.warning("versions up to v%d were published before the restart; the %s weights continue as "
+                             "v%d", floor, f"v{self.version}" if found else "initial", floor + 1)
+            self.version = floor + 1
+        if found is not None or floor > 0:
+            self.event("resumed", f"train resumed at policy v{self.version}"
+                                  + (f" from {found.name}" if found is not None else " with fresh weights"))
+
+    def save_checkpoint(self) -> None:
+        """Write the training state (runs on the update thread, between updates)."""
+        if self.version == self.saved_version:
+            return
+        start = time.time()
+        path = checkpoint.save(self.run_dir, self.model, self.ppo.optimizer, self.version,
+                               {"ppo": self.ppo.generator}, {"run": self.run_name})
+        self.saved_version = self.version
+        self.publish_span("train", "checkpoint", start, time.time())
+        self.count("train/checkpoints")
+        self.log.debug("checkpoint %s", path)
+
     async def teardown(self) -> None:
         self.pool.shutdown(wait=True, cancel_futures=True)
+        if self.version > 0:
+            self.save_checkpoint()
         if self.version > 0:  # the trained policy, for `--set policy.checkpoint=RUN_DIR/policy.safetensors`
             path = os.path.join(self.run_dir, POLICY_FILE)
             save_checkpoint(self.model, path, {"run": self.run_name, "version": str(self.version)})

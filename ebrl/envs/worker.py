@@ -72,9 +72,9 @@ def _worker_main(conn: Connection, spec: EnvSpec, seed: int) -> None:
                 cmd, arg = conn.recv()
             except (EOFError, OSError):
                 return
-            if cmd == "reset":
-                episodes = 0
-                obs, _ = env.reset(seed=seed)
+            if cmd == "reset":  # arg: the index of the episode to start (a replaced worker carries on)
+                episodes = int(arg or 0)
+                obs, _ = env.reset(seed=seed + 7919 * episodes)
                 episode_return, episode_length, success = 0.0, 0, None
                 conn.send(as_obs(obs))
             elif cmd == "chunk":
@@ -114,6 +114,10 @@ def _worker_main(conn: Connection, spec: EnvSpec, seed: int) -> None:
         env.close()
 
 
+class WorkerFailed(RuntimeError):
+    """An env worker that died or did not answer in time; the caller replaces it."""
+
+
 class EnvWorker:
     """Parent-side handle of one env worker process."""
 
@@ -131,7 +135,9 @@ class EnvWorker:
         os.sched_setaffinity(self.proc.pid, {core})
         self.core = core
 
-    async def request(self, cmd: str, arg: object = None) -> object:
+    async def request(self, cmd: str, arg: object = None, timeout: float | None = None) -> object:
+        """Send one command and await the reply; raise :class:`WorkerFailed` if the worker dies or takes
+        longer than ``timeout`` seconds (it is then left for the caller to kill and replace)."""
         loop = asyncio.get_running_loop()
         fut: asyncio.Future = loop.create_future()
         fd = self.conn.fileno()
@@ -141,28 +147,42 @@ class EnvWorker:
             try:
                 reply = self.conn.recv()
             except (EOFError, OSError) as exc:
-                fut.set_exception(RuntimeError(f"env worker {self.proc.pid} died: {exc!r}"))
+                fut.set_exception(WorkerFailed(f"env worker {self.proc.pid} died ({exc!r}; exit code "
+                                               f"{self.proc.exitcode})"))
                 return
             if isinstance(reply, Exception):
                 fut.set_exception(reply)
             else:
                 fut.set_result(reply)
 
-        self.conn.send((cmd, arg))
+        try:
+            self.conn.send((cmd, arg))
+        except (OSError, ValueError) as exc:
+            raise WorkerFailed(f"env worker {self.proc.pid} is gone ({exc!r})") from None
         loop.add_reader(fd, readable)
         try:
-            return await fut
+            return await asyncio.wait_for(fut, timeout)
+        except asyncio.TimeoutError:
+            raise WorkerFailed(f"env worker {self.proc.pid} did not answer {cmd!r} within {timeout:.1f} s") from None
         finally:
             loop.remove_reader(fd)
 
-    async def reset(self) -> np.ndarray:
-        return await self.request("reset")  # type: ignore[return-value]
+    async def reset(self, episode: int = 0) -> np.ndarray:
+        """Start episode ``episode`` (its initial state is fixed by the worker's seed and the index)."""
+        return await self.request("reset", episode)  # type: ignore[return-value]
 
-    async def chunk(self, actions: np.ndarray, observe: bool = True) -> ChunkResult:
+    async def chunk(self, actions: np.ndarray, observe: bool = True, timeout: float | None = None) -> ChunkResult:
         """Run ``actions`` (stopping early at an episode end). ``observe=False``: the caller will not read the
         observation after the last action (more steps of the same chunk follow), so an env that can skip
         rendering does; an episode that ends is always observed."""
-        return await self.request("chunk", (actions, observe))  # type: ignore[return-value]
+        return await self.request("chunk", (actions, observe), timeout)  # type: ignore[return-value]
+
+    def kill(self) -> None:
+        """End the process now (a dead or hung worker)."""
+        if self.proc.is_alive():
+            self.proc.kill()
+        self.proc.join(2.0)
+        self.conn.close()
 
     def close(self, timeout: float = 2.0) -> None:
         try:

@@ -9,7 +9,10 @@
   free core of the simulation budget, longest-latency ready env first.
 
 Each returns, per env, the merged :class:`ChunkResult` and the env's chunk
-latency (chunk start to the env's last step).
+latency (chunk start to the env's last step). An env whose worker died or did
+not answer within ``timeout`` seconds gets a :class:`WorkerFailed` in place of
+its result; the other envs of the chunk carry on, and the caller replaces the
+worker (``replace``).
 """
 
 from __future__ import annotations
@@ -20,7 +23,7 @@ from typing import Callable, Protocol, Sequence
 
 import numpy as np
 
-from ebrl.envs.worker import ChunkResult, EnvWorker
+from ebrl.envs.worker import ChunkResult, EnvWorker, WorkerFailed
 from ebrl.sched.rebind import CoreRebinding
 
 
@@ -42,18 +45,28 @@ def merge(results: Sequence[ChunkResult]) -> ChunkResult:
     )
 
 
+Result = ChunkResult | WorkerFailed
+
+
 class Stepping(Protocol):
+    timeout: float | None  # seconds a worker may take for one request before it counts as hung
+
     async def run_chunk(self, workers: Sequence[EnvWorker],
-                        actions: np.ndarray) -> tuple[list[ChunkResult], list[float]]: ...
+                        actions: np.ndarray) -> tuple[list[Result], list[float]]: ...
 
 
 class IndependentStepping:
+    timeout: float | None = None
+
     async def run_chunk(self, workers, actions):
         start = time.perf_counter()
         latencies = [0.0] * len(workers)
 
-        async def one(i: int) -> ChunkResult:
-            result = await workers[i].chunk(actions[i])
+        async def one(i: int) -> Result:
+            try:
+                result = await workers[i].chunk(actions[i], timeout=self.timeout)
+            except WorkerFailed as exc:
+                return exc
             latencies[i] = time.perf_counter() - start
             return result
 
@@ -62,30 +75,41 @@ class IndependentStepping:
 
 
 class BatchStepping:
+    timeout: float | None = None
+
     async def run_chunk(self, workers, actions):
         start = time.perf_counter()
         steps: list[list[ChunkResult]] = [[] for _ in workers]
+        failed: dict[int, WorkerFailed] = {}
         latencies = [0.0] * len(workers)
         active = list(range(len(workers)))
         for k in range(actions.shape[1]):
             if not active:
                 break
             last = k == actions.shape[1] - 1
-            results = await asyncio.gather(*(workers[i].chunk(actions[i, k:k + 1], observe=last)
-                                             for i in active))  # barrier
+            results = await asyncio.gather(*(workers[i].chunk(actions[i, k:k + 1], observe=last,
+                                                              timeout=self.timeout)
+                                             for i in active), return_exceptions=True)  # barrier
             now = time.perf_counter()
             still = []
             for i, result in zip(active, results):
+                if isinstance(result, WorkerFailed):
+                    failed[i] = result
+                    continue
+                if isinstance(result, BaseException):
+                    raise result
                 steps[i].append(result)
                 latencies[i] = now - start
                 if not (result.terminated or result.truncated):
                     still.append(i)
             active = still
-        return [merge(s) for s in steps], latencies
+        return [failed[i] if i in failed else merge(s) for i, s in enumerate(steps)], latencies
 
 
 class RebindingStepping:
     """One instance serves every group of the sim service: the ready set spans all groups."""
+
+    timeout: float | None = None
 
     def __init__(self, cores: list[int], on_step: Callable[[int, float], None] | None = None):
         self.sched = CoreRebinding(cores)
@@ -103,6 +127,12 @@ class RebindingStepping:
         self._env_by_worker[id(worker)] = env
         self.sched.add_env(env)
 
+    def replace(self, env: int, worker: EnvWorker) -> None:
+        """A new worker for ``env`` (the old one failed); its chunk state was already closed."""
+        del self._env_by_worker[id(self.workers[env])]
+        self.workers[env] = worker
+        self._env_by_worker[id(worker)] = env
+
     async def run_chunk(self, workers, actions):
         loop = asyncio.get_running_loop()
         start = time.perf_counter()
@@ -115,8 +145,17 @@ class RebindingStepping:
             futures.append(self._done[env])
             self.sched.submit_chunk(env, len(chunk))
         self._pump()
-        finished = await asyncio.gather(*futures)
-        return [merge(self._steps.pop(env)) for env in envs], [t - start for t in finished]
+        finished = await asyncio.gather(*futures, return_exceptions=True)
+        results: list[Result] = []
+        for env, done in zip(envs, finished):
+            steps = self._steps.pop(env)
+            if isinstance(done, WorkerFailed):
+                results.append(done)
+            elif isinstance(done, BaseException):
+                raise done
+            else:
+                results.append(merge(steps))
+        return results, [t - start if isinstance(t, float) else 0.0 for t in finished]
 
     def set_budget(self, cores: list[int]) -> None:
         self.sched.set_budget(cores)
@@ -130,14 +169,17 @@ class RebindingStepping:
 
     async def _step(self, env: int, core: int) -> None:
         worker = self.workers[env]
-        if worker.core != core:
-            worker.pin(core)
-            self.rebinds += 1
         s = self.sched.envs[env].s
         t0 = time.perf_counter()
         try:
+            if worker.core != core:
+                try:
+                    worker.pin(core)
+                except OSError as exc:  # the process is gone
+                    raise WorkerFailed(f"env worker {worker.proc.pid} cannot be pinned: {exc}") from None
+                self.rebinds += 1
             chunk = self._actions[env]
-            result = await worker.chunk(chunk[s:s + 1], observe=s == len(chunk) - 1)
+            result = await worker.chunk(chunk[s:s + 1], observe=s == len(chunk) - 1, timeout=self.timeout)
         except Exception as exc:
             self.sched.complete(env, time.perf_counter() - t0, chunk_ended=True)
             self._done[env].set_exception(exc)

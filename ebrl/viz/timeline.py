@@ -23,6 +23,7 @@ STATE_COLORS: dict[str, int] = {
     "publish": 0x8E24AAFF,  # weights published
     "realloc": 0xE53935FF,  # allocator: a re-allocation applied
     "profile": 0xFDD835FF,
+    "checkpoint": 0x6D4C41FF,  # training: a checkpoint written
 }
 IDLE_STATES = ("wait",)
 

@@ -61,6 +61,8 @@ class BusSection:
     )
     connect: list[str] = doc("extra endpoints to connect to (a Zenoh router or another host)", factory=list)
     config_file: str = doc("path to a native Zenoh JSON5 config (TLS, access control); empty for none", "")
+    max_message_bytes: int = doc("a received message larger than this is dropped and counted (bus/oversized) "
+                                 "before it is decoded", 1 << 30)
 
 
 @dataclass

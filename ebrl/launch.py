@@ -126,6 +126,8 @@ class Launcher:
         if self.recorder is not None:
             self.bus.subscribe_raw(keys.stats_all(self.run_name), self.recorder.write)
         self.bus.watch_liveliness(keys.live_all(self.run_name), self._on_liveliness)
+        self.ctl_unknown = 0
+        self.bus.subscribe_raw(keys.ctl(self.run_name, "*", "*", "*"), self._on_control)
         self.bus.declare_token(keys.live(self.run_name, "launcher", 0))
         stats_tasks = [asyncio.create_task(self._collect(self.bus.subscribe(
             keys.stats(self.run_name, role, "*"), StatsReport, policy="latest", capacity=64)))
@@ -244,7 +246,7 @@ class Launcher:
 
     def publish_stats(self) -> None:
         """The launcher's own stats report: restarts per service, services up."""
-        metrics = {"launcher/restarts": float(self.restarts()),
+        metrics = {"launcher/restarts": float(self.restarts()), "launcher/ctl_unknown_service": float(self.ctl_unknown),
                    "launcher/services_live": float(sum(1 for k in self.live if "/launcher/" not in k))}
         metrics.update({f"launcher/restarts_{c.role}": float(c.restarts) for c in self.children})
         self.bus.put_nowait(keys.stats(self.run_name, "launcher", 0), StatsReport(
@@ -309,6 +311,14 @@ class Launcher:
             self.stop_reason = f"signal {sig.name}"
             self._say(f"\nebrl: {sig.name} received, stopping every service")
             self.stopping.set()
+
+    def _on_control(self, key: str, _: bytes) -> None:
+        """Control messages for a service this run does not have are ignored by everyone; counted here."""
+        role = keys.parse(key)[3]
+        if role not in services_for(self.cfg):
+            if not self.ctl_unknown:
+                log.warning("control message for an unknown service ignored: %s (further ones only counted)", key)
+            self.ctl_unknown += 1
 
     def _on_liveliness(self, key: str, alive: bool) -> None:
         if alive:

@@ -50,7 +50,8 @@ class Service:
         self.run_name = cfg.run.name
         self.instance = instance
         self.bus_options = bus_options or BusOptions(mode=cfg.bus.mode, connect=list(cfg.bus.connect),
-                                                     config_file=cfg.bus.config_file)
+                                                     config_file=cfg.bus.config_file,
+                                                     max_message_bytes=cfg.bus.max_message_bytes)
         self.log = logging.getLogger(f"ebrl.{self.role}")
         self.bus: Bus = None  # type: ignore[assignment]  # opened in main()
         self.stopping: asyncio.Event = None  # type: ignore[assignment]
@@ -277,6 +278,7 @@ class Service:
         for lane, seconds in busy.items():
             metrics[f"busy/{lane}"] = min(1.0, (seconds - last_busy.get(lane, 0.0)) / dt) if now > last_t else 0.0
         metrics["bus/malformed"] = float(sum(self.bus.malformed.values()))
+        metrics["bus/oversized"] = float(sum(self.bus.oversized.values()))
         metrics["bus/sender_dropped"] = float(self.bus.sender_dropped)
         metrics["proc/cpu_percent"] = self._proc.cpu_percent()
         metrics["proc/rss_mb"] = self._proc.memory_info().rss / 2**20
@@ -316,6 +318,7 @@ def service_main(cls: type[Service], argv: list[str] | None = None) -> None:
     logging.basicConfig(level=cfg.run.log_level.upper(),
                         format=f"%(asctime)s {cls.role}/{args.instance} %(levelname)s %(name)s: %(message)s")
     options = BusOptions(mode=cfg.bus.mode, connect=args.connect + list(cfg.bus.connect),
-                         listen=["tcp/127.0.0.1:0"], config_file=cfg.bus.config_file)
+                         listen=["tcp/127.0.0.1:0"], config_file=cfg.bus.config_file,
+                         max_message_bytes=cfg.bus.max_message_bytes)
     service = cls(cfg, args.instance, options, run_dir=os.path.dirname(os.path.abspath(args.config)))
     sys.exit(asyncio.run(service.main()))

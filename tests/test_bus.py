@@ -12,6 +12,7 @@ import pytest
 
 from ebrl.bus import keys
 from ebrl.messages import Event, Observation, StatsReport
+from ebrl.bus import Bus, BusOptions
 from helpers import free_port, loopback_bus, until
 
 HERE = pathlib.Path(__file__).resolve().parent
@@ -144,3 +145,21 @@ def test_a_bus_left_open_does_not_hang_interpreter_exit(tmp_path):
     env = dict(os.environ, PYTHONPATH=f"{HERE.parent}{os.pathsep}{HERE}")
     proc = subprocess.run([sys.executable, str(script)], env=env, timeout=60, capture_output=True)
     assert proc.returncode == 3, proc.stderr.decode()
+
+
+def test_messages_over_the_size_limit_are_dropped_before_decoding():
+    async def scenario():
+        port = free_port()
+        bus = loopback_bus(port)
+        small = Bus(BusOptions(listen=["tcp/127.0.0.1:0"], connect=[f"tcp/127.0.0.1:{port}"], max_message_bytes=4096))
+        sub = small.subscribe("test/obs", Observation, capacity=8)
+        await asyncio.sleep(0.5)
+        await bus.put("test/obs", observation(1, n=1))  # 12 KB of pixels
+        await bus.put("test/obs", Observation(group=0, seq=2, env_ids=np.zeros(1, np.int64),
+                                              obs=np.zeros((1, 4), np.float32), sent_at=0.0))
+        _, msg = await asyncio.wait_for(sub.next(), 10)
+        assert msg.seq == 2 and small.oversized["test/obs"] == 1 and small.malformed["test/obs"] == 1
+        await small.close()
+        await bus.close()
+
+    asyncio.run(scenario())

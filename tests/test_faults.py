@@ -141,8 +141,12 @@ def test_random_bytes_on_data_keys_are_counted_and_dropped(tmp_path):
         for key in (f"ebrl/data/flood/traj/{i % 2}", f"ebrl/data/flood/obs/{i % 2}", f"ebrl/data/flood/act/{i % 2}",
                     "ebrl/data/flood/weights"):
             run.session.put(key, bytes(rng.getrandbits(8) for _ in range(rng.randint(0, 64))))
+    wrong_version = msgpack.packb({"v": 99, "reason": "a future schema"})
+    run.session.put("ebrl/ctl/flood/train/0/stop", wrong_version)  # must not stop train
+    run.session.put("ebrl/ctl/flood/nosuch/0/stop", msgpack.packb({"v": 1, "reason": "x"}))  # no such service
     code, out = run.finish()
     assert code == 0, out
+    assert run.last("launcher/0", "launcher/ctl_unknown_service") == 1
     assert run.last("train/0", "bus/malformed", 0) > 0 and run.last("gen/0", "bus/malformed", 0) > 0
     assert run.last("sim/0", "bus/malformed", 0) > 0
     assert run.last("train/0", "train/policy_version") == 8

@@ -62,6 +62,7 @@ class BusOptions:
     connect: list[str] = field(default_factory=list)
     listen: list[str] = field(default_factory=lambda: ["tcp/127.0.0.1:0"])
     config_file: str = ""
+    max_message_bytes: int = 1 << 30  # larger payloads are dropped (counted) before decoding
 
 
 def zenoh_config(options: BusOptions) -> zenoh.Config:
@@ -88,6 +89,7 @@ class Bus:
         self.session = session or zenoh.open(zenoh_config(self.options))
         self.loop = asyncio.get_running_loop()
         self.malformed: collections.Counter[str] = collections.Counter()
+        self.oversized: collections.Counter[str] = collections.Counter()
         self.sender_dropped = 0
         self._logged_keys: set[str] = set()
         self._publishers: dict[tuple[str, bool], zenoh.Publisher] = {}
@@ -313,6 +315,11 @@ class Subscription(Generic[T]):
 
     def _on_sample(self, sample: zenoh.Sample) -> None:  # runs on a Zenoh thread
         key = str(sample.key_expr)
+        if len(sample.payload) > self.bus.options.max_message_bytes:
+            self.bus.oversized[key] += 1
+            self.bus.count_malformed(key, ValueError(f"{len(sample.payload)} bytes, over bus.max_message_bytes = "
+                                                     f"{self.bus.options.max_message_bytes}"))
+            return
         try:
             msg = self._decode(key, sample.payload.to_bytes())
         except messages.MessageError as exc:

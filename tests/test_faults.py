@@ -171,3 +171,18 @@ def test_resume_continues_a_stopped_run_with_the_version_counter(tmp_path):
     missing = subprocess.run([sys.executable, "-m", "ebrl.cli", "up", str(ROOT / "configs/quickstart.toml"),
                               "--resume", str(tmp_path / "nope")], capture_output=True, text=True, timeout=60)
     assert missing.returncode == 2 and "no checkpoint" in missing.stderr
+
+
+def test_two_runs_on_one_bus_never_see_each_others_data(tmp_path):
+    # Run b joins run a's bus; the run name in every key keeps them apart. Their observations differ in shape
+    # (InvertedPendulum 4, Hopper 11), so a message of the other run would be counted as malformed.
+    a = Watched(tmp_path / "a", "iso-a", "run.iterations=3")
+    b = Watched(tmp_path / "b", "iso-b", "run.iterations=3", 'env.id="Hopper-v5"',
+                f'bus.connect=["tcp/127.0.0.1:{a.port}"]')
+    code_b, out_b = b.finish()
+    code_a, out_a = a.finish()
+    assert code_a == 0 and code_b == 0, out_a + out_b
+    for run in (a, b):
+        assert run.last("train/0", "train/policy_version") == 3
+        assert run.last("train/0", "train/segments_received") > 0
+        assert all(m.get("bus/malformed", 0) == 0 for ms in run.seen.values() for m in ms)

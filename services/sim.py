@@ -59,6 +59,8 @@ class SimService(Service):
         self.chunk_latency: collections.deque[float] = collections.deque(maxlen=1000)  # per env and chunk
         self.peers_live: set[str] = set()
         self.gen_epoch = 0
+        self.episode = {env: 0 for env in range(cfg.num_envs)}  # index of each env's current (or next) episode
+        self.episodes_moved = asyncio.Event()
         self.bus.watch_liveliness(keys.live_all(self.run_name), self._on_liveliness)
         psutil.cpu_percent(percpu=True)
         self.gpus = GpuMonitor()
@@ -88,25 +90,36 @@ class SimService(Service):
         env_ids = np.arange(g * per, (g + 1) * per, dtype=np.int64)
         builders = [SegmentBuilder(g, int(e), self.cfg.sim.segment_length) for e in env_ids]
         obs = np.stack(await asyncio.gather(*(w.reset() for w in workers)))
-        episode = [0] * per  # index of each env's current episode
         rollout_length = self.schedule.rollout_length
         seq = 0
         while True:
+            active = [i for i in range(per) if self.may_act(int(env_ids[i]))]
+            if not active:  # every env waits for GRPO group-mates in other sim groups
+                await self.episodes_moved.wait()
+                continue
             chunk = await self.exchange(g, seq, env_ids, obs)
             start = time.time()
             self.stepping.timeout = self.step_timeout()
-            results, latencies = await self.stepping.run_chunk(workers, chunk.actions)
+            done, latency_of = await self.stepping.run_chunk([workers[i] for i in active], chunk.actions[active])
             self.publish_span(f"sim.g{g}", "chunk", start, time.time())
+            results: list = [None] * per  # None: waiting at the start of its next episode, did not act
+            latencies = [0.0] * per
+            for j, i in enumerate(active):
+                results[i], latencies[i] = done[j], latency_of[j]
             boundary = (seq + 1) % rollout_length == 0
-            next_obs = np.empty_like(obs)
+            next_obs = obs.copy()
             for i, res in enumerate(results):
+                env = int(env_ids[i])
+                if res is None:
+                    continue
                 if isinstance(res, WorkerFailed):  # replaced; its episode so far is dropped, never published
-                    next_obs[i] = await self.replace_worker(g, i, int(env_ids[i]), res, episode[i] + 1)
+                    next_obs[i] = await self.replace_worker(g, i, env, res, self.episode[env] + 1)
                     self.count("sim/partial_decisions_dropped", len(builders[i]))
-                    builders[i] = SegmentBuilder(g, int(env_ids[i]), self.cfg.sim.segment_length)
+                    builders[i] = SegmentBuilder(g, env, self.cfg.sim.segment_length)
+                    self.set_episode(env, self.episode[env] + 1)
                     continue
                 self.chunk_latency.append(latencies[i])
-                episode[i] = res.episode + int(res.terminated or res.truncated)
+                self.set_episode(env, res.episode + int(res.terminated or res.truncated))
                 self.count("sim/env_steps", res.steps)
                 self.count("sim/step_busy_s", res.busy_s)
                 if res.episode_return is not None:
@@ -125,10 +138,25 @@ class SimService(Service):
             obs = next_obs
             seq += 1
 
+    def group_members(self, env: int) -> range:
+        """The envs that start their episodes from the same states as ``env`` (GRPO), else just ``env``."""
+        share = self.cfg.algo.group_size if self.cfg.algo.name == "grpo" else 1
+        return range(env // share * share, (env // share + 1) * share)
+
+    def may_act(self, env: int) -> bool:
+        """GRPO's rollouts of one group run episode by episode together: an env that finished its episode
+        waits at the start of the next one until every group-mate finished too (so every group completes)."""
+        return self.episode[env] <= min(self.episode[m] for m in self.group_members(env))
+
+    def set_episode(self, env: int, index: int) -> None:
+        if index != self.episode[env]:
+            self.episode[env] = index
+            self.episodes_moved.set()  # wake sim groups whose envs all wait
+            self.episodes_moved = asyncio.Event()
+
     def env_seed(self, env: int) -> int:
         # GRPO compares rollouts from the same initial states: a group's envs share reset seeds.
-        share = self.cfg.algo.group_size if self.cfg.algo.name == "grpo" else 1
-        return self.cfg.run.seed * 100_003 + env // share
+        return self.cfg.run.seed * 100_003 + self.group_members(env)[0]
 
     def step_timeout(self) -> float:
         if self.cfg.sim.step_timeout > 0:

@@ -22,6 +22,7 @@ def test_grpo_config_trains(tmp_path):
     assert code == 0, out
     train = stats["train/0"][-1]
     assert train["train/policy_version"] == 3 and train["train/grpo_groups"] >= 1
+    assert train.get("train/grpo_groups_dropped_overflow", 0) == 0  # group-mates run their episodes together
     assert "train/value_loss" in train and train["train/value_loss"] == 0.0  # no critic is trained
 
 

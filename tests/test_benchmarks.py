@@ -32,3 +32,15 @@ def test_learning_speed_benchmark_writes_curves_and_a_plot(tmp_path):
     assert set(result["summary"]) == {"ebrl", "colocated"} and result["env_step_budget"] == 3 * 1024 * 4
     assert all(s["env_steps"] > 0 for s in result["summary"].values())
     assert (tmp_path / "learning_speed.png").stat().st_size > 1000
+
+
+@pytest.mark.slow
+def test_two_minute_soak_keeps_every_service_memory_flat(tmp_path):
+    out = tmp_path / "soak.json"
+    proc = subprocess.run([sys.executable, "benchmarks/soak.py", "--minutes", "2", "--max-growth", "10",
+                           "--runs-dir", str(tmp_path / "runs"), "--out", str(out)],
+                          cwd=ROOT, capture_output=True, text=True, timeout=400)
+    assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
+    result = json.loads(out.read_text())
+    assert set(result["services"]) == {"sim/0", "gen/0", "train/0"} and not result["failed"]
+    assert all(row["samples"] >= 60 for row in result["services"].values())

@@ -16,7 +16,7 @@ from ebrl.envs.worker import WorkerFailed
 from ebrl.messages import ActionChunk, Observation
 from ebrl.resources.nvml import GpuMonitor
 from ebrl.sched.modes import resolve
-from ebrl.sched.rollout import SegmentBuilder
+from ebrl.sched.rollout import Episodes, SegmentBuilder
 from ebrl.sched.stepping import BatchStepping, IndependentStepping, RebindingStepping
 from ebrl.service import Service, service_main
 
@@ -41,6 +41,7 @@ class SimService(Service):
             self.stepping = IndependentStepping() if sched.stepping == "async" else BatchStepping()
         self.groups = list(range(sched.groups))
         per = sched.envs_per_group
+        self.episodes = Episodes(cfg.num_envs, cfg.algo.group_size if cfg.algo.name == "grpo" else 1)
         self.workers: dict[int, list[EnvWorker]] = {}
         for g in self.groups:
             self.workers[g] = []
@@ -59,8 +60,6 @@ class SimService(Service):
         self.chunk_latency: collections.deque[float] = collections.deque(maxlen=1000)  # per env and chunk
         self.peers_live: set[str] = set()
         self.gen_epoch = 0
-        self.episode = {env: 0 for env in range(cfg.num_envs)}  # index of each env's current (or next) episode
-        self.episodes_moved = asyncio.Event()
         self.bus.watch_liveliness(keys.live_all(self.run_name), self._on_liveliness)
         psutil.cpu_percent(percpu=True)
         self.gpus = GpuMonitor()
@@ -93,9 +92,9 @@ class SimService(Service):
         rollout_length = self.schedule.rollout_length
         seq = 0
         while True:
-            active = [i for i in range(per) if self.may_act(int(env_ids[i]))]
+            active = [i for i in range(per) if self.episodes.may_act(int(env_ids[i]))]
             if not active:  # every env waits for GRPO group-mates in other sim groups
-                await self.episodes_moved.wait()
+                await self.episodes.moved()
                 continue
             chunk = await self.exchange(g, seq, env_ids, obs)
             start = time.time()
@@ -113,13 +112,13 @@ class SimService(Service):
                 if res is None:
                     continue
                 if isinstance(res, WorkerFailed):  # replaced; its episode so far is dropped, never published
-                    next_obs[i] = await self.replace_worker(g, i, env, res, self.episode[env] + 1)
+                    next_obs[i] = await self.replace_worker(g, i, env, res, self.episodes.index[env] + 1)
                     self.count("sim/partial_decisions_dropped", len(builders[i]))
                     builders[i] = SegmentBuilder(g, env, self.cfg.sim.segment_length)
-                    self.set_episode(env, self.episode[env] + 1)
+                    self.episodes.set(env, self.episodes.index[env] + 1)
                     continue
                 self.chunk_latency.append(latencies[i])
-                self.set_episode(env, res.episode + int(res.terminated or res.truncated))
+                self.episodes.set(env, res.episode + int(res.terminated or res.truncated))
                 self.count("sim/env_steps", res.steps)
                 self.count("sim/step_busy_s", res.busy_s)
                 if res.episode_return is not None:
@@ -138,25 +137,9 @@ class SimService(Service):
             obs = next_obs
             seq += 1
 
-    def group_members(self, env: int) -> range:
-        """The envs that start their episodes from the same states as ``env`` (GRPO), else just ``env``."""
-        share = self.cfg.algo.group_size if self.cfg.algo.name == "grpo" else 1
-        return range(env // share * share, (env // share + 1) * share)
-
-    def may_act(self, env: int) -> bool:
-        """GRPO's rollouts of one group run episode by episode together: an env that finished its episode
-        waits at the start of the next one until every group-mate finished too (so every group completes)."""
-        return self.episode[env] <= min(self.episode[m] for m in self.group_members(env))
-
-    def set_episode(self, env: int, index: int) -> None:
-        if index != self.episode[env]:
-            self.episode[env] = index
-            self.episodes_moved.set()  # wake sim groups whose envs all wait
-            self.episodes_moved = asyncio.Event()
-
     def env_seed(self, env: int) -> int:
         # GRPO compares rollouts from the same initial states: a group's envs share reset seeds.
-        return self.cfg.run.seed * 100_003 + self.group_members(env)[0]
+        return self.cfg.run.seed * 100_003 + self.episodes.members(env)[0]
 
     def step_timeout(self) -> float:
         if self.cfg.sim.step_timeout > 0:

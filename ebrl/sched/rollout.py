@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import asyncio
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -80,3 +81,34 @@ class SegmentBuilder:
                     self._versions, self._returns, self._lengths):
             buf.clear()
         return segment
+
+
+class Episodes:
+    """Each env's current episode index (the one it is in, or about to start).
+
+    With groups of ``share`` envs (GRPO: envs ``g * share ... (g + 1) * share - 1`` start their episodes from
+    the same states), group-mates run episode by episode together: an env that finished its episode waits
+    at the start of the next one until every group-mate finished too, so every group of episodes completes.
+    With ``share = 1`` every env always acts."""
+
+    def __init__(self, num_envs: int, share: int = 1):
+        self.share = share
+        self.index = [0] * num_envs
+        self._moved = asyncio.Event()
+
+    def members(self, env: int) -> range:
+        first = env // self.share * self.share
+        return range(first, first + self.share)
+
+    def may_act(self, env: int) -> bool:
+        return self.share == 1 or self.index[env] <= min(self.index[m] for m in self.members(env))
+
+    def set(self, env: int, index: int) -> None:
+        if index != self.index[env]:
+            self.index[env] = index
+            self._moved.set()  # wake whoever waits for a group-mate
+            self._moved = asyncio.Event()
+
+    async def moved(self) -> None:
+        """Return when any env's episode index changes."""
+        await self._moved.wait()

@@ -99,8 +99,11 @@ class TrainService(Service):
             n = len(seg.obs)
             if seg.obs.shape[1:] != self.obs_shape or seg.actions.shape[1:] != self.action_shape \
                     or seg.latents.shape[1:] != self.latent_shape \
-                    or not n == len(seg.actions) == len(seg.latents) == len(seg.rewards) == len(seg.versions):
+                    or not 0 < n == len(seg.actions) == len(seg.latents) == len(seg.rewards) == len(seg.versions):
                 self.bus.count_malformed(key, ValueError("segment shapes do not match the policy"))
+                continue
+            if int(seg.versions.max()) > self.version:  # acted by weights this train never published
+                self.count("train/future_version_dropped")
                 continue
             self.collector.add(seg)
             self.returns.extend(seg.episode_returns)

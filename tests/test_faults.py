@@ -105,6 +105,7 @@ def test_a_killed_env_worker_is_replaced_and_the_others_keep_running(tmp_path):
     assert run.last("train/0", "bus/malformed", 0) == 0  # nothing half-built reached training
 
 
+@pytest.mark.slow
 def test_a_hung_env_worker_is_killed_after_the_step_timeout(tmp_path):
     run = Watched(tmp_path, "hang-worker", "sim.step_timeout=2.0")
     run.wait_version(2)
@@ -179,6 +180,7 @@ def test_resume_continues_a_stopped_run_with_the_version_counter(tmp_path):
     assert missing.returncode == 2 and "no checkpoint" in missing.stderr
 
 
+@pytest.mark.slow
 def test_two_runs_on_one_bus_never_see_each_others_data(tmp_path):
     # Run b joins run a's bus; the run name in every key keeps them apart. Their observations differ in shape
     # (InvertedPendulum 4, Hopper 11), so a message of the other run would be counted as malformed.

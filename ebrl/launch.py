@@ -235,7 +235,9 @@ class Launcher:
         child.restart_at = None
         extra = {}
         if child.role == "train":  # never reuse a version: the new train starts past every one seen
-            extra["EBRL_VERSION_FLOOR"] = str(max(self.version(), int(self.metric("gen/policy_version", "max") or 0)))
+            from ebrl.algos.checkpoint import VERSION_FLOOR_VAR
+
+            extra[VERSION_FLOOR_VAR] = str(max(self.version(), int(self.metric("gen/policy_version", "max") or 0)))
         with open(child.log_path, "ab") as fh:
             fh.write(f"\n--- restart {child.restarts} by the launcher ---\n".encode())
         child.proc = self.spawn(child.role, child.instance, child.log_path, extra)

@@ -23,7 +23,6 @@ from ebrl.service import Service, service_main
 
 
 POLICY_FILE = "policy.safetensors"
-VERSION_FLOOR_VAR = "EBRL_VERSION_FLOOR"  # set by the launcher when it restarts train: the newest version seen
 
 
 class TrainService(Service):
@@ -147,7 +146,7 @@ class TrainService(Service):
             restored = checkpoint.restore(found, self.model, self.ppo.optimizer, {"ppo": self.ppo.generator})
             self.version = self.saved_version = restored.version
             self.log.info("resumed from %s (policy v%d)", found, restored.version)
-        floor = int(os.environ.get(VERSION_FLOOR_VAR, "-1"))
+        floor = int(os.environ.get(checkpoint.VERSION_FLOOR_VAR, "-1"))
         if floor >= self.version and floor > 0:
             self.log.warning("versions up to v%d were published before the restart; the %s weights continue as "
                              "v%d", floor, f"v{self.version}" if found else "initial", floor + 1)

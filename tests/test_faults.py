@@ -6,7 +6,6 @@ checkpoint); flood data keys with random bytes. And `ebrl up --resume RUN_DIR` c
 """
 
 import json
-import os
 import signal
 import subprocess
 import sys

@@ -4,13 +4,11 @@ and (slow) a real headless rerun viewer screenshotted during a real run."""
 from __future__ import annotations
 
 import os
-import pathlib
 import socket
 import subprocess
 import sys
 import time
 
-import numpy as np
 import pyarrow as pa
 import pytest
 

@@ -58,6 +58,7 @@ class SimService(Service):
         self.returns: collections.deque[float] = collections.deque(maxlen=20)
         self.successes: collections.deque[bool] = collections.deque(maxlen=20)
         self.chunk_latency: collections.deque[float] = collections.deque(maxlen=1000)  # per env and chunk
+        self.stepping.timeout = self.step_timeout()  # refreshed with every stats report
         self.peers_live: set[str] = set()
         self.gen_epoch = 0
         self.bus.watch_liveliness(keys.live_all(self.run_name), self._on_liveliness)
@@ -98,7 +99,6 @@ class SimService(Service):
                 continue
             chunk = await self.exchange(g, seq, env_ids, obs)
             start = time.time()
-            self.stepping.timeout = self.step_timeout()
             done, latency_of = await self.stepping.run_chunk([workers[i] for i in active], chunk.actions[active])
             self.publish_span(f"sim.g{g}", "chunk", start, time.time())
             results: list = [None] * per  # None: waiting at the start of its next episode, did not act
@@ -185,6 +185,7 @@ class SimService(Service):
                                  ACTION_TIMEOUT_S)
 
     def metrics(self) -> dict[str, float]:
+        self.stepping.timeout = self.step_timeout()  # once per stats report, not per chunk
         out = {"sim/envs": float(sum(len(w) for w in self.workers.values()))}
         if self.returns:
             out["sim/episode_return_mean"] = float(np.mean(self.returns))

@@ -12,7 +12,7 @@ from ebrl.sched.rollout import SegmentBuilder
 
 ALGO = SimpleNamespace(gamma=0.9, gae_lambda=0.5, clip=0.2, epochs=4, minibatches=2, ent_coef=0.0, vf_coef=0.5,
                        max_grad_norm=0.5)
-POLICY = SimpleNamespace(kind="mlp", chunk=3, hidden=[16], init_log_std=-0.5)
+POLICY = SimpleNamespace(kind="mlp", chunk=3, hidden=[16], init_log_std=-0.5, checkpoint="")
 
 
 def test_gae_matches_hand_computation():

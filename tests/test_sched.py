@@ -75,7 +75,7 @@ def test_fresh_suffix_cuts_the_stale_prefix():
 
 ALGO = dict(gamma=0.9, gae_lambda=0.9, clip=0.2, epochs=2, minibatches=2, ent_coef=0.0, vf_coef=0.5,
             max_grad_norm=0.5, behave_weight_cap=5.0)
-POLICY = SimpleNamespace(kind="mlp", chunk=2, hidden=[8], init_log_std=-0.5)
+POLICY = SimpleNamespace(kind="mlp", chunk=2, hidden=[8], init_log_std=-0.5, checkpoint="")
 
 
 def trained(decoupled: bool, stale: bool) -> torch.Tensor:

@@ -32,7 +32,7 @@ def make_policy(policy_cfg: Any, layout: ObsLayout, action_dim: int) -> ChunkPol
                            cfg.denoise_steps, cfg.init_log_std)
     else:
         raise ValueError(f"policy.kind = {cfg.kind!r} is not available (mlp, cnn, flow)")
-    if getattr(cfg, "checkpoint", ""):  # getattr: tests build mlp configs without the newer fields
+    if cfg.checkpoint:
         load_checkpoint(model, cfg.checkpoint)
     return model
 

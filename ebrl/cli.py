@@ -1,4 +1,4 @@
-"""``ebrl`` command line: up, stats, profile, report, bench, schemas, config."""
+"""``ebrl`` command line: up, stats, profile, report, bench, router, schemas, config."""
 
 from __future__ import annotations
 
@@ -17,6 +17,13 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--viz", nargs="?", const="spawn", default=None, choices=("spawn", "serve", "save", "off"),
                    help="live rerun timeline: spawn a viewer (the default of a bare --viz), serve for a viewer "
                         "to connect, save RUN_DIR/timeline.rrd, or off (sets viz.rerun)")
+    p.add_argument("--only", default=None, metavar="SERVICES",
+                   help="start only these services on this host (comma-separated, e.g. sim or gen,train): one "
+                        "host of a run over several; the bus endpoints join the hosts")
+    p.add_argument("--instance", type=int, default=None, metavar="N",
+                   help="with --only: this host's number in the run (its sim is sim/N; give each host its own)")
+    p.add_argument("--host", default=None, metavar="NAME",
+                   help="start what [hosts.NAME] of the config says runs on this host")
     p.add_argument("--resume", default=None, metavar="RUN_DIR",
                    help="continue a stopped run in its directory, from its latest checkpoint (policy, optimizer, "
                         "version); run.iterations counts from the run's start")
@@ -52,6 +59,13 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--last", type=float, default=None, help="window: the last S seconds of the run")
     p.add_argument("--out", default=None, help="output directory (default RUN_DIR/report)")
 
+    p = sub.add_parser("router", help="run a Zenoh router that the hosts of a multi-host run connect to")
+    p.add_argument("--listen", action="append", default=[], metavar="ENDPOINT",
+                   help="endpoint to listen on (repeatable; default tcp/0.0.0.0:7447)")
+    p.add_argument("--connect", action="append", default=[], metavar="ENDPOINT", help="another router to join")
+    p.add_argument("--config", default="", help="native Zenoh JSON5 config (TLS, access control)")
+    p.add_argument("--quiet", action="store_true", help="do not print services joining and leaving")
+
     p = sub.add_parser("schemas", help="write schemas/*.json from ebrl/messages.py")
     p.add_argument("--dir", default="schemas")
 
@@ -63,7 +77,8 @@ def main(argv: list[str] | None = None) -> int:
     if args.command == "up":
         from ebrl.launch import up
 
-        return up(args.config, args.overrides, viz=args.viz, resume=args.resume)
+        return up(args.config, args.overrides, viz=args.viz, resume=args.resume, only=args.only, host=args.host,
+                  instance=args.instance)
     if args.command == "stats":
         from ebrl.stats import watch
 
@@ -88,6 +103,10 @@ def main(argv: list[str] | None = None) -> int:
         for path in paths.values():
             print(path)
         return 0
+    if args.command == "router":
+        from ebrl.bus.router import serve
+
+        return serve(args.listen or ["tcp/0.0.0.0:7447"], args.connect, args.config, args.quiet)
     if args.command == "schemas":
         from ebrl.messages import write_schemas
 

@@ -95,6 +95,9 @@ class SimSection:
     group_pipeline: bool | None = doc(
         "pipeline groups through generation; false makes all envs one group; absent: the mode's choice", None)
     segment_length: int = doc("chunk decisions per trajectory segment sent to training", 32)
+    hosts: int = doc("hosts running a sim service in this run (set from [hosts]; with `ebrl up --only` set it on "
+                     "every host): an iteration's batch_size decisions come from hosts x groups x envs_per_group "
+                     "envs", 1)
     step_timeout: float = doc("seconds an env worker may take for one request (a chunk, or a step when steps are "
                               "dispatched one by one) before it is killed and replaced; 0: automatic, 20x the "
                               "measured P99 chunk latency and at least 20 s (120 s until 50 chunks were seen)", 0.0)
@@ -157,6 +160,8 @@ class TrainSection:
     overlap: bool | None = doc("train while rollout goes on (bounded by algo.max_staleness); false restores the "
                                "rollout -> train barrier; absent: the mode's choice", None)
     cores: list[int] = doc("cores for the training process; empty: the mode's choice", factory=list)
+    world_size: int = doc("training ranks (processes; torch.distributed DistributedDataParallel over gloo): each "
+                          "update's batch is split between them and their gradients are all-reduced", 1)
     checkpoint_every: int = doc("write a checkpoint (policy, optimizer, version, random state) every this many "
                                 "updates, and always at the end; 0: only at the end", 10)
 
@@ -194,6 +199,21 @@ class VizSection:
     report: bool = doc("write RUN_DIR/report/ (Gantt PNG, throughput PNG, report.md) when the run ends", True)
 
 
+ROLES = ("viz", "train", "gen", "sim", "alloc")  # every service a host can run, in start order
+
+
+@dataclass
+class HostEntry:
+    """One ``[hosts.<name>]`` table: what ``ebrl up CONFIG --host <name>`` starts on that machine."""
+
+    services: list[str] = doc(f"services this host runs, from {', '.join(ROLES)}", factory=list)
+    listen: list[str] = doc("bus endpoints this host's launcher listens on (reachable by the other hosts); empty: "
+                            "bus.listen", factory=list)
+    connect: list[str] = doc("bus endpoints this host's launcher connects to (another host's listen endpoint, or "
+                             "an `ebrl router`); empty: bus.connect", factory=list)
+    cores: list[int] = doc("sim.cores on this host; empty: the config's sim.cores", factory=list)
+
+
 SECTIONS: dict[str, type] = {
     "run": RunSection,
     "bus": BusSection,
@@ -220,15 +240,22 @@ class Config:
     train: TrainSection = field(default_factory=TrainSection)
     alloc: AllocSection = field(default_factory=AllocSection)
     viz: VizSection = field(default_factory=VizSection)
+    hosts: dict[str, HostEntry] = field(default_factory=dict)  # [hosts.<name>]: which services run where
 
     @property
     def num_envs(self) -> int:
+        """Envs of one sim service (one host)."""
         return self.sim.groups * self.sim.envs_per_group
+
+    @property
+    def total_envs(self) -> int:
+        """Envs of the whole run, over every sim host."""
+        return self.num_envs * self.sim.hosts
 
     @property
     def rollout_length(self) -> int:
         """Chunk decisions of each env per iteration (one policy update consumes one iteration)."""
-        return self.train.batch_size // self.num_envs
+        return self.train.batch_size // self.total_envs
 
     def to_dict(self) -> dict[str, dict[str, Any]]:
         return dataclasses.asdict(self)
@@ -265,13 +292,16 @@ def apply_override(raw: dict[str, Any], item: str) -> None:
 
 
 def from_dict(raw: dict[str, Any]) -> Config:
-    sections = {}
+    sections: dict[str, Any] = {}
     for name, value in raw.items():
-        if name not in SECTIONS:
-            raise ConfigError(f"unknown section [{name}]; known sections: {', '.join(SECTIONS)}")
+        if name not in SECTIONS and name != "hosts":
+            raise ConfigError(f"unknown section [{name}]; known sections: {', '.join(SECTIONS)}, hosts")
         if not isinstance(value, dict):
             raise ConfigError(f"[{name}] must be a table")
-        sections[name] = _section(name, SECTIONS[name], value)
+        if name == "hosts":
+            sections[name] = _hosts(value)
+        else:
+            sections[name] = _section(name, SECTIONS[name], value)
     cfg = Config(**sections)
     _check_semantics(cfg)
     return cfg
@@ -288,6 +318,27 @@ def _section(name: str, cls: type, values: dict[str, Any]) -> Any:
     return cls(**{key: typecheck.check(value, hints[key], f"{name}.{key}", ConfigError) for key, value in values.items()})
 
 
+def _hosts(raw: dict[str, Any]) -> dict[str, HostEntry]:
+    hosts = {}
+    for name, value in raw.items():
+        try:
+            keys.check_chunk(name, "host name")
+        except ValueError as exc:
+            raise ConfigError(f"[hosts.{name}]: {exc}") from None
+        if not isinstance(value, dict):
+            raise ConfigError(f"[hosts.{name}] must be a table (services, listen, connect, cores)")
+        entry = hosts[name] = _section(f"hosts.{name}", HostEntry, value)
+        for role in entry.services:
+            if role not in ROLES:
+                raise ConfigError(f"hosts.{name}.services: unknown service {role!r}; services are {', '.join(ROLES)}")
+    for role in ("train", "gen"):
+        owners = [name for name, entry in hosts.items() if role in entry.services]
+        if hosts and len(owners) != 1:
+            raise ConfigError(f"[hosts]: exactly one host must run {role} (found {len(owners)}: "
+                              f"{', '.join(owners) or 'none'})")
+    return hosts
+
+
 def _check_semantics(cfg: Config) -> None:
     def positive(path: str, value: float) -> None:
         if value <= 0:
@@ -301,8 +352,13 @@ def _check_semantics(cfg: Config) -> None:
         raise ConfigError("train.checkpoint_every and run.max_restarts must be >= 0")
     if cfg.run.iterations < 0:
         raise ConfigError(f"run.iterations = {cfg.run.iterations}: must be >= 0")
-    for path in ("sim.groups", "sim.envs_per_group", "sim.segment_length", "policy.chunk", "algo.epochs",
-                 "algo.minibatches", "train.batch_size", "train.lr", "train.threads", "gen.threads",
+    if cfg.hosts:
+        sim_hosts = sum("sim" in entry.services for entry in cfg.hosts.values())
+        if sim_hosts == 0:
+            raise ConfigError("[hosts]: no host runs sim")
+        cfg.sim.hosts = sim_hosts
+    for path in ("sim.groups", "sim.envs_per_group", "sim.hosts", "sim.segment_length", "policy.chunk", "algo.epochs",
+                 "algo.minibatches", "train.batch_size", "train.lr", "train.threads", "train.world_size", "gen.threads",
                  "run.stats_interval", "train.max_pending", "viz.window_s", "viz.port", "policy.embed_dim",
                  "policy.denoise_steps"):
         section, key = path.split(".")
@@ -311,10 +367,10 @@ def _check_semantics(cfg: Config) -> None:
         raise ConfigError(f"algo.gamma = {cfg.algo.gamma}: must be in (0, 1]")
     if not cfg.bus.listen and not cfg.bus.connect:
         raise ConfigError("bus.listen and bus.connect are both empty: services could not find each other")
-    if cfg.train.batch_size % cfg.num_envs:
+    if cfg.train.batch_size % cfg.total_envs:
         raise ConfigError(f"train.batch_size = {cfg.train.batch_size}: must be a multiple of the number of envs "
-                          f"(sim.groups x sim.envs_per_group = {cfg.num_envs}); each env runs batch_size / envs "
-                          "decisions per iteration")
+                          f"(sim.hosts x sim.groups x sim.envs_per_group = {cfg.total_envs}); each env runs "
+                          "batch_size / envs decisions per iteration")
     if cfg.algo.name == "grpo":
         envs = cfg.sim.groups * cfg.sim.envs_per_group
         if cfg.algo.group_size < 2 or envs % cfg.algo.group_size:
@@ -337,6 +393,9 @@ def _check_semantics(cfg: Config) -> None:
                  "alloc.profile_seconds"):
         section, key = path.split(".")
         positive(path, getattr(getattr(cfg, section), key))
+    if cfg.train.world_size > 1 and cfg.train.batch_size // cfg.train.world_size < cfg.algo.minibatches:
+        raise ConfigError(f"train.world_size = {cfg.train.world_size}: each rank's share of train.batch_size "
+                          f"({cfg.train.batch_size}) must hold algo.minibatches ({cfg.algo.minibatches}) decisions")
     if cfg.train.max_pending < cfg.train.batch_size:
         raise ConfigError(f"train.max_pending = {cfg.train.max_pending}: must be >= train.batch_size ({cfg.train.batch_size})")
 
@@ -356,7 +415,10 @@ def parse_slowdown(text: str) -> tuple[str, float, float]:
 def dump_toml(cfg: Config) -> str:
     """The resolved config as TOML (what services read and what the run directory keeps)."""
     lines = []
-    for section, values in cfg.to_dict().items():
+    tables = cfg.to_dict()
+    hosts = tables.pop("hosts")
+    tables.update({f"hosts.{name}": entry for name, entry in hosts.items()})
+    for section, values in tables.items():
         lines.append(f"[{section}]")
         for key, value in values.items():
             if value is not None:
@@ -395,7 +457,7 @@ def _type_name(tp: Any) -> str:
 def describe() -> str:
     """Every section and key with its type, default and docstring (``ebrl config --fields``)."""
     out = []
-    for name, cls in SECTIONS.items():
+    for name, cls in (*SECTIONS.items(), ("hosts.<name>", HostEntry)):
         out.append(f"[{name}]")
         hints = typing.get_type_hints(cls)
         for f in dataclasses.fields(cls):

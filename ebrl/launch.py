@@ -5,6 +5,13 @@ The launcher is a bus peer like the services: it listens on ``bus.listen``
 up, reads ``ebrl/stats/<run>/**`` for the progress line, and stops the run with
 ``ctl/.../stop`` messages, then SIGTERM, then SIGKILL, so that no process is
 left after ``SHUTDOWN_S`` seconds.
+
+In a run over several hosts (``--only``, ``--host``: ``ebrl.hosts``) there is
+one launcher per host, started the same way. Each is then a Zenoh *router*: the
+services of its host still talk to each other directly, and what crosses hosts
+is routed between the launchers. The primary (the host with ``train``) reports
+hosts joining and leaving and ends the run for everyone (``ctl/<run>/launcher/
+all/stop``); a host whose primary is gone for ``PRIMARY_LOST_S`` stops too.
 """
 
 from __future__ import annotations
@@ -24,21 +31,18 @@ from pathlib import Path
 
 from ebrl import config as config_mod
 from ebrl.bus import Bus, BusOptions, keys
+from ebrl.hosts import HostPlan, enabled_roles, plan as plan_host
 from ebrl.messages import Event, StatsReport, Stop
 from ebrl.viz import record
 
 log = logging.getLogger("ebrl.launch")
 
-SERVICES = ("train", "gen", "sim")  # started in this order; each is `python -m services.<role>`
 STOP_GRACE_S = 5.0  # after the stop message, before SIGTERM
 SHUTDOWN_S = 8.0  # after which anything left is SIGKILLed
 LOG_TAIL = 20
-
-
-def services_for(cfg: config_mod.Config) -> tuple[str, ...]:
-    """The roles a run starts, in start order (viz first, so that it sees the run from its start; the
-    allocator last, as it only reads the others' stats)."""
-    return (("viz",) if cfg.viz.rerun != "off" else ()) + SERVICES + (("alloc",) if cfg.alloc.enabled else ())
+PRIMARY_LOST_S = 30.0  # a secondary host stops when no train has been live for this long
+EVERY_HOST = "all"  # the instance chunk of the run-wide stop: ctl/<run>/launcher/all/stop
+PRIMARY_ENDED = "the primary host ended the run"
 
 
 @dataclasses.dataclass
@@ -53,6 +57,7 @@ class Child:
     @property
     def name(self) -> str:
         return f"{self.role}/{self.instance}"
+
 
     def tail(self, n: int = LOG_TAIL) -> str:
         try:
@@ -73,17 +78,27 @@ def make_run_dir(cfg: config_mod.Config) -> Path:
     return run_dir
 
 
-def listen_endpoint(wanted: str) -> str:
-    """``wanted`` if its TCP port is free, else the same host on a free port (logged)."""
+def free_port(host: str = "127.0.0.1") -> int:
+    with socket.socket() as sock:
+        sock.bind((host, 0))
+        return sock.getsockname()[1]
+
+
+def listen_endpoint(wanted: str, strict: bool = False) -> str:
+    """``wanted`` if its TCP port is free, else the same host on a free port (logged); ``strict`` (other
+    hosts will connect to it) raises OSError instead."""
     proto, _, address = wanted.partition("/")
     host, _, port = address.rpartition(":")
     if proto != "tcp" or not port.isdigit():
         return wanted
     with socket.socket() as sock:
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)  # as Zenoh's listener: TIME_WAIT is no conflict
         try:
             sock.bind((host.strip("[]"), int(port)))
             return wanted
         except OSError:
+            if strict:
+                raise OSError(f"cannot listen on {wanted}: the port is busy or the address is not this host's")
             sock.bind((host.strip("[]"), 0))
             free = f"tcp/{host}:{sock.getsockname()[1]}"
     print(f"ebrl: {wanted} is busy (another run?); listening on {free} instead", file=sys.stderr)
@@ -97,9 +112,14 @@ def _die_with_parent() -> None:  # runs in the child between fork and exec
 
 
 class Launcher:
-    def __init__(self, cfg: config_mod.Config, run_dir: Path, out=sys.stdout):
+    def __init__(self, cfg: config_mod.Config, run_dir: Path, out=sys.stdout, plan: HostPlan | None = None):
         self.cfg, self.run_dir, self.out = cfg, run_dir, out
+        self.plan = plan or HostPlan(enabled_roles(cfg))
         self.run_name = cfg.run.name
+        self.dist_addr = ""  # rank 0's rendezvous of the training ranks (train.world_size > 1)
+        self.hosts_seen: set[str] = set()  # launcher instances of the other hosts that joined
+        self.ending = False
+        self.train_seen_at: float | None = None  # when a train was last live (a secondary waits for it)
         self.children: list[Child] = []
         self.live: set[str] = set()
         self.stats: dict[str, StatsReport] = {}
@@ -117,10 +137,15 @@ class Launcher:
         loop = asyncio.get_running_loop()
         for sig in (signal.SIGINT, signal.SIGTERM):
             loop.add_signal_handler(sig, self._on_signal, sig)
-        self.endpoint = listen_endpoint(self.cfg.bus.listen[0]) if self.cfg.bus.listen else ""
+        multi = self.plan.multi
+        try:
+            self.endpoint = listen_endpoint(self.cfg.bus.listen[0], strict=multi) if self.cfg.bus.listen else ""
+        except OSError as exc:
+            self._say(f"ebrl: {exc}")
+            return 2
         listen = [self.endpoint, *self.cfg.bus.listen[1:]] if self.endpoint else []
-        self.bus = Bus(BusOptions(mode="peer", listen=listen, connect=list(self.cfg.bus.connect),
-                                  config_file=self.cfg.bus.config_file))
+        self.bus = Bus(BusOptions(mode="router" if multi else "peer", listen=listen,
+                                  connect=list(self.cfg.bus.connect), config_file=self.cfg.bus.config_file))
         (self.run_dir / "bus.json").write_text(json.dumps({"listen": listen, "run": self.run_name}) + "\n")
         self.recorder = record.Recorder(self.run_dir / record.FILENAME) if self.cfg.viz.record else None
         if self.recorder is not None:
@@ -128,18 +153,31 @@ class Launcher:
         self.bus.watch_liveliness(keys.live_all(self.run_name), self._on_liveliness)
         self.ctl_unknown = 0
         self.bus.subscribe_raw(keys.ctl(self.run_name, "*", "*", "*"), self._on_control)
-        self.bus.declare_token(keys.live(self.run_name, "launcher", 0))
+        me = keys.live(self.run_name, "launcher", self.plan.instance)
+        if multi:  # the other hosts' tokens arrive once the routers met: is this host number taken?
+            await asyncio.sleep(1.0)
+            if me in self.live:
+                self._say(f"ebrl: host {self.plan.instance} of run {self.run_name} is already up elsewhere on the "
+                          "bus; give each host its own --instance (or --host)")
+                await self.bus.close()
+                return 2
+        self.bus.declare_token(me)
         stats_tasks = [asyncio.create_task(self._collect(self.bus.subscribe(
             keys.stats(self.run_name, role, "*"), StatsReport, policy="latest", capacity=64)))
-            for role in services_for(self.cfg)]
+            for role in enabled_roles(self.cfg)]
         code = 1
         try:
-            self._say(f"run {self.run_name}: {self.run_dir}  (bus {self.endpoint or ', '.join(self.cfg.bus.connect)})")
+            where = f"host {self.plan.name or self.plan.instance}: {', '.join(self.plan.roles)}; " if multi else ""
+            self._say(f"run {self.run_name}: {self.run_dir}  ({where}bus {self.endpoint or ', '.join(self.cfg.bus.connect)})")
             self.spawn_all()
             if await self.wait_live():
                 code = await self.supervise()
         finally:
+            self.ending = True
             self.event("stopping", self.failure or self.stop_reason or "run finished")
+            if multi and self.plan.primary:  # every host ends with the primary
+                await self.bus.put(keys.ctl(self.run_name, "launcher", EVERY_HOST, "stop"),
+                                   Stop(reason=self.failure or self.stop_reason or "run finished"))
             await self.shutdown()
             for task in stats_tasks:
                 task.cancel()
@@ -157,14 +195,21 @@ class Launcher:
     # --- processes ----------------------------------------------------------------
 
     def spawn_all(self) -> None:
-        for role in services_for(self.cfg):
-            log_path = self.run_dir / "logs" / f"{role}-0.log"
-            self.children.append(Child(role, 0, self.spawn(role, 0, log_path), log_path))
+        if self.cfg.train.world_size > 1:
+            self.dist_addr = f"127.0.0.1:{free_port()}"
+        for role in self.plan.roles:
+            for instance in self.plan.instances(role, self.cfg):
+                log_path = self.run_dir / "logs" / f"{role}-{instance}.log"
+                self.children.append(Child(role, instance, self.spawn(role, instance, log_path), log_path))
 
     def spawn(self, role: str, instance: int, log_path: Path, extra_env: dict[str, str] | None = None
               ) -> subprocess.Popen:
         """Start ``python -m services.<role>``; its output is appended to ``log_path``."""
         env = dict(os.environ, PYTHONUNBUFFERED="1", **(extra_env or {}))
+        if role == "train" and self.dist_addr:
+            from ebrl.algos.parallel import ADDR_VAR
+
+            env[ADDR_VAR] = self.dist_addr
         root = str(Path(__file__).resolve().parent.parent)
         env["PYTHONPATH"] = root + os.pathsep + env.get("PYTHONPATH", "")  # `services` beside `ebrl`
         cmd = [sys.executable, "-m", f"services.{role}", "--config", str(self.run_dir / "config.toml"),
@@ -218,6 +263,14 @@ class Launcher:
             if restart and self.cfg.run.restart == "on-failure" and child.restarts < self.cfg.run.max_restarts:
                 delay = min(2.0 ** child.restarts, 30.0)
                 child.restart_at = now + delay
+                if child.role == "train" and self.dist_addr:  # one rank gone breaks the group: restart every rank
+                    for rank in self.children:
+                        if rank.role == "train" and rank is not child:
+                            if rank.proc.poll() is None:
+                                os.killpg(rank.proc.pid, signal.SIGKILL)
+                                rank.proc.wait(5.0)
+                            rank.restart_at = now + delay
+                    self.dist_addr = f"127.0.0.1:{free_port()}"
                 self.event("exited", f"{what}; restart {child.restarts + 1}/{self.cfg.run.max_restarts} in "
                                      f"{delay:.0f} s")
                 self._say(f"\nebrl: {what}; restarting it in {delay:.0f} s "
@@ -266,11 +319,14 @@ class Launcher:
                 self.publish_stats()
                 last_stats = time.monotonic()
             self.progress()
-            if target and self.version() >= target:
+            if not self.plan.primary:
+                if self.primary_lost():
+                    return 1
+            elif target and self.version() >= target:
                 self.progress(force=True)
                 return 0
             goal, ret = self.cfg.run.target_return, self.metric("sim/episode_return_mean", "mean")
-            if goal is not None and ret is not None and ret >= goal:
+            if self.plan.primary and goal is not None and ret is not None and ret >= goal:
                 self.progress(force=True)
                 self.reached = (self.version(), time.monotonic() - self.started, ret)
                 self._say(f"reached run.target_return = {goal:g}: mean return {ret:.1f} at iteration "
@@ -280,7 +336,20 @@ class Launcher:
                 await asyncio.wait_for(self.stopping.wait(), 0.5)
             except asyncio.TimeoutError:
                 pass
+        if self.stop_reason == PRIMARY_ENDED:
+            return 0
         return 130 if self.stop_reason.startswith("signal SIGINT") else 143
+
+    def primary_lost(self) -> bool:
+        """A secondary host: True (and the failure said) once the run's train has been gone too long."""
+        if any(keys.parse(k)[3] == "train" for k in self.live):
+            self.train_seen_at = time.monotonic()
+            return False
+        if self.train_seen_at is None or time.monotonic() - self.train_seen_at < PRIMARY_LOST_S:
+            return False
+        self.failure = f"no train on the bus for {PRIMARY_LOST_S:.0f} s: the primary host is gone"
+        self._say(f"\nebrl: {self.failure}")
+        return True
 
     async def shutdown(self) -> None:
         if self.tty:
@@ -314,10 +383,17 @@ class Launcher:
             self._say(f"\nebrl: {sig.name} received, stopping every service")
             self.stopping.set()
 
-    def _on_control(self, key: str, _: bytes) -> None:
-        """Control messages for a service this run does not have are ignored by everyone; counted here."""
+    def _on_control(self, key: str, payload: bytes) -> None:
+        """Control messages for a service this run does not have are ignored by everyone; counted here.
+        A secondary host's launcher stops when the primary ends the run."""
         role = keys.parse(key)[3]
-        if role not in services_for(self.cfg):
+        if role == "launcher":
+            if self.plan.multi and not self.plan.primary and key.endswith("/stop") and not self.stopping.is_set():
+                self.stop_reason = PRIMARY_ENDED
+                self._say(f"\nebrl: {self.stop_reason}; stopping this host's services")
+                self.stopping.set()
+            return
+        if role not in enabled_roles(self.cfg):
             if not self.ctl_unknown:
                 log.warning("control message for an unknown service ignored: %s (further ones only counted)", key)
             self.ctl_unknown += 1
@@ -327,6 +403,17 @@ class Launcher:
             self.live.add(key)
         else:
             self.live.discard(key)
+        role, instance = keys.parse(key)[3:5]
+        if not self.plan.multi or role != "launcher" or instance == str(self.plan.instance):
+            return
+        if alive and instance not in self.hosts_seen:
+            self.hosts_seen.add(instance)
+            self._say(f"\nebrl: host {instance} joined the run")
+            self.event("host", f"host {instance} joined the run")
+        elif not alive and instance in self.hosts_seen and not self.ending:
+            self.hosts_seen.discard(instance)
+            self._say(f"\nebrl: host {instance} left the run; nothing waits for its groups")
+            self.event("host", f"host {instance} left the run")
 
     async def _collect(self, sub) -> None:
         async for key, report in sub:
@@ -431,13 +518,16 @@ def preflight(cfg: config_mod.Config) -> str | None:
     return None
 
 
-def up(config_path: str, overrides: list[str], viz: str | None = None, resume: str | None = None) -> int:
+def up(config_path: str, overrides: list[str], viz: str | None = None, resume: str | None = None,
+       only: str | None = None, host: str | None = None, instance: int | None = None) -> int:
     """``ebrl up``: exit 2 on a config error (nothing started), else the run's exit code.
-    ``viz`` (``--viz``) sets ``viz.rerun``; ``resume`` (``--resume RUN_DIR``) continues that run."""
+    ``viz`` (``--viz``) sets ``viz.rerun``; ``resume`` (``--resume RUN_DIR``) continues that run;
+    ``only``/``instance`` or ``host`` start this host's part of a run over several hosts."""
     if viz is not None:
         overrides = [*overrides, f'viz.rerun="{viz}"']
     try:
         cfg = config_mod.load(config_path, overrides)
+        cfg, plan = plan_host(cfg, only=only, host=host, instance=instance)
     except config_mod.ConfigError as exc:
         print(f"ebrl: config error: {exc}", file=sys.stderr)
         return 2
@@ -445,7 +535,7 @@ def up(config_path: str, overrides: list[str], viz: str | None = None, resume: s
     if problem:
         print(f"ebrl: {problem}", file=sys.stderr)
         return 2
-    if cfg.alloc.enabled:  # profile (or reuse a profile) and start every service inside Algorithm 1's plan
+    if "alloc" in plan.roles:  # profile (or reuse a profile) and start every service inside Algorithm 1's plan
         from ebrl.alloc.algorithm import InfeasibleError
         from ebrl.alloc.runtime import initial_config
         from ebrl.resources.pool import ResourceError
@@ -470,4 +560,4 @@ def up(config_path: str, overrides: list[str], viz: str | None = None, resume: s
         run_dir = make_run_dir(cfg)
     (run_dir / "config.toml").write_text(config_mod.dump_toml(cfg))
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
-    return asyncio.run(Launcher(cfg, run_dir).main())
+    return asyncio.run(Launcher(cfg, run_dir, plan=plan).main())

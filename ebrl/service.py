@@ -317,7 +317,9 @@ def service_main(cls: type[Service], argv: list[str] | None = None) -> None:
         sys.exit(2)
     logging.basicConfig(level=cfg.run.log_level.upper(),
                         format=f"%(asctime)s {cls.role}/{args.instance} %(levelname)s %(name)s: %(message)s")
-    options = BusOptions(mode=cfg.bus.mode, connect=args.connect + list(cfg.bus.connect),
+    # Started by a launcher: join through it alone. Between hosts the launchers route; a service that also
+    # linked to another host's launcher would make a loop that Zenoh does not propagate declarations over.
+    options = BusOptions(mode=cfg.bus.mode, connect=args.connect or list(cfg.bus.connect),
                          listen=["tcp/127.0.0.1:0"], config_file=cfg.bus.config_file,
                          max_message_bytes=cfg.bus.max_message_bytes)
     service = cls(cfg, args.instance, options, run_dir=os.path.dirname(os.path.abspath(args.config)))

@@ -38,15 +38,25 @@ class GenService(Service):
         self.policy = make_policy(cfg.policy, info.layout, info.action_dim)
         self.policy.eval()
         self.version = -1
-        self.max_groups = cfg.gen.max_batch_groups or self.schedule.groups
+        self.batch_groups = cfg.gen.max_batch_groups  # 0: every group of every live sim host
+        self.sim_hosts: set[str] = set()
+        self.bus.watch_liveliness(keys.live(self.run_name, "sim"), self._on_sim_liveliness)
         self.waiting: list[Observation] = []  # observations whose iteration needs a newer policy
         # Forward passes run on one dedicated thread, never on the event loop.
         self.pool = concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix="gen-forward")
         self.wake = asyncio.Event()
-        self.obs = self.bus.subscribe(keys.obs(self.run_name), Observation, capacity=4 * self.schedule.groups,
+        # A group has at most one observation in flight; room for the groups of many sim hosts.
+        self.obs = self.bus.subscribe(keys.obs(self.run_name), Observation, capacity=4 * self.schedule.groups * 16,
                                       notify=self.wake)
         self.weights = self.bus.subscribe(keys.weights(self.run_name), Weights, policy="latest", capacity=1,
                                           notify=self.wake)
+
+    def _on_sim_liveliness(self, key: str, alive: bool) -> None:
+        (self.sim_hosts.add if alive else self.sim_hosts.discard)(key)
+
+    @property
+    def max_groups(self) -> int:
+        return self.batch_groups or self.schedule.groups * max(1, len(self.sim_hosts))
 
     async def run(self) -> None:
         await self.initial_weights()
@@ -111,7 +121,7 @@ class GenService(Service):
         """Threads as the base does; ``batch`` caps the envs of one forward pass (whole groups, at least one)."""
         super().on_quota(quota)
         if quota.batch:
-            self.max_groups = max(1, quota.batch // self.schedule.envs_per_group)
+            self.batch_groups = max(1, quota.batch // self.schedule.envs_per_group)
 
     def metrics(self) -> dict[str, float]:
         return {"gen/policy_version": float(self.version), "gen/obs_queue": float(len(self.obs)),

@@ -39,9 +39,13 @@ class SimService(Service):
             self.stepping = RebindingStepping(sched.sim_cores, on_step=self._on_core_step)
         else:
             self.stepping = IndependentStepping() if sched.stepping == "async" else BatchStepping()
-        self.groups = list(range(sched.groups))
+        # sim/<instance> runs on host <instance> of a multi-host run: its group and env ids follow the
+        # other hosts' (group ids name bus keys, env ids seed the envs), so every one is unique in the run.
+        first = self.instance * sched.groups
+        self.groups = list(range(first, first + sched.groups))
         per = sched.envs_per_group
-        self.episodes = Episodes(cfg.num_envs, cfg.algo.group_size if cfg.algo.name == "grpo" else 1)
+        self.episodes = Episodes(range(first * per, (first + sched.groups) * per),
+                                 cfg.algo.group_size if cfg.algo.name == "grpo" else 1)
         self.workers: dict[int, list[EnvWorker]] = {}
         for g in self.groups:
             self.workers[g] = []
@@ -68,6 +72,7 @@ class SimService(Service):
 
     def _on_liveliness(self, key: str, alive: bool) -> None:
         (self.peers_live.add if alive else self.peers_live.discard)(key)
+        self.log.debug("%s %s", key, "live" if alive else "gone")
         if not alive and not self.stopping.is_set():
             self.log.warning("%s left the bus", key)
         if alive and keys.parse(key)[3] == "gen":

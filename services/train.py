@@ -1,10 +1,14 @@
-"""train service: consumes trajectory segments continuously, runs PPO updates, publishes versioned weights."""
+"""train service: consumes trajectory segments continuously, runs PPO updates, publishes versioned weights.
+
+With ``train.world_size`` > 1 this is one rank of a data-parallel group (``ebrl.algos.parallel``): rank 0
+talks to the run, the other ranks only learn from the shards rank 0 scatters to them."""
 
 from __future__ import annotations
 
 import asyncio
 import collections
 import concurrent.futures
+import contextlib
 import os
 import time
 
@@ -13,7 +17,8 @@ import torch
 
 from ebrl.algos import checkpoint
 from ebrl.algos.grpo import GroupCollector
-from ebrl.algos.ppo import PPO, SegmentCollector
+from ebrl.algos.parallel import KEEPALIVE_S, Command, DataParallel, shards
+from ebrl.algos.ppo import PPO, Batch, SegmentCollector
 from ebrl.bus import keys
 from ebrl.envs import EnvSpec, describe
 from ebrl.messages import TrajectorySegment, Weights, encode_message
@@ -31,8 +36,10 @@ class TrainService(Service):
     async def setup(self) -> None:
         cfg = self.cfg
         self.schedule = resolve(cfg)
-        if self.schedule.train_cores:
-            os.sched_setaffinity(0, self.schedule.train_cores)
+        self.rank, self.world = self.instance, cfg.train.world_size
+        cores = self.schedule.train_cores
+        if cores:  # ranks share the training cores: each its own slice when there are enough
+            os.sched_setaffinity(0, cores[self.rank::self.world] if len(cores) >= self.world else cores)
         torch.manual_seed(cfg.run.seed)
         torch.set_num_threads(cfg.train.threads)
         info = await asyncio.get_running_loop().run_in_executor(None, describe, EnvSpec.from_config(cfg.env))
@@ -46,7 +53,15 @@ class TrainService(Service):
         self.ppo = PPO(self.model, cfg.algo, cfg.train.lr, seed=cfg.run.seed)
         self.version = 0
         self.saved_version = -1
-        self.resume()
+        self.ranks_stopped = False  # rank 0 sent (or, on ranks > 0, received) the stop command
+        self.receiving: concurrent.futures.Future | None = None
+        self.resume()  # every rank starts from the same checkpoint
+        self.dp: DataParallel | None = None
+        if self.world > 1:  # waits until every rank joined; DDP starts everyone from rank 0's weights
+            self.dp = await asyncio.get_running_loop().run_in_executor(
+                None, DataParallel, self.model, self.rank, self.world)
+            self.ppo.net = self.dp.net
+            self.log.info("rank %d of %d joined the training group", self.rank, self.world)
         collector = GroupCollector if cfg.algo.name == "grpo" else SegmentCollector
         self.collector = collector(cfg.algo, cfg.train.max_pending, self.schedule.max_staleness, self.count)
         self.enough = asyncio.Event()
@@ -54,6 +69,8 @@ class TrainService(Service):
         self.returns: collections.deque[float] = collections.deque(maxlen=20)
         self.staleness_hist = np.zeros(self.schedule.max_staleness + 1, dtype=np.int64)  # decisions per lag
         self.pool = concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix="train-update")
+        if self.rank > 0:
+            return
         self.traj = self.bus.subscribe(keys.traj(self.run_name), TrajectorySegment, capacity=256)
         self.encoded_weights = self.encode_weights()
 
@@ -66,11 +83,21 @@ class TrainService(Service):
         return encode_message(Weights(version=self.version, params=state_arrays(self.model), created_at=time.time()))
 
     async def run(self) -> None:
+        if self.rank > 0:
+            return await self.follow()
         receiver = asyncio.create_task(self.receive())
+        loop = asyncio.get_running_loop()
         try:
             await self.publish_weights()
             while self.cfg.run.iterations == 0 or self.version < self.cfg.run.iterations:
-                await self.enough.wait()
+                if self.dp is None:
+                    await self.enough.wait()
+                else:
+                    try:
+                        await asyncio.wait_for(self.enough.wait(), KEEPALIVE_S)
+                    except asyncio.TimeoutError:  # the other ranks wait in a collective: tell them to go on
+                        await loop.run_in_executor(self.pool, self.dp.send, Command("idle"))
+                        continue
                 items = self.collector.take(self.version, self.cfg.train.batch_size)
                 if self.collector.ready_steps < self.cfg.train.batch_size:
                     self.enough.clear()
@@ -88,9 +115,44 @@ class TrainService(Service):
                 if every and self.version % every == 0:
                     await asyncio.get_running_loop().run_in_executor(self.pool, self.save_checkpoint)
             self.log.info("reached run.iterations = %d; idle until stopped", self.cfg.run.iterations)
+            await self.stop_ranks()
             await self.stopping.wait()
         finally:
             receiver.cancel()
+
+    async def follow(self) -> None:
+        """Ranks > 0: learn from the shards rank 0 scatters until it says stop."""
+        while await self.follow_one():
+            pass
+        self.log.info("rank 0 said stop; idle until stopped")
+        await self.stopping.wait()
+
+    async def follow_one(self) -> bool:
+        """Ranks > 0: carry out rank 0's next command; False once it said stop. A command being received
+        when the task is cancelled is kept for the next call (``teardown`` drains up to the stop)."""
+        if self.receiving is None or self.receiving.cancelled():
+            self.receiving = self.pool.submit(self.dp.receive)
+        command = await asyncio.wrap_future(self.receiving)
+        self.receiving = None
+        if command.kind == "update":
+            start = time.time()
+            losses = await asyncio.get_running_loop().run_in_executor(self.pool, self.learn, command.items)
+            self.publish_span("train", f"update.r{self.rank}", start, time.time())
+            self.version += 1
+            self.last = {f"train/{k}": v for k, v in losses.items()}
+            self.count("train/updates")
+        self.ranks_stopped = command.kind == "stop"
+        return not self.ranks_stopped
+
+    async def stop_ranks(self) -> None:
+        """Rank 0: release the other ranks from their collective (once); they may be gone (a crash): give up
+        after a few seconds."""
+        if self.dp is not None and not self.ranks_stopped:
+            self.ranks_stopped = True
+            try:
+                await asyncio.wait_for(asyncio.to_thread(self.dp.send, Command("stop")), 5.0)
+            except (asyncio.TimeoutError, RuntimeError) as exc:
+                self.log.warning("could not tell the other training ranks to stop: %r", exc)
 
     async def receive(self) -> None:
         """Drain trajectories all the time (also during updates) into the algorithm's bounded collector."""
@@ -111,7 +173,17 @@ class TrainService(Service):
                 self.enough.set()
 
     def update(self, items: list) -> dict[str, float]:
-        """One update (runs on the update thread)."""
+        """One update (runs on the update thread); with several ranks, rank 0 keeps the first shard."""
+        if self.dp is not None:
+            parts = shards(items, self.collector.size, self.world)
+            items = self.dp.send([Command("update", part) for part in parts]).items
+        return self.learn(items)
+
+    def learn(self, items: list) -> dict[str, float]:
+        """The gradient steps on this rank's items; a rank without items steps with zero gradients."""
+        if not items:
+            out = self.ppo.update(self.empty_batch(), scale=0.0)
+            return {**out, "batch_size": 0.0}
         batch = self.collector.build(items, self.model)
         staleness = self.version - batch.versions
         self.staleness_hist += np.bincount(staleness, minlength=len(self.staleness_hist))[:len(self.staleness_hist)]
@@ -119,6 +191,14 @@ class TrainService(Service):
         out.update(staleness_mean=float(staleness.mean()), staleness_max=float(staleness.max()),
                    batch_size=float(len(batch)))
         return out
+
+    def empty_batch(self) -> Batch:
+        """Zeros shaped like a batch of ``algo.minibatches`` decisions (for ``scale = 0`` steps)."""
+        n = self.cfg.algo.minibatches
+        zeros = torch.zeros(n)
+        return Batch(obs=torch.zeros(n, *self.obs_shape), actions=torch.zeros(n, *self.action_shape),
+                     latents=torch.zeros(n, *self.latent_shape), logprobs=zeros, advantages=zeros, returns=zeros,
+                     values=zeros, versions=np.full(n, self.version))
 
     async def publish_weights(self) -> None:
         """Encode the current weights once: published now, and served to late joiners by the queryable."""
@@ -129,8 +209,10 @@ class TrainService(Service):
         self.count("train/weights_published")
 
     def metrics(self) -> dict[str, float]:
-        out = {"train/policy_version": float(self.version), "train/pending_steps": float(self.collector.pending_steps),
-               "train/traj_queue": float(len(self.traj)), **self.last}
+        out = {"train/policy_version": float(self.version), **self.last}
+        if self.rank > 0:
+            return out
+        out.update({"train/pending_steps": float(self.collector.pending_steps), "train/traj_queue": float(len(self.traj))})
         if self.returns:
             out["train/episode_return_mean"] = float(np.mean(self.returns))
         for lag, n in enumerate(self.staleness_hist):
@@ -168,10 +250,20 @@ class TrainService(Service):
         self.log.debug("checkpoint %s", path)
 
     async def teardown(self) -> None:
-        self.pool.shutdown(wait=True, cancel_futures=True)
+        if self.rank > 0:  # finish what rank 0 started, up to its stop
+            with contextlib.suppress(RuntimeError):  # rank 0 is gone: the collective failed
+                while self.dp is not None and not self.ranks_stopped and await self.follow_one():
+                    pass
+        await asyncio.to_thread(self.pool.shutdown, wait=True, cancel_futures=True)  # an update in flight ends
+        if self.rank == 0:
+            await self.stop_ranks()
+        if self.dp is not None:
+            self.dp.close()
+        if self.rank > 0:
+            return
         if self.version > 0:
             self.save_checkpoint()
-        if self.version > 0:  # the trained policy, for `--set policy.checkpoint=RUN_DIR/policy.safetensors`
+            # the trained policy, for `--set policy.checkpoint=RUN_DIR/policy.safetensors`
             path = os.path.join(self.run_dir, POLICY_FILE)
             save_checkpoint(self.model, path, {"run": self.run_name, "version": str(self.version)})
             self.log.info("policy v%d saved to %s", self.version, path)

@@ -147,7 +147,7 @@ def test_group_mates_run_their_episodes_together():
     from ebrl.sched.rollout import Episodes
 
     async def scenario():
-        episodes = Episodes(4, share=2)  # groups {0, 1} and {2, 3}
+        episodes = Episodes(range(4), share=2)  # groups {0, 1} and {2, 3}
         assert list(episodes.members(3)) == [2, 3] and all(episodes.may_act(e) for e in range(4))
         episodes.set(0, 1)  # env 0 finished episode 0: it waits for env 1
         assert not episodes.may_act(0) and episodes.may_act(1) and episodes.may_act(2)
@@ -156,6 +156,6 @@ def test_group_mates_run_their_episodes_together():
         episodes.set(1, 1)
         await asyncio.wait_for(waiter, 1)
         assert episodes.may_act(0) and episodes.may_act(1)
-        assert all(Episodes(4).may_act(e) for e in range(4))  # PPO: nobody waits
+        assert all(Episodes(range(4)).may_act(e) for e in range(4))  # PPO: nobody waits
 
     asyncio.run(scenario())

@@ -119,6 +119,11 @@ class GroupCollector:
                     steps += int(fresh.sum())
         return out
 
+    @staticmethod
+    def size(item: tuple[Episode, float, np.ndarray]) -> int:
+        """Decisions of one item of ``take``."""
+        return int(item[2].sum())
+
     def build(self, items: list[tuple[Episode, float, np.ndarray]], model: nn.Module) -> Batch:
         def cat(name: str) -> torch.Tensor:
             return torch.as_tensor(np.concatenate([e.cat(name)[mask] for e, _, mask in items]))

@@ -25,6 +25,7 @@ import numpy as np
 import torch
 from torch import nn
 
+from ebrl.algos.parallel import Methods
 from ebrl.messages import TrajectorySegment
 from ebrl.sched.staleness import fresh_suffix
 
@@ -89,14 +90,18 @@ def build_batch(segments: Sequence[TrajectorySegment], model: nn.Module, gamma: 
 class PPO:
     """Clipped-surrogate PPO updates of a policy with ``evaluate(obs, actions)``."""
 
-    def __init__(self, model: nn.Module, algo_cfg: Any, lr: float, seed: int = 0):
+    def __init__(self, model: nn.Module, algo_cfg: Any, lr: float, seed: int = 0, net: nn.Module | None = None):
+        """``net`` calls the model's methods through ``forward`` (``ebrl.algos.parallel.Methods``, wrapped in
+        DistributedDataParallel when several ranks train); the gradient steps go through it."""
         self.model, self.cfg = model, algo_cfg
+        self.net = net if net is not None else Methods(model)
         self.optimizer = torch.optim.Adam(model.parameters(), lr=lr, eps=1e-5)
         self.generator = torch.Generator().manual_seed(seed)
 
-    def update(self, batch: Batch) -> dict[str, float]:
+    def update(self, batch: Batch, scale: float = 1.0) -> dict[str, float]:
+        """``epochs`` x ``minibatches`` gradient steps, always exactly that many (data-parallel ranks step in
+        lockstep); ``scale = 0`` takes the steps with zero gradients (a rank that got no data this time)."""
         cfg, n = self.cfg, len(batch)
-        minibatch = max(1, n // cfg.minibatches)
         stats: dict[str, list[float]] = {k: [] for k in ("policy_loss", "value_loss", "entropy", "approx_kl", "clipfrac")}
         if getattr(cfg, "decoupled", False):
             with torch.no_grad():
@@ -107,10 +112,11 @@ class PPO:
         stats["behave_weight_mean"] = [weight.mean().item()]
         for _ in range(cfg.epochs):
             order = torch.randperm(n, generator=self.generator)
-            for start in range(0, n, minibatch):
-                idx = order[start:start + minibatch]
-                newlogprob, entropy, newvalue = self.model.evaluate(batch.obs[idx], batch.actions[idx],
-                                                                    batch.latents[idx])
+            for idx in torch.tensor_split(order, cfg.minibatches):
+                step_scale = scale if len(idx) else 0.0
+                idx = idx if len(idx) else order[:1]
+                newlogprob, entropy, newvalue = self.net("evaluate", batch.obs[idx], batch.actions[idx],
+                                                         batch.latents[idx])
                 logratio = newlogprob - prox[idx]
                 ratio = logratio.exp()
                 adv = batch.advantages[idx]
@@ -122,7 +128,7 @@ class PPO:
                 else:
                     v_loss = 0.5 * ((newvalue - batch.returns[idx]) ** 2).mean()
                 ent = entropy.mean()
-                loss = pg_loss - cfg.ent_coef * ent + cfg.vf_coef * v_loss
+                loss = step_scale * (pg_loss - cfg.ent_coef * ent + cfg.vf_coef * v_loss)
                 self.optimizer.zero_grad()
                 loss.backward()
                 nn.utils.clip_grad_norm_(self.model.parameters(), cfg.max_grad_norm)
@@ -173,6 +179,11 @@ class SegmentCollector:
             segments.append(seg)
             steps += len(seg.obs)
         return segments
+
+    @staticmethod
+    def size(seg: TrajectorySegment) -> int:
+        """Decisions of one item of ``take``."""
+        return len(seg.obs)
 
     def build(self, segments: list[TrajectorySegment], model: nn.Module) -> Batch:
         return build_batch(segments, model, self.cfg.gamma, self.cfg.gae_lambda)

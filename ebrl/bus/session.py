@@ -58,7 +58,7 @@ SENDER_QUEUE = 4096
 class BusOptions:
     """How to join the bus. Built from the ``[bus]`` config section."""
 
-    mode: Literal["peer", "client"] = "peer"
+    mode: Literal["peer", "client", "router"] = "peer"  # router: a launcher joining hosts
     connect: list[str] = field(default_factory=list)
     listen: list[str] = field(default_factory=lambda: ["tcp/127.0.0.1:0"])
     config_file: str = ""
@@ -74,7 +74,7 @@ def zenoh_config(options: BusOptions) -> zenoh.Config:
     conf = zenoh.Config.from_file(options.config_file) if options.config_file else zenoh.Config()
     conf.insert_json5("mode", json.dumps(options.mode))
     conf.insert_json5("scouting/multicast/enabled", "false")
-    if options.listen and options.mode == "peer":
+    if options.listen and options.mode != "client":
         conf.insert_json5("listen/endpoints", json.dumps(options.listen))
     if options.connect:
         conf.insert_json5("connect/endpoints", json.dumps(options.connect))

@@ -91,9 +91,9 @@ class Episodes:
     at the start of the next one until every group-mate finished too, so every group of episodes completes.
     With ``share = 1`` every env always acts."""
 
-    def __init__(self, num_envs: int, share: int = 1):
+    def __init__(self, env_ids: range, share: int = 1):
         self.share = share
-        self.index = [0] * num_envs
+        self.index = {env: 0 for env in env_ids}
         self._moved = asyncio.Event()
 
     def members(self, env: int) -> range:

@@ -1,0 +1,49 @@
+"""``ebrl router``: a Zenoh router that hosts meet at.
+
+The launchers of a run over several hosts route between each other, so a
+router is optional: point every host's ``bus.connect`` at one host's ``listen``
+endpoint, or at an ``ebrl router`` that all of them can reach (a fixed address
+to configure once, a host that stays up between runs, a place to put TLS and
+access control through ``--config``). Same engine as ``zenohd``, without
+installing it. It prints the EBRL services that join and leave.
+"""
+
+from __future__ import annotations
+
+import signal
+import sys
+import threading
+import time
+
+import zenoh
+
+from ebrl.bus import BusOptions, keys
+from ebrl.bus.session import zenoh_config
+
+
+def serve(listen: list[str], connect: list[str], config_file: str = "", quiet: bool = False, out=sys.stdout) -> int:
+    """Run until SIGINT/SIGTERM; exit status 2 when an endpoint cannot be opened."""
+    conf = zenoh_config(BusOptions(mode="router", listen=listen, connect=connect, config_file=config_file))
+    try:
+        session = zenoh.open(conf)
+    except zenoh.ZError as exc:
+        print(f"ebrl router: cannot open {', '.join(listen)}: {exc}", file=sys.stderr)
+        return 2
+    done = threading.Event()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, lambda *_: done.set())
+
+    def on_token(sample: zenoh.Sample) -> None:  # ebrl/live/<run>/<service>/<instance>
+        _, _, run, service, instance = keys.parse(sample.key_expr)[:5]
+        verb = "joined" if sample.kind == zenoh.SampleKind.PUT else "left"
+        print(f"{time.strftime('%H:%M:%S')} run {run}: {service}/{instance} {verb}", file=out, flush=True)
+
+    watcher = None if quiet else session.liveliness().declare_subscriber(
+        f"{keys.ROOT}/live/**", on_token, history=True)
+    print(f"ebrl router {session.info.zid()} listening on {', '.join(listen)}"
+          + (f", connected to {', '.join(connect)}" if connect else ""), file=out, flush=True)
+    done.wait()
+    if watcher is not None:
+        watcher.undeclare()
+    session.close()
+    return 0

@@ -1,0 +1,396 @@
+"""Scale-out: which services a host starts ([hosts], --only), runs over several hosts (loopback ports, and
+real network namespaces joined by veth links), and the router."""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import subprocess
+import sys
+import time
+import uuid
+
+import pytest
+
+import helpers
+from ebrl import config
+from ebrl.hosts import plan
+
+ROOT = helpers.ROOT
+QUICK = str(ROOT / "configs" / "quickstart.toml")
+
+HOSTS = {
+    "learner": {"services": ["gen", "train"], "listen": ["tcp/127.1.0.1:7447"]},
+    "sim-a": {"services": ["sim"], "connect": ["tcp/127.1.0.1:7447"], "cores": [0]},
+    "sim-b": {"services": ["sim"], "connect": ["tcp/127.1.0.1:7447"]},
+}
+
+
+def load(**sections) -> config.Config:
+    return config.from_dict({"viz": {"rerun": "off"}, **sections})
+
+
+# --- planning -------------------------------------------------------------------------------------------
+
+
+def test_a_hosts_table_places_services_and_numbers_hosts():
+    cfg = load(hosts=HOSTS, train={"batch_size": 1024})
+    assert cfg.sim.hosts == 2 and cfg.rollout_length == 1024 // (2 * 8)
+    learner_cfg, learner = plan(cfg, host="learner")
+    assert learner.roles == ("train", "gen") and learner.instance == 0 and learner.multi and learner.primary
+    assert learner_cfg.bus.listen == ["tcp/127.1.0.1:7447"]
+    sim_cfg, sim = plan(cfg, host="sim-a")
+    assert sim.roles == ("sim",) and sim.instance == 1 and not sim.primary
+    assert sim_cfg.bus.connect == ["tcp/127.1.0.1:7447"] and sim_cfg.sim.cores == [0]
+    assert plan(cfg, host="sim-b")[1].instance == 2
+
+
+def test_viz_and_the_allocator_go_with_train_unless_a_host_names_them():
+    cfg = load(hosts=HOSTS, viz={"rerun": "save"})
+    assert plan(cfg, host="learner")[1].roles == ("viz", "train", "gen")
+    hosts = {**HOSTS, "sim-b": {**HOSTS["sim-b"], "services": ["sim", "viz"]}}
+    cfg = load(hosts=hosts, viz={"rerun": "save"})
+    assert plan(cfg, host="learner")[1].roles == ("train", "gen")
+    assert plan(cfg, host="sim-b")[1].roles == ("viz", "sim")
+
+
+@pytest.mark.parametrize("hosts, message", [
+    ({"a": {"services": ["sim", "gen"]}}, "exactly one host must run train"),
+    ({"a": {"services": ["sim", "gen", "train"]}, "b": {"services": ["train"]}}, "exactly one host must run train"),
+    ({"a": {"services": ["gen", "train", "simm"]}}, "unknown service 'simm'"),
+    ({"a": {"services": ["gen", "train"], "cpus": [1]}}, "unknown key hosts.a.cpus"),
+    ({"A!": {"services": ["gen", "train", "sim"]}}, "host name"),
+    ({"a": {"services": ["gen", "train"]}}, "no host runs sim"),
+])
+def test_a_wrong_hosts_table_names_the_problem(hosts, message):
+    with pytest.raises(config.ConfigError, match=message):
+        load(hosts=hosts)
+
+
+def test_only_and_instance():
+    cfg = load()
+    assert plan(cfg)[1].roles == ("train", "gen", "sim") and not plan(cfg)[1].multi
+    _, sim = plan(cfg, only="sim", instance=3)
+    assert sim.roles == ("sim",) and sim.instance == 3 and sim.multi
+    assert plan(cfg, only="sim,train,gen")[1].roles == ("train", "gen", "sim")  # start order, not typed order
+    with pytest.raises(config.ConfigError, match="unknown service 'gem'"):
+        plan(cfg, only="sim,gem")
+    with pytest.raises(config.ConfigError, match="is off in this config"):
+        plan(cfg, only="alloc")
+    with pytest.raises(config.ConfigError, match="use it with --only"):
+        plan(cfg, instance=1)
+    with pytest.raises(config.ConfigError, match="start each host with --host"):
+        plan(load(hosts=HOSTS))
+    with pytest.raises(config.ConfigError, match=r"no \[hosts.nope\]"):
+        plan(load(hosts=HOSTS), host="nope")
+
+
+def test_the_resolved_config_keeps_its_hosts_table():
+    cfg = load(hosts=HOSTS)
+    path = ROOT / "runs" / f"hosts-{uuid.uuid4().hex}.toml"
+    path.parent.mkdir(exist_ok=True)
+    try:
+        path.write_text(config.dump_toml(cfg))
+        again = config.load(str(path))
+    finally:
+        path.unlink()
+    assert again.hosts == cfg.hosts and again.sim.hosts == 2
+
+
+def test_ebrl_up_with_a_bad_only_exits_2_and_starts_nothing(tmp_path):
+    proc = subprocess.run([sys.executable, "-m", "ebrl.cli", "up", QUICK, "--only", "sim,trian",
+                           "--set", f"run.output_dir={json.dumps(str(tmp_path))}"],
+                          cwd=ROOT, capture_output=True, text=True, timeout=60)
+    assert proc.returncode == 2 and "unknown service 'trian'" in proc.stderr
+    assert not any(tmp_path.iterdir())
+
+
+# --- two hosts on loopback ports ------------------------------------------------------------------------
+
+
+def up(out_dir, *args: str, name: str) -> subprocess.Popen:
+    cmd = [sys.executable, "-m", "ebrl.cli", "up", QUICK, *args, "--set", f"run.output_dir={json.dumps(str(out_dir))}",
+           "--set", f"run.name={name}", "--set", "run.stats_interval=0.5", "--set", 'viz.rerun="off"']
+    return subprocess.Popen(cmd, cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+
+
+def summary(out_dir) -> dict:
+    (run,) = [p for p in out_dir.iterdir() if p.is_dir()]
+    return json.loads((run / "summary.json").read_text())
+
+
+def test_sim_on_another_host_trains_and_the_primary_ends_the_run(tmp_path):
+    """`--only`: gen+train as host 0, sim as host 1 joining through host 0's endpoint; a second sim host
+    with the same number is refused."""
+    port = helpers.free_port()
+    primary = up(tmp_path / "p", "--only", "gen,train", "--set", f'bus.listen=["tcp/127.0.0.1:{port}"]',
+                 "--set", "run.iterations=4", name="multi")
+    sim_args = ["--only", "sim", "--instance", "1", "--set", f'bus.connect=["tcp/127.0.0.1:{port}"]']
+    secondary = up(tmp_path / "s", *sim_args, "--set", f'bus.listen=["tcp/127.0.0.1:{helpers.free_port()}"]',
+                   name="multi")
+    try:
+        out, _ = primary.communicate(timeout=150)
+        sim_out, _ = secondary.communicate(timeout=30)
+    finally:
+        primary.kill()
+        secondary.kill()
+    assert primary.returncode == 0, out
+    assert secondary.returncode == 0, sim_out
+    assert "host 1 joined the run" in out and "the primary host ended the run" in sim_out
+    done = summary(tmp_path / "p")
+    assert done["iterations"] == 4 and done["env_steps"] > 0
+    assert (tmp_path / "s").glob("*/logs/sim-1.log")
+
+
+def test_a_host_number_already_on_the_bus_is_refused(tmp_path):
+    port = helpers.free_port()
+    first = up(tmp_path / "a", "--only", "sim", "--instance", "1", "--set", f'bus.listen=["tcp/127.0.0.1:{port}"]',
+               "--set", "run.iterations=0", name="dup")
+    try:
+        deadline = time.monotonic() + 60
+        while "all services live" not in first.stdout.readline():
+            assert time.monotonic() < deadline and first.poll() is None
+        second = up(tmp_path / "b", "--only", "sim", "--instance", "1", "--set",
+                    f'bus.connect=["tcp/127.0.0.1:{port}"]', "--set",
+                    f'bus.listen=["tcp/127.0.0.1:{helpers.free_port()}"]', name="dup")
+        out, _ = second.communicate(timeout=60)
+    finally:
+        first.terminate()
+        first.communicate(timeout=30)
+    assert second.returncode == 2 and "host 1 of run dup is already up" in out
+
+
+# --- data-parallel training -----------------------------------------------------------------------------
+
+
+def test_two_training_ranks_train_and_stop_cleanly(tmp_path):
+    code, out, seen = helpers.run_collecting_stats(tmp_path / "runs", "configs/quickstart.toml", "run.iterations=4",
+                                                   "train.world_size=2", "viz.rerun=\"off\"", run="ddp")
+    assert code == 0, out
+    assert seen["train/0"][-1]["train/policy_version"] == 4
+    assert seen["train/1"][-1]["train/policy_version"] == 4  # every rank took every update
+    assert seen["train/1"][-1]["train/batch_size"] > 0  # ... with its own shard
+    assert "train/pending_steps" not in seen["train/1"][-1]  # only rank 0 receives trajectories
+    (run,) = [p for p in (tmp_path / "runs").iterdir()]
+    assert "rank 0 said stop" in (run / "logs" / "train-1.log").read_text()
+
+
+def test_killing_one_rank_restarts_the_training_group(tmp_path):
+    import psutil
+
+    proc, _ = helpers.ebrl_up(tmp_path / "runs", "configs/quickstart.toml", "run.iterations=40", "run.name=ddpkill",
+                              "train.world_size=2", 'viz.rerun="off"', "train.checkpoint_every=2")
+    try:
+        deadline = time.monotonic() + 90
+        while not list((tmp_path / "runs").glob("*/checkpoints/latest")):  # a few updates done
+            assert proc.poll() is None and time.monotonic() < deadline, "no checkpoint after 90 s"
+            time.sleep(0.2)
+        rank1 = [p for p in psutil.Process(proc.pid).children()
+                 if p.cmdline()[2:3] == ["services.train"] and "--instance" in p.cmdline()
+                 and p.cmdline()[p.cmdline().index("--instance") + 1] == "1"]
+        assert len(rank1) == 1
+        rank1[0].kill()
+        out, _ = proc.communicate(timeout=180)
+    finally:
+        proc.kill()
+    assert proc.returncode == 0, out
+    done = json.loads(next((tmp_path / "runs").glob("*/summary.json")).read_text())
+    assert done["iterations"] == 40
+    assert set(done["restarts"]) == {"train/0", "train/1"}  # the whole group started again
+
+
+def _ddp_rank(rank: int, world: int, addr: str, out: str, kind: str) -> None:
+    import torch
+
+    from ebrl.algos.parallel import DataParallel
+    from ebrl.algos.ppo import PPO, Batch
+    from ebrl.envs.obs import ObsLayout
+    from ebrl.policies import make_policy
+
+    torch.manual_seed(rank)  # different initial weights: DDP must start every rank from rank 0's
+    policy = make_policy(config.PolicySection(kind=kind, chunk=2, hidden=[16], embed_dim=8, denoise_steps=2),
+                         ObsLayout.vector(3), 2)
+    dp = DataParallel(policy, rank, world, addr)
+    algo = config.AlgoSection(epochs=2, minibatches=3)
+    ppo = PPO(policy, algo, 1e-2, seed=rank, net=dp.net)
+    g = torch.Generator().manual_seed(100 + rank)  # each rank its own data (and its own size)
+    n = 20 + 7 * rank
+    batch = Batch(obs=torch.randn(n, 3, generator=g), actions=torch.randn(n, 2, 2, generator=g),
+                  latents=torch.randn(n, *policy.latent_shape, generator=g), logprobs=torch.randn(n, generator=g) - 2,
+                  advantages=torch.randn(n, generator=g), returns=torch.randn(n, generator=g),
+                  values=torch.zeros(n), versions=torch.zeros(n, dtype=torch.long).numpy())
+    before = [p.detach().clone() for p in policy.parameters()]
+    for _ in range(2):
+        ppo.update(batch, scale=0.0 if rank == 2 else 1.0)  # rank 2 got no data: zero gradients, same steps
+    torch.save({"before": before, "after": [p.detach() for p in policy.parameters()]}, f"{out}/rank{rank}.pt")
+    dp.close()
+
+
+@pytest.mark.parametrize("kind", ["mlp", "flow"])
+def test_ddp_ranks_hold_the_same_weights_after_every_update(tmp_path, kind):
+    import torch
+    import torch.multiprocessing as mp
+
+    mp.start_processes(_ddp_rank, args=(3, f"127.0.0.1:{helpers.free_port()}", str(tmp_path), kind), nprocs=3,
+                       start_method="spawn")
+    ranks = [torch.load(tmp_path / f"rank{r}.pt") for r in range(3)]
+    for r in (1, 2):
+        for a, b in zip(ranks[0]["after"], ranks[r]["after"]):
+            assert torch.equal(a, b)
+        for a, b in zip(ranks[0]["before"], ranks[r]["before"]):
+            assert torch.equal(a, b)  # rank 0's initial weights were broadcast
+    assert any(not torch.equal(a, b) for a, b in zip(ranks[0]["before"], ranks[0]["after"]))
+
+
+def test_shards_split_by_decisions():
+    from ebrl.algos.parallel import shards
+
+    assert shards([10, 10, 10, 10], lambda x: x, 2) == [[10, 10], [10, 10]]
+    assert shards([30, 5, 5, 5, 5], lambda x: x, 2) == [[30], [5, 5, 5, 5]]
+    assert shards([7], lambda x: x, 3) == [[7], [], []]
+
+
+def test_two_ranks_need_a_batch_that_splits():
+    with pytest.raises(config.ConfigError, match="train.world_size = 4"):
+        load(train={"world_size": 4, "batch_size": 8}, sim={"groups": 1, "envs_per_group": 2})
+
+
+# --- the router -----------------------------------------------------------------------------------------
+
+
+def test_ebrl_router_relays_between_hosts_and_prints_who_joined():
+    """Two runs' launchers would meet at a router; here two plain sessions that only know the router."""
+    import zenoh
+
+    port = helpers.free_port()
+    router = subprocess.Popen([sys.executable, "-m", "ebrl.cli", "router", "--listen", f"tcp/127.0.0.1:{port}"],
+                              cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    try:
+        assert "listening on" in router.stdout.readline()
+
+        def session() -> zenoh.Session:
+            conf = zenoh.Config()
+            conf.insert_json5("mode", '"client"')
+            conf.insert_json5("scouting/multicast/enabled", "false")
+            conf.insert_json5("connect/endpoints", f'["tcp/127.0.0.1:{port}"]')
+            return zenoh.open(conf)
+
+        got = []
+        with session() as a, session() as b:
+            a.declare_subscriber("ebrl/data/r/obs/*", lambda s: got.append(s.payload.to_bytes()))
+            token = b.liveliness().declare_token("ebrl/live/r/sim/3")
+            deadline = time.monotonic() + 10
+            while not got and time.monotonic() < deadline:
+                b.put("ebrl/data/r/obs/0", b"x")
+                time.sleep(0.1)
+            token.undeclare()
+            time.sleep(0.3)
+        assert got
+    finally:
+        router.terminate()
+        out, _ = router.communicate(timeout=10)
+    assert router.returncode == 0
+    assert "run r: sim/3 joined" in out and "run r: sim/3 left" in out
+
+
+# --- separate hosts: network namespaces -----------------------------------------------------------------
+
+
+def _netns_unavailable() -> str | None:
+    if sys.platform != "linux":
+        return "network namespaces are Linux only"
+    if shutil.which("ip") is None:
+        return "the `ip` command (iproute2) is not installed"
+    if os.geteuid() != 0:
+        return "creating network namespaces needs root"
+    name = f"ebrl-probe-{os.getpid()}"
+    made = subprocess.run(["ip", "netns", "add", name], capture_output=True, text=True)
+    if made.returncode != 0:
+        return f"cannot create a network namespace here: {made.stderr.strip()}"
+    subprocess.run(["ip", "netns", "del", name], capture_output=True)
+    return None
+
+
+class Namespaces:
+    """Hosts as network namespaces: a ``learner`` joined to each sim host by its own veth link, addresses
+    in 127.0.0.0/8 (route_localnet lets them leave lo), nothing else reachable."""
+
+    def __init__(self, sims: int):
+        tag = uuid.uuid4().hex[:6]
+        self.names = {"learner": f"ebrl-{tag}-l", **{f"sim-{i}": f"ebrl-{tag}-s{i}" for i in range(sims)}}
+        self.addresses: dict[str, str] = {}
+        for ns in self.names.values():
+            self.ip("netns", "add", ns)
+            self.ip("-n", ns, "link", "set", "lo", "up")
+            self.sh(ns, "sysctl", "-qw", "net.ipv4.conf.all.route_localnet=1")
+        learner = self.names["learner"]
+        for i in range(sims):
+            sim, a, b = self.names[f"sim-{i}"], f"vl{tag}{i}", f"vs{tag}{i}"
+            self.ip("link", "add", a, "type", "veth", "peer", "name", b)
+            self.ip("link", "set", a, "netns", learner)
+            self.ip("link", "set", b, "netns", sim)
+            self.ip("-n", learner, "addr", "add", f"127.77.{i}.1/30", "dev", a)
+            self.ip("-n", sim, "addr", "add", f"127.77.{i}.2/30", "dev", b)
+            for ns, dev in ((learner, a), (sim, b)):
+                self.ip("-n", ns, "link", "set", dev, "up")
+                self.sh(ns, "sysctl", "-qw", f"net.ipv4.conf.{dev}.route_localnet=1")
+            self.addresses[f"sim-{i}"] = f"127.77.{i}.1"  # the learner's address on this sim host's link
+
+    @staticmethod
+    def ip(*args: str) -> None:
+        subprocess.run(["ip", *args], check=True, capture_output=True)
+
+    def sh(self, ns: str, *cmd: str) -> None:
+        subprocess.run(["ip", "netns", "exec", ns, *cmd], check=True, capture_output=True)
+
+    def popen(self, host: str, cmd: list[str]) -> subprocess.Popen:
+        return subprocess.Popen(["ip", "netns", "exec", self.names[host], *cmd], cwd=ROOT, stdout=subprocess.PIPE,
+                                stderr=subprocess.STDOUT, text=True)
+
+    def close(self) -> None:
+        for ns in self.names.values():  # deleting a namespace deletes its veth ends
+            subprocess.run(["ip", "netns", "del", ns], capture_output=True)
+
+
+def namespaced_run(tmp_path, sims: int, iterations: int, extra: list[str] = ()) -> tuple[list[str], dict]:
+    """One run over ``sims`` + 1 namespaces: gen+train in ``learner``, one sim host per namespace."""
+    hosts = Namespaces(sims)
+    try:
+        learner_listen = [f"tcp/{hosts.addresses[f'sim-{i}']}:7447" for i in range(sims)]
+        table = [f'[hosts.learner]\nservices = ["gen", "train"]\nlisten = {json.dumps(learner_listen)}\n']
+        for i in range(sims):
+            table.append(f'[hosts.sim-{i}]\nservices = ["sim"]\nconnect = ["tcp/{hosts.addresses[f"sim-{i}"]}:7447"]\n'
+                         'listen = ["tcp/127.0.0.1:7447"]\n')
+        cfg = tmp_path / "hosts.toml"
+        cfg.write_text((ROOT / "configs" / "quickstart.toml").read_text() + "\n" + "\n".join(table))
+        common = ["--set", f"run.iterations={iterations}", "--set", 'viz.rerun="off"', "--set", "run.stats_interval=0.5",
+                  "--set", "run.name=netns", *extra]
+        procs = {"learner": hosts.popen("learner", [sys.executable, "-m", "ebrl.cli", "up", str(cfg), "--host", "learner",
+                                                    "--set", f'run.output_dir="{tmp_path / "learner"}"', *common])}
+        for i in range(sims):
+            procs[f"sim-{i}"] = hosts.popen(f"sim-{i}", [sys.executable, "-m", "ebrl.cli", "up", str(cfg), "--host",
+                                                         f"sim-{i}", "--set",
+                                                         f'run.output_dir="{tmp_path / f"sim-{i}"}"', *common])
+        outs = {}
+        try:
+            for name, proc in procs.items():
+                outs[name], _ = proc.communicate(timeout=240)
+        finally:
+            for proc in procs.values():
+                proc.kill()
+        for name, proc in procs.items():
+            assert proc.returncode == 0, f"{name}:\n{outs[name]}"
+        return [outs[name] for name in procs], summary(tmp_path / "learner")
+    finally:
+        hosts.close()
+
+
+def test_sim_and_learner_in_separate_network_namespaces_train(tmp_path):
+    why = _netns_unavailable()
+    if why:
+        print(f"SKIP namespace test: {why}")
+        pytest.skip(why)
+    (learner, sim), done = namespaced_run(tmp_path, sims=1, iterations=4)
+    assert done["iterations"] == 4 and done["env_steps"] > 0 and done["segments"] > 0
+    assert "host 1 joined the run" in learner and "the primary host ended the run" in sim

@@ -394,3 +394,17 @@ def test_sim_and_learner_in_separate_network_namespaces_train(tmp_path):
     (learner, sim), done = namespaced_run(tmp_path, sims=1, iterations=4)
     assert done["iterations"] == 4 and done["env_steps"] > 0 and done["segments"] > 0
     assert "host 1 joined the run" in learner and "the primary host ended the run" in sim
+
+
+@pytest.mark.slow
+def test_two_training_ranks_learn_the_quickstart_like_one(tmp_path):
+    """The quickstart's stated threshold (mean return 900) with train.world_size = 2, as one rank reaches it
+    (tests/test_up.py::test_quickstart_learns_to_the_stated_return); curves side by side:
+    benchmarks/data_parallel.py."""
+    proc, _ = helpers.ebrl_up(tmp_path / "runs", "configs/quickstart.toml", "run.name=learn2", "train.world_size=2",
+                              'viz.rerun="off"')
+    out, _ = proc.communicate(timeout=900)
+    assert proc.returncode == 0, out
+    done = json.loads(next((tmp_path / "runs").glob("*/summary.json")).read_text())
+    assert done["target_reached"] is not None, out
+    assert done["target_reached"]["return"] >= 900

@@ -160,8 +160,11 @@ class TrainSection:
     overlap: bool | None = doc("train while rollout goes on (bounded by algo.max_staleness); false restores the "
                                "rollout -> train barrier; absent: the mode's choice", None)
     cores: list[int] = doc("cores for the training process; empty: the mode's choice", factory=list)
-    world_size: int = doc("training ranks (processes; torch.distributed DistributedDataParallel over gloo): each "
-                          "update's batch is split between them and their gradients are all-reduced", 1)
+    world_size: int = doc("training ranks (processes, a torch.distributed group over gloo): each update's batch is "
+                          "split between them", 1)
+    parallel: Literal["ddp", "fsdp"] = doc("with world_size > 1: ddp all-reduces gradients (every rank holds the whole "
+                                           "model and optimizer); fsdp shards parameters, gradients and optimizer "
+                                           "state between the ranks", "ddp")
     checkpoint_every: int = doc("write a checkpoint (policy, optimizer, version, random state) every this many "
                                 "updates, and always at the end; 0: only at the end", 10)
 

@@ -104,6 +104,26 @@ class Weights:
     created_at: float = doc("epoch seconds when train produced them")
 
 
+@dataclass
+class WeightsPart:
+    """One part of a large weights version (train -> gen): a byte range of the version's arrays laid end to end,
+    each array at a 64-byte aligned offset. Part ``index`` starts at ``index * part_bytes``; part 0 carries the
+    manifest (names, dtypes, shapes, offsets). A receiver applies a version only once every part arrived."""
+
+    KEY = "ebrl/data/<run>/weights/parts"
+    version: int = doc("policy version; increases by one per update")
+    index: int = doc("part number, 0 .. count - 1")
+    count: int = doc("number of parts of this version")
+    part_bytes: int = doc("length of every part but the last, which holds the rest")
+    total_bytes: int = doc("length of the version's buffer")
+    created_at: float = doc("epoch seconds when train produced the weights")
+    data: Annotated[np.ndarray, Array("uint8", 1)] = doc("this part's bytes")
+    names: list[str] = doc("part 0: parameter names, in buffer order; other parts: empty", default_factory=list)
+    dtypes: list[str] = doc("part 0: numpy dtype string of each parameter (e.g. '<f4')", default_factory=list)
+    shapes: list[list[int]] = doc("part 0: shape of each parameter", default_factory=list)
+    offsets: list[int] = doc("part 0: byte offset of each parameter in the buffer", default_factory=list)
+
+
 # --- observability -----------------------------------------------------------------
 
 
@@ -204,6 +224,7 @@ MESSAGES: tuple[type, ...] = (
     ActionChunk,
     TrajectorySegment,
     Weights,
+    WeightsPart,
     StatsReport,
     SpanBatch,
     Event,

@@ -56,12 +56,15 @@ class TrainService(Service):
         self.ranks_stopped = False  # rank 0 sent (or, on ranks > 0, received) the stop command
         self.receiving: concurrent.futures.Future | None = None
         self.resume()  # every rank starts from the same checkpoint
+        self.arrays = state_arrays(self.model)  # the full weights rank 0 publishes
+        self.train_state: tuple[int, dict, dict] | None = None  # sharded: (version, model, optimizer) gathered
         self.dp: DataParallel | None = None
-        if self.world > 1:  # waits until every rank joined; DDP starts everyone from rank 0's weights
+        if self.world > 1:  # waits until every rank joined; every rank starts from rank 0's weights
             self.dp = await asyncio.get_running_loop().run_in_executor(
-                None, DataParallel, self.model, self.rank, self.world)
-            self.ppo.net = self.dp.net
-            self.log.info("rank %d of %d joined the training group", self.rank, self.world)
+                None, lambda: DataParallel(self.model, self.ppo.optimizer, self.rank, self.world,
+                                           shard=cfg.train.parallel == "fsdp"))
+            self.ppo.net, self.ppo.optimizer = self.dp.net, self.dp.optimizer
+            self.log.info("rank %d of %d joined the training group (%s)", self.rank, self.world, cfg.train.parallel)
         collector = GroupCollector if cfg.algo.name == "grpo" else SegmentCollector
         self.collector = collector(cfg.algo, cfg.train.max_pending, self.schedule.max_staleness, self.count)
         self.enough = asyncio.Event()
@@ -79,8 +82,12 @@ class TrainService(Service):
 
         self.bus.declare_queryable(keys.weights(self.run_name), latest_weights)
 
+    @property
+    def sharded(self) -> bool:
+        return self.dp is not None and self.dp.shard
+
     def encode_weights(self) -> bytes:
-        return encode_message(Weights(version=self.version, params=state_arrays(self.model), created_at=time.time()))
+        return encode_message(Weights(version=self.version, params=self.arrays, created_at=time.time()))
 
     async def run(self) -> None:
         if self.rank > 0:
@@ -134,9 +141,12 @@ class TrainService(Service):
             self.receiving = self.pool.submit(self.dp.receive)
         command = await asyncio.wrap_future(self.receiving)
         self.receiving = None
+        loop = asyncio.get_running_loop()
+        if command.kind == "stop" and self.sharded:  # rank 0 gathers the final training state: take part
+            await loop.run_in_executor(self.pool, self.dp.checkpoint_state)
         if command.kind == "update":
             start = time.time()
-            losses = await asyncio.get_running_loop().run_in_executor(self.pool, self.learn, command.items)
+            losses = await loop.run_in_executor(self.pool, self.learn, command.items)
             self.publish_span("train", f"update.r{self.rank}", start, time.time())
             self.version += 1
             self.last = {f"train/{k}": v for k, v in losses.items()}
@@ -151,8 +161,11 @@ class TrainService(Service):
             self.ranks_stopped = True
             try:
                 await asyncio.wait_for(asyncio.to_thread(self.dp.send, Command("stop")), 5.0)
+                if self.sharded:  # the final training state, gathered with the others
+                    state = await asyncio.wait_for(asyncio.to_thread(self.dp.checkpoint_state), 30.0)
+                    self.train_state = (self.version, *state)
             except (asyncio.TimeoutError, RuntimeError) as exc:
-                self.log.warning("could not tell the other training ranks to stop: %r", exc)
+                self.log.warning("could not stop the other training ranks cleanly: %r", exc)
 
     async def receive(self) -> None:
         """Drain trajectories all the time (also during updates) into the algorithm's bounded collector."""
@@ -180,17 +193,32 @@ class TrainService(Service):
         return self.learn(items)
 
     def learn(self, items: list) -> dict[str, float]:
-        """The gradient steps on this rank's items; a rank without items steps with zero gradients."""
-        if not items:
-            out = self.ppo.update(self.empty_batch(), scale=0.0)
-            return {**out, "batch_size": 0.0}
-        batch = self.collector.build(items, self.model)
-        staleness = self.version - batch.versions
-        self.staleness_hist += np.bincount(staleness, minlength=len(self.staleness_hist))[:len(self.staleness_hist)]
-        out = self.ppo.update(batch)
-        out.update(staleness_mean=float(staleness.mean()), staleness_max=float(staleness.max()),
-                   batch_size=float(len(batch)))
+        """The gradient steps on this rank's items, then ``sync``; a rank without items steps with zero
+        gradients. Every rank makes the same collective calls in the same order, items or not."""
+        with self.dp.gathered() if self.dp is not None else contextlib.nullcontext():
+            batch = self.collector.build(items, self.model) if items else None
+        if batch is None:
+            out = {**self.ppo.update(self.empty_batch(), scale=0.0), "batch_size": 0.0}
+        else:
+            staleness = self.version - batch.versions
+            self.staleness_hist += np.bincount(staleness, minlength=len(self.staleness_hist))[:len(self.staleness_hist)]
+            out = self.ppo.update(batch)
+            out.update(staleness_mean=float(staleness.mean()), staleness_max=float(staleness.max()),
+                       batch_size=float(len(batch)))
+        self.sync(self.version + 1)
         return out
+
+    def sync(self, version: int) -> None:
+        """After the update that makes ``version``: the full weights for rank 0 to publish and, when a
+        checkpoint is due, the training state (sharded, both are collectives on every rank)."""
+        if not self.sharded:
+            if self.rank == 0:
+                self.arrays = state_arrays(self.model)
+            return
+        self.arrays = self.dp.full_arrays()
+        every = self.cfg.train.checkpoint_every
+        if every and version % every == 0:
+            self.train_state = (version, *self.dp.checkpoint_state())
 
     def empty_batch(self) -> Batch:
         """Zeros shaped like a batch of ``algo.minibatches`` decisions (for ``scale = 0`` steps)."""
@@ -241,9 +269,14 @@ class TrainService(Service):
         """Write the training state (runs on the update thread, between updates)."""
         if self.version == self.saved_version:
             return
+        model_state, optimizer = None, self.ppo.optimizer
+        if self.sharded:  # what the ranks gathered (sync, stop_ranks)
+            if self.train_state is None or self.train_state[0] != self.version:
+                return
+            _, model_state, optimizer = self.train_state
         start = time.time()
-        path = checkpoint.save(self.run_dir, self.model, self.ppo.optimizer, self.version,
-                               {"ppo": self.ppo.generator}, {"run": self.run_name})
+        path = checkpoint.save(self.run_dir, self.model, optimizer, self.version,
+                               {"ppo": self.ppo.generator}, {"run": self.run_name}, model_state=model_state)
         self.saved_version = self.version
         self.publish_span("train", "checkpoint", start, time.time())
         self.count("train/checkpoints")
@@ -265,7 +298,8 @@ class TrainService(Service):
             self.save_checkpoint()
             # the trained policy, for `--set policy.checkpoint=RUN_DIR/policy.safetensors`
             path = os.path.join(self.run_dir, POLICY_FILE)
-            save_checkpoint(self.model, path, {"run": self.run_name, "version": str(self.version)})
+            weights = {name: torch.from_numpy(a) for name, a in self.arrays.items()}  # full, also when sharded
+            save_checkpoint(self.model, path, {"run": self.run_name, "version": str(self.version)}, state=weights)
             self.log.info("policy v%d saved to %s", self.version, path)
 
 

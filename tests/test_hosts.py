@@ -164,9 +164,11 @@ def test_a_host_number_already_on_the_bus_is_refused(tmp_path):
 # --- data-parallel training -----------------------------------------------------------------------------
 
 
-def test_two_training_ranks_train_and_stop_cleanly(tmp_path):
+@pytest.mark.parametrize("parallel", ["ddp", "fsdp"])
+def test_two_training_ranks_train_and_stop_cleanly(tmp_path, parallel):
     code, out, seen = helpers.run_collecting_stats(tmp_path / "runs", "configs/quickstart.toml", "run.iterations=4",
-                                                   "train.world_size=2", "viz.rerun=\"off\"", run="ddp")
+                                                   "train.world_size=2", f'train.parallel="{parallel}"',
+                                                   "train.checkpoint_every=2", 'viz.rerun="off"', run=parallel)
     assert code == 0, out
     assert seen["train/0"][-1]["train/policy_version"] == 4
     assert seen["train/1"][-1]["train/policy_version"] == 4  # every rank took every update
@@ -174,6 +176,7 @@ def test_two_training_ranks_train_and_stop_cleanly(tmp_path):
     assert "train/pending_steps" not in seen["train/1"][-1]  # only rank 0 receives trajectories
     (run,) = [p for p in (tmp_path / "runs").iterdir()]
     assert "rank 0 said stop" in (run / "logs" / "train-1.log").read_text()
+    assert (run / "checkpoints" / "v00000004").is_dir() and (run / "policy.safetensors").is_file()
 
 
 def test_killing_one_rank_restarts_the_training_group(tmp_path):
@@ -200,7 +203,7 @@ def test_killing_one_rank_restarts_the_training_group(tmp_path):
     assert set(done["restarts"]) == {"train/0", "train/1"}  # the whole group started again
 
 
-def _ddp_rank(rank: int, world: int, addr: str, out: str, kind: str) -> None:
+def _ddp_rank(rank: int, world: int, addr: str, out: str, kind: str, shard: bool = False) -> None:
     import torch
 
     from ebrl.algos.parallel import DataParallel
@@ -211,19 +214,24 @@ def _ddp_rank(rank: int, world: int, addr: str, out: str, kind: str) -> None:
     torch.manual_seed(rank)  # different initial weights: DDP must start every rank from rank 0's
     policy = make_policy(config.PolicySection(kind=kind, chunk=2, hidden=[16], embed_dim=8, denoise_steps=2),
                          ObsLayout.vector(3), 2)
-    dp = DataParallel(policy, rank, world, addr)
-    algo = config.AlgoSection(epochs=2, minibatches=3)
-    ppo = PPO(policy, algo, 1e-2, seed=rank, net=dp.net)
+    algo = config.AlgoSection(epochs=2, minibatches=3, decoupled=True)
+    ppo = PPO(policy, algo, 1e-2, seed=rank)
+    before = [p.detach().clone() for p in policy.parameters()]
+    dp = DataParallel(policy, ppo.optimizer, rank, world, addr, shard=shard)
+    ppo.net, ppo.optimizer = dp.net, dp.optimizer
     g = torch.Generator().manual_seed(100 + rank)  # each rank its own data (and its own size)
     n = 20 + 7 * rank
     batch = Batch(obs=torch.randn(n, 3, generator=g), actions=torch.randn(n, 2, 2, generator=g),
                   latents=torch.randn(n, *policy.latent_shape, generator=g), logprobs=torch.randn(n, generator=g) - 2,
                   advantages=torch.randn(n, generator=g), returns=torch.randn(n, generator=g),
                   values=torch.zeros(n), versions=torch.zeros(n, dtype=torch.long).numpy())
-    before = [p.detach().clone() for p in policy.parameters()]
     for _ in range(2):
         ppo.update(batch, scale=0.0 if rank == 2 else 1.0)  # rank 2 got no data: zero gradients, same steps
-    torch.save({"before": before, "after": [p.detach() for p in policy.parameters()]}, f"{out}/rank{rank}.pt")
+    with dp.gathered():  # sharded: the policy's own methods see whole parameters inside
+        value = policy.value(batch.obs[:2])
+    model_state, optim_state = dp.checkpoint_state()
+    torch.save({"before": before, "after": dp.full_arrays(), "value": value, "optim": optim_state},
+               f"{out}/rank{rank}.pt")
     dp.close()
 
 
@@ -234,13 +242,35 @@ def test_ddp_ranks_hold_the_same_weights_after_every_update(tmp_path, kind):
 
     mp.start_processes(_ddp_rank, args=(3, f"127.0.0.1:{helpers.free_port()}", str(tmp_path), kind), nprocs=3,
                        start_method="spawn")
-    ranks = [torch.load(tmp_path / f"rank{r}.pt") for r in range(3)]
+    ranks = [torch.load(tmp_path / f"rank{r}.pt", weights_only=False) for r in range(3)]
     for r in (1, 2):
-        for a, b in zip(ranks[0]["after"], ranks[r]["after"]):
-            assert torch.equal(a, b)
-        for a, b in zip(ranks[0]["before"], ranks[r]["before"]):
-            assert torch.equal(a, b)  # rank 0's initial weights were broadcast
-    assert any(not torch.equal(a, b) for a, b in zip(ranks[0]["before"], ranks[0]["after"]))
+        assert ranks[0]["after"].keys() == ranks[r]["after"].keys()
+        for name, a in ranks[0]["after"].items():
+            assert (a == ranks[r]["after"][name]).all()
+    first = torch.load(tmp_path / "rank0.pt", weights_only=False)["before"]
+    assert any(not (torch.from_numpy(a) == b).all() for a, b in zip(ranks[0]["after"].values(), first))
+
+
+def test_fsdp_takes_the_same_steps_as_ddp(tmp_path):
+    """Sharded parameters, gradients and Adam state: after the same updates on the same shards, the gathered
+    weights, values and optimizer state match DDP's."""
+    import numpy as np
+    import torch
+    import torch.multiprocessing as mp
+
+    for shard in (False, True):
+        (tmp_path / str(shard)).mkdir()
+        mp.start_processes(_ddp_rank, args=(3, f"127.0.0.1:{helpers.free_port()}", str(tmp_path / str(shard)), "mlp",
+                                            shard), nprocs=3, start_method="spawn")
+    ddp, fsdp = (torch.load(tmp_path / str(shard) / "rank0.pt", weights_only=False) for shard in (False, True))
+    assert ddp["after"].keys() == fsdp["after"].keys()
+    for name, a in ddp["after"].items():
+        np.testing.assert_allclose(fsdp["after"][name], a, rtol=1e-5, atol=1e-6)
+    torch.testing.assert_close(fsdp["value"], ddp["value"])
+    assert fsdp["optim"]["param_groups"] == ddp["optim"]["param_groups"]
+    for index, slots in ddp["optim"]["state"].items():
+        for key, value in slots.items():
+            torch.testing.assert_close(fsdp["optim"]["state"][index][key], value, rtol=1e-5, atol=1e-6)
 
 
 def test_shards_split_by_decisions():

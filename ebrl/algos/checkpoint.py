@@ -57,16 +57,19 @@ def latest(run_dir: str | Path) -> Path | None:
     return path if (path / "state.json").is_file() else None
 
 
-def save(run_dir: str | Path, model: torch.nn.Module, optimizer: torch.optim.Optimizer, version: int,
-         generators: dict[str, torch.Generator], metadata: dict[str, str] | None = None) -> Path:
-    """Write a checkpoint of ``version`` atomically; return its directory."""
+def save(run_dir: str | Path, model: torch.nn.Module, optimizer: torch.optim.Optimizer | dict, version: int,
+         generators: dict[str, torch.Generator], metadata: dict[str, str] | None = None,
+         model_state: dict[str, torch.Tensor] | None = None) -> Path:
+    """Write a checkpoint of ``version`` atomically; return its directory. ``optimizer`` may be its state dict
+    and ``model_state`` the model's, gathered elsewhere (sharded training: ``ebrl.algos.parallel``)."""
     root = checkpoint_dir(run_dir)
     name = f"v{version:08d}"
     tmp, final = root / f"{name}.tmp", root / name
     shutil.rmtree(tmp, ignore_errors=True)
     tmp.mkdir(parents=True)
-    save_checkpoint(model, str(tmp / "policy.safetensors"), {**(metadata or {}), "version": str(version)})
-    state = optimizer.state_dict()
+    save_checkpoint(model, str(tmp / "policy.safetensors"), {**(metadata or {}), "version": str(version)},
+                    state=model_state)
+    state = optimizer if isinstance(optimizer, dict) else optimizer.state_dict()
     tensors = {f"opt.{index}.{key}": value.detach().cpu().contiguous()
                for index, slots in state["state"].items() for key, value in slots.items()
                if isinstance(value, torch.Tensor)}

@@ -9,7 +9,13 @@ decisions and scatters them (a torch.distributed collective: the ranks are one
 job, the bus is for the stages). Every rank builds its shard's batch (GAE with
 the same critic) and runs the same number of minibatch steps through
 ``DistributedDataParallel``, whose backward all-reduces the gradients, so all
-ranks hold the same weights after every step.
+ranks hold the same weights after every step. With ``train.parallel = "fsdp"``
+the policy is sharded instead (``torch.distributed.fsdp.fully_shard``):
+parameters, gradients and Adam's state live in 1/world_size slices, gathered
+for each forward pass; the full weights are gathered for publishing after every
+update and, with the optimizer state, for checkpoints. Every one of those is a
+collective, so every rank makes the same calls in the same order
+(``TrainService.learn`` and ``sync``).
 
 Rank 0 sends a command every ``KEEPALIVE_S`` while it waits for data and a stop
 at the end, so the other ranks never block on a collective for long, and a dead
@@ -19,11 +25,14 @@ launcher restarts the whole group).
 
 from __future__ import annotations
 
+import contextlib
 import datetime
 import os
+import warnings
 from dataclasses import dataclass
-from typing import Any, Callable, Sequence
+from typing import Any, Callable, Iterator, Sequence
 
+import numpy as np
 import torch
 import torch.distributed as dist
 from torch import nn
@@ -65,19 +74,86 @@ def shards(items: Sequence, size: Callable[[Any], int], world: int) -> list[list
 
 
 class DataParallel:
-    """One rank's membership of the training group."""
+    """One rank's membership of the training group. ``optimizer`` is the policy's (possibly restored from a
+    checkpoint); with ``shard`` it is replaced by one over the shards (``self.optimizer``), state included."""
 
-    def __init__(self, policy: nn.Module, rank: int, world: int, address: str | None = None):
+    def __init__(self, policy: nn.Module, optimizer: torch.optim.Optimizer, rank: int, world: int,
+                 address: str | None = None, shard: bool = False):
         address = address or os.environ.get(ADDR_VAR, "")
         if not address:
             raise RuntimeError(f"train.world_size = {world}: {ADDR_VAR} (rank 0's host:port) is not set; "
                                "start training ranks with `ebrl up`")
-        self.rank, self.world = rank, world
+        self.rank, self.world, self.shard = rank, world, shard
+        self.policy, self.optimizer = policy, optimizer
         dist.init_process_group("gloo", init_method=f"tcp://{address}", rank=rank, world_size=world,
                                 timeout=datetime.timedelta(seconds=TIMEOUT_S))
-        # broadcast_buffers=False: forward passes must not be collectives (ranks call value() a different
-        # number of times); the policies keep no buffers that change.
-        self.net = nn.parallel.DistributedDataParallel(Methods(policy), broadcast_buffers=False)
+        self.names = [f"policy.{name}" for name, _ in policy.named_parameters()]  # optimizer index -> FQN
+        if not shard:
+            # broadcast_buffers=False: a forward pass is no collective (ranks call value() a different number
+            # of times); the policies keep no buffers that change.
+            self.net: nn.Module = nn.parallel.DistributedDataParallel(Methods(policy), broadcast_buffers=False)
+            return
+        from torch.distributed.checkpoint.state_dict import StateDictOptions, set_optimizer_state_dict
+        from torch.distributed.fsdp import fully_shard
+
+        with torch.no_grad():
+            for tensor in policy.state_dict().values():  # every rank starts from rank 0's weights, as with DDP
+                dist.broadcast(tensor, src=0)
+        restored = optimizer.state_dict()
+        # PPO never changes an output in place, which is what this warning is about (evaluate returns views).
+        warnings.filterwarnings("ignore", message="FSDP2-wrapped module .* returned a view tensor")
+        self.net = fully_shard(Methods(policy))
+        self.optimizer = type(optimizer)(self.net.parameters(), **optimizer.defaults)
+        if restored["state"]:
+            set_optimizer_state_dict(self.net, self.optimizer, self._by_name(restored),
+                                     options=StateDictOptions(full_state_dict=True))
+
+    @contextlib.contextmanager
+    def gathered(self) -> Iterator[None]:
+        """Plain calls of the policy's methods (no gradients) inside; sharded: one all-gather for them."""
+        if not self.shard:
+            yield
+            return
+        self.net.unshard()
+        try:
+            yield
+        finally:
+            self.net.reshard()
+
+    def full_arrays(self) -> dict[str, np.ndarray]:
+        """The policy's weights as arrays (what Weights messages carry); sharded, a collective: rank 0 gets
+        them, the others an empty dict."""
+        if not self.shard:
+            return {name: t.detach().cpu().numpy().copy() for name, t in self.policy.state_dict().items()}
+        return {name: t.numpy() for name, t in self._full_model_state().items()}
+
+    def checkpoint_state(self) -> tuple[dict[str, torch.Tensor], dict]:
+        """(model state, optimizer state dict as ``Optimizer.state_dict`` gives it); sharded, a collective:
+        complete on rank 0 only."""
+        if not self.shard:
+            return self.policy.state_dict(), self.optimizer.state_dict()
+        from torch.distributed.checkpoint.state_dict import StateDictOptions, get_optimizer_state_dict
+
+        model = self._full_model_state()
+        optim = get_optimizer_state_dict(self.net, self.optimizer,
+                                         options=StateDictOptions(full_state_dict=True, cpu_offload=True))
+        return model, self._by_index(optim) if optim else {}
+
+    def _full_model_state(self) -> dict[str, torch.Tensor]:
+        from torch.distributed.checkpoint.state_dict import StateDictOptions, get_model_state_dict
+
+        state = get_model_state_dict(self.net, options=StateDictOptions(full_state_dict=True, cpu_offload=True))
+        return {name.removeprefix("policy."): t for name, t in state.items()}
+
+    def _by_name(self, state: dict) -> dict:
+        """``Optimizer.state_dict`` (params by index) -> keyed by parameter name, as torch.distributed wants."""
+        return {"state": {self.names[i]: slots for i, slots in state["state"].items()},
+                "param_groups": [{**g, "params": [self.names[i] for i in g["params"]]} for g in state["param_groups"]]}
+
+    def _by_index(self, state: dict) -> dict:
+        index = {name: i for i, name in enumerate(self.names)}
+        return {"state": {index[name]: slots for name, slots in state["state"].items()},
+                "param_groups": [{**g, "params": [index[n] for n in g["params"]]} for g in state["param_groups"]]}
 
     def send(self, command: Command | list[Command]) -> Command:
         """Rank 0: scatter one command per rank (or the same to all); return rank 0's own."""

@@ -105,7 +105,7 @@ class PPO:
         stats: dict[str, list[float]] = {k: [] for k in ("policy_loss", "value_loss", "entropy", "approx_kl", "clipfrac")}
         if getattr(cfg, "decoupled", False):
             with torch.no_grad():
-                prox = self.model.evaluate(batch.obs, batch.actions, batch.latents)[0]  # log pi_prox, once per update
+                prox = self.net("evaluate", batch.obs, batch.actions, batch.latents)[0]  # log pi_prox, once per update
             weight = (prox - batch.logprobs).exp().clamp(max=cfg.behave_weight_cap)
         else:
             prox, weight = batch.logprobs, torch.ones(n)

@@ -39,7 +39,7 @@ def encode(obj: Any) -> bytes:
         if isinstance(value, np.ndarray):
             if value.dtype.hasobject:
                 raise TypeError("object arrays cannot be encoded")
-            array = np.ascontiguousarray(value)
+            array = np.asarray(value, order="C")  # ascontiguousarray would make a 0-d array 1-d
             ref = msgpack.packb([array.dtype.str, list(array.shape), offset])
             arrays.append(array)
             offset += _padded(array.nbytes)
@@ -53,14 +53,13 @@ def encode(obj: Any) -> bytes:
     header = msgpack.packb(obj, default=default, use_bin_type=True)
     if not arrays:
         return header
-    out = bytearray(_HEAD.pack(FRAME_MAGIC, len(header)))
-    out += header
-    out += bytes(_padded(len(out)) - len(out))
+    start = _HEAD.size + len(header)
+    pieces: list[bytes | memoryview] = [_HEAD.pack(FRAME_MAGIC, len(header)), header, bytes(_padded(start) - start)]
     for array in arrays:
         if array.nbytes:
-            out += memoryview(array).cast("B")
-        out += bytes(_padded(array.nbytes) - array.nbytes)
-    return bytes(out)
+            pieces.append(memoryview(array).cast("B"))
+        pieces.append(bytes(_padded(array.nbytes) - array.nbytes))
+    return b"".join(pieces)  # one copy of the array data (a bytearray and bytes() of it would be two)
 
 
 def decode(payload: bytes | bytearray | memoryview) -> Any:

@@ -45,9 +45,22 @@ def traj(run: str, group: int | str = "*") -> str:
 
 
 def weights(run: str) -> str:
-    """``ebrl/data/<run>/weights``: versioned policy weights (train -> gen); also a queryable
-    that answers with the latest weights, so a late subscriber never waits for the next update."""
+    """``ebrl/data/<run>/weights``: versioned policy weights (train -> gen), one message per version
+    while a version is small (``ebrl.weights``); also answered by the publisher's queryable, so a late
+    subscriber never waits for the next update."""
     return f"{ROOT}/data/{run}/weights"
+
+
+def weights_parts(run: str) -> str:
+    """``ebrl/data/<run>/weights/parts``: a large weights version in parts (train -> gen). Under
+    ``weights/`` so one expression (:func:`weights_all`) reaches both forms, yet a subscriber of
+    :func:`weights` alone never receives a part it cannot use."""
+    return f"{ROOT}/data/{run}/weights/parts"
+
+
+def weights_all(run: str) -> str:
+    """``ebrl/data/<run>/weights/**``: whole versions and parts (``**`` also matches ``weights`` itself)."""
+    return f"{ROOT}/data/{run}/weights/**"
 
 
 def data(run: str) -> str:

@@ -40,7 +40,8 @@ def load_arrays(model: torch.nn.Module, params: dict[str, np.ndarray], source: s
         raise ValueError(f"{source}: tensor shapes differ from the model's: " + "; ".join(wrong))
     with torch.no_grad():
         for name, tensor in state.items():
-            tensor.copy_(torch.from_numpy(np.array(params[name])))
+            array = params[name]  # torch.from_numpy wants a writable array; a decoded message's views are not
+            tensor.copy_(torch.from_numpy(array if array.flags.writeable else np.array(array)))
 
 
 def policy_metadata(model: ChunkPolicy) -> dict[str, str]:
@@ -48,9 +49,11 @@ def policy_metadata(model: ChunkPolicy) -> dict[str, str]:
             "layout": json.dumps(model.layout.to_dict())}
 
 
-def save_checkpoint(model: ChunkPolicy, path: str, metadata: dict[str, str]) -> None:
-    """Write the weights and ``metadata`` (plus the reserved keys ``CHECKED``) atomically to ``path``."""
-    tensors = {name: t.detach().cpu().contiguous() for name, t in model.state_dict().items()}
+def save_checkpoint(model: ChunkPolicy, path: str, metadata: dict[str, str],
+                    state: dict[str, torch.Tensor] | None = None) -> None:
+    """Write the weights (``state``, default the model's own) and ``metadata`` (plus the reserved keys
+    ``CHECKED``) atomically to ``path``."""
+    tensors = {name: t.detach().cpu().contiguous() for name, t in (state or model.state_dict()).items()}
     directory = os.path.dirname(os.path.abspath(path))
     os.makedirs(directory, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=".checkpoint-", suffix=".tmp", dir=directory)

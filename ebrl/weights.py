@@ -37,7 +37,7 @@ from ebrl.messages import MessageError, Weights, WeightsPart, decode_message, en
 log = logging.getLogger("ebrl.weights")
 
 SINGLE_MAX_BYTES = 4 << 20  # a version this large or larger goes in parts
-PART_BYTES = 4 << 20  # four parts fit the default 16 MiB shared-memory pool
+PART_BYTES = 4 << 20  # four fit the default 16 MiB shared-memory pool; a 256 MiB pool measured no better
 ALIGN = 64  # each array starts at a multiple of this in a version's buffer
 
 

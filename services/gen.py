@@ -19,10 +19,11 @@ import torch
 
 from ebrl.bus import keys
 from ebrl.envs import EnvSpec, describe
-from ebrl.messages import ActionChunk, MessageError, Observation, Quota, Weights, decode_message
+from ebrl.messages import ActionChunk, Observation, Quota
 from ebrl.policies import load_arrays, make_policy
 from ebrl.sched.modes import resolve
 from ebrl.service import Service, service_main
+from ebrl.weights import WeightsReceiver
 
 
 class GenService(Service):
@@ -48,8 +49,7 @@ class GenService(Service):
         # A group has at most one observation in flight; room for the groups of many sim hosts.
         self.obs = self.bus.subscribe(keys.obs(self.run_name), Observation, capacity=4 * self.schedule.groups * 16,
                                       notify=self.wake)
-        self.weights = self.bus.subscribe(keys.weights(self.run_name), Weights, policy="latest", capacity=1,
-                                          notify=self.wake)
+        self.weights = WeightsReceiver(self.bus, self.run_name, notify=self.wake)  # assembles off the event loop
 
     def _on_sim_liveliness(self, key: str, alive: bool) -> None:
         (self.sim_hosts.add if alive else self.sim_hosts.discard)(key)
@@ -62,7 +62,7 @@ class GenService(Service):
         await self.initial_weights()
         while True:
             self.wake.clear()
-            self.apply_latest_weights()
+            await self.apply_latest_weights()
             self.waiting.extend(m for _, m in self.obs.drain())
             batch = [m for m in self.waiting if self.version >= self.schedule.min_version(m.seq)][:self.max_groups]
             if not batch:
@@ -93,27 +93,24 @@ class GenService(Service):
         self.count("gen/envs_served", row)
 
     async def initial_weights(self) -> None:
-        """Ask train for its latest weights (request-reply), retrying until it answers."""
+        """Ask train for its newest weights (request-reply; a large version comes in parts), until one is here."""
         while self.version < 0:
-            self.apply_latest_weights()
-            if self.version >= 0:
-                return
-            for key, payload in await self.bus.get(keys.weights(self.run_name), timeout=1.0):
-                try:
-                    self.load(decode_message(Weights, payload))
-                except (MessageError, ValueError) as exc:
-                    self.bus.count_malformed(key, exc)
+            await self.weights.request(timeout=30.0)  # returns as soon as train has answered, or at once if none
+            await self.apply_latest_weights()
             if self.version < 0:
                 await asyncio.sleep(0.2)
 
-    def apply_latest_weights(self) -> None:
-        """Swap to the newest weights that arrived (between batches only)."""
-        latest = self.weights.drain()
-        if latest and latest[-1][1].version > self.version:
-            self.load(latest[-1][1])
-
-    def load(self, weights: Weights) -> None:
-        load_arrays(self.policy, weights.params)
+    async def apply_latest_weights(self) -> None:
+        """Swap to the newest complete weights, between batches: the load runs on the forward thread, so no
+        forward pass ever sees half of it."""
+        weights = self.weights.take_newer(self.version)
+        if weights is None:
+            return
+        try:
+            await asyncio.get_running_loop().run_in_executor(self.pool, load_arrays, self.policy, weights.params)
+        except ValueError as exc:  # weights of another policy
+            self.bus.count_malformed(keys.weights(self.run_name), exc)
+            return
         self.version = weights.version
         self.count("gen/weights_applied")
 
@@ -125,7 +122,8 @@ class GenService(Service):
 
     def metrics(self) -> dict[str, float]:
         return {"gen/policy_version": float(self.version), "gen/obs_queue": float(len(self.obs)),
-                "gen/obs_waiting_for_policy": float(len(self.waiting))}
+                "gen/obs_waiting_for_policy": float(len(self.waiting)),
+                "gen/weights_discarded": float(self.weights.discarded)}
 
     async def teardown(self) -> None:
         self.pool.shutdown(wait=False, cancel_futures=True)

@@ -21,10 +21,11 @@ from ebrl.algos.parallel import KEEPALIVE_S, Command, DataParallel, shards
 from ebrl.algos.ppo import PPO, Batch, SegmentCollector
 from ebrl.bus import keys
 from ebrl.envs import EnvSpec, describe
-from ebrl.messages import TrajectorySegment, Weights, encode_message
+from ebrl.messages import TrajectorySegment
 from ebrl.policies import make_policy, save_checkpoint, state_arrays
 from ebrl.sched.modes import resolve
 from ebrl.service import Service, service_main
+from ebrl.weights import WeightsPublisher
 
 
 POLICY_FILE = "policy.safetensors"
@@ -75,19 +76,11 @@ class TrainService(Service):
         if self.rank > 0:
             return
         self.traj = self.bus.subscribe(keys.traj(self.run_name), TrajectorySegment, capacity=256)
-        self.encoded_weights = self.encode_weights()
-
-        async def latest_weights(_: bytes) -> bytes:
-            return self.encoded_weights
-
-        self.bus.declare_queryable(keys.weights(self.run_name), latest_weights)
+        self.weights = WeightsPublisher(self.bus, self.run_name)  # also answers late joiners with the newest
 
     @property
     def sharded(self) -> bool:
         return self.dp is not None and self.dp.shard
-
-    def encode_weights(self) -> bytes:
-        return encode_message(Weights(version=self.version, params=self.arrays, created_at=time.time()))
 
     async def run(self) -> None:
         if self.rank > 0:
@@ -229,12 +222,13 @@ class TrainService(Service):
                      values=zeros, versions=np.full(n, self.version))
 
     async def publish_weights(self) -> None:
-        """Encode the current weights once: published now, and served to late joiners by the queryable."""
+        """Send the weights ``sync`` took on the update thread; packing and sending (in parts when large) run on
+        the publisher's thread, never on the event loop."""
         start = time.time()
-        self.encoded_weights = self.encode_weights()
-        await self.bus.put_bytes(keys.weights(self.run_name), self.encoded_weights)
+        stats = await self.weights.publish(self.version, self.arrays, created_at=start)
         self.publish_span("weights", f"v{self.version}", start, time.time())
         self.count("train/weights_published")
+        self.last["train/weights_publish_s"] = stats.pack_s + stats.send_s
 
     def metrics(self) -> dict[str, float]:
         out = {"train/policy_version": float(self.version), **self.last}
@@ -294,6 +288,7 @@ class TrainService(Service):
             self.dp.close()
         if self.rank > 0:
             return
+        self.weights.close()
         if self.version > 0:
             self.save_checkpoint()
             # the trained policy, for `--set policy.checkpoint=RUN_DIR/policy.safetensors`

@@ -13,6 +13,7 @@ def test_arrays_in_nested_maps_round_trip():
         "inner": {"state": np.linspace(0, 1, 64, dtype=np.float32).reshape(8, 8), "ids": [1, 2, 3]},
         "scalar": np.float32(1.5),
         "empty": np.zeros((0, 4), dtype=np.float64),
+        "zero_d": np.array(7, dtype=np.int64),  # e.g. BatchNorm's num_batches_tracked
         "text": "ok",
         "tuple": (1, 2),
     }
@@ -20,7 +21,7 @@ def test_arrays_in_nested_maps_round_trip():
     np.testing.assert_array_equal(out["images"], obj["images"])
     np.testing.assert_array_equal(out["inner"]["state"], obj["inner"]["state"])
     assert out["inner"]["state"].dtype == np.float32
-    assert out["empty"].shape == (0, 4)
+    assert out["empty"].shape == (0, 4) and out["zero_d"].shape == () and out["zero_d"] == 7
     assert out["scalar"] == 1.5 and out["text"] == "ok" and out["tuple"] == [1, 2]
 
 

@@ -154,6 +154,8 @@ class Launcher:
         self.ctl_unknown = 0
         self.bus.subscribe_raw(keys.ctl(self.run_name, "*", "*", "*"), self._on_control)
         me = keys.live(self.run_name, "launcher", self.plan.instance)
+        where = f"host {self.plan.name or self.plan.instance}: {', '.join(self.plan.roles)}; " if multi else ""
+        self._say(f"run {self.run_name}: {self.run_dir}  ({where}bus {self.endpoint or ', '.join(self.cfg.bus.connect)})")
         if multi:  # the other hosts' tokens arrive once the routers met: is this host number taken?
             await asyncio.sleep(1.0)
             if me in self.live:
@@ -167,8 +169,6 @@ class Launcher:
             for role in enabled_roles(self.cfg)]
         code = 1
         try:
-            where = f"host {self.plan.name or self.plan.instance}: {', '.join(self.plan.roles)}; " if multi else ""
-            self._say(f"run {self.run_name}: {self.run_dir}  ({where}bus {self.endpoint or ', '.join(self.cfg.bus.connect)})")
             self.spawn_all()
             if await self.wait_live():
                 code = await self.supervise()

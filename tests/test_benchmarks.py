@@ -1,5 +1,5 @@
-"""Benchmark scripts run: the outside peer and the learning-speed comparison (short smoke runs; the recorded
-comparisons are in benchmarks/results/)."""
+"""Benchmark scripts run: the outside peer, the learning-speed comparison, the soak and the scale-out
+benchmarks (short smoke runs; the recorded comparisons are in benchmarks/results/)."""
 
 import json
 import subprocess
@@ -44,3 +44,27 @@ def test_two_minute_soak_keeps_every_service_memory_flat(tmp_path):
     result = json.loads(out.read_text())
     assert set(result["services"]) == {"sim/0", "gen/0", "train/0"} and not result["failed"]
     assert all(row["samples"] >= 60 for row in result["services"].values())
+
+
+def test_scaling_benchmark_measures_a_two_host_run_and_leaves_no_process(tmp_path):
+    out = tmp_path / "scaling.json"
+    proc = subprocess.run([sys.executable, "benchmarks/scaling.py", "--hosts", "1", "--world-sizes", "1", "--repeat", "1",
+                           "--warmup", "0", "--duration", "3", "--runs-dir", str(tmp_path / "runs"), "--out", str(out)],
+                          cwd=ROOT, capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
+    result = json.loads(out.read_text())
+    (run,) = result["runs"]
+    assert run["env_steps_per_s"] > 0 and run["updates_per_s"] > 0 and run["leftover_processes"] == 0
+    assert set(run["per_host_env_steps_per_s"]) == {"sim/1"}  # the sim host's stats reached the primary's bus
+    assert result["summary"][0]["env_steps_per_s_ratio"] == 1.0 and "command" in result
+
+
+@pytest.mark.slow
+def test_data_parallel_benchmark_writes_curves_for_both_world_sizes_and_a_plot(tmp_path):
+    proc = subprocess.run([sys.executable, "benchmarks/data_parallel.py", "--iterations", "3", "--seeds", "0",
+                           "--out", str(tmp_path)], cwd=ROOT, capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    result = json.loads((tmp_path / "data_parallel_learning.json").read_text())
+    assert set(result["summary"]) == {"1", "2"}
+    assert all(s["per_seed"]["0"]["env_steps"] > 0 for s in result["summary"].values())
+    assert (tmp_path / "data_parallel_learning.png").stat().st_size > 1000

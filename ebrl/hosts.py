@@ -51,6 +51,9 @@ def plan(cfg: Config, only: str | None = None, host: str | None = None, instance
          ) -> tuple[Config, HostPlan]:
     """The services this host starts (and the config they run with); ConfigError names what is wrong."""
     every = enabled_roles(cfg)
+    if (host is not None or only is not None) and cfg.alloc.enabled:
+        raise ConfigError("alloc.enabled = true: the allocator plans the cores of one host; it does not plan runs "
+                          "over several hosts yet (set alloc.enabled = false and give each host its cores)")
     if host is not None:
         if only is not None or instance is not None:
             raise ConfigError("--host takes this host's services and number from [hosts]; drop --only/--instance")
@@ -59,9 +62,8 @@ def plan(cfg: Config, only: str | None = None, host: str | None = None, instance
             raise ConfigError(f"--host {host}: no [hosts.{host}] in the config (hosts: {known})")
         entry = cfg.hosts[host]
         named = {r for e in cfg.hosts.values() for r in e.services}
-        # viz and the allocator go with train unless some host names them
-        wanted = set(entry.services) | ({r for r in ("viz", "alloc") if r not in named} if "train" in entry.services
-                                        else set())
+        # viz goes with train unless some host names it
+        wanted = set(entry.services) | ({"viz"} - named if "train" in entry.services else set())
         bus = dataclasses.replace(cfg.bus, listen=list(entry.listen or cfg.bus.listen),
                                   connect=list(entry.connect or cfg.bus.connect))
         sim = dataclasses.replace(cfg.sim, cores=list(entry.cores or cfg.sim.cores))

@@ -58,7 +58,6 @@ class Child:
     def name(self) -> str:
         return f"{self.role}/{self.instance}"
 
-
     def tail(self, n: int = LOG_TAIL) -> str:
         try:
             lines = self.log_path.read_text(errors="replace").splitlines()
@@ -162,6 +161,8 @@ class Launcher:
                 self._say(f"ebrl: host {self.plan.instance} of run {self.run_name} is already up elsewhere on the "
                           "bus; give each host its own --instance (or --host)")
                 await self.bus.close()
+                if self.recorder is not None:
+                    self.recorder.close()
                 return 2
         self.bus.declare_token(me)
         stats_tasks = [asyncio.create_task(self._collect(self.bus.subscribe(
@@ -383,7 +384,7 @@ class Launcher:
             self._say(f"\nebrl: {sig.name} received, stopping every service")
             self.stopping.set()
 
-    def _on_control(self, key: str, payload: bytes) -> None:
+    def _on_control(self, key: str, _: bytes) -> None:
         """Control messages for a service this run does not have are ignored by everyone; counted here.
         A secondary host's launcher stops when the primary ends the run."""
         role = keys.parse(key)[3]

@@ -46,7 +46,7 @@ def test_a_hosts_table_places_services_and_numbers_hosts():
     assert plan(cfg, host="sim-b")[1].instance == 2
 
 
-def test_viz_and_the_allocator_go_with_train_unless_a_host_names_them():
+def test_viz_goes_with_train_unless_a_host_names_it():
     cfg = load(hosts=HOSTS, viz={"rerun": "save"})
     assert plan(cfg, host="learner")[1].roles == ("viz", "train", "gen")
     hosts = {**HOSTS, "sim-b": {**HOSTS["sim-b"], "services": ["sim", "viz"]}}
@@ -78,6 +78,8 @@ def test_only_and_instance():
         plan(cfg, only="sim,gem")
     with pytest.raises(config.ConfigError, match="is off in this config"):
         plan(cfg, only="alloc")
+    with pytest.raises(config.ConfigError, match="does not plan runs over several hosts"):
+        plan(load(alloc={"enabled": True}), only="sim")
     with pytest.raises(config.ConfigError, match="use it with --only"):
         plan(cfg, instance=1)
     with pytest.raises(config.ConfigError, match="start each host with --host"):
@@ -164,7 +166,7 @@ def test_a_host_number_already_on_the_bus_is_refused(tmp_path):
 # --- data-parallel training -----------------------------------------------------------------------------
 
 
-@pytest.mark.parametrize("parallel", ["ddp", "fsdp"])
+@pytest.mark.parametrize("parallel", ["ddp", pytest.param("fsdp", marks=pytest.mark.slow)])
 def test_two_training_ranks_train_and_stop_cleanly(tmp_path, parallel):
     code, out, seen = helpers.run_collecting_stats(tmp_path / "runs", "configs/quickstart.toml", "run.iterations=4",
                                                    "train.world_size=2", f'train.parallel="{parallel}"',
@@ -179,6 +181,7 @@ def test_two_training_ranks_train_and_stop_cleanly(tmp_path, parallel):
     assert (run / "checkpoints" / "v00000004").is_dir() and (run / "policy.safetensors").is_file()
 
 
+@pytest.mark.slow
 def test_killing_one_rank_restarts_the_training_group(tmp_path):
     import psutil
 
@@ -438,3 +441,48 @@ def test_two_training_ranks_learn_the_quickstart_like_one(tmp_path):
     done = json.loads(next((tmp_path / "runs").glob("*/summary.json")).read_text())
     assert done["target_reached"] is not None, out
     assert done["target_reached"]["return"] >= 900
+
+
+@pytest.mark.slow
+def test_a_late_host_is_admitted_and_a_host_that_leaves_is_not_waited_for(tmp_path):
+    """Host 1 simulates from the start; host 2 joins mid-run; host 1 is killed (its launcher SIGKILLed, its
+    services follow it); the run finishes on host 2."""
+    import signal
+
+    port = helpers.free_port()
+    connect = ["--set", f'bus.connect=["tcp/127.0.0.1:{port}"]']
+
+    def sim_host(n: int) -> subprocess.Popen:
+        return up(tmp_path / f"h{n}", "--only", "sim", "--instance", str(n), *connect, "--set", "sim.hosts=2",
+                  "--set", f'bus.listen=["tcp/127.0.0.1:{helpers.free_port()}"]', name="churn")
+
+    primary = up(tmp_path / "p", "--only", "gen,train", "--set", f'bus.listen=["tcp/127.0.0.1:{port}"]',
+                 "--set", "sim.hosts=2", "--set", "run.iterations=30", "--set", "train.checkpoint_every=0",
+                 name="churn")
+    first = sim_host(1)
+    second = None
+    lines: list[str] = []
+    try:
+        deadline = time.monotonic() + 300
+        while True:
+            line = primary.stdout.readline()
+            assert line and time.monotonic() < deadline, "".join(lines)
+            lines.append(line)
+            if "iter " in line and second is None and int(line.split("iter ")[1].split("/")[0]) >= 3:
+                second = sim_host(2)
+            if "host 2 joined the run" in line:
+                time.sleep(5)  # let host 2 simulate a while
+                os.kill(first.pid, signal.SIGKILL)
+            if "run churn finished" in line or "run churn stopped" in line:
+                break
+        primary.wait(30)
+        second_out, _ = second.communicate(timeout=30)
+    finally:
+        for proc in (primary, first, second):
+            if proc is not None:
+                proc.kill()
+    out = "".join(lines)
+    assert primary.returncode == 0, out
+    assert "host 1 joined the run" in out and "host 2 joined the run" in out and "host 1 left the run" in out
+    assert summary(tmp_path / "p")["iterations"] == 30
+    assert "the primary host ended the run" in second_out and second.returncode == 0

@@ -5,8 +5,8 @@
 Each configuration (H sim hosts, W training ranks) is one run of several ``ebrl up`` processes on this machine:
 the primary (``--only gen,train --instance 0``, ``train.world_size = W``) and H sim hosts (``--only sim
 --instance k``, k = 1..H), each launcher on its own loopback port, the sim hosts connecting to the primary.
-``sim.hosts = H`` on every host keeps an update at ``train.batch_size`` decisions: more hosts make each env's
-rollout shorter, not the batch bigger. Once rank 0 published its first update and ``--warmup`` seconds passed,
+An update stays ``train.batch_size`` decisions: with more live sim hosts each env's share of an iteration
+is shorter, not the batch bigger. Once rank 0 published its first update and ``--warmup`` seconds passed,
 the script reads ``ebrl/stats/<run>/**`` for ``--duration`` seconds and takes each counter's difference between
 the first and last report of the window: env steps/s and segments/s summed over the sim hosts, updates/s of
 rank 0. Configurations run interleaved (all of them, then all again for ``--repeat``) so that drift of a shared
@@ -58,7 +58,7 @@ def host_command(args, run: str, k: int, port: int, primary_port: int, world: in
     cmd = [sys.executable, "-m", "ebrl.cli", "up", args.config, "--only", "gen,train" if k == 0 else "sim",
            "--instance", str(k)]
     sets = [f"run.name={run}", f"run.output_dir={json.dumps(str(Path(args.runs_dir) / run / f'host{k}'))}",
-            f'bus.listen=["tcp/127.0.0.1:{port}"]', f"sim.hosts={hosts}", f"train.world_size={world}",
+            f'bus.listen=["tcp/127.0.0.1:{port}"]', f"train.world_size={world}",
             "run.iterations=0", "run.target_return=1e9", "run.stats_interval=1.0", 'viz.rerun="off"',
             "viz.report=false", *args.set]
     if k > 0:
@@ -219,7 +219,7 @@ def main() -> int:
     for h in hosts:  # fail fast on a bad config, before any process starts
         for w in worlds:
             try:
-                config.load(args.config, [f"sim.hosts={h}", f"train.world_size={w}", *args.set])
+                config.load(args.config, [f"train.world_size={w}", *args.set])
             except config.ConfigError as exc:
                 print(f"scaling: H={h}, W={w}: config error: {exc}", file=sys.stderr)
                 return 2

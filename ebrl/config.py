@@ -95,9 +95,6 @@ class SimSection:
     group_pipeline: bool | None = doc(
         "pipeline groups through generation; false makes all envs one group; absent: the mode's choice", None)
     segment_length: int = doc("chunk decisions per trajectory segment sent to training", 32)
-    hosts: int = doc("hosts running a sim service in this run (set from [hosts]; with `ebrl up --only` set it on "
-                     "every host): an iteration's batch_size decisions come from hosts x groups x envs_per_group "
-                     "envs", 1)
     step_timeout: float = doc("seconds an env worker may take for one request (a chunk, or a step when steps are "
                               "dispatched one by one) before it is killed and replaced; 0: automatic, 20x the "
                               "measured P99 chunk latency and at least 20 s (120 s until 50 chunks were seen)", 0.0)
@@ -251,14 +248,10 @@ class Config:
         return self.sim.groups * self.sim.envs_per_group
 
     @property
-    def total_envs(self) -> int:
-        """Envs of the whole run, over every sim host."""
-        return self.num_envs * self.sim.hosts
-
-    @property
     def rollout_length(self) -> int:
-        """Chunk decisions of each env per iteration (one policy update consumes one iteration)."""
-        return self.train.batch_size // self.total_envs
+        """Chunk decisions of each env per iteration (one policy update consumes one iteration) with one sim
+        host; with n live sim hosts, 1/n of it (``Schedule.length``)."""
+        return self.train.batch_size // self.num_envs
 
     def to_dict(self) -> dict[str, dict[str, Any]]:
         return dataclasses.asdict(self)
@@ -355,12 +348,9 @@ def _check_semantics(cfg: Config) -> None:
         raise ConfigError("train.checkpoint_every and run.max_restarts must be >= 0")
     if cfg.run.iterations < 0:
         raise ConfigError(f"run.iterations = {cfg.run.iterations}: must be >= 0")
-    if cfg.hosts:
-        sim_hosts = sum("sim" in entry.services for entry in cfg.hosts.values())
-        if sim_hosts == 0:
-            raise ConfigError("[hosts]: no host runs sim")
-        cfg.sim.hosts = sim_hosts
-    for path in ("sim.groups", "sim.envs_per_group", "sim.hosts", "sim.segment_length", "policy.chunk", "algo.epochs",
+    if cfg.hosts and not any("sim" in entry.services for entry in cfg.hosts.values()):
+        raise ConfigError("[hosts]: no host runs sim")
+    for path in ("sim.groups", "sim.envs_per_group", "sim.segment_length", "policy.chunk", "algo.epochs",
                  "algo.minibatches", "train.batch_size", "train.lr", "train.threads", "train.world_size", "gen.threads",
                  "run.stats_interval", "train.max_pending", "viz.window_s", "viz.port", "policy.embed_dim",
                  "policy.denoise_steps"):
@@ -370,10 +360,10 @@ def _check_semantics(cfg: Config) -> None:
         raise ConfigError(f"algo.gamma = {cfg.algo.gamma}: must be in (0, 1]")
     if not cfg.bus.listen and not cfg.bus.connect:
         raise ConfigError("bus.listen and bus.connect are both empty: services could not find each other")
-    if cfg.train.batch_size % cfg.total_envs:
+    if cfg.train.batch_size % cfg.num_envs:
         raise ConfigError(f"train.batch_size = {cfg.train.batch_size}: must be a multiple of the number of envs "
-                          f"(sim.hosts x sim.groups x sim.envs_per_group = {cfg.total_envs}); each env runs "
-                          "batch_size / envs decisions per iteration")
+                          f"(sim.groups x sim.envs_per_group = {cfg.num_envs}); each env runs batch_size / envs "
+                          "decisions per iteration")
     if cfg.algo.name == "grpo":
         envs = cfg.sim.groups * cfg.sim.envs_per_group
         if cfg.algo.group_size < 2 or envs % cfg.algo.group_size:

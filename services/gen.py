@@ -1,6 +1,6 @@
 """gen service: batches the groups whose observations are ready, answers each with an action chunk.
 
-Staleness bound: a group's chunk ``seq`` belongs to iteration ``seq // rollout_length``;
+Staleness bound: a group's chunk ``seq`` belongs to iteration ``seq // Schedule.length(live sim hosts)``;
 it is answered only by a policy version at least ``iteration - max_staleness``
 (``Schedule.min_version``). Observations that would need a newer policy wait
 here — back-pressure on their group, never an unbounded buffer (one observation
@@ -64,7 +64,9 @@ class GenService(Service):
             self.wake.clear()
             await self.apply_latest_weights()
             self.waiting.extend(m for _, m in self.obs.drain())
-            batch = [m for m in self.waiting if self.version >= self.schedule.min_version(m.seq)][:self.max_groups]
+            hosts = len(self.sim_hosts)
+            batch = [m for m in self.waiting
+                     if self.version >= self.schedule.min_version(m.seq, hosts)][:self.max_groups]
             if not batch:
                 if self.waiting:
                     self.count("gen/throttled")

@@ -81,6 +81,9 @@ class SimService(Service):
     def _on_core_step(self, core: int, seconds: float) -> None:
         self.count(f"sim/core{core}_busy_s", seconds)
 
+    def sim_hosts(self) -> int:
+        return sum(1 for k in self.peers_live if keys.parse(k)[3] == "sim")
+
     def _role_live(self, role: str) -> bool:
         return any(keys.parse(k)[3] == role for k in self.peers_live)
 
@@ -95,7 +98,6 @@ class SimService(Service):
         env_ids = np.arange(g * per, (g + 1) * per, dtype=np.int64)
         builders = [SegmentBuilder(g, int(e), self.cfg.sim.segment_length) for e in env_ids]
         obs = np.stack(await asyncio.gather(*(w.reset() for w in workers)))
-        rollout_length = self.schedule.rollout_length
         seq = 0
         while True:
             active = [i for i in range(per) if self.episodes.may_act(int(env_ids[i]))]
@@ -110,7 +112,7 @@ class SimService(Service):
             latencies = [0.0] * per
             for j, i in enumerate(active):
                 results[i], latencies[i] = done[j], latency_of[j]
-            boundary = (seq + 1) % rollout_length == 0
+            boundary = (seq + 1) % self.schedule.length(self.sim_hosts()) == 0
             next_obs = obs.copy()
             for i, res in enumerate(results):
                 env = int(env_ids[i])

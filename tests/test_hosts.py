@@ -35,8 +35,7 @@ def load(**sections) -> config.Config:
 
 
 def test_a_hosts_table_places_services_and_numbers_hosts():
-    cfg = load(hosts=HOSTS, train={"batch_size": 1024})
-    assert cfg.sim.hosts == 2 and cfg.rollout_length == 1024 // (2 * 8)
+    cfg = load(hosts=HOSTS)
     learner_cfg, learner = plan(cfg, host="learner")
     assert learner.roles == ("train", "gen") and learner.instance == 0 and learner.multi and learner.primary
     assert learner_cfg.bus.listen == ["tcp/127.1.0.1:7447"]
@@ -97,7 +96,7 @@ def test_the_resolved_config_keeps_its_hosts_table():
         again = config.load(str(path))
     finally:
         path.unlink()
-    assert again.hosts == cfg.hosts and again.sim.hosts == 2
+    assert again.hosts == cfg.hosts
 
 
 def test_ebrl_up_with_a_bad_only_exits_2_and_starts_nothing(tmp_path):
@@ -453,11 +452,11 @@ def test_a_late_host_is_admitted_and_a_host_that_leaves_is_not_waited_for(tmp_pa
     connect = ["--set", f'bus.connect=["tcp/127.0.0.1:{port}"]']
 
     def sim_host(n: int) -> subprocess.Popen:
-        return up(tmp_path / f"h{n}", "--only", "sim", "--instance", str(n), *connect, "--set", "sim.hosts=2",
+        return up(tmp_path / f"h{n}", "--only", "sim", "--instance", str(n), *connect,
                   "--set", f'bus.listen=["tcp/127.0.0.1:{helpers.free_port()}"]', name="churn")
 
     primary = up(tmp_path / "p", "--only", "gen,train", "--set", f'bus.listen=["tcp/127.0.0.1:{port}"]',
-                 "--set", "sim.hosts=2", "--set", "run.iterations=30", "--set", "train.checkpoint_every=0",
+                 "--set", "run.iterations=30", "--set", "train.checkpoint_every=0",
                  name="churn")
     first = sim_host(1)
     second = None

@@ -104,3 +104,9 @@ def test_decoupled_loss_is_plain_ppo_on_policy_and_reweights_stale_data():
     d, _ = trained(decoupled=False, stale=True)
     assert stats_c["behave_weight_mean"] == pytest.approx(np.exp(0.3), rel=1e-4)
     assert not torch.allclose(c, d)
+
+
+def test_the_rollout_length_is_shared_by_the_live_sim_hosts():
+    s = resolve(config.from_dict({"train": {"batch_size": 64}}), cores=[0, 1])  # 8 envs: 8 decisions each
+    assert [s.length(h) for h in (0, 1, 2, 4, 16)] == [8, 8, 4, 2, 1]
+    assert s.min_version(8, hosts=1) == 0 and s.min_version(8, hosts=2) == 1  # two hosts: iterations go twice as fast

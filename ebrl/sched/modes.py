@@ -35,7 +35,7 @@ class Schedule:
     core_rebinding: bool
     overlap: bool
     max_staleness: int  # 0 when overlap is off: every decision of iteration i comes from policy version i
-    rollout_length: int  # decisions per env per iteration
+    rollout_length: int  # decisions per env per iteration, with one sim host (see ``length``)
     sim_cores: list[int]
     gen_cores: list[int]  # empty: not pinned
     train_cores: list[int]  # empty: not pinned
@@ -44,16 +44,22 @@ class Schedule:
     # iteration; the staleness bound is kept by training alone (older decisions are dropped, counted).
     throttle: bool = True
 
-    def iteration_of(self, seq: int) -> int:
-        """The iteration a group's chunk ``seq`` belongs to."""
-        return seq // self.rollout_length
+    def length(self, hosts: int = 1) -> int:
+        """Decisions per env per iteration while ``hosts`` sim hosts are live: an update's batch comes from all
+        of them. Counted live, not configured, so a host that leaves never leaves the others waiting for
+        decisions it would have made (when the count changes, the iteration a seq maps to jumps once)."""
+        return max(1, self.rollout_length // max(1, hosts))
 
-    def min_version(self, seq: int) -> int:
+    def iteration_of(self, seq: int, hosts: int = 1) -> int:
+        """The iteration a group's chunk ``seq`` belongs to."""
+        return seq // self.length(hosts)
+
+    def min_version(self, seq: int, hosts: int = 1) -> int:
         """Oldest policy version allowed to answer chunk ``seq``: iteration i may be acted by version
         i - max_staleness or newer, so the update that learns from it is at most max_staleness ahead."""
         if not self.throttle:
             return -1
-        return self.iteration_of(seq) - self.max_staleness
+        return self.iteration_of(seq, hosts) - self.max_staleness
 
 
 def available_cores() -> list[int]:

@@ -3,7 +3,7 @@
 #   make test         create .venv on first use, install, run the fast tests
 VENV ?= .venv
 PY := $(VENV)/bin/python
-PYTEST_FLAGS ?= -q
+PYTEST_FLAGS ?= -q -rs  # -rs: print why each skipped test skipped
 
 .PHONY: install quickstart test test-slow schemas clean
 

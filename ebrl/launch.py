@@ -116,7 +116,8 @@ class Launcher:
         self.plan = plan or HostPlan(enabled_roles(cfg))
         self.run_name = cfg.run.name
         self.dist_addr = ""  # rank 0's rendezvous of the training ranks (train.world_size > 1)
-        self.hosts_seen: set[str] = set()  # launcher instances of the other hosts that joined
+        self.hosts_seen: set[str] = set()  # launcher instances of the other hosts, while up
+        self.hosts_joined: set[int] = set()  # ... and every one that joined
         self.ending = False
         self.train_seen_at: float | None = None  # when a train was last live (a secondary waits for it)
         self.children: list[Child] = []
@@ -405,10 +406,11 @@ class Launcher:
         else:
             self.live.discard(key)
         role, instance = keys.parse(key)[3:5]
-        if not self.plan.multi or role != "launcher" or instance == str(self.plan.instance):
+        if not self.plan.multi or role != "launcher" or not instance.isdigit() or instance == str(self.plan.instance):
             return
         if alive and instance not in self.hosts_seen:
             self.hosts_seen.add(instance)
+            self.hosts_joined.add(int(instance))
             self._say(f"\nebrl: host {instance} joined the run")
             self.event("host", f"host {instance} joined the run")
         elif not alive and instance in self.hosts_seen and not self.ending:
@@ -444,6 +446,7 @@ class Launcher:
             f"staleness {self.metric('train/staleness_mean', 'mean') or 0:.2f}",
             f"return {ret:.1f}" if ret is not None else "return -",
             *([f"restarts {self.restarts()}"] if self.restarts() else []),
+            *([f"hosts {len(self.hosts_seen) + 1}"] if self.plan.multi else []),
             _clock(time.monotonic() - self.started),
         ]
         line = " | ".join(fields)
@@ -477,6 +480,8 @@ class Launcher:
             "best_return": self.best_return,
             "target_return": self.cfg.run.target_return,
             "restarts": {c.name: c.restarts for c in self.children if c.restarts},
+            "host": self.plan.instance,
+            "hosts": sorted(self.hosts_joined | {self.plan.instance}),  # every host that took part
             "target_reached": None if self.reached is None else
             {"iteration": self.reached[0], "wall_s": round(self.reached[1], 2), "return": self.reached[2]},
         }

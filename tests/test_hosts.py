@@ -140,7 +140,7 @@ def test_sim_on_another_host_trains_and_the_primary_ends_the_run(tmp_path):
     assert secondary.returncode == 0, sim_out
     assert "host 1 joined the run" in out and "the primary host ended the run" in sim_out
     done = summary(tmp_path / "p")
-    assert done["iterations"] == 4 and done["env_steps"] > 0
+    assert done["iterations"] == 4 and done["env_steps"] > 0 and done["hosts"] == [0, 1]
     assert (tmp_path / "s").glob("*/logs/sim-1.log")
 
 

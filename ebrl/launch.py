@@ -155,7 +155,8 @@ class Launcher:
         self.bus.subscribe_raw(keys.ctl(self.run_name, "*", "*", "*"), self._on_control)
         me = keys.live(self.run_name, "launcher", self.plan.instance)
         where = f"host {self.plan.name or self.plan.instance}: {', '.join(self.plan.roles)}; " if multi else ""
-        self._say(f"run {self.run_name}: {self.run_dir}  ({where}bus {self.endpoint or ', '.join(self.cfg.bus.connect)})")
+        bus = self.endpoint or ", ".join(self.cfg.bus.connect)
+        self._say(f"run {self.run_name}: {self.run_dir}  ({where}bus {bus})")
         if multi:  # the other hosts' tokens arrive once the routers met: is this host number taken?
             await asyncio.sleep(1.0)
             if me in self.live:
@@ -406,7 +407,8 @@ class Launcher:
         else:
             self.live.discard(key)
         role, instance = keys.parse(key)[3:5]
-        if not self.plan.multi or role != "launcher" or not instance.isdigit() or instance == str(self.plan.instance):
+        other_host = role == "launcher" and instance.isdigit() and instance != str(self.plan.instance)
+        if not (self.plan.multi and other_host):
             return
         if alive and instance not in self.hosts_seen:
             self.hosts_seen.add(instance)

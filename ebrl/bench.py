@@ -129,7 +129,7 @@ def learning_curve(config: str, overrides: list[str], name: str, timeout: float 
             out, _ = proc.communicate(timeout=timeout)
         except subprocess.TimeoutExpired:
             proc.send_signal(signal.SIGINT)
-            out, _ = proc.communicate(30)
+            out, _ = proc.communicate(timeout=60)
     if proc.returncode not in (0, 130):
         raise RuntimeError(f"{name}: ebrl up failed ({proc.returncode}):\n{out}")
     with window.lock:

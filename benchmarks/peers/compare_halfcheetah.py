@@ -23,7 +23,6 @@ import argparse
 import json
 import os
 import shlex
-import signal
 import subprocess
 import sys
 import time
@@ -33,39 +32,17 @@ HERE = Path(__file__).resolve().parent
 ROOT = HERE.parent.parent
 sys.path.insert(0, str(ROOT))
 
-import zenoh  # noqa: E402
-
 from ebrl import bench  # noqa: E402
 
 RESULTS = ROOT / "benchmarks" / "results"
 RUNS = "runs/peers"
 
 
-def ebrl_curve(config: str, overrides: list[str], name: str, max_seconds: float) -> list[dict]:
-    """``ebrl.bench.learning_curve`` with a working time cap: its timeout path calls
-    ``proc.communicate(30)``, which passes 30 as input and raises."""
-    started = time.time()
-    proc, conf = bench.launch(config, name, overrides, RUNS)
-    window = bench.StatsWindow()
-    with zenoh.open(conf) as session:
-        session.declare_subscriber(f"ebrl/stats/{name}/**", window.on_sample)
-        try:
-            out, _ = proc.communicate(timeout=max_seconds)
-        except subprocess.TimeoutExpired:
-            proc.send_signal(signal.SIGINT)
-            out, _ = proc.communicate(timeout=60)
-    if proc.returncode not in (0, 130):
-        raise RuntimeError(f"{name}: ebrl up failed ({proc.returncode}):\n{out}")
-    with window.lock:
-        reports = sorted(window.reports, key=lambda kr: kr[1]["time"])
-    return [{"wall_s": round(r["time"] - started, 2), "env_steps": r["metrics"]["sim/env_steps"],
-             "return": r["metrics"]["sim/episode_return_mean"]}
-            for key, r in reports if key == "sim/0" and "sim/episode_return_mean" in r["metrics"]]
-
-
 def run_ebrl(args: argparse.Namespace, name: str, extra: list[str]) -> dict:
     overrides = [f"run.target_return={args.target_return}", *extra]
-    curve = ebrl_curve(args.config, overrides, name, args.max_seconds)
+    if args.ebrl_seed is not None:
+        overrides.append(f"run.seed={args.ebrl_seed}")
+    curve = bench.learning_curve(args.config, overrides, name, timeout=args.max_seconds, out_dir=RUNS)
     run_dir = max((ROOT / RUNS).glob(f"{name}-*"), key=lambda p: p.stat().st_mtime)
     summary = json.loads((run_dir / "summary.json").read_text())
     return {"command": shlex.join(["ebrl", "up", args.config, *[a for o in overrides for a in ("--set", o)]]),
@@ -139,7 +116,8 @@ def main() -> int:
     p.add_argument("--config", default="configs/bench_halfcheetah.toml")
     p.add_argument("--target-return", type=float, default=1000.0)
     p.add_argument("--max-seconds", type=float, default=900.0, help="wall-clock cap of each run")
-    p.add_argument("--seed", type=int, default=0, help="seed of the peers (EBRL's is run.seed in its config)")
+    p.add_argument("--seed", type=int, default=0, help="seed of the peers")
+    p.add_argument("--ebrl-seed", type=int, default=None, help="EBRL's run.seed (default: the config's)")
     p.add_argument("--runs", default=",".join([*EBRL, *PEERS]), help="which runs, in this order")
     p.add_argument("--json", default=str(RESULTS / "peer_comparison_halfcheetah.json"))
     args = p.parse_args()

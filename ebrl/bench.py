@@ -2,9 +2,11 @@
 
 Each measurement is a real ``ebrl up`` run (a subprocess with its own bus port):
 after every service is live and the first policy update is published, the
-bench process reads ``ebrl/stats/<run>/**`` for ``--duration`` seconds and
-takes the difference of the counters between the first and last report of the
-window. Modes run A B C D A B C D ... so that machine drift hits all alike.
+bench process reads ``ebrl/stats/<run>/**`` for ``--duration`` seconds (or until
+``--trajectories`` more segments are done) and takes the difference of the
+counters between the first and last report of the window. Modes run
+A B C D A B C D ... so that machine drift hits all alike. ``--ablations`` adds
+ebrl with each mechanism flipped (``ablation_variants``).
 """
 
 from __future__ import annotations
@@ -27,11 +29,41 @@ import zenoh
 from ebrl import config as config_mod
 
 BASELINES = ("colocated", "hybrid", "async")
-ABLATIONS = {  # ebrl with one mechanism switched off
-    "ebrl-no_group_pipeline": ["sim.group_pipeline=false"],
-    "ebrl-no_overlap": ["train.overlap=false"],
-    "ebrl-no_core_rebinding": ["sim.core_rebinding=false"],
+# The mechanisms ``--ablations`` switches, each by its config key. A variant flips one of them from what the
+# ebrl mode runs with this config: ``ebrl-no_<name>`` switches it off, ``ebrl+<name>`` on where the config
+# leaves it off (the allocator is off by default, so its variant is usually ``ebrl+allocator``).
+MECHANISMS = {
+    "allocator": "alloc.enabled",
+    "group_pipeline": "sim.group_pipeline",
+    "overlap": "train.overlap",
+    "core_rebinding": "sim.core_rebinding",
 }
+
+
+def base_mode(variant: str) -> str:
+    """The ``run.mode`` of a variant name: ``ebrl-no_overlap`` and ``ebrl+allocator`` run mode ebrl."""
+    return variant.replace("+", "-").split("-")[0]
+
+
+def ablation_variants(config: str, overrides: list[str]) -> dict[str, list[str]]:
+    """ebrl with each mechanism flipped from what it runs with under ``config``: variant name -> overrides."""
+    from ebrl.sched.modes import resolve
+
+    cfg = config_mod.load(config, [*overrides, "run.mode=ebrl"])
+    schedule = resolve(cfg)
+    running = {
+        "allocator": cfg.alloc.enabled,
+        "group_pipeline": schedule.groups > 1,
+        "overlap": schedule.overlap,
+        "core_rebinding": schedule.core_rebinding,
+    }
+    out = {}
+    for name, key in MECHANISMS.items():
+        if running[name]:
+            out[f"ebrl-no_{name}"] = [f"{key}=false"]
+        else:
+            out[f"ebrl+{name}"] = [f"{key}=true"]
+    return out
 
 
 def _free_port() -> int:
@@ -65,6 +97,14 @@ class StatsWindow:
                     return report["metrics"][name]
         return None
 
+    def latest_report(self, source: str, name: str) -> tuple[float, float] | None:
+        """(report time, value) of the newest report of ``source`` that has ``name``."""
+        with self.lock:
+            for key, report in reversed(self.reports):
+                if key == source and name in report["metrics"]:
+                    return report["time"], report["metrics"][name]
+        return None
+
     def between(self, t0: float, t1: float) -> dict[str, list[dict[str, Any]]]:
         with self.lock:
             out: dict[str, list[dict[str, Any]]] = {}
@@ -90,22 +130,43 @@ def launch(config: str, name: str, overrides: list[str], out_dir: str) -> tuple[
 
 
 def measure(config: str, mode: str, extra: list[str], duration: float, startup_timeout: float = 300.0,
-            out_dir: str = "runs/bench") -> dict[str, Any]:
-    """One run of ``config`` in ``mode``: throughput and latencies over ``duration`` seconds."""
-    name = f"bench-{mode}".replace("_", "-")[:40]
-    proc, conf = launch(config, name, [f"run.mode={mode.split('-')[0]}", "run.iterations=0", *extra], out_dir)
+            out_dir: str = "runs/bench", trajectories: int = 0, max_seconds: float = 3600.0) -> dict[str, Any]:
+    """One run of ``config`` in ``mode`` (a mode or a variant name): throughput and latencies over
+    ``duration`` seconds after warm-up or, with ``trajectories`` > 0, until that many more trajectory
+    segments are done (at most ``max_seconds``)."""
+    name = f"bench-{mode}".replace("_", "-").replace("+", "-with-")[:40]
+    proc, conf = launch(config, name, [f"run.mode={base_mode(mode)}", "run.iterations=0", *extra], out_dir)
     window = StatsWindow()
+
+    def wait(done: Any, timeout: float, what: str) -> None:
+        deadline = time.monotonic() + timeout
+        while not done():
+            if proc.poll() is not None:
+                raise RuntimeError(f"{mode}: the run ended (exit {proc.returncode}) {what}:\n{proc.stdout.read()}")
+            if time.monotonic() > deadline:
+                raise RuntimeError(f"{mode}: no result after {timeout:.0f} s {what}")
+            time.sleep(0.2)
+
     try:
         with zenoh.open(conf) as session:
             session.declare_subscriber(f"ebrl/stats/{name}/**", window.on_sample)
-            deadline = time.monotonic() + startup_timeout
-            while (window.latest("train/0", "train/policy_version") or 0) < 1:  # warm: one update done
-                if proc.poll() is not None or time.monotonic() > deadline:
-                    raise RuntimeError(f"{mode}: run ended or never warmed up:\n{proc.stdout.read()}")
-                time.sleep(0.2)
-            t0 = time.time()
-            time.sleep(duration)
-            t1 = time.time()
+            # warm: one update done, so start-up and the first compile are outside the window
+            wait(lambda: (window.latest("train/0", "train/policy_version") or 0) >= 1, startup_timeout,
+                 "while warming up")
+            if trajectories > 0:
+                wait(lambda: window.latest_report("sim/0", "sim/segments") is not None, startup_timeout,
+                     "before its first sim report")
+                t0, base = window.latest_report("sim/0", "sim/segments")
+
+                def enough() -> bool:
+                    return window.latest_report("sim/0", "sim/segments")[1] - base >= trajectories
+
+                wait(enough, max_seconds, f"before {trajectories} trajectories")
+                t1 = window.latest_report("sim/0", "sim/segments")[0]
+            else:
+                t0 = time.time()
+                wait(lambda: time.time() - t0 >= duration, duration + 60, "during the measurement")
+                t1 = time.time()
     finally:
         if proc.poll() is None:
             proc.send_signal(signal.SIGINT)
@@ -113,7 +174,7 @@ def measure(config: str, mode: str, extra: list[str], duration: float, startup_t
             proc.wait(30)
         except subprocess.TimeoutExpired:
             proc.kill()
-    return summarize(window.between(t0, t1), duration)
+    return summarize(window.between(t0, t1), t1 - t0)
 
 
 def learning_curve(config: str, overrides: list[str], name: str, timeout: float = 1800.0,
@@ -158,6 +219,8 @@ def summarize(window: dict[str, list[dict[str, Any]]], duration: float) -> dict[
     sim, gen, train = window.get("sim/0", []), window.get("gen/0", []), window.get("train/0", [])
     dt = _span_s(sim) or duration
     out = {
+        "window_s": dt,
+        "trajectories": _delta(sim, "sim/segments"),
         "traj_per_s": _delta(sim, "sim/segments") / dt,
         "env_steps_per_s": _delta(sim, "sim/env_steps") / dt,
         "updates_per_s": _delta(train, "train/updates") / (_span_s(train) or duration),
@@ -182,39 +245,40 @@ def summarize(window: dict[str, list[dict[str, Any]]], duration: float) -> dict[
     return out
 
 
-def raw_capacity(config: str, modes: list[str], overrides: list[str], seconds: float) -> dict[str, dict[str, Any]]:
-    """The physical limit of each mode: raw env steps/s of the cores its simulation holds (measured once per
-    distinct core set, before the runs, with nothing else running)."""
+def raw_capacity(config: str, variants: dict[str, list[str]], seconds: float) -> dict[str, dict[str, Any]]:
+    """The physical limit of each variant: raw env steps/s of the cores its simulation holds (measured once
+    per distinct core set, before the runs, with nothing else running)."""
     from ebrl.envs.gym import EnvSpec
     from ebrl.envs.worker import raw_steps_per_s
     from ebrl.sched.modes import resolve
 
     measured: dict[tuple[int, ...], float] = {}
     out = {}
-    for mode in modes:
-        cfg = config_mod.load(config, [*overrides, f"run.mode={mode.split('-')[0]}", *ABLATIONS.get(mode, [])])
+    for variant, overrides in variants.items():
+        cfg = config_mod.load(config, [*overrides, f"run.mode={base_mode(variant)}"])
         cores = tuple(resolve(cfg).sim_cores)
         if cores not in measured:
             print(f"raw simulator capacity of cores {list(cores)} ...", file=sys.stderr, flush=True)
             measured[cores] = raw_steps_per_s(EnvSpec.from_config(cfg.env), list(cores), seconds)
-        out[mode] = {"sim_cores": list(cores), "raw_env_steps_per_s": measured[cores]}
+        out[variant] = {"sim_cores": list(cores), "raw_env_steps_per_s": measured[cores]}
     return out
 
 
-def run(config: str, modes: list[str], duration: float, repeat: int, overrides: list[str],
-        raw_seconds: float = 10.0) -> dict[str, Any]:
-    config_mod.load(config, overrides)  # fail fast on a bad config
-    raw = raw_capacity(config, modes, overrides, raw_seconds) if raw_seconds > 0 else {}
-    results: dict[str, list[dict[str, Any]]] = {m: [] for m in modes}
+def run(config: str, variants: dict[str, list[str]], duration: float, repeat: int, raw_seconds: float = 10.0,
+        trajectories: int = 0) -> dict[str, Any]:
+    """Measure every variant (name -> its ``--set`` overrides) ``repeat`` times, interleaved."""
+    for overrides in variants.values():
+        config_mod.load(config, overrides)  # fail fast on a bad config
+    raw = raw_capacity(config, variants, raw_seconds) if raw_seconds > 0 else {}
+    results: dict[str, list[dict[str, Any]]] = {m: [] for m in variants}
     for r in range(repeat):
-        for mode in modes:
-            extra = list(overrides) + ABLATIONS.get(mode, [])
-            print(f"[{r + 1}/{repeat}] {mode} ...", file=sys.stderr, flush=True)
-            result = measure(config, mode, extra, duration)
-            if mode in raw:  # sim efficiency: achieved env steps/s over the raw capacity of sim's cores
-                result.update(raw[mode])
-                result["sim_efficiency"] = result["env_steps_per_s"] / raw[mode]["raw_env_steps_per_s"]
-            results[mode].append(result)
+        for variant, overrides in variants.items():
+            print(f"[{r + 1}/{repeat}] {variant} ...", file=sys.stderr, flush=True)
+            result = measure(config, variant, overrides, duration, trajectories=trajectories)
+            if variant in raw:  # sim efficiency: achieved env steps/s over the raw capacity of sim's cores
+                result.update(raw[variant])
+                result["sim_efficiency"] = result["env_steps_per_s"] / raw[variant]["raw_env_steps_per_s"]
+            results[variant].append(result)
     return results
 
 
@@ -246,16 +310,18 @@ def table(results: dict[str, list[dict[str, Any]]]) -> str:
 
 
 def main(config: str, modes: str, ablations: bool, duration: float, repeat: int, json_path: str,
-         overrides: list[str], raw_seconds: float = 10.0) -> int:
+         overrides: list[str], raw_seconds: float = 10.0, trajectories: int = 0) -> int:
     names = [m.strip() for m in modes.split(",") if m.strip()]
     unknown = [m for m in names if m not in ("ebrl", *BASELINES)]
     if unknown:
         print(f"ebrl bench: unknown mode(s) {unknown}; choose from ebrl, {', '.join(BASELINES)}", file=sys.stderr)
         return 2
-    if ablations:
-        names += list(ABLATIONS)
     try:
-        results = run(config, names, duration, repeat, overrides, raw_seconds)
+        variants = {name: list(overrides) for name in names}
+        if ablations:
+            flips = ablation_variants(config, overrides)
+            variants.update({name: [*overrides, *flip] for name, flip in flips.items()})
+        results = run(config, variants, duration, repeat, raw_seconds, trajectories)
     except config_mod.ConfigError as exc:
         print(f"ebrl: config error: {exc}", file=sys.stderr)
         return 2
@@ -264,6 +330,7 @@ def main(config: str, modes: str, ablations: bool, duration: float, repeat: int,
         Path(json_path).parent.mkdir(parents=True, exist_ok=True)
         Path(json_path).write_text(json.dumps({
             "command": "ebrl " + " ".join(sys.argv[1:]), "machine": f"{len(os.sched_getaffinity(0))} usable cores",
-            "config": config, "duration_s": duration, "repeat": repeat, "overrides": overrides, "results": results,
+            "config": config, "duration_s": duration, "trajectories": trajectories, "repeat": repeat,
+            "overrides": overrides, "variants": variants, "results": results,
         }, indent=2) + "\n")
     return 0

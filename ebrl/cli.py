@@ -37,8 +37,12 @@ def main(argv: list[str] | None = None) -> int:
     p = sub.add_parser("bench", help="run a config in several modes, interleaved, and compare throughput")
     p.add_argument("config")
     p.add_argument("--modes", default="ebrl,colocated,hybrid,async", help="comma-separated modes")
-    p.add_argument("--ablations", action="store_true", help="add ebrl with each mechanism switched off")
-    p.add_argument("--duration", type=float, default=60.0, help="measured seconds per run (after warm-up)")
+    p.add_argument("--ablations", action="store_true", help="add ebrl with each mechanism (allocator, group_pipeline, overlap, core_rebinding) "
+                   "flipped from what the config runs")
+    span = p.add_mutually_exclusive_group()
+    span.add_argument("--duration", type=float, default=60.0, help="measured seconds per run (after warm-up)")
+    span.add_argument("--trajectories", type=int, default=0,
+                      help="measure each run until this many trajectory segments are done, instead of --duration")
     p.add_argument("--repeat", type=int, default=1, help="rounds over all modes")
     p.add_argument("--json", default="", help="write the results here")
     p.add_argument("--raw-seconds", type=float, default=10.0,
@@ -87,7 +91,7 @@ def main(argv: list[str] | None = None) -> int:
         from ebrl import bench
 
         return bench.main(args.config, args.modes, args.ablations, args.duration, args.repeat, args.json,
-                          args.overrides, args.raw_seconds)
+                          args.overrides, args.raw_seconds, args.trajectories)
     if args.command == "profile":
         from ebrl.alloc.cli import profile_command
 

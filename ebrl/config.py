@@ -115,6 +115,9 @@ class PolicySection:
                          "instruction embedding)", 32)
     denoise_steps: int = doc("flow: N, denoising (Euler) steps per chunk; cost grows with N, the interface does "
                              "not change", 4)
+    normalize_obs: bool = doc("standardise the vector fields of the observation by running mean and variance "
+                              "(kept in the policy, updated by training from each batch, shipped with the "
+                              "weights); images and tokens pass unchanged", False)
     checkpoint: str = doc("safetensors policy checkpoint to start training from (relative to the working "
                           "directory); empty: fresh weights", "")
 
@@ -137,6 +140,10 @@ class AlgoSection:
     decoupled: bool = doc("decoupled PPO for stale data: clip around the proximal policy, weight by "
                           "pi_prox / pi_behave", True)
     behave_weight_cap: float = doc("upper bound of the pi_prox / pi_behave weight", 5.0)
+    prox_logp: Literal["recompute", "interpolate"] = doc(
+        "decoupled: log pi_prox recomputed by a forward pass over the batch at the start of each update, or "
+        "interpolated by version between the behaviour and the current log-prob (no extra pass; AReaL's "
+        "log-linear approximation)", "recompute")
     gamma: float = doc("discount per env step (a chunk of k steps is discounted by gamma**k)", 0.99)
     gae_lambda: float = doc("GAE lambda", 0.95)
     clip: float = doc("PPO ratio clip", 0.2)

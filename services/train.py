@@ -190,12 +190,15 @@ class TrainService(Service):
         gradients. Every rank makes the same collective calls in the same order, items or not."""
         with self.dp.gathered() if self.dp is not None else contextlib.nullcontext():
             batch = self.collector.build(items, self.model) if items else None
+        if self.model.obs_norm is not None:  # before the gradient steps, the same statistics on every rank
+            sums = self.model.obs_norm.sums(batch.obs if batch is not None else torch.zeros(0, *self.obs_shape))
+            self.model.obs_norm.merge(sums if self.dp is None else self.dp.all_sum(sums))
         if batch is None:
             out = {**self.ppo.update(self.empty_batch(), scale=0.0), "batch_size": 0.0}
         else:
             staleness = self.version - batch.versions
             self.staleness_hist += np.bincount(staleness, minlength=len(self.staleness_hist))[:len(self.staleness_hist)]
-            out = self.ppo.update(batch)
+            out = self.ppo.update(batch, version=self.version)
             out.update(staleness_mean=float(staleness.mean()), staleness_max=float(staleness.max()),
                        batch_size=float(len(batch)))
         self.sync(self.version + 1)

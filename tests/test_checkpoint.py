@@ -1,5 +1,6 @@
 """Training checkpoints: a round trip restores policy, optimizer, random state and version; writes are atomic."""
 
+import dataclasses
 from types import SimpleNamespace
 
 import numpy as np
@@ -8,11 +9,12 @@ import torch
 
 from ebrl.algos import checkpoint
 from ebrl.algos.ppo import PPO
+from ebrl.config import PolicySection
 from ebrl.envs import ObsLayout
 from ebrl.policies import make_policy, state_arrays
 
-POLICY = SimpleNamespace(kind="mlp", chunk=2, hidden=[8], init_log_std=-0.5, channels=[8], embed_dim=8,
-                         denoise_steps=2, checkpoint="")
+POLICY = PolicySection(kind="mlp", chunk=2, hidden=[8], init_log_std=-0.5, channels=[8], embed_dim=8,
+                       denoise_steps=2, checkpoint="")
 ALGO = SimpleNamespace(clip=0.2, epochs=1, minibatches=1, ent_coef=0.0, vf_coef=0.5, max_grad_norm=0.5)
 
 
@@ -63,6 +65,6 @@ def test_latest_always_names_a_complete_checkpoint_and_old_ones_go(tmp_path):
 def test_a_checkpoint_of_another_policy_is_refused(tmp_path):
     model, ppo = trained()
     path = checkpoint.save(tmp_path, model, ppo.optimizer, 1, {})
-    other = make_policy(SimpleNamespace(**{**vars(POLICY), "hidden": [16]}), ObsLayout.vector(3), 1)
+    other = make_policy(dataclasses.replace(POLICY, hidden=[16]), ObsLayout.vector(3), 1)
     with pytest.raises(ValueError, match="shape"):
         checkpoint.restore(path, other, PPO(other, ALGO, lr=1e-2).optimizer, {})

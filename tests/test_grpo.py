@@ -10,6 +10,7 @@ import torch
 from ebrl import config
 from ebrl.algos.grpo import GroupCollector, group_advantages
 from ebrl.algos.ppo import PPO
+from ebrl.config import PolicySection
 from ebrl.envs import EnvSpec, EnvWorker, ObsLayout
 from ebrl.messages import TrajectorySegment
 from ebrl.policies import make_policy
@@ -85,8 +86,8 @@ def test_stale_decisions_are_masked_but_count_in_the_return():
 
 def test_grpo_update_moves_probability_towards_the_better_rollout():
     torch.manual_seed(0)
-    policy = make_policy(SimpleNamespace(kind="mlp", chunk=2, hidden=[16], init_log_std=-0.5, channels=[8],
-                                         embed_dim=8, denoise_steps=2, checkpoint=""), ObsLayout.vector(3), 1)
+    policy = make_policy(PolicySection(kind="mlp", chunk=2, hidden=[16], init_log_std=-0.5, channels=[8],
+                                       embed_dim=8, denoise_steps=2, checkpoint=""), ObsLayout.vector(3), 1)
     obs = np.zeros((16, 3), np.float32)
     actions, logprobs, values, latents = policy.act(obs)
     good = actions.reshape(16, -1).mean(1) > 0

@@ -169,7 +169,8 @@ def test_a_host_number_already_on_the_bus_is_refused(tmp_path):
 def test_two_training_ranks_train_and_stop_cleanly(tmp_path, parallel):
     code, out, seen = helpers.run_collecting_stats(tmp_path / "runs", "configs/quickstart.toml", "run.iterations=4",
                                                    "train.world_size=2", f'train.parallel="{parallel}"',
-                                                   "train.checkpoint_every=2", 'viz.rerun="off"', run=parallel)
+                                                   "train.checkpoint_every=2", 'viz.rerun="off"',
+                                                   "policy.normalize_obs=true", run=parallel)
     assert code == 0, out
     assert seen["train/0"][-1]["train/policy_version"] == 4
     assert seen["train/1"][-1]["train/policy_version"] == 4  # every rank took every update
@@ -178,6 +179,11 @@ def test_two_training_ranks_train_and_stop_cleanly(tmp_path, parallel):
     (run,) = [p for p in (tmp_path / "runs").iterdir()]
     assert "rank 0 said stop" in (run / "logs" / "train-1.log").read_text()
     assert (run / "checkpoints" / "v00000004").is_dir() and (run / "policy.safetensors").is_file()
+    import numpy as np
+    from safetensors.numpy import load_file
+
+    final = load_file(run / "policy.safetensors")
+    assert final["obs_norm.count"] > 0 and np.abs(final["obs_norm.mean"]).sum() > 0  # training kept statistics
 
 
 @pytest.mark.slow
@@ -214,8 +220,8 @@ def _ddp_rank(rank: int, world: int, addr: str, out: str, kind: str, shard: bool
     from ebrl.policies import make_policy
 
     torch.manual_seed(rank)  # different initial weights: DDP must start every rank from rank 0's
-    policy = make_policy(config.PolicySection(kind=kind, chunk=2, hidden=[16], embed_dim=8, denoise_steps=2),
-                         ObsLayout.vector(3), 2)
+    policy = make_policy(config.PolicySection(kind=kind, chunk=2, hidden=[16], embed_dim=8, denoise_steps=2,
+                                              normalize_obs=True), ObsLayout.vector(3), 2)
     algo = config.AlgoSection(epochs=2, minibatches=3, decoupled=True)
     ppo = PPO(policy, algo, 1e-2, seed=rank)
     before = [p.detach().clone() for p in policy.parameters()]
@@ -228,6 +234,8 @@ def _ddp_rank(rank: int, world: int, addr: str, out: str, kind: str, shard: bool
                   advantages=torch.randn(n, generator=g), returns=torch.randn(n, generator=g),
                   values=torch.zeros(n), versions=torch.zeros(n, dtype=torch.long).numpy())
     for _ in range(2):
+        # as the train service does: observation statistics from every rank's shard (rank 2 has none) ...
+        policy.obs_norm.merge(dp.all_sum(policy.obs_norm.sums(batch.obs[:0] if rank == 2 else batch.obs)))
         ppo.update(batch, scale=0.0 if rank == 2 else 1.0)  # rank 2 got no data: zero gradients, same steps
     with dp.gathered():  # sharded: the policy's own methods see whole parameters inside
         value = policy.value(batch.obs[:2])
@@ -245,6 +253,7 @@ def test_ddp_ranks_hold_the_same_weights_after_every_update(tmp_path, kind):
     mp.start_processes(_ddp_rank, args=(3, f"127.0.0.1:{helpers.free_port()}", str(tmp_path), kind), nprocs=3,
                        start_method="spawn")
     ranks = [torch.load(tmp_path / f"rank{r}.pt", weights_only=False) for r in range(3)]
+    assert ranks[0]["after"]["obs_norm.count"] == 2 * (20 + 27)  # ... added up over the ranks, the same on each
     for r in (1, 2):
         assert ranks[0]["after"].keys() == ranks[r]["after"].keys()
         for name, a in ranks[0]["after"].items():

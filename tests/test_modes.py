@@ -16,8 +16,10 @@ def staleness_seen(stats) -> int:
 
 @pytest.mark.parametrize("mode", MODES)
 def test_mode_runs_and_keeps_the_staleness_bound(tmp_path, mode):
+    # async trains on stale data with the interpolated proximal log-probs, the others recompute them
+    prox = 'algo.prox_logp="interpolate"' if mode == "async" else 'algo.prox_logp="recompute"'
     code, out, stats = run_collecting_stats(tmp_path / "runs", "configs/quickstart.toml", "run.iterations=4",
-                                            f"run.mode={mode}", "algo.max_staleness=1", run=f"mode-{mode}")
+                                            f"run.mode={mode}", "algo.max_staleness=1", prox, run=f"mode-{mode}")
     assert code == 0, out
     last = stats["train/0"][-1]
     assert last["train/policy_version"] == 4
@@ -74,3 +76,45 @@ def test_ebrl_bench_prints_the_table_and_writes_json(tmp_path):
     ebrl, asy = results["ebrl"][0], results["async"][0]
     assert ebrl["raw_env_steps_per_s"] > 0 and 0 < ebrl["sim_efficiency"] < 1.5
     assert len(asy["sim_cores"]) <= len(ebrl["sim_cores"])
+
+
+def test_ablations_flip_each_mechanism_from_what_ebrl_runs_with_the_config():
+    from ebrl.bench import ablation_variants, base_mode
+
+    # The quickstart pins each env to its own core (core_rebinding = false) and leaves the allocator off,
+    # so those two variants switch a mechanism on; the other two switch one off.
+    assert ablation_variants("configs/quickstart.toml", []) == {
+        "ebrl+allocator": ["alloc.enabled=true"],
+        "ebrl-no_group_pipeline": ["sim.group_pipeline=false"],
+        "ebrl-no_overlap": ["train.overlap=false"],
+        "ebrl+core_rebinding": ["sim.core_rebinding=true"],
+    }
+    lift = ablation_variants("configs/robosuite_lift.toml", ["alloc.enabled=true"])
+    assert "ebrl-no_allocator" in lift and "ebrl-no_core_rebinding" in lift
+    assert [base_mode(v) for v in ("ebrl", "ebrl-no_overlap", "ebrl+allocator", "colocated")] == [
+        "ebrl", "ebrl", "ebrl", "colocated"]
+
+
+@pytest.mark.slow
+def test_ebrl_bench_ablations_measure_a_number_of_trajectories(tmp_path):
+    import json
+    import subprocess
+    import sys
+
+    from helpers import ROOT
+
+    out_json = tmp_path / "bench.json"
+    proc = subprocess.run([sys.executable, "-m", "ebrl.cli", "bench", "configs/quickstart.toml", "--modes", "ebrl",
+                           "--ablations", "--trajectories", "24", "--json", str(out_json), "--raw-seconds", "0",
+                           "--set", "alloc.profile_seconds=0.2",
+                           "--set", f"run.output_dir={json.dumps(str(tmp_path / 'runs'))}"],
+                          cwd=ROOT, capture_output=True, text=True, timeout=600)
+    assert proc.returncode == 0, proc.stderr
+    data = json.loads(out_json.read_text())
+    assert set(data["results"]) == {"ebrl", "ebrl+allocator", "ebrl-no_group_pipeline", "ebrl-no_overlap",
+                                    "ebrl+core_rebinding"}
+    assert data["trajectories"] == 24 and data["variants"]["ebrl+allocator"][-1] == "alloc.enabled=true"
+    for variant, (result,) in data["results"].items():
+        # the window ends at the first report with 24 more segments; stats come once a second
+        assert result["trajectories"] >= 24 and result["traj_per_s"] > 0, variant
+    assert "ebrl+allocator" in proc.stdout

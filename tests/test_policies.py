@@ -192,3 +192,49 @@ def test_missing_or_unreadable_checkpoint_is_a_clear_error(tmp_path):
     junk.write_bytes(b"not a checkpoint")
     with pytest.raises(ValueError, match="safetensors"):
         load_checkpoint(build("mlp")[0], str(junk))
+
+
+def test_obs_normalizer_keeps_running_statistics_of_the_vector_fields_only():
+    from ebrl.policies import ObsNormalizer
+
+    norm = ObsNormalizer(VISION)
+    obs = torch.as_tensor(observations(VISION, batch=40), dtype=torch.float32)
+    torch.testing.assert_close(norm(obs), obs)  # before the first batch: the identity (in the clip range)
+    parts = [obs[:13] * 3 + 5, obs[13:] * 3 + 5]  # two batches, folded in one after the other
+    for part in parts:
+        norm.merge(ObsNormalizer.sums(part))
+    whole = torch.cat(parts).double()
+    proprio = slice(3 * 32 * 32, 3 * 32 * 32 + 5)
+    torch.testing.assert_close(norm.mean[proprio].double(), whole[:, proprio].mean(0), rtol=1e-5, atol=1e-5)
+    torch.testing.assert_close(norm.var[proprio].double(), whole[:, proprio].var(0, unbiased=False),
+                               rtol=1e-4, atol=1e-5)
+    assert norm.count.item() == 40
+    out = norm(whole.float())
+    assert abs(out[:, proprio].mean().item()) < 1e-4 and abs(out[:, proprio].std().item() - 1) < 0.05
+    torch.testing.assert_close(out[:, :3 * 32 * 32], whole.float()[:, :3 * 32 * 32])  # image unchanged
+    torch.testing.assert_close(out[:, -16:], whole.float()[:, -16:])  # instruction tokens unchanged
+    far = whole.float()[:1].clone()
+    far[0, proprio] = 1e6
+    assert norm(far)[0, proprio].max().item() == norm.clip
+
+
+@pytest.mark.parametrize("case", list(CASES))
+def test_normalize_obs_statistics_travel_with_the_weights(case):
+    from ebrl.policies import ObsNormalizer
+
+    policy, layout = build(case, normalize_obs=True)
+    obs = observations(layout, batch=16)
+    vector = ObsNormalizer(layout).mask.numpy()
+    obs[:, vector] = obs[:, vector] * 4 + 2  # far from standard: the statistics will matter
+    before = policy.value(torch.as_tensor(obs, dtype=torch.float32))
+    policy.obs_norm.merge(ObsNormalizer.sums(obs))
+    after = policy.value(torch.as_tensor(obs, dtype=torch.float32))
+    assert not torch.allclose(before, after)  # the statistics change what every head sees
+    arrays = state_arrays(policy)
+    assert {"obs_norm.mean", "obs_norm.var", "obs_norm.count"} <= set(arrays) and "obs_norm.mask" not in arrays
+    other, _ = build(case, seed=1, normalize_obs=True)
+    load_arrays(other, arrays)  # what generation does with a Weights message
+    torch.testing.assert_close(other.value(torch.as_tensor(obs, dtype=torch.float32)), after)
+    plain, _ = build(case)
+    with pytest.raises(ValueError, match="obs_norm"):  # a normalising policy's weights need a normalising model
+        load_arrays(plain, arrays)

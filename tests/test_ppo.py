@@ -4,6 +4,7 @@ import numpy as np
 import torch
 from types import SimpleNamespace
 
+from ebrl.config import PolicySection
 from ebrl.envs.obs import ObsLayout
 from ebrl.algos.ppo import PPO, build_batch, gae
 from ebrl.envs.worker import ChunkResult
@@ -12,7 +13,7 @@ from ebrl.sched.rollout import SegmentBuilder
 
 ALGO = SimpleNamespace(gamma=0.9, gae_lambda=0.5, clip=0.2, epochs=4, minibatches=2, ent_coef=0.0, vf_coef=0.5,
                        max_grad_norm=0.5)
-POLICY = SimpleNamespace(kind="mlp", chunk=3, hidden=[16], init_log_std=-0.5, checkpoint="")
+POLICY = PolicySection(kind="mlp", chunk=3, hidden=[16], init_log_std=-0.5, checkpoint="")
 
 
 def test_gae_matches_hand_computation():

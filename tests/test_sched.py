@@ -5,6 +5,7 @@ import pytest
 import torch
 from types import SimpleNamespace
 
+from ebrl.config import PolicySection
 from ebrl.envs.obs import ObsLayout
 from ebrl import config
 from ebrl.algos.ppo import PPO, build_batch
@@ -75,10 +76,10 @@ def test_fresh_suffix_cuts_the_stale_prefix():
 
 ALGO = dict(gamma=0.9, gae_lambda=0.9, clip=0.2, epochs=2, minibatches=2, ent_coef=0.0, vf_coef=0.5,
             max_grad_norm=0.5, behave_weight_cap=5.0)
-POLICY = SimpleNamespace(kind="mlp", chunk=2, hidden=[8], init_log_std=-0.5, checkpoint="")
+POLICY = PolicySection(kind="mlp", chunk=2, hidden=[8], init_log_std=-0.5, checkpoint="")
 
 
-def trained(decoupled: bool, stale: bool) -> torch.Tensor:
+def trained(decoupled: bool, stale: bool, prox_logp: str = "recompute", calls: list | None = None) -> torch.Tensor:
     torch.manual_seed(0)
     model = make_policy(POLICY, ObsLayout.vector(4), 1)
     seg = segment([0] * 16)
@@ -90,8 +91,12 @@ def trained(decoupled: bool, stale: bool) -> torch.Tensor:
         logp = logp - 0.3  # the behaviour policy was another one
     seg = TrajectorySegment(**{**seg.__dict__, "actions": actions.numpy(), "logprobs": logp.astype(np.float32),
                                "end": "terminated"})
-    ppo = PPO(model, SimpleNamespace(**ALGO, decoupled=decoupled), lr=1e-2, seed=0)
-    stats = ppo.update(build_batch([seg], model, 0.9, 0.9))
+    ppo = PPO(model, SimpleNamespace(**ALGO, decoupled=decoupled, prox_logp=prox_logp), lr=1e-2, seed=0)
+    if calls is not None:  # count the decisions every forward pass evaluates
+        net = ppo.net
+        ppo.net = lambda method, obs, *rest: calls.append(len(obs)) or net(method, obs, *rest)
+    # the behaviour versions are 0; the policy being updated is version 1 when the data is stale
+    stats = ppo.update(build_batch([seg], model, 0.9, 0.9), version=1 if stale else 0)
     return torch.cat([p.detach().flatten() for p in model.parameters()]), stats
 
 
@@ -104,6 +109,23 @@ def test_decoupled_loss_is_plain_ppo_on_policy_and_reweights_stale_data():
     d, _ = trained(decoupled=False, stale=True)
     assert stats_c["behave_weight_mean"] == pytest.approx(np.exp(0.3), rel=1e-4)
     assert not torch.allclose(c, d)
+
+
+def test_interpolated_prox_skips_the_recompute_pass_and_is_plain_ppo_on_policy():
+    a, stats_a = trained(decoupled=True, stale=False, prox_logp="interpolate")
+    b, _ = trained(decoupled=False, stale=False)
+    torch.testing.assert_close(a, b)  # alpha = 0: pi_prox = pi_behave
+    assert stats_a["behave_weight_mean"] == pytest.approx(1.0)
+    recompute_calls, interpolate_calls = [], []
+    c, _ = trained(decoupled=True, stale=True, calls=recompute_calls)
+    d, stats_d = trained(decoupled=True, stale=True, prox_logp="interpolate", calls=interpolate_calls)
+    # one lag of one version: alpha = 1/2, log pi_prox halfway between behaviour and current; the first step
+    # sees log pi_theta - log pi_behave = 0.3, so its weight is exp(0.15), and the weights move from there
+    assert 1.0 < stats_d["behave_weight_mean"] < np.exp(0.3)
+    assert not torch.allclose(c, d)
+    steps = ALGO["epochs"] * ALGO["minibatches"]
+    assert recompute_calls[0] == 16 and len(recompute_calls) == steps + 1  # the pass over the whole batch
+    assert len(interpolate_calls) == steps and sum(interpolate_calls) == ALGO["epochs"] * 16  # ... skipped
 
 
 def test_the_rollout_length_is_shared_by_the_live_sim_hosts():

@@ -7,21 +7,22 @@ last 20 episodes reaches ``--target-return`` or ``--max-seconds`` pass (wall
 clock from launch):
 
 * EBRL: ``ebrl up configs/bench_halfcheetah.toml`` with ``run.target_return`` set;
-* EBRL again with the observation normalisation of ``obs_norm.py``, which EBRL lacks;
+* EBRL again with ``policy.normalize_obs = true`` (running observation statistics, as the peers use);
 * the CleanRL-style loop: ``cleanrl_ppo.py --env HalfCheetah-v5 --num-envs 8``;
 * Sample Factory 2: ``sample_factory.py`` (its MuJoCo example, synchronous, its default),
   and again with ``--async_rl=True`` (``--runs`` picks a subset).
 
 Each peer keeps its own settings and writes its own JSON under
 benchmarks/results/; this script collects the summaries, EBRL's curve and the
-speed-up of each EBRL run over the fastest peer into ``peer_comparison_halfcheetah.json``.
+speed-up of each EBRL run over the fastest peer into ``peer_comparison_halfcheetah.json``. When
+that file exists, runs not selected with ``--runs`` keep their recorded results, so one system can be
+measured again on its own.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
-import os
 import shlex
 import subprocess
 import sys
@@ -49,22 +50,6 @@ def run_ebrl(args: argparse.Namespace, name: str, extra: list[str]) -> dict:
             "summary": summary, "curve": curve}
 
 
-def run_ebrl_obs_norm(args: argparse.Namespace) -> dict:
-    """EBRL with the user-side observation normalisation of ``obs_norm.py``. The launcher and its env
-    workers inherit PYTHONPATH; it is put back after, since ``sample_factory.py`` there would shadow SF."""
-    saved = os.environ.get("PYTHONPATH")
-    os.environ["PYTHONPATH"] = os.pathsep.join(filter(None, [str(HERE), saved]))
-    try:
-        result = run_ebrl(args, "peer-halfcheetah-obs-norm", ['env.id="obs_norm:HalfCheetahObsNorm-v5"'])
-    finally:
-        if saved is None:
-            del os.environ["PYTHONPATH"]
-        else:
-            os.environ["PYTHONPATH"] = saved
-    result["command"] = f"PYTHONPATH=benchmarks/peers {result['command']}"
-    return result
-
-
 def run_peer(script: str, extra: list[str], out: Path, args: argparse.Namespace) -> dict:
     cmd = [sys.executable, str(HERE / script), "--target-return", str(args.target_return),
            "--max-seconds", str(args.max_seconds), "--seed", str(args.seed), "--json", str(out), *extra]
@@ -76,7 +61,7 @@ def run_peer(script: str, extra: list[str], out: Path, args: argparse.Namespace)
 
 EBRL = {
     "ebrl": lambda a: run_ebrl(a, "peer-halfcheetah", []),
-    "ebrl_obs_norm": run_ebrl_obs_norm,
+    "ebrl_obs_norm": lambda a: run_ebrl(a, "peer-halfcheetah-obs-norm", ["policy.normalize_obs=true"]),
 }
 PEERS = {
     "cleanrl_ppo": lambda a: run_peer("cleanrl_ppo.py", ["--env", "HalfCheetah-v5", "--num-envs", "8"],
@@ -123,6 +108,11 @@ def main() -> int:
     args = p.parse_args()
 
     results: dict[str, dict] = {}
+    recorded = Path(args.json)
+    if recorded.exists():  # keep the runs not measured now
+        earlier = json.loads(recorded.read_text())
+        if earlier.get("target_return") == args.target_return:
+            results = {run: earlier[run] for run in {**EBRL, **PEERS} if run in earlier}
     for run in args.runs.split(","):
         print(f"== {run}", flush=True)
         results[run] = {**EBRL, **PEERS}[run](args)

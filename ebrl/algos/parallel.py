@@ -90,7 +90,8 @@ class DataParallel:
         self.names = [f"policy.{name}" for name, _ in policy.named_parameters()]  # optimizer index -> FQN
         if not shard:
             # broadcast_buffers=False: a forward pass is no collective (ranks call value() a different number
-            # of times); the policies keep no buffers that change.
+            # of times). The one buffer that changes, the observation statistics, every rank updates alike
+            # from the sum over ranks (``all_sum``).
             self.net: nn.Module = nn.parallel.DistributedDataParallel(Methods(policy), broadcast_buffers=False)
             return
         from torch.distributed.checkpoint.state_dict import StateDictOptions, set_optimizer_state_dict
@@ -154,6 +155,12 @@ class DataParallel:
         index = {name: i for i, name in enumerate(self.names)}
         return {"state": {index[name]: slots for name, slots in state["state"].items()},
                 "param_groups": [{**g, "params": [index[n] for n in g["params"]]} for g in state["param_groups"]]}
+
+    def all_sum(self, values: np.ndarray) -> np.ndarray:
+        """Element-wise sum of ``values`` over the ranks (a collective), in float64."""
+        total = torch.from_numpy(np.array(values, dtype=np.float64))
+        dist.all_reduce(total)
+        return total.numpy()
 
     def send(self, command: Command | list[Command]) -> Command:
         """Rank 0: scatter one command per rank (or the same to all); return rank 0's own."""

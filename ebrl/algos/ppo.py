@@ -13,6 +13,14 @@ start of this update (log-probs recomputed once) and r = pi_theta / pi_prox,
     L = -E[ w * min(r * A, clip(r, 1 - eps, 1 + eps) * A) ],   w = min(pi_prox / pi_behave, cap)
 
 On-policy data has pi_prox = pi_behave, w = 1: plain PPO.
+
+``algo.prox_logp = "interpolate"`` skips the forward pass that recomputes log pi_prox: with v the
+version at the start of the update (pi_prox's), b the behaviour version of a decision and the current
+policy counted as version v + 1, it takes log pi_prox on the line between behaviour and current,
+
+    log pi_prox ~ log pi_behave + alpha * (log pi_theta - log pi_behave),   alpha = (v - b) / (v - b + 1)
+
+(log pi_theta detached, per minibatch step): alpha = 0 on-policy, so again plain PPO.
 """
 
 from __future__ import annotations
@@ -98,18 +106,25 @@ class PPO:
         self.optimizer = torch.optim.Adam(model.parameters(), lr=lr, eps=1e-5)
         self.generator = torch.Generator().manual_seed(seed)
 
-    def update(self, batch: Batch, scale: float = 1.0) -> dict[str, float]:
+    def update(self, batch: Batch, scale: float = 1.0, version: int | None = None) -> dict[str, float]:
         """``epochs`` x ``minibatches`` gradient steps, always exactly that many (data-parallel ranks step in
-        lockstep); ``scale = 0`` takes the steps with zero gradients (a rank that got no data this time)."""
+        lockstep); ``scale = 0`` takes the steps with zero gradients (a rank that got no data this time).
+        ``version``: the policy version being updated (default: the newest in the batch), for interpolation."""
         cfg, n = self.cfg, len(batch)
         stats: dict[str, list[float]] = {k: [] for k in ("policy_loss", "value_loss", "entropy", "approx_kl", "clipfrac")}
-        if getattr(cfg, "decoupled", False):
+        decoupled = getattr(cfg, "decoupled", False)
+        interpolate = decoupled and getattr(cfg, "prox_logp", "recompute") == "interpolate"
+        if interpolate:
+            lag = torch.as_tensor((version if version is not None else batch.versions.max()) - batch.versions,
+                                  dtype=torch.float32).clamp(min=0)
+            alpha = lag / (lag + 1)  # log pi_prox and the weights: per minibatch step, below
+        elif decoupled:
             with torch.no_grad():
                 prox = self.net("evaluate", batch.obs, batch.actions, batch.latents)[0]  # log pi_prox, once per update
             weight = (prox - batch.logprobs).exp().clamp(max=cfg.behave_weight_cap)
         else:
             prox, weight = batch.logprobs, torch.ones(n)
-        stats["behave_weight_mean"] = [weight.mean().item()]
+        weights: list[float] = [] if interpolate else [weight.mean().item()]
         for _ in range(cfg.epochs):
             order = torch.randperm(n, generator=self.generator)
             for idx in torch.tensor_split(order, cfg.minibatches):
@@ -117,12 +132,19 @@ class PPO:
                 idx = idx if len(idx) else order[:1]
                 newlogprob, entropy, newvalue = self.net("evaluate", batch.obs[idx], batch.actions[idx],
                                                          batch.latents[idx])
-                logratio = newlogprob - prox[idx]
+                if interpolate:
+                    behave = batch.logprobs[idx]
+                    prox_mb = behave + alpha[idx] * (newlogprob.detach() - behave)
+                    weight_mb = (prox_mb - behave).exp().clamp(max=cfg.behave_weight_cap)
+                    weights.append(weight_mb.mean().item())
+                else:
+                    prox_mb, weight_mb = prox[idx], weight[idx]
+                logratio = newlogprob - prox_mb
                 ratio = logratio.exp()
                 adv = batch.advantages[idx]
                 if batch.normalize_advantages and len(idx) > 1:
                     adv = (adv - adv.mean()) / (adv.std() + 1e-8)
-                pg_loss = (weight[idx] * torch.max(-adv * ratio, -adv * ratio.clamp(1 - cfg.clip, 1 + cfg.clip))).mean()
+                pg_loss = (weight_mb * torch.max(-adv * ratio, -adv * ratio.clamp(1 - cfg.clip, 1 + cfg.clip))).mean()
                 if batch.returns is None:
                     v_loss = torch.zeros(())
                 else:
@@ -139,6 +161,7 @@ class PPO:
                     stats["entropy"].append(ent.item())
                     stats["approx_kl"].append(((ratio - 1) - logratio).mean().item())
                     stats["clipfrac"].append(((ratio - 1.0).abs() > cfg.clip).float().mean().item())
+        stats["behave_weight_mean"] = weights
         return {k: float(np.mean(v)) for k, v in stats.items()}
 
 

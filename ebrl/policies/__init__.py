@@ -16,6 +16,7 @@ from ebrl.policies.checkpoint import load_arrays, load_checkpoint, save_checkpoi
 from ebrl.policies.cnn import ChunkGaussianCNN
 from ebrl.policies.flow import FlowPolicy
 from ebrl.policies.mlp import ChunkGaussianMLP
+from ebrl.policies.nets import ObsNormalizer
 
 
 def make_policy(policy_cfg: Any, layout: ObsLayout, action_dim: int) -> ChunkPolicy:
@@ -32,10 +33,12 @@ def make_policy(policy_cfg: Any, layout: ObsLayout, action_dim: int) -> ChunkPol
                            cfg.denoise_steps, cfg.init_log_std)
     else:
         raise ValueError(f"policy.kind = {cfg.kind!r} is not available (mlp, cnn, flow)")
+    if cfg.normalize_obs:
+        model.obs_norm = ObsNormalizer(layout)
     if cfg.checkpoint:
         load_checkpoint(model, cfg.checkpoint)
     return model
 
 
 __all__ = ["ChunkGaussianCNN", "ChunkGaussianMLP", "ChunkPolicy", "FlowPolicy", "load_arrays", "load_checkpoint",
-           "make_policy", "save_checkpoint", "state_arrays"]
+           "ObsNormalizer", "make_policy", "save_checkpoint", "state_arrays"]

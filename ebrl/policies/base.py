@@ -17,6 +17,7 @@ from torch import nn
 from torch.distributions import Normal
 
 from ebrl.envs.obs import ObsLayout
+from ebrl.policies.nets import ObsNormalizer
 
 Tensors3 = tuple[torch.Tensor, torch.Tensor, torch.Tensor]
 
@@ -29,6 +30,10 @@ class ChunkPolicy(nn.Module):
     chunk: int  # K
     action_dim: int  # A
     latent_shape: tuple[int, ...]
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.obs_norm: ObsNormalizer | None = None  # policy.normalize_obs: set by make_policy
 
     def act(self, obs: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """Sample chunks (no gradients): actions [B, K, A], log-probs [B], values [B], latents [B, *latent_shape]."""
@@ -43,9 +48,11 @@ class ChunkPolicy(nn.Module):
         raise NotImplementedError
 
     def flat(self, obs: torch.Tensor | np.ndarray) -> torch.Tensor:
-        """Observations as a float32 tensor [B, layout.size]."""
+        """Observations as a float32 tensor [B, layout.size], standardised when the policy normalises them
+        (every entry point, ``act``, ``evaluate`` and ``value``, passes its observations through here once)."""
         o = torch.as_tensor(obs, dtype=torch.float32)
-        return o.reshape(o.shape[0], self.layout.size)
+        o = o.reshape(o.shape[0], self.layout.size)
+        return o if self.obs_norm is None else self.obs_norm(o)
 
 
 class GaussianChunkPolicy(ChunkPolicy):

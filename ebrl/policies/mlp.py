@@ -28,11 +28,12 @@ class ChunkGaussianMLP(GaussianChunkPolicy):
         self.log_std = nn.Parameter(torch.full((chunk * action_dim,), float(init_log_std)))
 
     def dist(self, obs: torch.Tensor) -> Normal:
-        mean = self.actor(obs.reshape(obs.shape[0], -1))
-        return Normal(mean, self.log_std.expand_as(mean).exp())
+        """The chunk distribution for observations as the env gives them."""
+        return self.heads(self.flat(obs))[0]
 
     def value(self, obs: torch.Tensor) -> torch.Tensor:
-        return self.critic(obs.reshape(obs.shape[0], -1)).squeeze(-1)
+        return self.critic(self.flat(obs)).squeeze(-1)
 
     def heads(self, obs: torch.Tensor) -> tuple[Normal, torch.Tensor]:
-        return self.dist(obs), self.value(obs)
+        mean = self.actor(obs)  # obs: already flat (and standardised) by GaussianChunkPolicy
+        return Normal(mean, self.log_std.expand_as(mean).exp()), self.critic(obs).squeeze(-1)

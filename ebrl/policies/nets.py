@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
 import torch
 from torch import nn
 
@@ -91,3 +92,53 @@ class ObsEncoder(nn.Module):
 
 def _size(fields: list[ObsField]) -> int:
     return sum(f.size for f in fields)
+
+
+class ObsNormalizer(nn.Module):
+    """Running mean and variance of the vector fields of the observation; ``forward`` standardises them and
+    clips to +-``clip`` (image and token fields pass unchanged).
+
+    The statistics are buffers, so they travel with the weights: generation standardises with exactly the
+    statistics of the policy version that acts. Training folds each batch in with ``merge(sums(obs))``
+    (Chan et al.'s parallel update); until the first batch the transform is the identity.
+    """
+
+    def __init__(self, layout: ObsLayout, clip: float = 10.0, eps: float = 1e-8):
+        super().__init__()
+        mask, offset = torch.zeros(layout.size, dtype=torch.bool), 0
+        for f in layout.fields:
+            if f.kind == "vector":
+                mask[offset:offset + f.size] = True
+            offset += f.size
+        self.register_buffer("mask", mask, persistent=False)
+        self.register_buffer("mean", torch.zeros(layout.size))
+        self.register_buffer("var", torch.ones(layout.size))
+        self.register_buffer("count", torch.zeros((), dtype=torch.float64))
+        self.clip, self.eps = clip, eps
+
+    def forward(self, obs: torch.Tensor) -> torch.Tensor:
+        z = ((obs - self.mean) / torch.sqrt(self.var + self.eps)).clamp(-self.clip, self.clip)
+        return torch.where(self.mask, z, obs)
+
+    @staticmethod
+    def sums(obs: torch.Tensor | np.ndarray) -> np.ndarray:
+        """[count, sum of x (D), sum of x**2 (D)] of a batch of flat observations, float64: what ranks add up."""
+        o = np.asarray(obs, dtype=np.float64).reshape(len(obs), -1)
+        return np.concatenate([[len(o)], o.sum(0), (o ** 2).sum(0)])
+
+    @torch.no_grad()
+    def merge(self, sums: np.ndarray) -> None:
+        """Fold a batch (its ``sums``, possibly added over ranks) into the running statistics (Chan et al.)."""
+        n, dim = float(sums[0]), self.mean.numel()
+        if n == 0:
+            return
+        mean = sums[1:1 + dim] / n
+        var = np.maximum(sums[1 + dim:] / n - mean ** 2, 0.0)
+        count = self.count.item()
+        total = count + n
+        old_mean, old_var = self.mean.double().numpy(), self.var.double().numpy() if count else np.zeros(dim)
+        delta = mean - old_mean
+        m2 = old_var * count + var * n + delta ** 2 * count * n / total
+        self.mean.copy_(torch.from_numpy(old_mean + delta * n / total))
+        self.var.copy_(torch.from_numpy(m2 / total))
+        self.count.fill_(total)

@@ -9,9 +9,11 @@ from __future__ import annotations
 
 import dataclasses
 import difflib
+import os
 import tomllib
 import typing
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any, Literal
 
 from ebrl import typecheck
@@ -265,17 +267,42 @@ class Config:
 
 
 def load(path: str, overrides: list[str] = ()) -> Config:
-    """Read ``path`` (TOML), apply ``section.key=value`` overrides, validate."""
+    """Read ``path`` (TOML, with its ``base`` files), apply ``section.key=value`` overrides, validate."""
+    raw = read(path)
+    for item in overrides:
+        apply_override(raw, item)
+    return from_dict(raw)
+
+
+def read(path: str | os.PathLike, _chain: tuple[Path, ...] = ()) -> dict[str, Any]:
+    """The raw tables of a config file. A top-level ``base = "other.toml"`` (relative to this file) starts
+    from that file's tables: this file's keys replace the base's key by key, section by section (a
+    ``[hosts.<name>]`` table as a whole)."""
     try:
         with open(path, "rb") as fh:
             raw = tomllib.load(fh)
     except FileNotFoundError:
-        raise ConfigError(f"{path}: no such file") from None
+        where = f" (the base of {_chain[-1]})" if _chain else ""
+        raise ConfigError(f"{path}: no such file{where}") from None
     except tomllib.TOMLDecodeError as exc:
         raise ConfigError(f"{path}: not valid TOML: {exc}") from None
-    for item in overrides:
-        apply_override(raw, item)
-    return from_dict(raw)
+    if "base" not in raw:
+        return raw
+    base = raw.pop("base")
+    if not isinstance(base, str) or not base:
+        raise ConfigError(f"{path}: base = {base!r}: expected the path of another config file (a string)")
+    here = Path(path).resolve()
+    base_path = (here.parent / base).resolve()
+    if base_path in (*_chain, here):
+        cycle = " -> ".join(str(p) for p in (*_chain, here, base_path))
+        raise ConfigError(f"{path}: base files form a cycle: {cycle}")
+    merged = read(base_path, (*_chain, here))
+    for name, table in raw.items():
+        if isinstance(table, dict) and isinstance(merged.get(name), dict):
+            merged[name] = {**merged[name], **table}
+        else:
+            merged[name] = table
+    return merged
 
 
 def apply_override(raw: dict[str, Any], item: str) -> None:

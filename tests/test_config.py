@@ -81,3 +81,35 @@ def test_describe_lists_every_key_with_type_and_default():
             assert f"  {f.name} (" in text
     assert 'mode ("ebrl" | "colocated" | "hybrid" | "async", default "ebrl")' in text
     assert "target_return (float, optional, default absent)" in text
+
+
+def test_a_config_can_start_from_a_base_file(tmp_path):
+    (tmp_path / "shared").mkdir()
+    (tmp_path / "shared" / "task.toml").write_text(
+        '[run]\nname = "task"\niterations = 7\n[sim]\ngroups = 3\nenvs_per_group = 2\n[train]\nbatch_size = 40\n'
+        '[hosts.a]\nservices = ["gen", "train", "sim"]\ncores = [0]\n')
+    path = tmp_path / "bench.toml"
+    path.write_text('base = "shared/task.toml"\n[run]\nname = "bench"\n[sim]\ngroups = 4\n'
+                    '[hosts.a]\nservices = ["gen", "train", "sim"]\n')
+    cfg = config.load(str(path), ["sim.envs_per_group=5"])
+    assert cfg.run.name == "bench" and cfg.run.iterations == 7  # key by key within a section
+    assert (cfg.sim.groups, cfg.sim.envs_per_group) == (4, 5)  # ... and --set over both
+    assert cfg.hosts["a"].cores == []  # a [hosts.<name>] table is replaced whole
+    # bases chain (relative to each file), and the shipped bench configs use one
+    (tmp_path / "more.toml").write_text('base = "bench.toml"\n[train]\nlr = 0.01\n')
+    more = config.load(str(tmp_path / "more.toml"))
+    assert more.run.name == "bench" and more.sim.groups == 4 and more.train.lr == 0.01
+    lift, bench = (config.load(str(ROOT / "configs" / f)) for f in ("robosuite_lift.toml", "bench_lift.toml"))
+    assert bench.env == lift.env and bench.policy == lift.policy and bench.train == lift.train
+
+
+@pytest.mark.parametrize("text, error", [
+    ('base = "nowhere.toml"\n', r"nowhere\.toml: no such file \(the base of .*c\.toml\)"),
+    ("base = 3\n", r"base = 3: expected the path of another config file"),
+    ('base = "c.toml"\n', r"base files form a cycle"),
+    ('base = "d.toml"\n', r"base files form a cycle: .*c\.toml -> .*d\.toml -> .*c\.toml"),
+])
+def test_a_bad_base_is_named(tmp_path, text, error):
+    (tmp_path / "d.toml").write_text('base = "c.toml"\n')
+    with pytest.raises(config.ConfigError, match=error):
+        config.load(write(tmp_path, text))

@@ -118,3 +118,25 @@ def test_ebrl_bench_ablations_measure_a_number_of_trajectories(tmp_path):
         # the window ends at the first report with 24 more segments; stats come once a second
         assert result["trajectories"] >= 24 and result["traj_per_s"] > 0, variant
     assert "ebrl+allocator" in proc.stdout
+
+
+@pytest.mark.slow
+def test_the_w1_benchmark_config_runs_every_mode_in_one_command(tmp_path):
+    """Issue acceptance: `ebrl bench configs/bench_lift.toml --modes ebrl,colocated,hybrid,async` prints the table
+    and writes the JSON (here with short windows)."""
+    import json
+    import subprocess
+    import sys
+
+    from helpers import ROOT
+
+    out_json = tmp_path / "w1.json"
+    proc = subprocess.run([sys.executable, "-m", "ebrl.cli", "bench", "configs/bench_lift.toml", "--modes",
+                           "ebrl,colocated,hybrid,async", "--duration", "5", "--raw-seconds", "1", "--json",
+                           str(out_json), "--set", f"run.output_dir={json.dumps(str(tmp_path / 'runs'))}"],
+                          cwd=ROOT, capture_output=True, text=True, timeout=900)
+    assert proc.returncode == 0, proc.stderr
+    results = json.loads(out_json.read_text())["results"]
+    assert set(results) == {"ebrl", "colocated", "hybrid", "async"}
+    assert all(r[0]["env_steps_per_s"] > 0 and r[0]["sim_efficiency"] > 0 for r in results.values())
+    assert "(best)" in proc.stdout

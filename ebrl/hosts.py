@@ -33,8 +33,9 @@ class HostPlan:
         return "train" in self.roles
 
     def instances(self, role: str, cfg: Config) -> range:
-        """Instances of ``role`` started here: sim/<host>, train ranks 0..world_size-1, one of the others."""
-        if role == "sim":
+        """Instances of ``role`` started here: sim/<host> and alloc/<host>, train ranks 0..world_size-1, one of
+        the others."""
+        if role in ("sim", "alloc"):
             return range(self.instance, self.instance + 1)
         if role == "train":
             return range(cfg.train.world_size)
@@ -51,9 +52,6 @@ def plan(cfg: Config, only: str | None = None, host: str | None = None, instance
          ) -> tuple[Config, HostPlan]:
     """The services this host starts (and the config they run with); ConfigError names what is wrong."""
     every = enabled_roles(cfg)
-    if (host is not None or only is not None) and cfg.alloc.enabled:
-        raise ConfigError("alloc.enabled = true: the allocator plans the cores of one host; it does not plan runs "
-                          "over several hosts yet (set alloc.enabled = false and give each host its cores)")
     if host is not None:
         if only is not None or instance is not None:
             raise ConfigError("--host takes this host's services and number from [hosts]; drop --only/--instance")
@@ -62,8 +60,9 @@ def plan(cfg: Config, only: str | None = None, host: str | None = None, instance
             raise ConfigError(f"--host {host}: no [hosts.{host}] in the config (hosts: {known})")
         entry = cfg.hosts[host]
         named = {r for e in cfg.hosts.values() for r in e.services}
-        # viz goes with train unless some host names it
-        wanted = set(entry.services) | ({"viz"} - named if "train" in entry.services else set())
+        # viz goes with train unless some host names it; the allocator always does (it plans that host's cores)
+        wanted = set(entry.services) | ({"viz", "alloc"} - named if "train" in entry.services else set())
+        _allocator_with_train(wanted, f"[hosts.{host}]")
         bus = dataclasses.replace(cfg.bus, listen=list(entry.listen or cfg.bus.listen),
                                   connect=list(entry.connect or cfg.bus.connect))
         sim = dataclasses.replace(cfg.sim, cores=list(entry.cores or cfg.sim.cores))
@@ -85,4 +84,12 @@ def plan(cfg: Config, only: str | None = None, host: str | None = None, instance
     number = 0 if instance is None else instance
     if number < 0:
         raise ConfigError(f"--instance {number}: must be >= 0")
-    return cfg, HostPlan(tuple(r for r in every if r in asked), number, True)
+    wanted = set(asked) | ({"alloc"} if "train" in asked else set())  # the allocator goes with training
+    _allocator_with_train(wanted, f"--only {only}")
+    return cfg, HostPlan(tuple(r for r in every if r in wanted), number, True)
+
+
+def _allocator_with_train(roles: set[str], where: str) -> None:
+    if "alloc" in roles and "train" not in roles:
+        raise ConfigError(f"{where}: the allocator (alloc) runs on the host that trains: it plans that host's "
+                          "cores, reading every host's stats")

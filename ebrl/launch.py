@@ -209,6 +209,10 @@ class Launcher:
               ) -> subprocess.Popen:
         """Start ``python -m services.<role>``; its output is appended to ``log_path``."""
         env = dict(os.environ, PYTHONUNBUFFERED="1", **(extra_env or {}))
+        if role == "alloc":  # the allocator plans this host's cores: with or without a simulator among them
+            from ebrl.alloc.runtime import LOCAL_SIM_VAR
+
+            env[LOCAL_SIM_VAR] = "1" if "sim" in self.plan.roles else "0"
         if role == "train" and self.dist_addr:
             from ebrl.algos.parallel import ADDR_VAR
 
@@ -549,7 +553,7 @@ def up(config_path: str, overrides: list[str], viz: str | None = None, resume: s
         from ebrl.resources.pool import ResourceError
 
         try:
-            cfg, _, line = initial_config(cfg)
+            cfg, _, line = initial_config(cfg, local_sim="sim" in plan.roles)
         except (InfeasibleError, ResourceError) as exc:
             print(f"ebrl: allocator: {exc}", file=sys.stderr)
             return 2

@@ -1,45 +1,66 @@
 """alloc service: the elastic allocator. Reads the stages' stats, re-plans after a sustained imbalance,
-pushes the new cores, threads and batch to the services (``ctl/.../{affinity,quota}``, versioned)."""
+pushes the new cores, threads and batch to the services (``ctl/.../{affinity,quota}``, versioned).
+
+It runs on the host that trains and plans that host's cores. On a run over several hosts it reads every
+host's simulator stats: the other hosts' simulation capacity counts toward the simulator's side of
+Algorithm 1 (so the more they simulate, the fewer of this host's cores the simulator takes), and a host
+that has no simulator of its own (``EBRL_LOCAL_SIM=0``, set by the launcher) gives all its cores to
+generation and training. The other hosts keep their own cores (``[hosts.<name>].cores``).
+"""
 
 from __future__ import annotations
 
 import asyncio
+import os
 import time
 
-from ebrl.alloc.runtime import capacities, describe, make_placement, metrics_of
+from ebrl.alloc.runtime import LOCAL_SIM_VAR, capacities, describe, make_placement, metrics_of
 from ebrl.bus import keys
 from ebrl.messages import Affinity, Quota, StatsReport
 from ebrl.service import Service, service_main
+
+REMOTE_STALE_REPORTS = 3  # a host's simulator stats older than this many intervals no longer count (it left)
 
 
 class AllocService(Service):
     role = "alloc"
 
     async def setup(self) -> None:
+        self.local_sim = os.environ.get(LOCAL_SIM_VAR, "1") == "1"
         # The launcher measured (or reused) the profile and started the services inside the initial plan:
         # the same file gives the same plan, which is therefore already applied.
         self.placement, path, _ = await asyncio.get_running_loop().run_in_executor(
-            None, lambda: make_placement(self.cfg, measure=False, progress=False))
+            None, lambda: make_placement(self.cfg, measure=False, progress=False, local_sim=self.local_sim))
         self.placement.apply()
-        self.log.info("profile %s; %s", path, describe(self.placement.applied))
+        self.log.info("profile %s; %s%s", path, describe(self.placement.applied),
+                      "" if self.local_sim else " (no simulator on this host)")
         self.latest: dict[str, dict[str, float]] = {}
+        self.sims: dict[str, tuple[float, dict[str, float]]] = {}  # sim instance -> (received at, metrics)
         self.rates = None
         self.stats = {role: self.bus.subscribe(keys.stats(self.run_name, role, 0), StatsReport, policy="latest",
-                                               capacity=4) for role in ("sim", "gen", "train")}
+                                               capacity=4) for role in ("gen", "train")}
+        self.sim_stats = self.bus.subscribe(keys.stats(self.run_name, "sim", "*"), StatsReport, policy="latest",
+                                            capacity=64)
 
     async def run(self) -> None:
         while True:
-            _, report = await self.stats["sim"].next()  # one observation per sim report
-            for role, sub in self.stats.items():
-                for _, msg in sub.drain():
-                    self.latest[role] = msg.metrics
-            self.latest["sim"] = report.metrics
-            if len(self.latest) < 3:
+            _, report = await self.stats["gen"].next()  # one observation per generation report
+            self.latest["gen"] = report.metrics
+            for _, msg in self.stats["train"].drain():
+                self.latest["train"] = msg.metrics
+            now = time.monotonic()
+            for key, msg in self.sim_stats.drain():
+                self.sims[keys.parse(key)[4]] = (now, msg.metrics)
+            stale = REMOTE_STALE_REPORTS * self.cfg.run.stats_interval
+            self.sims = {i: (t, m) for i, (t, m) in self.sims.items() if now - t <= stale}
+            local = self.sims.get(str(self.instance))
+            remote = [m for i, (_, m) in self.sims.items() if i != str(self.instance)]
+            if "train" not in self.latest or (self.local_sim and local is None):
                 continue
             plan = self.placement.applied
-            self.rates = capacities(self.latest["sim"], self.latest["gen"], self.latest["train"],
+            self.rates = capacities(local[1] if self.local_sim else None, self.latest["gen"], self.latest["train"],
                                     chunk=self.cfg.policy.chunk, batch_size=self.cfg.train.batch_size,
-                                    cores={stage: len(c) for stage, c in plan.cores.items()})
+                                    cores={stage: len(c) for stage, c in plan.cores.items()}, remote=remote)
             if self.rates is None:
                 continue
             self.placement.balance(self.rates)
@@ -52,7 +73,10 @@ class AllocService(Service):
         self.placement.apply()
         plan = self.placement.applied
         for stage in ("sim", "gen", "train"):
-            await self.bus.put(keys.ctl(self.run_name, stage, 0, "affinity"),
+            if stage == "sim" and not self.local_sim:
+                continue
+            instance = self.instance if stage == "sim" else 0
+            await self.bus.put(keys.ctl(self.run_name, stage, instance, "affinity"),
                                Affinity(version=plan.version, cores=plan.cores[stage]))
             if stage != "sim":
                 await self.bus.put(keys.ctl(self.run_name, stage, 0, "quota"), Quota(
@@ -65,7 +89,7 @@ class AllocService(Service):
         self.log.info("re-allocated: %s (%s)", describe(plan), plan.reason)
 
     def metrics(self) -> dict[str, float]:
-        return metrics_of(self.placement, self.rates)
+        return {**metrics_of(self.placement, self.rates), "alloc/sim_hosts": float(len(self.sims))}
 
 
 def main() -> None:

@@ -193,7 +193,8 @@ class SimService(Service):
 
     def metrics(self) -> dict[str, float]:
         self.stepping.timeout = self.step_timeout()  # once per stats report, not per chunk
-        out = {"sim/envs": float(sum(len(w) for w in self.workers.values()))}
+        out = {"sim/envs": float(sum(len(w) for w in self.workers.values())),
+               "sim/cores": float(len(self.cores_in_use()))}  # what an allocator on another host plans with
         if self.returns:
             out["sim/episode_return_mean"] = float(np.mean(self.returns))
         if self.successes:

@@ -45,6 +45,16 @@ def test_a_hosts_table_places_services_and_numbers_hosts():
     assert plan(cfg, host="sim-b")[1].instance == 2
 
 
+def test_the_allocator_goes_with_train_and_plans_that_hosts_cores():
+    cfg = load(hosts=HOSTS, alloc={"enabled": True})
+    assert plan(cfg, host="learner")[1].roles == ("train", "gen", "alloc")
+    assert plan(cfg, host="sim-a")[1].roles == ("sim",)
+    assert list(plan(cfg, host="learner")[1].instances("alloc", cfg)) == [0]
+    hosts = {**HOSTS, "sim-b": {**HOSTS["sim-b"], "services": ["sim", "alloc"]}}
+    with pytest.raises(config.ConfigError, match=r"\[hosts.sim-b\]: the allocator .alloc. runs on the host that"):
+        plan(load(hosts=hosts, alloc={"enabled": True}), host="sim-b")
+
+
 def test_viz_goes_with_train_unless_a_host_names_it():
     cfg = load(hosts=HOSTS, viz={"rerun": "save"})
     assert plan(cfg, host="learner")[1].roles == ("viz", "train", "gen")
@@ -77,8 +87,11 @@ def test_only_and_instance():
         plan(cfg, only="sim,gem")
     with pytest.raises(config.ConfigError, match="is off in this config"):
         plan(cfg, only="alloc")
-    with pytest.raises(config.ConfigError, match="does not plan runs over several hosts"):
-        plan(load(alloc={"enabled": True}), only="sim")
+    allocating = load(alloc={"enabled": True})
+    assert plan(allocating, only="sim", instance=1)[1].roles == ("sim",)
+    assert plan(allocating, only="gen,train")[1].roles == ("train", "gen", "alloc")  # the allocator goes with train
+    with pytest.raises(config.ConfigError, match="the allocator .alloc. runs on the host that trains"):
+        plan(allocating, only="sim,alloc")
     with pytest.raises(config.ConfigError, match="use it with --only"):
         plan(cfg, instance=1)
     with pytest.raises(config.ConfigError, match="start each host with --host"):
@@ -142,6 +155,51 @@ def test_sim_on_another_host_trains_and_the_primary_ends_the_run(tmp_path):
     done = summary(tmp_path / "p")
     assert done["iterations"] == 4 and done["env_steps"] > 0 and done["hosts"] == [0, 1]
     assert (tmp_path / "s").glob("*/logs/sim-1.log")
+
+
+def test_the_allocator_on_a_host_without_a_simulator_counts_the_other_hosts(tmp_path):
+    """alloc.enabled over two hosts: host 0 (gen, train and the allocator) gives every core to generation and
+    training and reads host 1's simulator stats as the rollout capacity it plans with."""
+    from ebrl.alloc.algorithm import Profiles
+    from ebrl.alloc.profile import fingerprint, save
+    from ebrl.resources.pool import ResourcePool
+    from ebrl.viz import record
+
+    port = helpers.free_port()
+    common = ["--set", "alloc.enabled=true", "--set", "alloc.window=3", "--set", "alloc.patience=2"]
+    primary_args = ["--only", "gen,train", "--set", f'bus.listen=["tcp/127.0.0.1:{port}"]', "--set",
+                    "run.iterations=10", *common]
+    cfg = config.load(QUICK, [a for a in primary_args[2:] if a != "--set"] + [
+        f"run.output_dir={json.dumps(str(tmp_path / 'p'))}", "run.name=multialloc", "run.stats_interval=0.5",
+        'viz.rerun="off"'])
+    pool = ResourcePool(gpu_pool="none")
+    n = len(pool.cores)
+    profiles = Profiles(sim={(1, e, e): 1000.0 * e for e in range(1, n + 1)},
+                        gen={(c, b): 4000.0 * c for c in range(1, n + 1) for b in (4, 8)},
+                        train={(c, 1024): 3000.0 * c for c in range(1, n + 1)})
+    save(tmp_path / "p" / "profiles" / "multialloc.json", profiles, fingerprint(pool, cfg))
+    primary = up(tmp_path / "p", *primary_args, name="multialloc")
+    secondary = up(tmp_path / "s", "--only", "sim", "--instance", "1", *common, "--set",
+                   f'bus.connect=["tcp/127.0.0.1:{port}"]', "--set",
+                   f'bus.listen=["tcp/127.0.0.1:{helpers.free_port()}"]', name="multialloc")
+    try:
+        out, _ = primary.communicate(timeout=180)
+        sim_out, _ = secondary.communicate(timeout=30)
+    finally:
+        primary.kill()
+        secondary.kill()
+    assert primary.returncode == 0, out
+    assert secondary.returncode == 0, sim_out
+    assert "allocator: reused profile" in out and "sim cores []" in out, out  # no simulator here
+    assert "allocator" not in sim_out  # host 1 runs no allocator
+    (run,) = [p for p in (tmp_path / "p").iterdir() if p.is_dir() and p.name != "profiles"]
+    assert "(no simulator on this host)" in (run / "logs" / "alloc-0.log").read_text()
+    allocs = [r.metrics for r in record.read(run).stats if r.service == "alloc"]
+    assert max(m.get("alloc/sim_hosts", 0) for m in allocs) == 1  # host 1's simulator, seen through the bus
+    remote = [m["alloc/remote_sim_capacity"] for m in allocs if "alloc/remote_sim_capacity" in m]
+    assert remote and max(remote) > 0, allocs[-1]  # ... and its capacity is what rollout is planned with
+    assert all(m["alloc/sim_capacity"] == m["alloc/remote_sim_capacity"] for m in allocs
+               if "alloc/remote_sim_capacity" in m)
 
 
 def test_a_host_number_already_on_the_bus_is_refused(tmp_path):

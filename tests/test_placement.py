@@ -156,3 +156,45 @@ def test_the_readme_programming_api_example_runs_on_cpu():
     assert out.returncode == 0, out.stderr[-3000:]
     assert out.stdout.count("iteration ") == 4 and "plan v1" in out.stdout
     assert (root / "examples/placement.py").read_text() in (root / "README.md").read_text()  # README shows it whole
+
+
+def test_simulation_on_other_hosts_leaves_this_hosts_cores_to_generation_and_training():
+    from ebrl.alloc.algorithm import allocate_cpu, exhaustive
+
+    profiles = cpu_profiles(8)
+    alone = EmbodiPlacement(pool_of(8), profiles).plan.allocation
+    helped = EmbodiPlacement(pool_of(8), profiles, remote_sim=400.0).plan.allocation
+    assert helped.s_sim < alone.s_sim and helped.theta > alone.theta  # fewer sim cores here, more throughput
+    assert helped.T_sim == pytest.approx(100 * helped.s_sim + 400)  # T_s counts both
+    # against the reference: the best split when every candidate's T_s gets the other hosts' 400 decisions/s
+    shifted = dataclasses.replace(profiles, sim={k: r + 400 for k, r in profiles.sim.items()})
+    assert helped.theta == pytest.approx(exhaustive(shifted, N=8, s_g_min=1, s_t_min=1, cpu=True).theta)
+    # a host without a simulator: every core to generation and training, bounded by the other hosts' rate
+    remote_only = allocate_cpu(profiles, N=8, remote_sim=400.0, local_sim=False)
+    assert (remote_only.E, remote_only.s_sim, remote_only.s_gen + remote_only.s_train) == (0, 0, 8)
+    assert remote_only.theta == pytest.approx(min(400, 150 * min(remote_only.s_gen, 4),
+                                                  120 * min(remote_only.s_train, 4)))
+
+
+def test_a_host_without_a_simulator_plans_for_the_others_and_follows_their_capacity():
+    placement = EmbodiPlacement(pool_of(4), cpu_profiles(4), window=3, patience=2, local_sim=False).apply()
+    plan = placement.applied
+    assert plan.cores["sim"] == [] and "sim/0" not in placement.bindings()  # no simulator bound here
+    assert sorted(set(plan.cores["gen"]) | set(plan.cores["train"])) == [0, 1, 2, 3]
+    assert plan.allocation.theta > 0  # the other hosts' capacity is unknown yet: no limit assumed
+    for _ in range(3):  # the other hosts simulate 50 decisions/s: rollout far below training
+        placement.balance(StageRates(sim=50.0, gen=300.0, train=400.0, achieved=50.0, remote_sim=50.0))
+    assert placement.remote_sim == pytest.approx(50.0)
+    assert placement._allocate(placement.profiles).theta == pytest.approx(50.0)  # now planned with their rate
+
+
+def test_two_cores_with_simulation_elsewhere_share_them_between_generation_and_training():
+    from ebrl.alloc.placement import all_shared
+
+    profiles = cpu_profiles(2, saturate=2)
+    # every decision simulated elsewhere costs these cores 1/300 + 1/240 s; the time left simulates here
+    a = all_shared(profiles, 2, remote_sim=60.0)
+    model = 1 / 300 + 1 / 240
+    assert a.theta == pytest.approx(60 + (1 - 60 * model) / (model + 1 / 200))
+    assert all_shared(profiles, 2, remote_sim=1e9).theta == pytest.approx(1 / model)  # bounded by gen + train
+    assert all_shared(profiles, 2, remote_sim=30.0, local_sim=False).theta == pytest.approx(30.0)

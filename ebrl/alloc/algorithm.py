@@ -330,13 +330,16 @@ def _allocation(c_env: int, E: int, s_sim: int, T_s: float, point: _Point, evalu
 _Split = Callable[[float, int], tuple[_Point | None, int, str]]  # (T_s, quota R left) -> (point, evaluations, method)
 
 
-def _best_over_sim(candidates: list[tuple[int, int, int, int]], profiles: Profiles, split: _Split) -> Allocation | None:
+def _best_over_sim(candidates: list[tuple[int, int, int, int]], profiles: Profiles, split: _Split,
+                   remote_sim: float = 0.0) -> Allocation | None:
     """Lines 4-15 for each simulator candidate (c_env, E, s_sim, R = quota it leaves), keeping the best Theta.
 
     Candidates are tried fastest simulator first; one whose T_s is no higher than the best Theta so far is
     skipped without a search, since Theta <= T_s. With a single candidate this is exactly Algorithm 1.
+    ``remote_sim``: simulation on other hosts (decisions/s), added to every candidate's T_s.
     """
-    rated = [(profiles.P_sim(c_env, E, s_sim), c_env, E, s_sim, R) for c_env, E, s_sim, R in candidates]  # line 4
+    rated = [(profiles.P_sim(c_env, E, s_sim) + remote_sim, c_env, E, s_sim, R)
+             for c_env, E, s_sim, R in candidates]  # line 4
     best, evaluations = None, 0
     for T_s, c_env, E, s_sim, R in sorted(rated, key=lambda c: -c[0]):
         if best is not None and T_s <= best.theta:
@@ -391,7 +394,7 @@ def allocate(profiles: Profiles, *, N: int, total: int = 100, M_gpu: float = mat
 
 
 def allocate_cpu(profiles: Profiles, *, N: int, s_g_min: int = 1, s_t_min: int = 1,
-                 shared_model_cores: int | None = None) -> Allocation:
+                 shared_model_cores: int | None = None, remote_sim: float = 0.0, local_sim: bool = True) -> Allocation:
     """Algorithm 1 on a CPU-only machine: simulation, generation and training share the same N cores.
 
     Quotas are cores and total = N. The simulator's quota is its core count E * c_env, so it competes with
@@ -403,7 +406,21 @@ def allocate_cpu(profiles: Profiles, *, N: int, s_g_min: int = 1, s_t_min: int =
     ``shared_model_cores`` = k: generation and training are not split but time-share the same k cores (a
     machine too small to pin them apart); their rates combine as in :func:`_time_shared`, the simulator gets
     at most N - k cores, and s_gen = s_train = k in the result (method "shared").
+
+    Several hosts: ``remote_sim`` is the simulation capacity of the other hosts (decisions/s), added to T_s,
+    so the more there is, the fewer of these cores the simulator takes. ``local_sim = False``: this host
+    simulates nothing; all N cores go to generation and training (c_env = E = s_sim = 0, T_s = remote_sim).
     """
+    if not local_sim:
+        _require_batch_pair(profiles, math.inf)
+        if shared_model_cores is not None:
+            point, evaluations, method = _best_pair(profiles, remote_sim, N, N, math.inf, shared=True), 1, "shared"
+        else:
+            point, evaluations, method = _split(profiles, remote_sim, N, s_g_min, s_t_min, math.inf)
+        if point is None or point.theta <= 0:
+            raise InfeasibleError(f"no split of N={N} cores between generation and training has a profiled rate "
+                                  f"(simulation on other hosts: {remote_sim:g} decisions/s)")
+        return _allocation(0, 0, 0, remote_sim, point, evaluations, method)
     reserved = shared_model_cores if shared_model_cores is not None else s_g_min + s_t_min
     budget = N - reserved  # cores the simulator may take
     if budget < 1:
@@ -420,7 +437,8 @@ def allocate_cpu(profiles: Profiles, *, N: int, s_g_min: int = 1, s_t_min: int =
         return _best_pair(profiles, T_s, reserved, reserved, math.inf, shared=True), 1, "shared"
 
     concurrency = [E for c, E in profiles._sim_curves if c == c_env and c * E <= budget]
-    alloc = _best_over_sim([(c_env, E, c_env * E, N - c_env * E) for E in concurrency], profiles, split)  # line 3
+    alloc = _best_over_sim([(c_env, E, c_env * E, N - c_env * E) for E in concurrency], profiles, split,
+                           remote_sim)  # line 3
     if alloc is None:
         raise InfeasibleError(f"no split of N={N} cores gives simulation, generation and training a profiled rate")
     return alloc

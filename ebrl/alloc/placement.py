@@ -44,6 +44,7 @@ class StageRates:
     gen: float
     train: float
     achieved: float = 0.0  # end-to-end decisions/s actually reached (0: unknown); judges a re-plan
+    remote_sim: float = 0.0  # the part of ``sim`` that other hosts simulate
 
     @property
     def rollout(self) -> float:
@@ -70,23 +71,31 @@ class Plan:
         return other is not None and self.signature == other.signature
 
 
-def all_shared(profiles: Profiles, n: int) -> Allocation:
+def all_shared(profiles: Profiles, n: int, remote_sim: float = 0.0, local_sim: bool = True) -> Allocation:
     """The CPU-only alternative to partitioning: every stage on all ``n`` cores, time-sharing them.
 
     Each decision then costs the cores 1/P_sim + 1/P_gen + 1/P_train seconds (every stage measured alone
     on all n cores), so Theta is the harmonic combination. T_sim, T_gen, T_train keep the stand-alone rates,
     which is what measured capacities (rate while busy) are compared against when the tables are refined.
     Sharing wins when no stage dominates; partitioning wins when one stage would crowd out the others.
+
+    With simulation on other hosts (``remote_sim`` decisions/s), their decisions cost these cores only
+    1/P_gen + 1/P_train: they are taken first, and the time left simulates here (none if not ``local_sim``).
     """
-    E = max((e for c, e in profiles._sim_curves if c == 1 and e <= n), default=0)
+    E = max((e for c, e in profiles._sim_curves if c == 1 and e <= n), default=0) if local_sim else 0
     T_sim = profiles.P_sim(1, E, E) if E else 0.0
     B_g = max(profiles._gen_curves, key=lambda b: profiles.P_gen(n, b))
     B_t = max(profiles._train_curves, key=lambda b: profiles.P_train(n, b))
     T_gen, T_train = profiles.P_gen(n, B_g), profiles.P_train(n, B_t)
-    rates = (T_sim, T_gen, T_train)
-    theta_ = 1.0 / sum(1.0 / r for r in rates) if all(r > 0 for r in rates) else 0.0
-    return Allocation(c_env=1, E=E, s_sim=n, s_gen=n, s_train=n, B_gen=B_g, B_train=B_t, T_sim=T_sim, T_gen=T_gen,
-                      T_train=T_train, theta=theta_, evaluations=1, method="all_shared")
+    theta_ = 0.0
+    if T_gen > 0 and T_train > 0:
+        model = 1.0 / T_gen + 1.0 / T_train  # core-seconds per decision of generation and training
+        remote = min(remote_sim, 1.0 / model)
+        left = 1.0 - remote * model  # of each second of the cores
+        theta_ = remote + (left / (model + 1.0 / T_sim) if T_sim > 0 else 0.0)
+    return Allocation(c_env=1 if E else 0, E=E, s_sim=n if E else 0, s_gen=n, s_train=n, B_gen=B_g, B_train=B_t,
+                      T_sim=T_sim + remote_sim, T_gen=T_gen, T_train=T_train, theta=theta_, evaluations=1,
+                      method="all_shared")
 
 
 TRIAL_TOLERANCE = 0.05  # a re-plan that achieves more than 5 % less than the plan before is reverted
@@ -96,8 +105,13 @@ REJECT_FOR = 10  # ... and its plan is not chosen again for REJECT_FOR x patienc
 class EmbodiPlacement:
     def __init__(self, pool: ResourcePool, profile: Profiles, *, window: int = 20, gap: float = 0.15,
                  patience: int = 20, s_g_min: int = 1, s_t_min: int = 1,
-                 on_apply: Callable[[Plan], None] | None = None):
+                 on_apply: Callable[[Plan], None] | None = None, local_sim: bool = True, remote_sim: float = 0.0):
+        """``local_sim = False``: this host only generates and trains (the simulators run on other hosts).
+        ``remote_sim``: the other hosts' simulation capacity in decisions/s, as far as known; ``balance``
+        keeps it up to date from their stats. Unknown and without local simulation, it is taken as no limit."""
         self.pool, self.profiles = pool, profile
+        self.local_sim = local_sim
+        self.remote_sim = remote_sim if local_sim or remote_sim > 0 else math.inf
         self.window, self.gap, self.patience = window, gap, patience
         self.s_g_min, self.s_t_min = s_g_min, s_t_min
         self.on_apply = on_apply
@@ -105,6 +119,7 @@ class EmbodiPlacement:
         self.train: collections.deque[float] = collections.deque(maxlen=window)
         self.imbalanced = 0  # consecutive observations over the gap
         self.achieved: collections.deque[float] = collections.deque(maxlen=window)
+        self.remote: collections.deque[float] = collections.deque(maxlen=window)  # other hosts' simulation
         self.trial: tuple[Plan, float] | None = None  # (plan before the re-plan, its achieved rate)
         self.rejected: dict[tuple, int] = {}  # plan signature -> observations it stays excluded
         self.history: list[Plan] = []
@@ -119,11 +134,13 @@ class EmbodiPlacement:
             # scan_sim: the paper's knee-first line 3 reached only 0.59-0.75 of the optimum on some tables
             # (benchmarks/allocator_quality.py); scanning the simulator quota reaches it everywhere
             return allocate(profiles, N=n, s_g_min=self.s_g_min, s_t_min=self.s_t_min, scan_sim=True)
-        shared = 1 if n < self.s_g_min + self.s_t_min + 1 else None  # too few cores to pin gen and train apart
-        candidates = [all_shared(profiles, n)]
+        # too few cores to pin gen and train apart (and the simulator, when it runs here)
+        shared = 1 if n < self.s_g_min + self.s_t_min + self.local_sim else None
+        candidates = [all_shared(profiles, n, self.remote_sim, self.local_sim)]
         try:
             candidates.append(allocate_cpu(profiles, N=n, s_g_min=self.s_g_min, s_t_min=self.s_t_min,
-                                           shared_model_cores=shared))
+                                           shared_model_cores=shared, remote_sim=self.remote_sim,
+                                           local_sim=self.local_sim))
         except InfeasibleError:
             pass
         allowed = [a for a in candidates if self._plan(a, "").signature not in self.rejected] or candidates
@@ -136,7 +153,7 @@ class EmbodiPlacement:
     def _plan(self, alloc: Allocation, reason: str) -> Plan:
         cores = self.pool.core_ids
         if alloc.method == "all_shared":  # no partition: every stage may run on every core
-            split = {"sim": cores, "gen": cores, "train": cores}
+            split = {"sim": cores if alloc.E else [], "gen": cores, "train": cores}
         elif alloc.method == "shared":  # gen and train time-share the cores the simulator leaves
             sim = cores[:alloc.s_sim]
             model = cores[alloc.s_sim:alloc.s_sim + alloc.s_gen]
@@ -166,7 +183,8 @@ class EmbodiPlacement:
             self.trial = (self.applied, baseline) if baseline > 0 else None
         self.achieved.clear()
         for stage in ("sim", "gen", "train"):
-            self.pool.bind(f"{stage}/0", stage, plan.cores[stage], threads=plan.threads[stage])
+            if plan.cores[stage]:  # no simulator on a host whose simulation runs elsewhere
+                self.pool.bind(f"{stage}/0", stage, plan.cores[stage], threads=plan.threads[stage])
         if self.pool.gpus and self.pool.gpu_pool == "mps":
             alloc = plan.allocation
             for stage, share in (("sim", alloc.s_sim), ("gen", alloc.s_gen), ("train", alloc.s_train)):
@@ -186,6 +204,8 @@ class EmbodiPlacement:
         if not all(math.isfinite(x) and x > 0 for x in (rates.sim, rates.gen, rates.train)):
             return self  # a stage that did nothing in this interval tells nothing about its capacity
         self.rejected = {sig: left - 1 for sig, left in self.rejected.items() if left > 1}
+        self.remote.append(rates.remote_sim)
+        self.remote_sim = sum(self.remote) / len(self.remote)
         if rates.achieved > 0:
             self.achieved.append(rates.achieved)
         if self.trial is not None:
@@ -203,6 +223,10 @@ class EmbodiPlacement:
             return self
         self.imbalanced = 0
         current = (self.applied or self.pending).allocation  # type: ignore[union-attr]
+        # what the plan predicts with the other hosts' simulation as it is now: a host that came or went is
+        # no misprediction of this host's tables
+        here = self.profiles.P_sim(current.c_env, current.E, current.s_sim) if current.E else 0.0
+        current = dataclasses.replace(current, T_sim=here + self.remote_sim)
         self.profiles = refine(self.profiles, current, rollout, train)
         plan = self._plan(self._allocate(self.profiles),
                           f"rollout {rollout:,.0f} vs training {train:,.0f} decisions/s for {self.patience} reports")

@@ -22,10 +22,13 @@ from ebrl.alloc.profile import default_path, fingerprint, load, load_or_profile
 from ebrl.resources.pool import ResourcePool
 
 MIN_CPU = 0.05  # cores' worth of CPU below which a stage was idle: its capacity cannot be told
+LOCAL_SIM_VAR = "EBRL_LOCAL_SIM"  # "0": the allocator's host runs no simulator (set by the launcher)
 
 
-def make_placement(cfg: config_mod.Config, *, measure: bool, progress: bool = True) -> tuple[EmbodiPlacement, Path, bool]:
-    """The pool, profile (measured only if ``measure`` and nothing fresh is stored) and placement of ``cfg``."""
+def make_placement(cfg: config_mod.Config, *, measure: bool, progress: bool = True,
+                   local_sim: bool = True) -> tuple[EmbodiPlacement, Path, bool]:
+    """The pool, profile (measured only if ``measure`` and nothing fresh is stored) and placement of ``cfg``;
+    ``local_sim = False`` for a host whose simulators run elsewhere."""
     pool = ResourcePool(gpu_pool=cfg.alloc.gpu_pool, cpu_pool=cfg.alloc.cpu_pool)
     path = Path(cfg.alloc.profile_path) if cfg.alloc.profile_path else default_path(cfg)
     if measure:
@@ -38,13 +41,13 @@ def make_placement(cfg: config_mod.Config, *, measure: bool, progress: bool = Tr
         profiles = stored
     placement = EmbodiPlacement(pool, profiles, window=cfg.alloc.window, gap=cfg.alloc.gap,
                                 patience=cfg.alloc.patience, s_g_min=cfg.alloc.min_gen_cores,
-                                s_t_min=cfg.alloc.min_train_cores)
+                                s_t_min=cfg.alloc.min_train_cores, local_sim=local_sim)
     return placement, path, measured
 
 
-def initial_config(cfg: config_mod.Config) -> tuple[config_mod.Config, Plan, str]:
+def initial_config(cfg: config_mod.Config, local_sim: bool = True) -> tuple[config_mod.Config, Plan, str]:
     """``cfg`` with the initial plan's cores, threads and batch written in; the plan; a line for the user."""
-    placement, path, measured = make_placement(cfg, measure=True)
+    placement, path, measured = make_placement(cfg, measure=True, local_sim=local_sim)
     plan = placement.plan
     per = cfg.sim.envs_per_group
     new = dataclasses.replace(
@@ -64,8 +67,8 @@ def describe(plan: Plan) -> str:
             + f", gen batch {plan.gen_batch}; predicted {a.theta:,.0f} decisions/s")
 
 
-def capacities(sim: dict[str, float], gen: dict[str, float], train: dict[str, float], *, chunk: int,
-               cores: dict[str, int], batch_size: int) -> StageRates | None:
+def capacities(sim: dict[str, float] | None, gen: dict[str, float], train: dict[str, float], *, chunk: int,
+               cores: dict[str, int], batch_size: int, remote: list[dict[str, float]] = ()) -> StageRates | None:
     """Measured stage capacities from one stats report of each service, or None when a stage did too little
     in the interval to tell.
 
@@ -73,15 +76,31 @@ def capacities(sim: dict[str, float], gen: dict[str, float], train: dict[str, fl
     wall-clock busy time, so that stages time-sharing cores are not charged for each other's turns, and
     the numbers compare with the profiles (each stage measured alone on its cores). Simulation counts the
     env workers' CPU inside steps; generation and training their processes' CPU.
+
+    Several hosts: ``sim`` is this host's simulator (None if it has none) and ``remote`` the latest reports
+    of the others; each counts with its own cores (``sim/cores``), and their sum is ``remote_sim``.
     """
-    sim_rate, sim_cpu = sim.get("sim/env_steps_per_s", 0.0) / chunk, sim.get("sim/step_busy_s_per_s", 0.0)
     gen_rate, gen_cpu = gen.get("gen/envs_served_per_s", 0.0), gen.get("proc/cpu_percent", 0.0) / 100
     train_rate = train.get("train/updates_per_s", 0.0) * batch_size
     train_cpu = train.get("proc/cpu_percent", 0.0) / 100
-    if min(sim_cpu, gen_cpu, train_cpu) < MIN_CPU or min(sim_rate, gen_rate, train_rate) <= 0:
+    if min(gen_cpu, train_cpu) < MIN_CPU or min(gen_rate, train_rate) <= 0:
         return None
-    return StageRates(sim=sim_rate / sim_cpu * cores["sim"], gen=gen_rate / gen_cpu * cores["gen"],
-                      train=train_rate / train_cpu * cores["train"], achieved=sim_rate)
+    local = achieved = 0.0
+    if sim is not None:
+        sim_rate, sim_cpu = sim.get("sim/env_steps_per_s", 0.0) / chunk, sim.get("sim/step_busy_s_per_s", 0.0)
+        if sim_cpu < MIN_CPU or sim_rate <= 0:
+            return None
+        local, achieved = sim_rate / sim_cpu * cores["sim"], sim_rate
+    remote_sim = 0.0
+    for other in remote:
+        rate, cpu = other.get("sim/env_steps_per_s", 0.0) / chunk, other.get("sim/step_busy_s_per_s", 0.0)
+        # a host whose simulator barely ran cannot tell its capacity: count what it did
+        remote_sim += rate / cpu * other["sim/cores"] if cpu >= MIN_CPU and other.get("sim/cores") else rate
+        achieved += rate
+    if local + remote_sim <= 0:
+        return None
+    return StageRates(sim=local + remote_sim, gen=gen_rate / gen_cpu * cores["gen"],
+                      train=train_rate / train_cpu * cores["train"], achieved=achieved, remote_sim=remote_sim)
 
 
 def metrics_of(placement: EmbodiPlacement, rates: StageRates | None) -> dict[str, Any]:
@@ -94,7 +113,7 @@ def metrics_of(placement: EmbodiPlacement, rates: StageRates | None) -> dict[str
             out[f"alloc/cores_{stage}"] = float(len(cores))
     if rates is not None:
         out.update({"alloc/sim_capacity": rates.sim, "alloc/gen_capacity": rates.gen,
-                    "alloc/train_capacity": rates.train})
+                    "alloc/train_capacity": rates.train, "alloc/remote_sim_capacity": rates.remote_sim})
     if placement.rollout:
         rollout = sum(placement.rollout) / len(placement.rollout)
         train = sum(placement.train) / len(placement.train)

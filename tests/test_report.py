@@ -1,0 +1,147 @@
+"""benchmarks/report.py: BENCHMARKS.md is up to date, and every number in it follows the JSON results."""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+import shutil
+import subprocess
+import sys
+from collections.abc import Callable
+from pathlib import Path
+from types import ModuleType
+
+import pytest
+
+ROOT = Path(__file__).resolve().parent.parent
+RESULTS = ROOT / "benchmarks" / "results"
+
+
+def _load_report() -> ModuleType:
+    spec = importlib.util.spec_from_file_location("benchmarks_report", ROOT / "benchmarks" / "report.py")
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = module  # dataclasses look their module up there
+    spec.loader.exec_module(module)
+    return module
+
+
+report = _load_report()
+
+
+@pytest.fixture
+def results(tmp_path: Path) -> Path:
+    """A copy of the recorded results (JSON files and the plots the report links to)."""
+    out = tmp_path / "results"
+    shutil.copytree(RESULTS, out, ignore=shutil.ignore_patterns("*.txt"))
+    return out
+
+
+def edit(path: Path, change: Callable[[dict], object]) -> None:
+    data = json.loads(path.read_text())
+    change(data)
+    path.write_text(json.dumps(data))
+
+
+def render(results: Path, tmp_path: Path, capsys) -> tuple[int, str, str]:
+    out = tmp_path / "BENCHMARKS.md"
+    rc = report.main(["--results", str(results), "--out", str(out)])
+    captured = capsys.readouterr()
+    return rc, out.read_text() if out.exists() else "", captured.err
+
+
+def test_benchmarks_md_is_up_to_date():
+    proc = subprocess.run([sys.executable, "benchmarks/report.py", "--check"], cwd=ROOT, capture_output=True,
+                          text=True, timeout=60)
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    assert (ROOT / "BENCHMARKS.md").read_text().startswith(report.HEADER)
+
+
+def test_check_reports_a_stale_file_with_a_diff(tmp_path, capsys):
+    out = tmp_path / "BENCHMARKS.md"
+    out.write_text((ROOT / "BENCHMARKS.md").read_text().replace("env steps/s", "steps per second", 1))
+    rc = report.main(["--out", str(out), "--check"])
+    printed = capsys.readouterr().out
+    assert rc == 1
+    assert "+++ generated" in printed and "-" in printed and "steps per second" in printed
+
+
+def test_a_missing_key_names_the_file_and_the_key(results, tmp_path, capsys):
+    edit(results / "quickstart_learning.json", lambda d: d["summary"].pop("env_steps_per_s"))
+    rc, _, err = render(results, tmp_path, capsys)
+    assert rc == 2
+    assert "quickstart_learning.json" in err and "summary.env_steps_per_s" in err
+    assert "Traceback" not in err
+
+
+def test_a_missing_key_in_a_modes_table_names_the_run(results, tmp_path, capsys):
+    edit(results / "bench_w1_lift.json", lambda d: d["results"]["hybrid"][1].pop("idle_gen"))
+    rc, _, err = render(results, tmp_path, capsys)
+    assert rc == 2 and "bench_w1_lift.json" in err and "results.hybrid[1].idle_gen" in err
+
+
+def test_a_missing_required_file_is_an_error_and_an_optional_one_drops_its_section(results, tmp_path, capsys):
+    (results / "peer_sample_factory_async.json").unlink()  # optional section
+    rc, text, err = render(results, tmp_path, capsys)
+    assert rc == 0
+    assert "async_rl=True" not in text and "`results/peer_sample_factory_async.json` is not recorded" in text
+    assert "sample_factory_async" in err
+
+    (results / "soak.json").unlink()  # required
+    rc, _, err = render(results, tmp_path, capsys)
+    assert rc == 2 and "soak.json: missing results file" in err
+
+
+def test_numbers_follow_the_json(results, tmp_path, capsys):
+    rc, before, _ = render(results, tmp_path, capsys)
+    assert rc == 0 and "4,007 env steps/s" in before and "gen 297.3 → 297.6 MB" in before
+
+    edit(results / "quickstart_learning.json", lambda d: d["summary"].update(env_steps_per_s=5432.1))
+    edit(results / "soak.json", lambda d: d["services"]["gen/0"].update(end_mb=301.9))
+    rc, after, _ = render(results, tmp_path, capsys)
+    assert rc == 0
+    assert "5,432 env steps/s" in after and "4,007 env steps/s" not in after
+    assert "gen 297.3 → 301.9 MB (+0.11 %)" in after  # growth_pct is its own key
+
+
+def test_modes_table_is_ebrl_bench_table(results, tmp_path, capsys):
+    # The median of three repeats moves when the middle repeat does.
+    def faster_ebrl(data):
+        for run in data["results"]["ebrl"]:
+            run["env_steps_per_s"] += 100.0
+
+    rc, before, _ = render(results, tmp_path, capsys)
+    edit(results / "bench_w1_lift.json", faster_ebrl)
+    rc, after, _ = render(results, tmp_path, capsys)
+    assert rc == 0
+    row = next(line for line in before.splitlines() if line.startswith("| ebrl | 1.9-2.0-2.0 |"))
+    steps = int(row.split(" | ")[2])
+    assert f"| ebrl | 1.9-2.0-2.0 | {steps + 100} |" in after
+
+
+def test_halfcheetah_seeds_table(results, tmp_path, capsys):
+    for pattern in report.SEED_FILES.values():
+        for path in results.glob(pattern):
+            path.unlink()
+    main = json.loads((results / "peer_comparison_halfcheetah.json").read_text())
+    first = main["time_to_target_s"]["ebrl"]
+    rc, text, _ = render(results, tmp_path, capsys)
+    assert rc == 0 and "no such file is recorded yet" in text
+    assert f"| min / median / max of 1 | {first:.1f} / {first:.1f} / {first:.1f} |" in text
+
+    for seed, seconds in ((7, 150.0), (8, None)):
+        per_seed = {"command": f"python benchmarks/peers/compare_halfcheetah.py --runs ebrl --ebrl-seed {seed} "
+                               f"--max-seconds 400", "target_return": 1000.0, "max_seconds": 400.0,
+                    "time_to_target_s": {"ebrl": seconds}, "fastest_peer": None, "speedup_over_fastest_peer": {},
+                    "ebrl": json.loads(json.dumps(main["ebrl"]))}
+        if seconds is None:
+            per_seed["ebrl"]["summary"].pop("target_reached")
+        else:
+            per_seed["ebrl"]["summary"]["target_reached"]["wall_s"] = seconds
+        (results / f"peer_comparison_halfcheetah_ebrl_s{seed}.json").write_text(json.dumps(per_seed))
+    rc, text, _ = render(results, tmp_path, capsys)
+    assert rc == 0
+    assert "| 7 | 150.0 |" in text and "| 8 | not reached in 400 |" in text
+    low, middle = sorted([first, 150.0])
+    assert f"| min / median / max of 3 | {low:.1f} / {middle:.1f} / not reached |" in text
+    fastest = main["time_to_target_s"][main["fastest_peer"]]
+    assert f"**{fastest / middle:.2f}x**" in text

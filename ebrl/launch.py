@@ -26,13 +26,15 @@ import signal
 import socket
 import subprocess
 import sys
+import threading
 import time
 from pathlib import Path
 
 from ebrl import config as config_mod
 from ebrl.bus import Bus, BusOptions, keys
 from ebrl.hosts import HostPlan, enabled_roles, plan as plan_host
-from ebrl.messages import Event, StatsReport, Stop
+from ebrl.messages import Event, MessageError, Quota, StatsReport, Stop, decode_message
+from ebrl.resources.pool import mps_env
 from ebrl.viz import record
 
 log = logging.getLogger("ebrl.launch")
@@ -53,6 +55,7 @@ class Child:
     log_path: Path
     restarts: int = 0
     restart_at: float | None = None  # monotonic time of a scheduled restart
+    requota: bool = False  # asked to stop for a new GPU share: started again with it once it has exited
 
     @property
     def name(self) -> str:
@@ -111,8 +114,14 @@ def _die_with_parent() -> None:  # runs in the child between fork and exec
 
 
 class Launcher:
-    def __init__(self, cfg: config_mod.Config, run_dir: Path, out=sys.stdout, plan: HostPlan | None = None):
+    def __init__(self, cfg: config_mod.Config, run_dir: Path, out=sys.stdout, plan: HostPlan | None = None,
+                 gpu_env: dict[str, dict[str, str]] | None = None):
         self.cfg, self.run_dir, self.out = cfg, run_dir, out
+        # stage -> the CUDA variables its processes start with (the allocator's GPU share), and new shares
+        # pushed by the allocator (kept by a Zenoh thread, applied by the supervise loop)
+        self.gpu_env: dict[str, dict[str, str]] = dict(gpu_env or {})
+        self.quota_pending: dict[str, dict[str, str]] = {}
+        self.quota_lock = threading.Lock()
         self.plan = plan or HostPlan(enabled_roles(cfg))
         self.run_name = cfg.run.name
         self.dist_addr = ""  # rank 0's rendezvous of the training ranks (train.world_size > 1)
@@ -208,7 +217,7 @@ class Launcher:
     def spawn(self, role: str, instance: int, log_path: Path, extra_env: dict[str, str] | None = None
               ) -> subprocess.Popen:
         """Start ``python -m services.<role>``; its output is appended to ``log_path``."""
-        env = dict(os.environ, PYTHONUNBUFFERED="1", **(extra_env or {}))
+        env = dict(os.environ, PYTHONUNBUFFERED="1", **self.gpu_env.get(role, {}), **(extra_env or {}))
         if role == "alloc":  # the allocator plans this host's cores: with or without a simulator among them
             from ebrl.alloc.runtime import LOCAL_SIM_VAR
 
@@ -256,7 +265,9 @@ class Launcher:
 
     def check_children(self, restart: bool = False) -> bool:
         """Notice a child that exited on its own: restart it (``run.restart``, with backoff, at most
-        ``run.max_restarts`` times) when ``restart``, else report it; True when the run must stop."""
+        ``run.max_restarts`` times) when ``restart``, else report it; True when the run must stop. A child
+        that stopped for a new GPU share starts again with it at once (no restart counted)."""
+        self.apply_gpu_quotas()
         now = time.monotonic()
         for child in self.children:
             if child.restart_at is not None:
@@ -265,6 +276,9 @@ class Launcher:
                 continue
             rc = child.proc.poll()
             if rc is None:
+                continue
+            if child.requota:
+                self.restart(child, requota=True)
                 continue
             what = f"{child.name} exited with status {rc}"
             if restart and self.cfg.run.restart == "on-failure" and child.restarts < self.cfg.run.max_restarts:
@@ -290,18 +304,55 @@ class Launcher:
             return True
         return False
 
-    def restart(self, child: Child) -> None:
-        child.restarts += 1
+    def restart(self, child: Child, requota: bool = False) -> None:
+        """Start ``child`` again: after a failure (counted), or after it stopped for a new GPU share."""
+        if requota:
+            child.requota = False
+        else:
+            child.restarts += 1
         child.restart_at = None
         extra = {}
         if child.role == "train":  # never reuse a version: the new train starts past every one seen
             from ebrl.algos.checkpoint import VERSION_FLOOR_VAR
 
             extra[VERSION_FLOOR_VAR] = str(max(self.version(), int(self.metric("gen/policy_version", "max") or 0)))
+        why = f"with GPU share {self.gpu_env.get(child.role)}" if requota else f"restart {child.restarts}"
         with open(child.log_path, "ab") as fh:
-            fh.write(f"\n--- restart {child.restarts} by the launcher ---\n".encode())
+            fh.write(f"\n--- {why} by the launcher ---\n".encode())
         child.proc = self.spawn(child.role, child.instance, child.log_path, extra)
-        self.event("restart", f"{child.name} restarted ({child.restarts}/{self.cfg.run.max_restarts})")
+        if requota:
+            self.event("requota", f"{child.name} started again {why}")
+        else:
+            self.event("restart", f"{child.name} restarted ({child.restarts}/{self.cfg.run.max_restarts})")
+
+    def on_gpu_quota(self, role: str, quota: Quota) -> None:
+        """(Zenoh thread) The allocator gave ``role`` a new GPU share: remembered for the supervise loop."""
+        if quota.sm_percent is None or role not in ("gen", "train") or role not in self.gpu_env:
+            return
+        env = mps_env(int(self.gpu_env[role].get("CUDA_VISIBLE_DEVICES", "0")), quota.sm_percent,
+                      quota.mem_bytes or 0)
+        with self.quota_lock:
+            self.quota_pending[role] = env
+
+    def apply_gpu_quotas(self) -> None:
+        """A GPU share takes a new process (MPS reads it when the CUDA context is made): ask the stage's
+        processes to stop at their safe boundary -- generation between batches, training after its update,
+        with its state in a checkpoint that the new process resumes from -- and start them again with it."""
+        with self.quota_lock:
+            pending, self.quota_pending = self.quota_pending, {}
+        for role, env in pending.items():
+            if env == self.gpu_env.get(role):
+                continue
+            if role == "train" and self.cfg.train.world_size > 1:
+                log.warning("train: a new GPU share is not applied to %d data-parallel ranks (one rank only)",
+                            self.cfg.train.world_size)
+                continue
+            self.gpu_env[role] = env
+            for child in self.children:
+                if child.role == role and child.proc.poll() is None and not child.requota:
+                    child.requota = True
+                    self.bus.put_nowait(keys.ctl(self.run_name, role, child.instance, "stop"),
+                                        Stop(reason="new GPU share"))
 
     def restarts(self) -> int:
         return sum(c.restarts for c in self.children)
@@ -390,7 +441,7 @@ class Launcher:
             self._say(f"\nebrl: {sig.name} received, stopping every service")
             self.stopping.set()
 
-    def _on_control(self, key: str, _: bytes) -> None:
+    def _on_control(self, key: str, payload: bytes) -> None:
         """Control messages for a service this run does not have are ignored by everyone; counted here.
         A secondary host's launcher stops when the primary ends the run."""
         role = keys.parse(key)[3]
@@ -400,6 +451,11 @@ class Launcher:
                 self._say(f"\nebrl: {self.stop_reason}; stopping this host's services")
                 self.stopping.set()
             return
+        if key.endswith("/quota") and self.gpu_env:
+            try:
+                self.on_gpu_quota(role, decode_message(Quota, payload))
+            except MessageError:
+                pass  # counted by the service it was meant for
         if role not in enabled_roles(self.cfg):
             if not self.ctl_unknown:
                 log.warning("control message for an unknown service ignored: %s (further ones only counted)", key)
@@ -547,13 +603,14 @@ def up(config_path: str, overrides: list[str], viz: str | None = None, resume: s
     if problem:
         print(f"ebrl: {problem}", file=sys.stderr)
         return 2
+    gpu_env: dict[str, dict[str, str]] = {}
     if "alloc" in plan.roles:  # profile (or reuse a profile) and start every service inside Algorithm 1's plan
         from ebrl.alloc.algorithm import InfeasibleError
         from ebrl.alloc.runtime import initial_config
         from ebrl.resources.pool import ResourceError
 
         try:
-            cfg, _, line = initial_config(cfg, local_sim="sim" in plan.roles)
+            cfg, gpu_env, line = initial_config(cfg, local_sim="sim" in plan.roles)
         except (InfeasibleError, ResourceError) as exc:
             print(f"ebrl: allocator: {exc}", file=sys.stderr)
             return 2
@@ -572,4 +629,4 @@ def up(config_path: str, overrides: list[str], viz: str | None = None, resume: s
         run_dir = make_run_dir(cfg)
     (run_dir / "config.toml").write_text(config_mod.dump_toml(cfg))
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
-    return asyncio.run(Launcher(cfg, run_dir, plan=plan).main())
+    return asyncio.run(Launcher(cfg, run_dir, plan=plan, gpu_env=gpu_env).main())

@@ -79,8 +79,12 @@ class AllocService(Service):
             await self.bus.put(keys.ctl(self.run_name, stage, instance, "affinity"),
                                Affinity(version=plan.version, cores=plan.cores[stage]))
             if stage != "sim":
+                # on a GPU, the stage's SM share and memory: the launcher restarts the stage's process with them
+                binding = self.placement.bindings().get(f"{stage}/0")
                 await self.bus.put(keys.ctl(self.run_name, stage, 0, "quota"), Quota(
                     version=plan.version, threads=plan.threads[stage],
+                    sm_percent=binding.sm_percent if binding else None,
+                    mem_bytes=binding.mem_bytes if binding else None,
                     batch=plan.gen_batch if stage == "gen" else None))
         reverted = plan.reason.startswith("reverted")
         self.count("alloc/reverts" if reverted else "alloc/reallocations")

@@ -13,7 +13,7 @@ import psutil
 from ebrl.bus import keys
 from ebrl.envs import EnvSpec, EnvWorker, describe
 from ebrl.envs.worker import WorkerFailed
-from ebrl.messages import ActionChunk, Observation
+from ebrl.messages import ActionChunk, Observation, TrajectorySegment
 from ebrl.resources.nvml import GpuMonitor
 from ebrl.sched.modes import resolve
 from ebrl.sched.rollout import Episodes, SegmentBuilder
@@ -64,6 +64,9 @@ class SimService(Service):
         self.chunk_latency: collections.deque[float] = collections.deque(maxlen=1000)  # per env and chunk
         self.stepping.timeout = self.step_timeout()  # refreshed with every stats report
         self.peers_live: set[str] = set()
+        # segments finished while no train was live (a restart, a new GPU share): sent when one is back
+        self.held: collections.deque[tuple[str, TrajectorySegment]] = collections.deque()
+        self.held_steps = 0
         self.gen_epoch = 0
         self.bus.watch_liveliness(keys.live_all(self.run_name), self._on_liveliness)
         psutil.cpu_percent(percpu=True)
@@ -77,6 +80,30 @@ class SimService(Service):
             self.log.warning("%s left the bus", key)
         if alive and keys.parse(key)[3] == "gen":
             self.gen_epoch += 1  # a (re)started gen has none of the observations in flight: publish them again
+        if alive and keys.parse(key)[3] == "train" and self.held:
+            asyncio.ensure_future(self.send_held())
+
+    async def send_segment(self, key: str, segment: TrajectorySegment) -> None:
+        """Publish a finished segment, or hold it while no train is live (at most ``train.max_pending``
+        decisions; beyond that the oldest are dropped, counted): training resumes where it stopped."""
+        if self._role_live("train"):
+            await self.send_held()
+            await self.bus.put(key, segment)
+            return
+        self.count("sim/segments_while_train_down")
+        self.held.append((key, segment))
+        self.held_steps += len(segment.obs)
+        while self.held_steps > self.cfg.train.max_pending:
+            _, dropped = self.held.popleft()
+            self.held_steps -= len(dropped.obs)
+            self.count("sim/segments_dropped_train_down")
+
+    async def send_held(self) -> None:
+        while self.held and self._role_live("train"):
+            key, segment = self.held.popleft()
+            self.held_steps -= len(segment.obs)
+            await self.bus.put(key, segment)
+            self.count("sim/segments_sent_late")
 
     def _on_core_step(self, core: int, seconds: float) -> None:
         self.count(f"sim/core{core}_busy_s", seconds)
@@ -136,10 +163,8 @@ class SimService(Service):
                 segment = builders[i].add(obs[i], chunk.actions[i], chunk.latents[i], float(chunk.logprobs[i]),
                                           float(chunk.values[i]), chunk.policy_version, res, boundary)
                 if segment is not None:
-                    await self.bus.put(keys.traj(self.run_name, g), segment)
+                    await self.send_segment(keys.traj(self.run_name, g), segment)
                     self.count("sim/segments")
-                    if not self._role_live("train"):  # nobody hears it: counted, training restarts soon
-                        self.count("sim/segments_while_train_down")
                 next_obs[i] = res.next_obs
             obs = next_obs
             seq += 1
@@ -194,7 +219,8 @@ class SimService(Service):
     def metrics(self) -> dict[str, float]:
         self.stepping.timeout = self.step_timeout()  # once per stats report, not per chunk
         out = {"sim/envs": float(sum(len(w) for w in self.workers.values())),
-               "sim/cores": float(len(self.cores_in_use()))}  # what an allocator on another host plans with
+               "sim/cores": float(len(self.cores_in_use())),  # what an allocator on another host plans with
+               "sim/segments_held": float(len(self.held))}
         if self.returns:
             out["sim/episode_return_mean"] = float(np.mean(self.returns))
         if self.successes:

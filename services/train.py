@@ -12,6 +12,7 @@ import contextlib
 import os
 import time
 
+import msgpack
 import numpy as np
 import torch
 
@@ -21,7 +22,7 @@ from ebrl.algos.parallel import KEEPALIVE_S, Command, DataParallel, shards
 from ebrl.algos.ppo import PPO, Batch, SegmentCollector
 from ebrl.bus import keys
 from ebrl.envs import EnvSpec, describe
-from ebrl.messages import TrajectorySegment
+from ebrl.messages import TrajectorySegment, decode_message, encode_message
 from ebrl.policies import make_policy, save_checkpoint, state_arrays
 from ebrl.sched.modes import resolve
 from ebrl.service import Service, service_main
@@ -29,6 +30,7 @@ from ebrl.weights import WeightsPublisher
 
 
 POLICY_FILE = "policy.safetensors"
+HANDOVER_FILE = "train-pending.msgpack"  # segments a stopping train leaves to the next one (RUN_DIR)
 
 
 class TrainService(Service):
@@ -77,6 +79,7 @@ class TrainService(Service):
             return
         self.traj = self.bus.subscribe(keys.traj(self.run_name), TrajectorySegment, capacity=256)
         self.weights = WeightsPublisher(self.bus, self.run_name)  # also answers late joiners with the newest
+        self.take_over()
 
     @property
     def sharded(self) -> bool:
@@ -163,20 +166,50 @@ class TrainService(Service):
     async def receive(self) -> None:
         """Drain trajectories all the time (also during updates) into the algorithm's bounded collector."""
         async for key, seg in self.traj:
-            n = len(seg.obs)
-            if seg.obs.shape[1:] != self.obs_shape or seg.actions.shape[1:] != self.action_shape \
-                    or seg.latents.shape[1:] != self.latent_shape \
-                    or not 0 < n == len(seg.actions) == len(seg.latents) == len(seg.rewards) == len(seg.versions):
-                self.bus.count_malformed(key, ValueError("segment shapes do not match the policy"))
-                continue
-            if int(seg.versions.max()) > self.version:  # acted by weights this train never published
-                self.count("train/future_version_dropped")
-                continue
-            self.collector.add(seg)
-            self.returns.extend(seg.episode_returns)
-            self.count("train/segments_received")
-            if self.collector.ready_steps >= self.cfg.train.batch_size:
-                self.enough.set()
+            self.accept(key, seg)
+
+    def accept(self, key: str, seg: TrajectorySegment) -> bool:
+        """Check one segment and add it to the collector (False: dropped, counted)."""
+        n = len(seg.obs)
+        if seg.obs.shape[1:] != self.obs_shape or seg.actions.shape[1:] != self.action_shape \
+                or seg.latents.shape[1:] != self.latent_shape \
+                or not 0 < n == len(seg.actions) == len(seg.latents) == len(seg.rewards) == len(seg.versions):
+            self.bus.count_malformed(key, ValueError("segment shapes do not match the policy"))
+            return False
+        if int(seg.versions.max()) > self.version:  # acted by weights this train never published
+            self.count("train/future_version_dropped")
+            return False
+        self.collector.add(seg)
+        self.returns.extend(seg.episode_returns)
+        self.count("train/segments_received")
+        if self.collector.ready_steps >= self.cfg.train.batch_size:
+            self.enough.set()
+        return True
+
+    def hand_over(self) -> None:
+        """On a stop: the segments received and not yet trained on, for the next train of this run (a restart
+        for a new GPU share, a resume) to take over, with the checkpoint."""
+        for key, seg in self.traj.drain():  # what arrived while stopping
+            self.accept(key, seg)
+        segments = self.collector.segments()
+        if segments:
+            path = os.path.join(self.run_dir, HANDOVER_FILE)
+            with open(path + ".tmp", "wb") as fh:
+                fh.write(msgpack.packb([encode_message(seg) for seg in segments]))
+            os.replace(path + ".tmp", path)
+            self.log.info("handed over %d segments not yet trained on (%s)", len(segments), path)
+
+    def take_over(self) -> None:
+        """Take over what the train before handed over (and remove it, so that it is taken once)."""
+        path = os.path.join(self.run_dir, HANDOVER_FILE)
+        if not os.path.exists(path):
+            return
+        with open(path, "rb") as fh:
+            payloads = msgpack.unpackb(fh.read())
+        os.remove(path)
+        taken = sum(self.accept(path, decode_message(TrajectorySegment, p)) for p in payloads)
+        self.log.info("took over %d of %d segments handed over", taken, len(payloads))
+        self.count("train/segments_taken_over", taken)
 
     def update(self, items: list) -> dict[str, float]:
         """One update (runs on the update thread); with several ranks, rank 0 keeps the first shard."""
@@ -292,6 +325,7 @@ class TrainService(Service):
         if self.rank > 0:
             return
         self.weights.close()
+        self.hand_over()
         if self.version > 0:
             self.save_checkpoint()
             # the trained policy, for `--set policy.checkpoint=RUN_DIR/policy.safetensors`

@@ -72,3 +72,113 @@ def test_up_with_the_allocator_re_plans_from_measurements_and_services_apply_it(
     assert any(s.lane == "alloc" and s.label == "realloc" for s in rec.spans)
     allocs = [r.metrics for r in rec.stats if r.service == "alloc"]
     assert allocs[-1]["alloc/reallocations"] >= 1 and allocs[-1]["alloc/plan_version"] >= 2
+
+
+def test_a_gpu_plan_starts_generation_and_training_with_their_mps_shares(tmp_path):
+    """NVML and the MPS daemon faked at their boundary: a plan's SM shares become each stage's launch env, and a
+    re-plan that moves SMs from training to generation replaces the shares whole."""
+    import dataclasses
+
+    from ebrl.alloc.placement import EmbodiPlacement
+    from ebrl.alloc.runtime import gpu_env
+    from ebrl.alloc.synthetic import random_tables
+    from ebrl.resources.pool import Core
+    from test_resources import FakeGpuNVML
+
+    (tmp_path / "control").write_text("")  # the MPS control daemon's pipe
+    pool = ResourcePool(gpu_pool="mps", nvml=FakeGpuNVML(), cores=[Core(i, 0) for i in range(4)],
+                        mps_pipe_dir=str(tmp_path))
+    placement = EmbodiPlacement(pool, random_tables(3, monotone=True)).apply()
+    a = placement.applied.allocation
+    env = gpu_env(placement)
+    assert set(env) == {"gen", "train"}  # the simulator's env workers run on the CPU here
+    assert env["gen"]["CUDA_MPS_ACTIVE_THREAD_PERCENTAGE"] == f"{a.s_gen:g}"
+    assert env["train"]["CUDA_MPS_ACTIVE_THREAD_PERCENTAGE"] == f"{a.s_train:g}"
+    memory = pool.gpus[0].memory_bytes
+    assert env["gen"]["CUDA_MPS_PINNED_DEVICE_MEM_LIMIT"] == f"0={memory * a.s_gen // 100 // 2**20}M"
+    swapped = dataclasses.replace(a, s_gen=a.s_gen + a.s_train - 10, s_train=10)  # generation takes more
+    placement.pending = placement._plan(swapped, "test")
+    placement.apply()  # one stage at a time, the shares would add up to over 100 %
+    assert gpu_env(placement)["gen"]["CUDA_MPS_ACTIVE_THREAD_PERCENTAGE"] == f"{swapped.s_gen:g}"
+
+
+LAUNCH_WITH_GPU_SHARES = """
+import asyncio, logging, sys
+from ebrl import config
+from ebrl.launch import Launcher, make_run_dir
+cfg = config.load(sys.argv[1], sys.argv[2:])
+run_dir = make_run_dir(cfg)
+(run_dir / "config.toml").write_text(config.dump_toml(cfg))
+share = {"CUDA_VISIBLE_DEVICES": "0", "CUDA_MPS_ACTIVE_THREAD_PERCENTAGE": "50",
+         "CUDA_MPS_PINNED_DEVICE_MEM_LIMIT": "0=1024M"}
+sys.exit(asyncio.run(Launcher(cfg, run_dir, gpu_env={"gen": share, "train": dict(share)}).main()))
+"""
+
+
+def test_a_new_gpu_share_restarts_training_at_a_safe_point_and_loses_nothing(tmp_path):
+    """What the launcher does when the allocator pushes a new SM share (the GPU faked at its boundary: the
+    share is only the environment a process starts with): train stops after its update, hands over its
+    state and the segments not yet trained on, and starts again with the new share; the run goes on."""
+    import subprocess
+    import sys
+
+    import msgpack
+    import psutil
+    import zenoh
+
+    from ebrl.bus import keys
+    from ebrl.messages import Quota, encode_message
+    from ebrl.viz import record
+
+    port = helpers.free_port()
+    cmd = [sys.executable, "-c", LAUNCH_WITH_GPU_SHARES, str(helpers.ROOT / "configs/quickstart.toml"),
+           "run.iterations=14", "run.name=requota", f"run.output_dir={json.dumps(str(tmp_path))}",
+           f'bus.listen=["tcp/127.0.0.1:{port}"]', "run.stats_interval=0.5", 'viz.rerun="off"']
+    proc = subprocess.Popen(cmd, cwd=helpers.ROOT, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    conf = zenoh.Config()
+    conf.insert_json5("scouting/multicast/enabled", "false")
+    conf.insert_json5("connect/endpoints", f'["tcp/127.0.0.1:{port}"]')
+    versions: list[float] = []
+
+    def on_stats(sample) -> None:
+        versions.append(msgpack.unpackb(sample.payload.to_bytes())["metrics"].get("train/policy_version", -1))
+
+    def train_share() -> str | None:
+        for child in psutil.Process(proc.pid).children(recursive=True):
+            try:
+                if "services.train" in child.cmdline():
+                    return child.environ().get("CUDA_MPS_ACTIVE_THREAD_PERCENTAGE")
+            except psutil.Error:
+                pass
+        return None
+
+    try:
+        with zenoh.open(conf) as session:
+            session.declare_subscriber(keys.stats("requota", "train", 0), on_stats)
+            deadline = time.monotonic() + 120
+            while max(versions, default=0) < 4:
+                assert proc.poll() is None and time.monotonic() < deadline, "no fourth update in 120 s"
+                time.sleep(0.2)
+            assert train_share() == "50"  # started with the allocator's first share
+            session.put(keys.ctl("requota", "train", 0, "quota"),
+                        encode_message(Quota(version=2, threads=1, sm_percent=30.0, mem_bytes=2 * 2**30)))
+            while train_share() != "30":
+                assert proc.poll() is None and time.monotonic() < deadline, "train never came back with 30 %"
+                time.sleep(0.2)
+            out, _ = proc.communicate(timeout=120)
+    finally:
+        proc.kill()
+    assert proc.returncode == 0, out
+    (run,) = [p for p in tmp_path.iterdir() if p.is_dir()]
+    done = json.loads((run / "summary.json").read_text())
+    assert done["iterations"] == 14 and done["restarts"] == {}  # a new share is no failure
+    log = (run / "logs" / "train-0.log").read_text()
+    assert "--- with GPU share" in log and "resumed from" in log  # ... it went on from the stopped train's state
+    rec = record.read(run)
+    assert any(e.kind == "requota" and "train/0" in e.text for e in rec.events)
+    seen = [v for v in versions if v >= 0]
+    assert seen == sorted(seen)  # versions never went back
+    sims = [r.metrics for r in rec.stats if r.service == "sim"]
+    held = max(m.get("sim/segments_while_train_down", 0) for m in sims)
+    late = max(m.get("sim/segments_sent_late", 0) for m in sims)
+    assert late > 0 or held == 0  # what the simulator held while no train was live went to the new one

@@ -160,3 +160,15 @@ def test_group_mates_run_their_episodes_together():
         assert all(Episodes(range(4)).may_act(e) for e in range(4))  # PPO: nobody waits
 
     asyncio.run(scenario())
+
+
+def test_what_a_stopping_train_hands_over_rebuilds_the_same_groups():
+    c, _ = collector()
+    for s in (seg(0, 0, [1.0, 1.0]), seg(1, 0, [0.0], end="terminated"), seg(2, 0, [9.0], end="terminated"),
+              seg(0, 0, [1.0], end="truncated"), seg(3, 1, [2.0])):
+        c.add(s)
+    again, _ = collector()
+    for s in c.segments():  # the order hand_over writes them in
+        again.add(s)
+    assert (again.ready_steps, again.pending_steps) == (c.ready_steps, c.pending_steps) == (4, 6)
+    assert sorted(e.env_id for e, _, _ in again.take(version=0, batch_size=4)) == [0, 1]

@@ -96,6 +96,12 @@ class GroupCollector:
             self.pending_steps -= sum(e.decisions for e in group)
             self.count("train/grpo_groups_dropped_overflow", 1)
 
+    def segments(self) -> list[TrajectorySegment]:
+        """Every buffered segment (complete groups, then waiting episodes, then unfinished ones), each
+        episode's in order: added again in this order, they rebuild the same groups."""
+        episodes = [e for group in self.ready for e in group] + [e for m in self.waiting.values() for e in m.values()]
+        return [s for e in episodes for s in e.segments] + [s for segs in self.open.values() for s in segs]
+
     def _drop_open(self, env_id: int) -> None:
         segs = self.open.pop(env_id)
         self.pending_steps -= sum(len(s.obs) for s in segs)

@@ -203,6 +203,10 @@ class SegmentCollector:
             steps += len(seg.obs)
         return segments
 
+    def segments(self) -> list[TrajectorySegment]:
+        """Every buffered segment, oldest first (what a stopping train hands over)."""
+        return list(self.pending)
+
     @staticmethod
     def size(seg: TrajectorySegment) -> int:
         """Decisions of one item of ``take``."""

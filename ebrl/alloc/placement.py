@@ -182,14 +182,21 @@ class EmbodiPlacement:
             baseline = sum(self.achieved) / len(self.achieved) if self.achieved else 0.0
             self.trial = (self.applied, baseline) if baseline > 0 else None
         self.achieved.clear()
-        for stage in ("sim", "gen", "train"):
-            if plan.cores[stage]:  # no simulator on a host whose simulation runs elsewhere
-                self.pool.bind(f"{stage}/0", stage, plan.cores[stage], threads=plan.threads[stage])
-        if self.pool.gpus and self.pool.gpu_pool == "mps":
-            alloc = plan.allocation
+        gpu = 0 if self.pool.gpus and self.pool.gpu_pool != "none" else None
+        if gpu is not None and self.pool.gpu_pool == "mps":
+            # the new shares replace the old ones whole (one at a time they could add up to over 100 %);
+            # each stage's memory budget is its share of the GPU's memory, like its SMs
+            self.pool.clear_quotas(gpu)
+            alloc, memory = plan.allocation, self.pool.gpus[gpu].memory_bytes
             for stage, share in (("sim", alloc.s_sim), ("gen", alloc.s_gen), ("train", alloc.s_train)):
                 if share > 0:
-                    self.pool.set_quota(stage, 0, share)
+                    self.pool.set_quota(stage, gpu, share, mem_bytes=memory * share // 100)
+        for stage in ("sim", "gen", "train"):
+            if plan.cores[stage]:  # no simulator on a host whose simulation runs elsewhere
+                # generation and training work on the GPU: their binding's env carries its share (MPS) or
+                # instance (MIG), which the launcher starts them with
+                self.pool.bind(f"{stage}/0", stage, plan.cores[stage], threads=plan.threads[stage],
+                               gpu=gpu if stage != "sim" else None)
         self.applied = plan
         self.history.append(plan)
         if self.on_apply is not None:

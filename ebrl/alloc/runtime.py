@@ -45,10 +45,12 @@ def make_placement(cfg: config_mod.Config, *, measure: bool, progress: bool = Tr
     return placement, path, measured
 
 
-def initial_config(cfg: config_mod.Config, local_sim: bool = True) -> tuple[config_mod.Config, Plan, str]:
-    """``cfg`` with the initial plan's cores, threads and batch written in; the plan; a line for the user."""
+def initial_config(cfg: config_mod.Config, local_sim: bool = True
+                   ) -> tuple[config_mod.Config, dict[str, dict[str, str]], str]:
+    """``cfg`` with the initial plan's cores, threads and batch written in; the GPU environment each stage
+    starts with (``gpu_env``); a line for the user."""
     placement, path, measured = make_placement(cfg, measure=True, local_sim=local_sim)
-    plan = placement.plan
+    plan = placement.apply().applied
     per = cfg.sim.envs_per_group
     new = dataclasses.replace(
         cfg,
@@ -58,7 +60,14 @@ def initial_config(cfg: config_mod.Config, local_sim: bool = True) -> tuple[conf
         train=dataclasses.replace(cfg.train, cores=plan.cores["train"], threads=plan.threads["train"]),
         alloc=dataclasses.replace(cfg.alloc, profile_path=str(path)),
     )
-    return new, plan, f"allocator: {'profiled' if measured else 'reused profile'} {path}; {describe(plan)}"
+    return new, gpu_env(placement), f"allocator: {'profiled' if measured else 'reused profile'} {path}; " \
+                                    f"{describe(plan)}"
+
+
+def gpu_env(placement: EmbodiPlacement) -> dict[str, dict[str, str]]:
+    """Stage -> the CUDA variables of its binding (device, MPS share, MIG instance); empty without a GPU."""
+    return {binding.stage: {k: v for k, v in binding.env.items() if k.startswith("CUDA_")}
+            for binding in placement.bindings().values() if binding.gpu is not None}
 
 
 def describe(plan: Plan) -> str:

@@ -86,6 +86,15 @@ class WorkerResourceBinding:
     env: dict[str, str] = dataclasses.field(default_factory=dict)
 
 
+def mps_env(gpu: int, sm_percent: float, mem_bytes: int) -> dict[str, str]:
+    """The environment an MPS client process starts with to get ``sm_percent`` of ``gpu``'s SMs and at most
+    ``mem_bytes`` of its memory. MPS reads it when the process creates its CUDA context: a new share needs a
+    new process."""
+    return {"CUDA_VISIBLE_DEVICES": str(gpu), "CUDA_MPS_ACTIVE_THREAD_PERCENTAGE": f"{sm_percent:g}",
+            # device 0 of the client: CUDA_VISIBLE_DEVICES leaves it one device
+            "CUDA_MPS_PINNED_DEVICE_MEM_LIMIT": f"0={max(1, mem_bytes // 2**20)}M"}
+
+
 # --- discovery ------------------------------------------------------------------------
 
 
@@ -295,6 +304,10 @@ class ResourcePool:
         self.descriptors[(stage, gpu)] = desc
         return desc
 
+    def clear_quotas(self, gpu: int) -> None:
+        """Forget every stage's share of ``gpu`` (before a new plan sets them all again)."""
+        self.descriptors = {key: d for key, d in self.descriptors.items() if key[1] != gpu}
+
     # --- bindings ---------------------------------------------------------------------------
 
     def bind(self, worker: str, stage: str, cores: list[int], threads: int | None = None,
@@ -343,6 +356,4 @@ class ResourcePool:
             if desc is None:
                 raise ResourceError(f"{binding.worker}: no quota for stage {binding.stage} on GPU {gpu} (set_quota first)")
             binding.sm_percent, binding.mem_bytes = desc.sm_percent, desc.mem_bytes
-            binding.env["CUDA_MPS_ACTIVE_THREAD_PERCENTAGE"] = f"{desc.sm_percent:g}"
-            # device 0 of the client: CUDA_VISIBLE_DEVICES leaves it one device
-            binding.env["CUDA_MPS_PINNED_DEVICE_MEM_LIMIT"] = f"0={max(1, desc.mem_bytes // 2**20)}M"
+            binding.env.update(mps_env(gpu, desc.sm_percent, desc.mem_bytes))

@@ -174,6 +174,7 @@ def test_a_new_gpu_share_restarts_training_at_a_safe_point_and_loses_nothing(tmp
     assert done["iterations"] == 14 and done["restarts"] == {}  # a new share is no failure
     log = (run / "logs" / "train-0.log").read_text()
     assert "--- with GPU share" in log and "resumed from" in log  # ... it went on from the stopped train's state
+    assert "took over" in log  # ... and with the segments it had not trained on yet
     rec = record.read(run)
     assert any(e.kind == "requota" and "train/0" in e.text for e in rec.events)
     seen = [v for v in versions if v >= 0]

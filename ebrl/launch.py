@@ -329,8 +329,12 @@ class Launcher:
         """(Zenoh thread) The allocator gave ``role`` a new GPU share: remembered for the supervise loop."""
         if quota.sm_percent is None or role not in ("gen", "train") or role not in self.gpu_env:
             return
-        env = mps_env(int(self.gpu_env[role].get("CUDA_VISIBLE_DEVICES", "0")), quota.sm_percent,
-                      quota.mem_bytes or 0)
+        current = self.gpu_env[role]
+        env = {**current, **mps_env(int(current.get("CUDA_VISIBLE_DEVICES", "0")), quota.sm_percent,
+                                    quota.mem_bytes or 0)}
+        if not quota.mem_bytes:  # no new memory budget: the one it has
+            env["CUDA_MPS_PINNED_DEVICE_MEM_LIMIT"] = current.get("CUDA_MPS_PINNED_DEVICE_MEM_LIMIT", "")
+            env = {k: v for k, v in env.items() if v}
         with self.quota_lock:
             self.quota_pending[role] = env
 

@@ -202,12 +202,14 @@ def test_obs_normalizer_keeps_running_statistics_of_the_vector_fields_only():
     torch.testing.assert_close(norm(obs), obs)  # before the first batch: the identity (in the clip range)
     parts = [obs[:13] * 3 + 5, obs[13:] * 3 + 5]  # two batches, folded in one after the other
     for part in parts:
-        norm.merge(ObsNormalizer.sums(part))
+        norm.merge(norm.sums(part))
     whole = torch.cat(parts).double()
     proprio = slice(3 * 32 * 32, 3 * 32 * 32 + 5)
     torch.testing.assert_close(norm.mean[proprio].double(), whole[:, proprio].mean(0), rtol=1e-5, atol=1e-5)
     torch.testing.assert_close(norm.var[proprio].double(), whole[:, proprio].var(0, unbiased=False),
                                rtol=1e-4, atol=1e-5)
+    assert norm.count.item() == 40
+    norm.merge(norm.sums(whole[:0]))  # a rank without data this update adds nothing
     assert norm.count.item() == 40
     out = norm(whole.float())
     assert abs(out[:, proprio].mean().item()) < 1e-4 and abs(out[:, proprio].std().item() - 1) < 0.05
@@ -227,7 +229,7 @@ def test_normalize_obs_statistics_travel_with_the_weights(case):
     vector = ObsNormalizer(layout).mask.numpy()
     obs[:, vector] = obs[:, vector] * 4 + 2  # far from standard: the statistics will matter
     before = policy.value(torch.as_tensor(obs, dtype=torch.float32))
-    policy.obs_norm.merge(ObsNormalizer.sums(obs))
+    policy.obs_norm.merge(policy.obs_norm.sums(obs))
     after = policy.value(torch.as_tensor(obs, dtype=torch.float32))
     assert not torch.allclose(before, after)  # the statistics change what every head sees
     arrays = state_arrays(policy)

@@ -120,10 +120,10 @@ class ObsNormalizer(nn.Module):
         z = ((obs - self.mean) / torch.sqrt(self.var + self.eps)).clamp(-self.clip, self.clip)
         return torch.where(self.mask, z, obs)
 
-    @staticmethod
-    def sums(obs: torch.Tensor | np.ndarray) -> np.ndarray:
-        """[count, sum of x (D), sum of x**2 (D)] of a batch of flat observations, float64: what ranks add up."""
-        o = np.asarray(obs, dtype=np.float64).reshape(len(obs), -1)
+    def sums(self, obs: torch.Tensor | np.ndarray) -> np.ndarray:
+        """[count, sum of x (D), sum of x**2 (D)] of a batch of flat observations (possibly none), float64:
+        what ranks add up."""
+        o = np.asarray(obs, dtype=np.float64).reshape(len(obs), self.mean.numel())
         return np.concatenate([[len(o)], o.sum(0), (o ** 2).sum(0)])
 
     @torch.no_grad()

@@ -25,12 +25,14 @@ def test_cleanrl_style_ppo_peer_runs_learns_and_writes_json(tmp_path):
 
 @pytest.mark.slow
 def test_learning_speed_benchmark_writes_curves_and_a_plot(tmp_path):
-    proc = subprocess.run([sys.executable, "benchmarks/learning_speed.py", "--iterations", "3", "--out", str(tmp_path)],
-                          cwd=ROOT, capture_output=True, text=True, timeout=300)
+    proc = subprocess.run([sys.executable, "benchmarks/learning_speed.py", "--iterations", "3", "--seeds", "0,1",
+                           "--out", str(tmp_path)], cwd=ROOT, capture_output=True, text=True, timeout=600)
     assert proc.returncode == 0, proc.stderr[-3000:]
     result = json.loads((tmp_path / "learning_speed.json").read_text())
     assert set(result["summary"]) == {"ebrl", "colocated"} and result["env_step_budget"] == 3 * 1024 * 4
     assert all(s["env_steps"] > 0 for s in result["summary"].values())
+    assert all(set(runs) == {"0", "1"} for runs in result["per_seed"].values())  # one run per mode and seed
+    assert result["curves"]["ebrl"] == result["curves_by_seed"]["ebrl"]["0"]
     assert (tmp_path / "learning_speed.png").stat().st_size > 1000
 
 

@@ -357,6 +357,16 @@ def data_parallel_table(node: Node) -> str:
                      "final return (mean of last 5 reports)", "best", "wall s"], rows)
 
 
+def learning_table(node: Node, modes: tuple[str, ...] = ("ebrl", "colocated")) -> str:
+    """learning_speed.json: seconds, final and best return of each mode per seed, and their medians."""
+    keys = (("wall_s", "seconds"), ("final_return_last5", "final return"), ("best_return", "best"))
+    head = ["seed", *[f"{mode}: {label}" for _, label in keys for mode in modes]]
+    rows = [[str(seed), *[f"{node.per_seed[mode][str(seed)][key]:.0f}" for key, _ in keys for mode in modes]]
+            for seed in node.seeds]
+    rows.append(["median", *[f"{node.summary[mode][key]:.0f}" for key, _ in keys for mode in modes]])
+    return md_table(head, rows)
+
+
 def reports_ahead(node: Node, mode: str, other: str) -> tuple[int, int]:
     """Of ``mode``'s learning-curve reports, how many show a return at least ``other``'s latest report
     at the same wall-clock time (reports before ``other``'s first count as ahead); and how many there are."""
@@ -516,7 +526,7 @@ class Report:
             "modes_table": modes_table, "denoise_table": denoise_table, "denoise_round_spread": denoise_round_spread,
             "weights_latency_table": weights_latency_table, "weights_loop_table": weights_loop_table,
             "scaling_table": scaling_table, "scaling_row": scaling_row, "data_parallel_table": data_parallel_table,
-            "soak_services": soak_services, "reports_ahead": reports_ahead, "extra_sets": extra_sets,
+            "soak_services": soak_services, "reports_ahead": reports_ahead, "learning_table": learning_table, "extra_sets": extra_sets,
             "chunk_table": lambda *nodes: chunk_table(*nodes, shown=self.shown_node),
             "seeds_table": lambda main, run="ebrl": seeds_table(main, self.seed_files(run), ROOT, self.shown_node, run),
             "seed_files": self.seed_files, "ebrl_seed": lambda node, run="ebrl": _seed_of(node, ROOT, run),

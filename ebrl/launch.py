@@ -35,6 +35,7 @@ from ebrl.bus import Bus, BusOptions, keys
 from ebrl.hosts import HostPlan, enabled_roles, plan as plan_host
 from ebrl.messages import Event, MessageError, Quota, StatsReport, Stop, decode_message
 from ebrl.resources.pool import mps_env
+from ebrl.service import STOP_TO_RESTART
 from ebrl.viz import record
 
 log = logging.getLogger("ebrl.launch")
@@ -356,7 +357,7 @@ class Launcher:
                 if child.role == role and child.proc.poll() is None and not child.requota:
                     child.requota = True
                     self.bus.put_nowait(keys.ctl(self.run_name, role, child.instance, "stop"),
-                                        Stop(reason="new GPU share"))
+                                        Stop(reason=STOP_TO_RESTART))
 
     def restarts(self) -> int:
         return sum(c.restarts for c in self.children)

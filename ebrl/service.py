@@ -38,6 +38,9 @@ from ebrl.messages import Affinity, Event, Quota, SpanBatch, StatsReport, Stop, 
 STOP_GRACE_S = 5.0
 SPAN_FLUSH_S = 0.2  # spans are published in one batch per lane this often (one message per span costs too much)
 SPAN_BATCH_MAX = 4096  # ... or as soon as a lane has this many
+# The reason of a Stop that the launcher follows with a new process of the same service at once (a new GPU
+# share): what the service holds that the next one can use is handed over, not dropped.
+STOP_TO_RESTART = "new GPU share"
 
 
 class Service:
@@ -55,6 +58,7 @@ class Service:
         self.log = logging.getLogger(f"ebrl.{self.role}")
         self.bus: Bus = None  # type: ignore[assignment]  # opened in main()
         self.stopping: asyncio.Event = None  # type: ignore[assignment]
+        self.stop_reason = ""
         self._counts: collections.Counter[str] = collections.Counter()
         self._counts_lock = threading.Lock()
         self._busy: collections.Counter[str] = collections.Counter()
@@ -208,6 +212,7 @@ class Service:
     def request_stop(self, reason: str) -> None:
         if not self.stopping.is_set():
             self.log.info("stopping: %s", reason)
+            self.stop_reason = reason
             self.stopping.set()
 
     def _declare_control(self) -> None:

@@ -25,7 +25,7 @@ from ebrl.envs import EnvSpec, describe
 from ebrl.messages import TrajectorySegment, decode_message, encode_message
 from ebrl.policies import make_policy, save_checkpoint, state_arrays
 from ebrl.sched.modes import resolve
-from ebrl.service import Service, service_main
+from ebrl.service import STOP_TO_RESTART, Service, service_main
 from ebrl.weights import WeightsPublisher
 
 
@@ -187,8 +187,8 @@ class TrainService(Service):
         return True
 
     def hand_over(self) -> None:
-        """On a stop: the segments received and not yet trained on, for the next train of this run (a restart
-        for a new GPU share, a resume) to take over, with the checkpoint."""
+        """On a stop to start again (a new GPU share): the segments received and not yet trained on, for the
+        next train of this run to take over, with the checkpoint."""
         for key, seg in self.traj.drain():  # what arrived while stopping
             self.accept(key, seg)
         segments = self.collector.segments()
@@ -325,7 +325,8 @@ class TrainService(Service):
         if self.rank > 0:
             return
         self.weights.close()
-        self.hand_over()
+        if self.stop_reason == STOP_TO_RESTART:  # the next train takes over (a run that ends keeps nothing)
+            self.hand_over()
         if self.version > 0:
             self.save_checkpoint()
             # the trained policy, for `--set policy.checkpoint=RUN_DIR/policy.safetensors`

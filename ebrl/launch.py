@@ -405,7 +405,7 @@ class Launcher:
 
     def primary_lost(self) -> bool:
         """A secondary host: True (and the failure said) once the run's train has been gone too long."""
-        if any(keys.parse(k)[3] == "train" for k in self.live):
+        if any(keys.role_of(k) == "train" for k in self.live):
             self.train_seen_at = time.monotonic()
             return False
         if self.train_seen_at is None or time.monotonic() - self.train_seen_at < PRIMARY_LOST_S:
@@ -449,7 +449,7 @@ class Launcher:
     def _on_control(self, key: str, payload: bytes) -> None:
         """Control messages for a service this run does not have are ignored by everyone; counted here.
         A secondary host's launcher stops when the primary ends the run."""
-        role = keys.parse(key)[3]
+        role = keys.role_of(key)
         if role == "launcher":
             if self.plan.multi and not self.plan.primary and key.endswith("/stop") and not self.stopping.is_set():
                 self.stop_reason = PRIMARY_ENDED
@@ -471,7 +471,8 @@ class Launcher:
             self.live.add(key)
         else:
             self.live.discard(key)
-        role, instance = keys.parse(key)[3:5]
+        parsed = keys.parse(key)
+        role, instance = parsed.service, parsed.instance
         other_host = role == "launcher" and instance.isdigit() and instance != str(self.plan.instance)
         if not (self.plan.multi and other_host):
             return

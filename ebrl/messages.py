@@ -18,7 +18,7 @@ from typing import Annotated, Any, Literal, TypeVar, get_args, get_origin
 
 import numpy as np
 
-from ebrl.bus import codec
+from ebrl.bus import codec, keys
 from ebrl import typecheck
 from ebrl.typecheck import Array
 
@@ -287,7 +287,10 @@ def _hints(cls: type) -> dict[str, Any]:
 def decode_stats_sample(key: str, payload: bytes | memoryview) -> "StatsReport | SpanBatch | Event":
     """Decode a sample from ``ebrl/stats/<run>/**``: a ``SpanBatch`` on ``spans/<lane>``, an ``Event``
     on ``events/<service>``, else a ``StatsReport``; raise :class:`MessageError` if it is none."""
-    family = key.split("/")[3] if key.count("/") >= 4 else ""
+    try:
+        family = keys.parse(key).family
+    except ValueError:
+        family = "report"
     cls = SpanBatch if family == "spans" else Event if family == "events" else StatsReport
     return decode_message(cls, payload)  # type: ignore[return-value]
 

@@ -20,7 +20,7 @@ def format_message(key: str, msg: dict) -> str:
 
 def watch(connect: str, run: str | None, spans: bool = False, count: int = 0) -> int:
     """Print stats (and spans) until Ctrl-C or ``count`` messages."""
-    selector = keys.stats(run) if run is None else f"ebrl/stats/{run}/**"
+    selector = keys.stats() if run is None else keys.stats_all(run)
     inbox: queue.Queue = queue.Queue(maxsize=10_000)
     signal.signal(signal.SIGINT, lambda *_: inbox.put(None))
     conf = zenoh_config(BusOptions(mode="peer", connect=[connect], listen=[]))

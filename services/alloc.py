@@ -50,7 +50,7 @@ class AllocService(Service):
                 self.latest["train"] = msg.metrics
             now = time.monotonic()
             for key, msg in self.sim_stats.drain():
-                self.sims[keys.parse(key)[4]] = (now, msg.metrics)
+                self.sims[keys.parse(key).instance] = (now, msg.metrics)
             stale = REMOTE_STALE_REPORTS * self.cfg.run.stats_interval
             self.sims = {i: (t, m) for i, (t, m) in self.sims.items() if now - t <= stale}
             local = self.sims.get(str(self.instance))

@@ -78,9 +78,9 @@ class SimService(Service):
         self.log.debug("%s %s", key, "live" if alive else "gone")
         if not alive and not self.stopping.is_set():
             self.log.warning("%s left the bus", key)
-        if alive and keys.parse(key)[3] == "gen":
+        if alive and keys.role_of(key) == "gen":
             self.gen_epoch += 1  # a (re)started gen has none of the observations in flight: publish them again
-        if alive and keys.parse(key)[3] == "train" and self.held:
+        if alive and keys.role_of(key) == "train" and self.held:
             asyncio.ensure_future(self.send_held())
 
     async def send_segment(self, key: str, segment: TrajectorySegment) -> None:
@@ -109,10 +109,10 @@ class SimService(Service):
         self.count(f"sim/core{core}_busy_s", seconds)
 
     def sim_hosts(self) -> int:
-        return sum(1 for k in self.peers_live if keys.parse(k)[3] == "sim")
+        return sum(1 for k in self.peers_live if keys.role_of(k) == "sim")
 
     def _role_live(self, role: str) -> bool:
-        return any(keys.parse(k)[3] == role for k in self.peers_live)
+        return any(keys.role_of(k) == role for k in self.peers_live)
 
     async def run(self) -> None:
         while not (self._role_live("gen") and self._role_live("train")):  # nobody would hear us yet

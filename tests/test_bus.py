@@ -125,6 +125,23 @@ def test_keys_put_the_run_in_every_key():
         keys.check_chunk("Bad Name", "run.name")
 
 
+def test_keys_parse_into_named_fields_for_every_family():
+    assert keys.parse(keys.obs("r1", 3)) == keys.Key("data", "r1", kind="obs", group=3)
+    assert keys.parse(keys.weights("r1")).kind == "weights" and keys.parse(keys.weights("r1")).group is None
+    ctl = keys.parse(keys.ctl("r1", "gen", 0, "quota"))
+    assert (ctl.category, ctl.service, ctl.instance, ctl.kind) == ("ctl", "gen", "0", "quota")
+    report = keys.parse(keys.stats("r1", "sim", 2))
+    assert (report.service, report.instance, report.family) == ("sim", "2", "report")
+    span = keys.parse(keys.spans("r1", "sim.g0"))
+    assert (span.family, span.lane) == ("spans", "sim.g0")
+    assert keys.parse(keys.events("r1", "train")).family == "events"
+    assert keys.role_of(keys.live("r1", "train", 0)) == "train"
+    assert keys.role_of("not/an/ebrl/key") == ""
+    for bad in ("ebrl/data", "other/data/r1/obs/0", "ebrl/nosuch/r1/x/0", "ebrl/live/r1/sim"):
+        with pytest.raises(ValueError):
+            keys.parse(bad)
+
+
 def test_a_bus_left_open_does_not_hang_interpreter_exit(tmp_path):
     # zenoh-python's callback threads are non-daemon: before the exit hook, a
     # failure before bus.close() hung the process (and once, a CI run) forever.

@@ -9,6 +9,7 @@ in every key: two runs on one bus never see each other's messages.
 from __future__ import annotations
 
 import re
+from dataclasses import dataclass
 
 ROOT = "ebrl"
 CONTROL_KINDS = ("quota", "affinity", "stop", "status")
@@ -111,10 +112,67 @@ def live(run: str, service: str = "*", instance: int | str = "*") -> str:
     return f"{ROOT}/live/{run}/{service}/{instance}"
 
 
-def live_all(run: str) -> str:
-    return f"{ROOT}/live/{run}/**"
+def live_all(run: str | None = None) -> str:
+    """Every liveliness token of one run (``run=None``: of every run)."""
+    return f"{ROOT}/live/{run}/**" if run is not None else f"{ROOT}/live/**"
 
 
-def parse(key: str) -> list[str]:
-    """Split a key into chunks: ``parse("ebrl/data/r/obs/3") == ["ebrl", "data", "r", "obs", "3"]``."""
-    return str(key).split("/")
+@dataclass(frozen=True)
+class Key:
+    """A parsed EBRL key; fields that the key's family does not have are ``""`` (``group``: ``None``).
+
+    ============  ==========================================  =========================================
+    category      layout                                      fields
+    ============  ==========================================  =========================================
+    ``data``      ``ebrl/data/<run>/<kind>[/<group>]``         kind (obs, act, traj, weights), group
+    ``ctl``       ``ebrl/ctl/<run>/<service>/<instance>/<k>``  service, instance, kind
+    ``stats``     ``ebrl/stats/<run>/<service>/<instance>``    service, instance
+    ``stats``     ``ebrl/stats/<run>/spans/<lane>``            service = "spans", lane
+    ``stats``     ``ebrl/stats/<run>/events/<service>``        service = "events", lane = the publisher
+    ``live``      ``ebrl/live/<run>/<service>/<instance>``     service, instance
+    ============  ==========================================  =========================================
+    """
+
+    category: str
+    run: str
+    service: str = ""
+    instance: str = ""
+    kind: str = ""
+    group: int | None = None
+    lane: str = ""
+
+    @property
+    def family(self) -> str:
+        """What a ``stats`` key carries: ``spans``, ``events`` or ``report`` (a service's stats)."""
+        return self.service if self.service in RESERVED_STATS else "report"
+
+
+RESERVED_STATS = ("spans", "events")  # stats chunks that are not service names
+CATEGORIES = ("data", "ctl", "stats", "live")
+
+
+def parse(key: object) -> Key:
+    """Parse a concrete EBRL key into named fields; raise ValueError for anything else.
+
+    ``parse("ebrl/live/r/sim/3").service == "sim"``; ``parse("ebrl/data/r/obs/2").group == 2``."""
+    text = str(key)
+    chunks = text.split("/")
+    if len(chunks) < 4 or chunks[0] != ROOT or chunks[1] not in CATEGORIES:
+        raise ValueError(f"not an EBRL key: {text!r}")
+    category, run, rest = chunks[1], chunks[2], chunks[3:]
+    if category == "data":
+        group = int(rest[1]) if rest[0] in ("obs", "act", "traj") and len(rest) == 2 and rest[1].isdigit() else None
+        return Key(category, run, kind=rest[0], group=group)
+    if category == "stats" and rest[0] in RESERVED_STATS:
+        return Key(category, run, service=rest[0], lane="/".join(rest[1:]))
+    if len(rest) < 2:
+        raise ValueError(f"not an EBRL key: {text!r} (no instance)")
+    return Key(category, run, service=rest[0], instance=rest[1], kind=rest[2] if category == "ctl" and len(rest) > 2 else "")
+
+
+def role_of(key: object) -> str:
+    """The service role a liveliness/stats/control key is about (``""`` for keys that name none)."""
+    try:
+        return parse(key).service
+    except ValueError:
+        return ""

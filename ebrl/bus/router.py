@@ -34,12 +34,13 @@ def serve(listen: list[str], connect: list[str], config_file: str = "", quiet: b
         signal.signal(sig, lambda *_: done.set())
 
     def on_token(sample: zenoh.Sample) -> None:  # ebrl/live/<run>/<service>/<instance>
-        _, _, run, service, instance = keys.parse(sample.key_expr)[:5]
+        key = keys.parse(sample.key_expr)
+        run, service, instance = key.run, key.service, key.instance
         verb = "joined" if sample.kind == zenoh.SampleKind.PUT else "left"
         print(f"{time.strftime('%H:%M:%S')} run {run}: {service}/{instance} {verb}", file=out, flush=True)
 
     watcher = None if quiet else session.liveliness().declare_subscriber(
-        f"{keys.ROOT}/live/**", on_token, history=True)
+        keys.live_all(), on_token, history=True)
     print(f"ebrl router {session.info.zid()} listening on {', '.join(listen)}"
           + (f", connected to {', '.join(connect)}" if connect else ""), file=out, flush=True)
     done.wait()

@@ -30,7 +30,7 @@ import threading
 import time
 from pathlib import Path
 
-from ebrl import config as config_mod
+from ebrl import config as config_mod, procenv
 from ebrl.bus import Bus, BusOptions, keys
 from ebrl.hosts import HostPlan, enabled_roles, plan as plan_host
 from ebrl.messages import Event, MessageError, Quota, StatsReport, Stop, decode_message
@@ -220,13 +220,9 @@ class Launcher:
         """Start ``python -m services.<role>``; its output is appended to ``log_path``."""
         env = dict(os.environ, PYTHONUNBUFFERED="1", **self.gpu_env.get(role, {}), **(extra_env or {}))
         if role == "alloc":  # the allocator plans this host's cores: with or without a simulator among them
-            from ebrl.alloc.runtime import LOCAL_SIM_VAR
-
-            env[LOCAL_SIM_VAR] = "1" if "sim" in self.plan.roles else "0"
-        if role == "train" and self.dist_addr:
-            from ebrl.algos.parallel import ADDR_VAR
-
-            env[ADDR_VAR] = self.dist_addr
+            env.update(procenv.service_env(local_sim="sim" in self.plan.roles))
+        if role == "train":
+            env.update(procenv.service_env(dist_addr=self.dist_addr))
         root = str(Path(__file__).resolve().parent.parent)
         env["PYTHONPATH"] = root + os.pathsep + env.get("PYTHONPATH", "")  # `services` beside `ebrl`
         cmd = [sys.executable, "-m", f"services.{role}", "--config", str(self.run_dir / "config.toml"),
@@ -314,9 +310,8 @@ class Launcher:
         child.restart_at = None
         extra = {}
         if child.role == "train":  # never reuse a version: the new train starts past every one seen
-            from ebrl.algos.checkpoint import VERSION_FLOOR_VAR
-
-            extra[VERSION_FLOOR_VAR] = str(max(self.version(), int(self.metric("gen/policy_version", "max") or 0)))
+            extra = procenv.service_env(
+                version_floor=max(self.version(), int(self.metric("gen/policy_version", "max") or 0)))
         why = f"with GPU share {self.gpu_env.get(child.role)}" if requota else f"restart {child.restarts}"
         with open(child.log_path, "ab") as fh:
             fh.write(f"\n--- {why} by the launcher ---\n".encode())

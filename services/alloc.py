@@ -11,10 +11,10 @@ generation and training. The other hosts keep their own cores (``[hosts.<name>].
 from __future__ import annotations
 
 import asyncio
-import os
 import time
 
-from ebrl.alloc.runtime import LOCAL_SIM_VAR, capacities, describe, make_placement, metrics_of
+from ebrl import procenv
+from ebrl.alloc.runtime import capacities, describe, make_placement, metrics_of
 from ebrl.bus import keys
 from ebrl.messages import Affinity, Quota, StatsReport
 from ebrl.service import Service, service_main
@@ -26,7 +26,7 @@ class AllocService(Service):
     role = "alloc"
 
     async def setup(self) -> None:
-        self.local_sim = os.environ.get(LOCAL_SIM_VAR, "1") == "1"
+        self.local_sim = procenv.local_sim()
         # The launcher measured (or reused) the profile and started the services inside the initial plan:
         # the same file gives the same plan, which is therefore already applied.
         self.placement, path, _ = await asyncio.get_running_loop().run_in_executor(

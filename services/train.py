@@ -16,6 +16,7 @@ import msgpack
 import numpy as np
 import torch
 
+from ebrl import procenv
 from ebrl.algos import checkpoint
 from ebrl.algos.grpo import GroupCollector
 from ebrl.algos.parallel import KEEPALIVE_S, Command, DataParallel, shards
@@ -286,7 +287,7 @@ class TrainService(Service):
             restored = checkpoint.restore(found, self.model, self.ppo.optimizer, {"ppo": self.ppo.generator})
             self.version = self.saved_version = restored.version
             self.log.info("resumed from %s (policy v%d)", found, restored.version)
-        floor = int(os.environ.get(checkpoint.VERSION_FLOOR_VAR, "-1"))
+        floor = procenv.version_floor()
         if floor >= self.version and floor > 0:
             self.log.warning("versions up to v%d were published before the restart; the %s weights continue as "
                              "v%d", floor, f"v{self.version}" if found else "initial", floor + 1)

@@ -31,9 +31,6 @@ from ebrl.policies import load_checkpoint, save_checkpoint
 
 DIRNAME = "checkpoints"
 KEEP = 2
-# Set by the launcher when it restarts train: the newest policy version anyone saw, which the restarted
-# train continues after (versions never go back or repeat).
-VERSION_FLOOR_VAR = "EBRL_VERSION_FLOOR"
 
 
 @dataclass

@@ -27,7 +27,6 @@ from __future__ import annotations
 
 import contextlib
 import datetime
-import os
 import warnings
 from dataclasses import dataclass
 from typing import Any, Callable, Iterator, Sequence
@@ -37,7 +36,8 @@ import torch
 import torch.distributed as dist
 from torch import nn
 
-ADDR_VAR = "EBRL_DIST_ADDR"  # host:port of rank 0's rendezvous store, set by the launcher
+from ebrl import procenv
+
 KEEPALIVE_S = 1.0
 TIMEOUT_S = 60.0
 
@@ -79,9 +79,9 @@ class DataParallel:
 
     def __init__(self, policy: nn.Module, optimizer: torch.optim.Optimizer, rank: int, world: int,
                  address: str | None = None, shard: bool = False):
-        address = address or os.environ.get(ADDR_VAR, "")
+        address = address or procenv.dist_addr()
         if not address:
-            raise RuntimeError(f"train.world_size = {world}: {ADDR_VAR} (rank 0's host:port) is not set; "
+            raise RuntimeError(f"train.world_size = {world}: {procenv.DIST_ADDR} (rank 0's host:port) is not set; "
                                "start training ranks with `ebrl up`")
         self.rank, self.world, self.shard = rank, world, shard
         self.policy, self.optimizer = policy, optimizer

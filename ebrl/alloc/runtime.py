@@ -22,7 +22,6 @@ from ebrl.alloc.profile import default_path, fingerprint, load, load_or_profile
 from ebrl.resources.pool import ResourcePool
 
 MIN_CPU = 0.05  # cores' worth of CPU below which a stage was idle: its capacity cannot be told
-LOCAL_SIM_VAR = "EBRL_LOCAL_SIM"  # "0": the allocator's host runs no simulator (set by the launcher)
 
 
 def make_placement(cfg: config_mod.Config, *, measure: bool, progress: bool = True,

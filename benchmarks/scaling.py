@@ -38,7 +38,7 @@ import zenoh
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from ebrl import bench, config  # noqa: E402
-from ebrl.launch import free_port  # noqa: E402
+from ebrl.bus.endpoints import free_port  # noqa: E402
 
 ROOT = Path(__file__).resolve().parent.parent
 RESULTS = ROOT / "benchmarks" / "results"

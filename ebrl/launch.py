@@ -23,7 +23,6 @@ import json
 import logging
 import os
 import signal
-import socket
 import subprocess
 import sys
 import threading
@@ -32,6 +31,7 @@ from pathlib import Path
 
 from ebrl import config as config_mod, procenv
 from ebrl.bus import Bus, BusOptions, keys
+from ebrl.bus.endpoints import free_port, listen_endpoint
 from ebrl.hosts import HostPlan, enabled_roles, plan as plan_host
 from ebrl.messages import Event, MessageError, Quota, StatsReport, Stop, decode_message
 from ebrl.resources.pool import mps_env
@@ -79,33 +79,6 @@ def make_run_dir(cfg: config_mod.Config) -> Path:
         suffix += 1
     (run_dir / "logs").mkdir(parents=True)
     return run_dir
-
-
-def free_port(host: str = "127.0.0.1") -> int:
-    with socket.socket() as sock:
-        sock.bind((host, 0))
-        return sock.getsockname()[1]
-
-
-def listen_endpoint(wanted: str, strict: bool = False) -> str:
-    """``wanted`` if its TCP port is free, else the same host on a free port (logged); ``strict`` (other
-    hosts will connect to it) raises OSError instead."""
-    proto, _, address = wanted.partition("/")
-    host, _, port = address.rpartition(":")
-    if proto != "tcp" or not port.isdigit():
-        return wanted
-    with socket.socket() as sock:
-        sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)  # as Zenoh's listener: TIME_WAIT is no conflict
-        try:
-            sock.bind((host.strip("[]"), int(port)))
-            return wanted
-        except OSError:
-            if strict:
-                raise OSError(f"cannot listen on {wanted}: the port is busy or the address is not this host's")
-            sock.bind((host.strip("[]"), 0))
-            free = f"tcp/{host}:{sock.getsockname()[1]}"
-    print(f"ebrl: {wanted} is busy (another run?); listening on {free} instead", file=sys.stderr)
-    return free
 
 
 def _die_with_parent() -> None:  # runs in the child between fork and exec

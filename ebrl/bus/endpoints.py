@@ -1,0 +1,33 @@
+"""Bus endpoints on this host: a free TCP port, and a listen endpoint that falls back to one."""
+
+from __future__ import annotations
+
+import socket
+import sys
+
+
+def free_port(host: str = "127.0.0.1") -> int:
+    with socket.socket() as sock:
+        sock.bind((host, 0))
+        return sock.getsockname()[1]
+
+
+def listen_endpoint(wanted: str, strict: bool = False) -> str:
+    """``wanted`` if its TCP port is free, else the same host on a free port (logged); ``strict`` (other
+    hosts will connect to it) raises OSError instead."""
+    proto, _, address = wanted.partition("/")
+    host, _, port = address.rpartition(":")
+    if proto != "tcp" or not port.isdigit():
+        return wanted
+    with socket.socket() as sock:
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)  # as Zenoh's listener: TIME_WAIT is no conflict
+        try:
+            sock.bind((host.strip("[]"), int(port)))
+            return wanted
+        except OSError:
+            if strict:
+                raise OSError(f"cannot listen on {wanted}: the port is busy or the address is not this host's")
+            sock.bind((host.strip("[]"), 0))
+            free = f"tcp/{host}:{sock.getsockname()[1]}"
+    print(f"ebrl: {wanted} is busy (another run?); listening on {free} instead", file=sys.stderr)
+    return free

@@ -19,13 +19,11 @@ from __future__ import annotations
 
 import argparse
 import asyncio
-import collections
 import contextlib
 import logging
 import os
 import signal
 import sys
-import threading
 import time
 from typing import Any, Iterator
 
@@ -34,10 +32,10 @@ import psutil
 from ebrl import config as config_mod
 from ebrl.bus import Bus, BusOptions, keys
 from ebrl.messages import Affinity, Event, Quota, SpanBatch, StatsReport, Stop, encode_message
+from ebrl.recorder import Recorder
 
 STOP_GRACE_S = 5.0
 SPAN_FLUSH_S = 0.2  # spans are published in one batch per lane this often (one message per span costs too much)
-SPAN_BATCH_MAX = 4096  # ... or as soon as a lane has this many
 # The reason of a Stop that the launcher follows with a new process of the same service at once (a new GPU
 # share): what the service holds that the next one can use is handed over, not dropped.
 STOP_TO_RESTART = "new GPU share"
@@ -59,18 +57,17 @@ class Service:
         self.bus: Bus = None  # type: ignore[assignment]  # opened in main()
         self.stopping: asyncio.Event = None  # type: ignore[assignment]
         self.stop_reason = ""
-        self._counts: collections.Counter[str] = collections.Counter()
-        self._counts_lock = threading.Lock()
-        self._busy: collections.Counter[str] = collections.Counter()
-        self._spans: collections.defaultdict[str, list[tuple[float, float, str]]] = collections.defaultdict(list)
         service, factor, after_s = config_mod.parse_slowdown(cfg.run.slowdown) if cfg.run.slowdown else ("", 1, 0)
-        self._slowdown = (factor, after_s) if service == self.role and factor > 1 else None
-        self._slowdown_announced = False
+        self.recorder = Recorder(
+            spans=cfg.viz.spans, slowdown=(factor, after_s) if service == self.role and factor > 1 else None,
+            on_slowdown=lambda f: self.event("slowdown", f"{self.role}/{self.instance}: injected slowdown x{f:g} "
+                                                         "from now on"),
+            on_full=self.flush_spans)
         self._control_versions: dict[str, int] = {}
         self._tasks: set[asyncio.Task] = set()
         self._stats_seq = 0
         self._proc = psutil.Process()
-        self.started_at = time.time()
+        self.started_at = self.recorder.started_at
 
     # --- to override ---------------------------------------------------------------
 
@@ -103,81 +100,50 @@ class Service:
 
             torch.set_num_threads(quota.threads)
 
-    # --- helpers for subclasses ------------------------------------------------------
+    # --- telemetry (ebrl.recorder.Telemetry): for the service and the library code it drives -----
 
     def count(self, name: str, n: float = 1) -> None:
         """Add ``n`` to counter ``name`` (thread-safe); reported as total and per-second rate."""
-        with self._counts_lock:
-            self._counts[name] += n
+        self.recorder.count(name, n)
 
     @contextlib.contextmanager
     def span(self, label: str, lane: str | None = None) -> Iterator[None]:
         """Time a block and record it as a span of ``lane`` (published on ``ebrl/stats/<run>/spans/<lane>``)."""
-        lane = lane or self.role
         start = time.time()
         try:
             yield
         finally:
-            end = time.time()
-            self.publish_span(lane, label, start, end)
+            self.publish_span(lane or self.role, label, start, time.time())
 
     def publish_span(self, lane: str, label: str, start: float, end: float, busy: bool = True) -> None:
-        """Record a span for the next batch; ``busy=False`` marks time spent waiting (shown, not counted
-        in busy/<lane>). With ``viz.spans = false`` only busy/<lane> is kept. An injected slowdown
-        (``run.slowdown``) stretches busy spans here, by busy-waiting in the caller's thread."""
-        if busy and self._slowdown is not None:
-            end = self._stretch(start, end)
-        with self._counts_lock:
-            if busy:
-                self._busy[lane] += end - start
-            if not self.cfg.viz.spans:
-                return
-            rows = self._spans[lane]
-            rows.append((start, end, label))
-            full = len(rows) >= SPAN_BATCH_MAX
-        if full:
-            self.flush_spans()
-
-    def _stretch(self, start: float, end: float) -> float:
-        factor, after_s = self._slowdown
-        if time.time() - self.started_at < after_s:
-            return end
-        if not self._slowdown_announced:
-            self._slowdown_announced = True
-            self.event("slowdown", f"{self.role}/{self.instance}: injected slowdown x{factor:g} from now on")
-        until = time.perf_counter() + (factor - 1.0) * (end - start)
-        while time.perf_counter() < until:  # CPU time, like real work
-            pass
-        self.count("slowdown/injected_s", (factor - 1.0) * (end - start))
-        return end + (factor - 1.0) * (end - start)
+        """Record a span for the next batch (see :meth:`Recorder.publish_span`)."""
+        self.recorder.publish_span(lane, label, start, end, busy)
 
     def flush_spans(self) -> None:
         """Publish the spans recorded since the last flush, one ``SpanBatch`` per lane (any thread)."""
-        with self._counts_lock:
-            pending, self._spans = self._spans, collections.defaultdict(list)
-        for lane, rows in pending.items():
-            if rows:
-                starts, ends, labels = zip(*rows)
-                self.bus.put_nowait(keys.spans(self.run_name, lane), SpanBatch(
-                    lane=lane, service=self.role, instance=self.instance, start=list(starts), end=list(ends),
-                    label=list(labels)))
+        for lane, rows in self.recorder.take_spans().items():
+            starts, ends, labels = zip(*rows)
+            self.bus.put_nowait(keys.spans(self.run_name, lane), SpanBatch(
+                lane=lane, service=self.role, instance=self.instance, start=list(starts), end=list(ends),
+                label=list(labels)))
 
     def event(self, kind: str, text: str) -> None:
         """Add a line to the run's event log (``ebrl/stats/<run>/events/<role>``), from any thread."""
         self.bus.put_nowait(keys.events(self.run_name, self.role),
                             Event(time=time.time(), service=self.role, instance=self.instance, kind=kind, text=text))
 
-    def key(self, kind: str) -> str:
-        return keys.ctl(self.run_name, self.role, self.instance, kind)
-
     # --- lifecycle ------------------------------------------------------------------
 
-    async def main(self) -> int:
+    async def main(self, bus: Any = None, signals: bool = True) -> int:
+        """Run the service to its end; its exit status. ``bus``: any object with the ``Bus`` API (e.g. an
+        ``ebrl.bus.memory.MemoryBus``, to run several services in one process); default: a Zenoh ``Bus``
+        from ``bus_options``. ``signals=False`` leaves SIGINT/SIGTERM to the caller."""
         loop = asyncio.get_running_loop()
         self.stopping = asyncio.Event()
-        for sig in (signal.SIGINT, signal.SIGTERM):
-            loop.add_signal_handler(sig, self.request_stop, f"signal {sig.name}")
-        self.bus = Bus(self.bus_options)
+        if signals:
+            for sig in (signal.SIGINT, signal.SIGTERM):
+                loop.add_signal_handler(sig, self.request_stop, f"signal {sig.name}")
+        self.bus = bus if bus is not None else Bus(self.bus_options)
         exit_code = 0
         try:
             await self.setup()
@@ -256,7 +222,7 @@ class Service:
             self.flush_spans()
 
     async def _stats_loop(self) -> None:
-        self._last_stats = (time.monotonic(), dict(self._counts), dict(self._busy))
+        self.recorder.start_interval()
         self._proc.cpu_percent()
         while True:
             await asyncio.sleep(self.cfg.run.stats_interval)
@@ -271,17 +237,7 @@ class Service:
         await self.bus.put(keys.stats(self.run_name, self.role, self.instance), report)
 
     def _report(self) -> StatsReport:
-        now = time.monotonic()
-        with self._counts_lock:
-            counts, busy = dict(self._counts), dict(self._busy)
-        last_t, last_counts, last_busy = getattr(self, "_last_stats", (now, {}, {}))
-        dt = max(now - last_t, 1e-9)
-        metrics: dict[str, float] = {}
-        for name, total in counts.items():
-            metrics[name] = float(total)
-            metrics[f"{name}_per_s"] = (total - last_counts.get(name, 0)) / dt if now > last_t else 0.0
-        for lane, seconds in busy.items():
-            metrics[f"busy/{lane}"] = min(1.0, (seconds - last_busy.get(lane, 0.0)) / dt) if now > last_t else 0.0
+        metrics = self.recorder.metrics()
         metrics["bus/malformed"] = float(sum(self.bus.malformed.values()))
         metrics["bus/oversized"] = float(sum(self.bus.oversized.values()))
         metrics["bus/sender_dropped"] = float(self.bus.sender_dropped)
@@ -292,8 +248,6 @@ class Service:
         if "torch" in sys.modules:
             metrics["quota/threads"] = float(sys.modules["torch"].get_num_threads())
         metrics.update(self.metrics())
-        if now > last_t:
-            self._last_stats = (now, counts, busy)
         report = StatsReport(run=self.run_name, service=self.role, instance=self.instance, time=time.time(),
                              seq=self._stats_seq, metrics=metrics)
         self._stats_seq += 1

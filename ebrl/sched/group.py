@@ -1,0 +1,170 @@
+"""The group pipeline (paper: group pipelining): each env group exchanges its observations for an action
+chunk, steps the chunk on its envs and emits finished trajectory segments, independently of the others.
+
+Three parts, each over the bus API only (a Zenoh ``Bus`` or an in-memory one):
+
+* :class:`ActionExchange` — observations out on ``obs/<group>``, the matching chunk in on ``act/<group>``;
+  published again when no answer comes (a lost sample) or generation restarted (it has none in flight);
+* :class:`SegmentOutbox` — segments out on ``traj/<group>``, held while no train is live (a restart, a
+  new GPU share) up to ``train.max_pending`` decisions, and sent when one is back;
+* :class:`GroupLoop` — one group's loop: GRPO gating, exchange, stepping, worker replacement, segments.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import collections
+import logging
+import time
+from typing import Any, Callable
+
+import numpy as np
+
+from ebrl.bus import keys
+from ebrl.envs.worker import WorkerFailed
+from ebrl.messages import ActionChunk, Observation, TrajectorySegment
+from ebrl.recorder import Telemetry
+from ebrl.sched.fleet import EnvFleet, RolloutStats
+from ebrl.sched.modes import Schedule
+from ebrl.sched.rollout import SegmentBuilder
+
+log = logging.getLogger(__name__)
+
+# A group whose observation got no answer for this long publishes it again (a generation restart or a lost
+# sample must never leave a group waiting forever).
+ACTION_TIMEOUT_S = 30.0
+
+
+class ActionExchange:
+    """Observations for action chunks, per group; ``generation_restarted()`` makes every waiting group
+    publish its observations again at once."""
+
+    def __init__(self, bus: Any, run: str, groups: list[int], telemetry: Telemetry,
+                 timeout_s: float = ACTION_TIMEOUT_S):
+        self.bus, self.run, self.telemetry, self.timeout_s = bus, run, telemetry, timeout_s
+        self.actions = {g: bus.subscribe(keys.act(run, g), ActionChunk, capacity=4) for g in groups}
+        self.gen_epoch = 0
+
+    def generation_restarted(self) -> None:
+        self.gen_epoch += 1
+
+    async def exchange(self, g: int, seq: int, env_ids: np.ndarray, obs: np.ndarray) -> ActionChunk:
+        """Publish group ``g``'s observations for chunk ``seq`` and wait for the chunk that answers them."""
+        message = Observation(group=g, seq=seq, env_ids=env_ids, obs=obs, sent_at=time.time())
+        while True:
+            await self.bus.put(keys.obs(self.run, g), message, express=True)
+            start, epoch = time.time(), self.gen_epoch
+            deadline = time.monotonic() + self.timeout_s
+            while time.monotonic() < deadline and epoch == self.gen_epoch:
+                try:
+                    _, chunk = await asyncio.wait_for(self.actions[g].next(), min(1.0, deadline - time.monotonic()))
+                except asyncio.TimeoutError:
+                    continue
+                if chunk.seq == seq and chunk.actions.shape[0] == len(env_ids) == chunk.latents.shape[0]:
+                    self.telemetry.publish_span(f"sim.g{g}", "wait", start, time.time(), busy=False)
+                    return chunk
+                self.telemetry.count("sim/stale_actions_dropped")
+            self.telemetry.count("sim/obs_resent")
+            if epoch == self.gen_epoch:
+                log.warning("group %d: no actions for seq %d after %.0f s, publishing again", g, seq, self.timeout_s)
+
+
+class SegmentOutbox:
+    """Finished segments to train, or held while ``train_live()`` is False (at most ``max_pending``
+    decisions; beyond that the oldest are dropped, counted): training resumes where it stopped."""
+
+    def __init__(self, bus: Any, telemetry: Telemetry, max_pending: int, train_live: Callable[[], bool]):
+        self.bus, self.telemetry, self.max_pending, self.train_live = bus, telemetry, max_pending, train_live
+        self.held: collections.deque[tuple[str, TrajectorySegment]] = collections.deque()
+        self.held_steps = 0
+
+    async def send(self, key: str, segment: TrajectorySegment) -> None:
+        if self.train_live():
+            await self.send_held()
+            await self.bus.put(key, segment)
+            return
+        self.telemetry.count("sim/segments_while_train_down")
+        self.held.append((key, segment))
+        self.held_steps += len(segment.obs)
+        while self.held_steps > self.max_pending:
+            _, dropped = self.held.popleft()
+            self.held_steps -= len(dropped.obs)
+            self.telemetry.count("sim/segments_dropped_train_down")
+
+    async def send_held(self) -> None:
+        while self.held and self.train_live():
+            key, segment = self.held.popleft()
+            self.held_steps -= len(segment.obs)
+            await self.bus.put(key, segment)
+            self.telemetry.count("sim/segments_sent_late")
+
+
+class GroupLoop:
+    """One group, chunk after chunk: the envs that may act (GRPO waits for group-mates) get the chunk that
+    answers their observations; their results become segments, cut at every iteration boundary
+    (``schedule.length(sim_hosts())`` chunks) so that each update sees all of its iteration."""
+
+    def __init__(self, g: int, fleet: EnvFleet, exchange: ActionExchange, outbox: SegmentOutbox,
+                 stats: RolloutStats, telemetry: Telemetry, run: str, schedule: Schedule, segment_length: int,
+                 sim_hosts: Callable[[], int]):
+        self.g, self.fleet, self.exchange, self.outbox, self.stats = g, fleet, exchange, outbox, stats
+        self.telemetry, self.run, self.schedule, self.sim_hosts = telemetry, run, schedule, sim_hosts
+        self.segment_length = segment_length
+        self.env_ids = fleet.env_ids(g)
+        self.builders = [SegmentBuilder(g, int(e), segment_length) for e in self.env_ids]
+        self.seq = 0
+
+    async def run_forever(self) -> None:
+        workers = self.fleet.workers[self.g]
+        obs = np.stack(await asyncio.gather(*(w.reset() for w in workers)))
+        while True:
+            obs = await self.step(obs)
+
+    async def step(self, obs: np.ndarray) -> np.ndarray:
+        """One chunk of this group: returns the next observations."""
+        g, episodes, workers = self.g, self.fleet.episodes, self.fleet.workers[self.g]
+        active = [i for i, env in enumerate(self.env_ids) if episodes.may_act(int(env))]
+        if not active:  # every env waits for GRPO group-mates in other sim groups
+            await episodes.moved()
+            return obs
+        chunk = await self.exchange.exchange(g, self.seq, self.env_ids, obs)
+        start = time.time()
+        done, latency_of = await self.fleet.stepping.run_chunk([workers[i] for i in active], chunk.actions[active])
+        self.telemetry.publish_span(f"sim.g{g}", "chunk", start, time.time())
+        boundary = (self.seq + 1) % self.schedule.length(self.sim_hosts()) == 0
+        next_obs = obs.copy()
+        for j, i in enumerate(active):
+            next_obs[i] = await self.record(i, done[j], latency_of[j], obs[i], chunk, boundary)
+        self.seq += 1
+        return next_obs
+
+    async def record(self, i: int, res: Any, latency: float, obs: np.ndarray, chunk: ActionChunk,
+                     boundary: bool) -> np.ndarray:
+        """What env ``i`` did with its chunk: a replaced worker (its episode so far is dropped, never
+        published), or a decision added to its segment; returns its next observation."""
+        env, episodes, count = int(self.env_ids[i]), self.fleet.episodes, self.telemetry.count
+        if isinstance(res, WorkerFailed):
+            log.warning("env %d: %s; replacing its worker (the episode in progress is dropped)", env, res)
+            self.telemetry.event("worker", f"env {env}: {res}; worker replaced")
+            count("sim/worker_restarts")
+            episode = episodes.index[env] + 1  # the episode numbering, hence GRPO's groups, carries on
+            next_obs = await self.fleet.replace(self.g, i).reset(episode)
+            count("sim/partial_decisions_dropped", len(self.builders[i]))
+            self.builders[i] = SegmentBuilder(self.g, env, self.segment_length)
+            episodes.set(env, episode)
+            return next_obs
+        self.stats.chunk_latency.append(latency)
+        episodes.set(env, res.episode + int(res.terminated or res.truncated))
+        count("sim/env_steps", res.steps)
+        count("sim/step_busy_s", res.busy_s)
+        if res.episode_return is not None:
+            self.stats.returns.append(res.episode_return)
+            count("sim/episodes")
+        if res.episode_success is not None:
+            self.stats.successes.append(res.episode_success)
+        segment = self.builders[i].add(obs, chunk.actions[i], chunk.latents[i], float(chunk.logprobs[i]),
+                                       float(chunk.values[i]), chunk.policy_version, res, boundary)
+        if segment is not None:
+            await self.outbox.send(keys.traj(self.run, self.g), segment)
+            count("sim/segments")
+        return res.next_obs

@@ -15,7 +15,7 @@ parameters, gradients and Adam's state live in 1/world_size slices, gathered
 for each forward pass; the full weights are gathered for publishing after every
 update and, with the optimizer state, for checkpoints. Every one of those is a
 collective, so every rank makes the same calls in the same order
-(``TrainService.learn`` and ``sync``).
+(``ebrl.algos.learner.Learner.learn`` and ``sync``).
 
 Rank 0 sends a command every ``KEEPALIVE_S`` while it waits for data and a stop
 at the end, so the other ranks never block on a collective for long, and a dead

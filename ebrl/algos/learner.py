@@ -1,0 +1,217 @@
+"""The learner of one training rank (Sample Factory's ``Learner``): segments in, updates, versioned weights.
+
+It holds the policy, PPO/GRPO and the bounded collector, and the rules that keep versions honest:
+
+* a segment is taken only if its shapes match the policy and it was acted by a version this learner
+  published (``versions <= version``); a bad one is dropped, counted;
+* versions never go back or repeat: a restart resumes from the run's latest checkpoint and, when the
+  launcher says a newer version was published before (``procenv.version_floor``), continues after it;
+* a learner stopped to start again (a new GPU share) hands the segments it had not trained on over to
+  the next one (``RUN_DIR/train-pending.msgpack``), which takes them over once.
+
+No bus and no event loop here: the train service (``services/train.py``) drives it, and with several
+ranks the choreography of ``ebrl.algos.parallel`` decides who learns from what.
+"""
+
+from __future__ import annotations
+
+import collections
+import contextlib
+import logging
+import os
+from typing import Any, Callable
+
+import msgpack
+import numpy as np
+import torch
+
+from ebrl.algos import checkpoint
+from ebrl.algos.grpo import GroupCollector
+from ebrl.algos.parallel import Command, DataParallel, shards
+from ebrl.algos.ppo import PPO, Batch, SegmentCollector
+from ebrl.messages import TrajectorySegment, decode_message, encode_message
+from ebrl.policies import make_policy, save_checkpoint, state_arrays
+from ebrl.recorder import Telemetry
+
+log = logging.getLogger(__name__)
+
+POLICY_FILE = "policy.safetensors"  # the trained policy, for `--set policy.checkpoint=RUN_DIR/policy.safetensors`
+HANDOVER_FILE = "train-pending.msgpack"  # segments a stopping train leaves to the next one (RUN_DIR)
+
+
+class Learner:
+    """One rank's policy, optimiser and pending data; ``version`` is the newest policy version it made."""
+
+    def __init__(self, cfg: Any, info: Any, max_staleness: int, telemetry: Telemetry, run_dir: str,
+                 rank: int = 0, world: int = 1):
+        self.cfg, self.telemetry, self.run_dir, self.rank, self.world = cfg, telemetry, run_dir, rank, world
+        torch.manual_seed(cfg.run.seed)
+        self.obs_shape = info.obs_shape
+        self.action_shape = (cfg.policy.chunk, info.action_dim)
+        self.model = make_policy(cfg.policy, info.layout, info.action_dim)
+        self.latent_shape = tuple(self.model.latent_shape)
+        self.ppo = PPO(self.model, cfg.algo, cfg.train.lr, seed=cfg.run.seed)
+        self.version = self.saved_version = 0
+        self.dp: DataParallel | None = None
+        collector = GroupCollector if cfg.algo.name == "grpo" else SegmentCollector
+        self.collector = collector(cfg.algo, cfg.train.max_pending, max_staleness, telemetry.count)
+        self.returns: collections.deque[float] = collections.deque(maxlen=20)
+        self.staleness_hist = np.zeros(max_staleness + 1, dtype=np.int64)  # decisions per lag
+        self.arrays: dict[str, np.ndarray] = {}  # the full weights rank 0 publishes
+        self.train_state: tuple[int, dict, dict] | None = None  # sharded: (version, model, optimizer) gathered
+
+    def join(self) -> None:
+        """With several ranks: join the training group (blocks until every rank joined; every rank then
+        holds rank 0's weights)."""
+        self.dp = DataParallel(self.model, self.ppo.optimizer, self.rank, self.world,
+                               shard=self.cfg.train.parallel == "fsdp")
+        self.ppo.net, self.ppo.optimizer = self.dp.net, self.dp.optimizer
+
+    @property
+    def sharded(self) -> bool:
+        return self.dp is not None and self.dp.shard
+
+    @property
+    def ready(self) -> bool:
+        return self.collector.ready_steps >= self.cfg.train.batch_size
+
+    def accept(self, seg: TrajectorySegment, malformed: Callable[[Exception], None]) -> bool:
+        """Check one segment and add it to the collector (False: dropped, counted)."""
+        n = len(seg.obs)
+        if seg.obs.shape[1:] != self.obs_shape or seg.actions.shape[1:] != self.action_shape \
+                or seg.latents.shape[1:] != self.latent_shape \
+                or not 0 < n == len(seg.actions) == len(seg.latents) == len(seg.rewards) == len(seg.versions):
+            malformed(ValueError("segment shapes do not match the policy"))
+            return False
+        if int(seg.versions.max()) > self.version:  # acted by weights this train never published
+            self.telemetry.count("train/future_version_dropped")
+            return False
+        self.collector.add(seg)
+        self.returns.extend(seg.episode_returns)
+        self.telemetry.count("train/segments_received")
+        return True
+
+    def take(self) -> list:
+        """The next update's items (maybe none: everything pending was too stale)."""
+        return self.collector.take(self.version, self.cfg.train.batch_size)
+
+    def update(self, items: list) -> dict[str, float]:
+        """Rank 0's update (on the update thread); with several ranks, each learns from a shard, rank 0 the
+        first. Makes the next version."""
+        if self.dp is not None:
+            parts = shards(items, self.collector.size, self.world)
+            items = self.dp.send([Command("update", part) for part in parts]).items
+        return self.learn(items)
+
+    def learn(self, items: list) -> dict[str, float]:
+        """The gradient steps on this rank's items, then ``sync``; a rank without items steps with zero
+        gradients. Every rank makes the same collective calls in the same order, items or not."""
+        with self.dp.gathered() if self.dp is not None else contextlib.nullcontext():
+            batch = self.collector.build(items, self.model) if items else None
+        if self.model.obs_norm is not None:  # before the gradient steps, the same statistics on every rank
+            sums = self.model.obs_norm.sums(batch.obs if batch is not None else torch.zeros(0, *self.obs_shape))
+            self.model.obs_norm.merge(sums if self.dp is None else self.dp.all_sum(sums))
+        if batch is None:
+            out = {**self.ppo.update(self.empty_batch(), scale=0.0), "batch_size": 0.0}
+        else:
+            staleness = self.version - batch.versions
+            self.staleness_hist += np.bincount(staleness, minlength=len(self.staleness_hist))[:len(self.staleness_hist)]
+            out = self.ppo.update(batch, version=self.version)
+            out.update(staleness_mean=float(staleness.mean()), staleness_max=float(staleness.max()),
+                       batch_size=float(len(batch)))
+        self.sync(self.version + 1)
+        self.version += 1
+        return out
+
+    def sync(self, version: int) -> None:
+        """After the update that makes ``version``: the full weights for rank 0 to publish and, when a
+        checkpoint is due, the training state (sharded, both are collectives on every rank)."""
+        if not self.sharded:
+            if self.rank == 0:
+                self.arrays = state_arrays(self.model)
+            return
+        self.arrays = self.dp.full_arrays()  # type: ignore[union-attr]
+        every = self.cfg.train.checkpoint_every
+        if every and version % every == 0:
+            self.train_state = (version, *self.dp.checkpoint_state())  # type: ignore[union-attr]
+
+    def empty_batch(self) -> Batch:
+        """Zeros shaped like a batch of ``algo.minibatches`` decisions (for ``scale = 0`` steps)."""
+        n = self.cfg.algo.minibatches
+        zeros = torch.zeros(n)
+        return Batch(obs=torch.zeros(n, *self.obs_shape), actions=torch.zeros(n, *self.action_shape),
+                     latents=torch.zeros(n, *self.latent_shape), logprobs=zeros, advantages=zeros, returns=zeros,
+                     values=zeros, versions=np.full(n, self.version))
+
+    def resume(self, floor: int) -> str | None:
+        """Carry on from the run's latest checkpoint, if any, and after version ``floor`` (the newest anyone saw
+        before a restart, which may be past the checkpoint). Returns what happened, or None for a fresh start."""
+        found = checkpoint.latest(self.run_dir)
+        if found is not None:
+            restored = checkpoint.restore(found, self.model, self.ppo.optimizer, {"ppo": self.ppo.generator})
+            self.version = self.saved_version = restored.version
+            log.info("resumed from %s (policy v%d)", found, restored.version)
+        if floor >= self.version and floor > 0:
+            log.warning("versions up to v%d were published before the restart; the %s weights continue as v%d",
+                        floor, f"v{self.version}" if found else "initial", floor + 1)
+            self.version = floor + 1
+        self.arrays = state_arrays(self.model)
+        if found is None and floor <= 0:
+            return None
+        return f"train resumed at policy v{self.version}" + (f" from {found.name}" if found is not None
+                                                              else " with fresh weights")
+
+    def save_checkpoint(self, run_name: str) -> bool:
+        """Write the training state (on the update thread, between updates); False if there was nothing new."""
+        if self.version == self.saved_version:
+            return False
+        model_state, optimizer = None, self.ppo.optimizer
+        if self.sharded:  # what the ranks gathered (sync, and the stop)
+            if self.train_state is None or self.train_state[0] != self.version:
+                return False
+            _, model_state, optimizer = self.train_state
+        checkpoint.save(self.run_dir, self.model, optimizer, self.version, {"ppo": self.ppo.generator},
+                        {"run": run_name}, model_state=model_state)
+        self.saved_version = self.version
+        return True
+
+    def save_policy(self, run_name: str) -> str:
+        path = os.path.join(self.run_dir, POLICY_FILE)
+        weights = {name: torch.from_numpy(a) for name, a in self.arrays.items()}  # full, also when sharded
+        save_checkpoint(self.model, path, {"run": run_name, "version": str(self.version)}, state=weights)
+        return path
+
+    def hand_over(self) -> int:
+        """Write the segments received and not yet trained on, for the next learner of this run; how many."""
+        segments = self.collector.segments()
+        if segments:
+            path = os.path.join(self.run_dir, HANDOVER_FILE)
+            with open(path + ".tmp", "wb") as fh:
+                fh.write(msgpack.packb([encode_message(seg) for seg in segments]))
+                fh.flush()
+                os.fsync(fh.fileno())
+            os.replace(path + ".tmp", path)
+        return len(segments)
+
+    def take_over(self, malformed: Callable[[Exception], None]) -> tuple[int, int]:
+        """Take over what the learner before handed over, once (the file is removed): (taken, handed over)."""
+        path = os.path.join(self.run_dir, HANDOVER_FILE)
+        if not os.path.exists(path):
+            return 0, 0
+        with open(path, "rb") as fh:
+            payloads = msgpack.unpackb(fh.read())
+        os.remove(path)
+        taken = sum(self.accept(decode_message(TrajectorySegment, p), malformed) for p in payloads)
+        self.telemetry.count("train/segments_taken_over", taken)
+        return taken, len(payloads)
+
+    def metrics(self) -> dict[str, float]:
+        out = {"train/policy_version": float(self.version)}
+        if self.rank > 0:
+            return out
+        out["train/pending_steps"] = float(self.collector.pending_steps)
+        if self.returns:
+            out["train/episode_return_mean"] = float(np.mean(self.returns))
+        for lag, n in enumerate(self.staleness_hist):
+            out[f"train/staleness_hist_{lag}"] = float(n)
+        return out

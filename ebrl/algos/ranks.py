@@ -1,0 +1,70 @@
+"""How data-parallel training ranks move together (``train.world_size`` > 1), seen from the event loop.
+
+Rank 0 leads: it scatters each update's shards (``Learner.update``), a keep-alive while it waits for data
+and a stop at the end. The other ranks follow its commands one by one. Every collective runs on the
+learner's one update thread, never on the event loop (``ebrl.algos.parallel`` has the collectives).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import concurrent.futures
+import logging
+import time
+from typing import Callable
+
+from ebrl.algos.learner import Learner
+from ebrl.algos.parallel import Command
+
+log = logging.getLogger(__name__)
+
+
+class Ranks:
+    def __init__(self, learner: Learner, pool: concurrent.futures.ThreadPoolExecutor):
+        self.learner, self.pool = learner, pool
+        self.stopped = False  # rank 0 sent (or, on ranks > 0, received) the stop command
+        self.receiving: concurrent.futures.Future | None = None
+
+    async def keepalive(self) -> None:
+        """Rank 0, waiting for data: the other ranks wait in a collective, tell them to go on."""
+        await asyncio.get_running_loop().run_in_executor(self.pool, self.learner.dp.send, Command("idle"))
+
+    async def follow_one(self, learned: Callable[[dict[str, float], float], None]) -> bool:
+        """Ranks > 0: carry out rank 0's next command (``learned(losses, start)`` after an update); False once it
+        said stop. A command being received when the task is cancelled is kept for the next call."""
+        dp, loop = self.learner.dp, asyncio.get_running_loop()
+        if self.receiving is None or self.receiving.cancelled():
+            self.receiving = self.pool.submit(dp.receive)
+        command = await asyncio.wrap_future(self.receiving)
+        self.receiving = None
+        if command.kind == "stop" and self.learner.sharded:  # rank 0 gathers the final training state: take part
+            await loop.run_in_executor(self.pool, dp.checkpoint_state)
+        if command.kind == "update":
+            start = time.time()
+            losses = await loop.run_in_executor(self.pool, self.learner.learn, command.items)
+            learned(losses, start)
+        self.stopped = command.kind == "stop"
+        return not self.stopped
+
+    async def drain(self) -> None:
+        """Ranks > 0, stopping: finish what rank 0 started, up to its stop (rank 0 may be gone: give up)."""
+        try:
+            while not self.stopped and await self.follow_one(lambda losses, start: None):
+                pass
+        except RuntimeError:  # rank 0 is gone: the collective failed
+            pass
+
+    async def stop(self) -> None:
+        """Rank 0: release the other ranks from their collective (once) and, sharded, gather the final
+        training state with them; they may be gone (a crash): give up after a few seconds."""
+        if self.stopped:
+            return
+        self.stopped = True
+        learner = self.learner
+        try:
+            await asyncio.wait_for(asyncio.to_thread(learner.dp.send, Command("stop")), 5.0)
+            if learner.sharded:
+                state = await asyncio.wait_for(asyncio.to_thread(learner.dp.checkpoint_state), 30.0)
+                learner.train_state = (learner.version, *state)
+        except (asyncio.TimeoutError, RuntimeError) as exc:
+            log.warning("could not stop the other training ranks cleanly: %r", exc)

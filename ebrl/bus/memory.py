@@ -6,6 +6,9 @@ Like dora-rs's ``MockNode`` or FastStream's in-memory broker, but with the bus's
     train_bus = MemoryBus(network)                 # one per service, created inside the running loop
     gen_bus = MemoryBus(network, BusOptions(max_message_bytes=1 << 20))
 
+Code written against the bus API (:class:`~ebrl.bus.BusBase`: services, ``ebrl.weights``) runs unchanged
+on it; all buses of a network share one event loop in a test, though nothing requires it.
+
 Every bus on a network sees the samples, liveliness tokens and queryables of every bus on it, its own
 included, as Zenoh peers do. What stays real: payloads are encoded and decoded by ``ebrl.messages``, so a
 malformed or oversized one is counted and dropped exactly as over Zenoh; key expressions match by Zenoh's

@@ -287,7 +287,7 @@ class BusBase(abc.ABC):
         return self.declare_queryable_raw(key, on_query)
 
     async def get(self, selector: str, payload: bytes | None = None, timeout: float = 1.0) -> list[tuple[str, bytes]]:
-        """Query ``selector``; return ``(key, payload)`` of every reply within ``timeout`` seconds."""
+        """Query ``selector``; return ``(key, payload)`` of every reply (none merged) within ``timeout`` seconds."""
         replies: list[tuple[str, bytes]] = []
         await self.get_raw(selector, lambda key, data: replies.append((key, data)), payload, timeout)
         return replies

@@ -6,11 +6,12 @@ Parts fit Zenoh's shared-memory pool (16 MiB by default; on one host every put o
 through it) and no single part holds the GIL for long on either side: a 500 MB message would stall the
 receiving event loop for as long as one copy of it takes.
 
-Both sides keep Zenoh's blocking calls off the event loop. The publisher has one thread that packs and
+Both sides use only the bus API (:class:`~ebrl.bus.BusBase`: Zenoh, or the in-memory bus in tests) and
+keep its blocking calls off the event loop. The publisher has one thread that packs and
 sends versions and answers late joiners' queries in order, so a query never sees the send buffer being
 rewritten; a version still waiting while a newer one is published is skipped (keep-latest). Parts go
 with blocking congestion control and are never dropped to make room. The receiver assembles parts on
-Zenoh's callback thread into one buffer per version; a newer version discards an incomplete older one,
+the bus's callback thread into one buffer per version; a newer version discards an incomplete older one,
 and only a complete version is ever handed out. The receiver assembles the next version into the last
 one's buffer once nothing refers to that any more: first-touch page faults on a fresh buffer cost about
 as much as the whole transfer (measured: filling 500 MB took 1.5 s fresh, 0.1 s reused).
@@ -29,9 +30,8 @@ from dataclasses import dataclass, field
 from typing import Callable, Literal
 
 import numpy as np
-import zenoh
 
-from ebrl.bus import Bus, keys
+from ebrl.bus import BusBase, Query, keys
 from ebrl.messages import MessageError, Weights, WeightsPart, decode_message, encode_message
 
 log = logging.getLogger("ebrl.weights")
@@ -51,7 +51,7 @@ class PublishStats:
     total_bytes: int = 0
     parts: int = 0
     pack_s: float = 0.0  # encoding, or copying the arrays into the send buffer
-    send_s: float = 0.0  # handing every message to Zenoh (blocking puts)
+    send_s: float = 0.0  # handing every message to the bus (blocking puts)
 
 
 @dataclass
@@ -79,7 +79,8 @@ class _Latest:
 class WeightsPublisher:
     """Publish weight versions (train's side) and answer late joiners with the newest one."""
 
-    def __init__(self, bus: Bus, run: str, *, part_bytes: int = PART_BYTES, single_max_bytes: int = SINGLE_MAX_BYTES):
+    def __init__(self, bus: BusBase, run: str, *, part_bytes: int = PART_BYTES,
+                 single_max_bytes: int = SINGLE_MAX_BYTES):
         self.bus, self.run = bus, run
         self.part_bytes, self.single_max_bytes = part_bytes, single_max_bytes
         self.published = 0
@@ -89,16 +90,13 @@ class WeightsPublisher:
         self._latest: _Latest | None = None  # worker thread only
         self._buffer = np.zeros(0, np.uint8)  # worker thread only; reused while the size stays the same
         self._jobs: queue.SimpleQueue[Callable[[], None] | None] = queue.SimpleQueue()
-        block = zenoh.CongestionControl.BLOCK
-        self._whole_pub = bus.session.declare_publisher(keys.weights(run), congestion_control=block)
-        self._parts_pub = bus.session.declare_publisher(keys.weights_parts(run), congestion_control=block)
-        self._queryable = bus.session.declare_queryable(keys.weights_all(run), self._on_query)
+        self._queryable = bus.declare_queryable_raw(keys.weights_all(run), self._on_query)
         self._thread = threading.Thread(target=self._work, name="ebrl-weights", daemon=True)
         self._thread.start()
 
     async def publish(self, version: int, arrays: dict[str, np.ndarray],
                       created_at: float | None = None) -> PublishStats:
-        """Send ``arrays`` as ``version``; returns once Zenoh has every message, or once a newer version took
+        """Send ``arrays`` as ``version``; returns once the bus has every message, or once a newer version took
         this one's place. ``arrays`` must stay unchanged until then (pass a snapshot, e.g. ``state_arrays``)."""
         future = self.bus.loop.create_future()
         job = _Pending(version, arrays, time.time() if created_at is None else created_at, future)
@@ -112,11 +110,10 @@ class WeightsPublisher:
 
     def close(self) -> None:
         self._jobs.put(None)
-        for declared in (self._queryable, self._whole_pub, self._parts_pub):
-            try:
-                declared.undeclare()
-            except Exception as exc:  # the session may be closed already
-                log.debug("weights publisher close: %s", exc)
+        try:
+            self._queryable.undeclare()
+        except Exception as exc:  # the session may be closed already
+            log.debug("weights publisher close: %s", exc)
 
     # --- worker thread ------------------------------------------------------------------
 
@@ -152,7 +149,7 @@ class WeightsPublisher:
             payload = encode_message(Weights(version=job.version, params=dict(zip(names, arrays)),
                                              created_at=job.created_at))
             packed = time.perf_counter()
-            self._whole_pub.put(payload)
+            self.bus.put_bytes_blocking(keys.weights(self.run), payload)
             self._latest = _Latest(job.version, job.created_at, whole=payload)
             return PublishStats(job.version, True, "whole", len(payload), 1, packed - start,
                                 time.perf_counter() - packed)
@@ -166,8 +163,9 @@ class WeightsPublisher:
                          count=-(-total // self.part_bytes))
         self._latest = latest
         packed = time.perf_counter()
+        parts_key = keys.weights_parts(self.run)
         for index in range(latest.count):
-            self._parts_pub.put(self._part(latest, index))
+            self.bus.put_bytes_blocking(parts_key, self._part(latest, index))
         return PublishStats(job.version, True, "parts", total, latest.count, packed - start,
                             time.perf_counter() - packed)
 
@@ -181,10 +179,10 @@ class WeightsPublisher:
                                                                   latest.offsets)
         return encode_message(part)
 
-    def _on_query(self, query: zenoh.Query) -> None:  # a Zenoh thread: hand over, never reply here
+    def _on_query(self, query: Query) -> None:  # a bus thread: hand over, never reply here
         self._jobs.put(lambda: self._answer(query))
 
-    def _answer(self, query: zenoh.Query) -> None:
+    def _answer(self, query: Query) -> None:
         """Reply with the newest version: the one message, or every part (a late joiner gets it whole)."""
         try:
             latest = self._latest
@@ -192,13 +190,13 @@ class WeightsPublisher:
                 return
             whole_key, parts_key = keys.weights(self.run), keys.weights_parts(self.run)
             if latest.whole is not None:
-                if query.key_expr.intersects(zenoh.KeyExpr(whole_key)):
+                if query.matches(whole_key):
                     query.reply(whole_key, latest.whole)
-            elif query.key_expr.intersects(zenoh.KeyExpr(parts_key)):
+            elif query.matches(parts_key):
                 for index in range(latest.count):
                     query.reply(parts_key, self._part(latest, index))
         finally:
-            query.drop()
+            query.finish()
 
 
 def _settle(future: asyncio.Future, result: PublishStats | None, error: BaseException | None = None) -> None:
@@ -225,12 +223,12 @@ class _Assembly:
 
 
 class WeightsReceiver:
-    """The newest complete weights version (gen's side), assembled on Zenoh's thread.
+    """The newest complete weights version (gen's side), assembled on the bus's thread.
 
     ``notify`` is set on the event loop whenever a newer version is complete; the event loop then only
     takes it (:meth:`take_newer`). Malformed messages are counted on the bus and dropped."""
 
-    def __init__(self, bus: Bus, run: str, *, notify: asyncio.Event | None = None):
+    def __init__(self, bus: BusBase, run: str, *, notify: asyncio.Event | None = None):
         self.bus, self.run, self._notify = bus, run, notify
         self.version = -1  # newest complete version so far
         self.completed = 0  # versions assembled or received whole
@@ -256,22 +254,12 @@ class WeightsReceiver:
     async def request(self, timeout: float = 10.0) -> bool:
         """Ask the publisher for its newest version (how a late joiner gets its first weights without waiting
         for the next update); True if a version newer than any taken is complete now."""
-        await self.bus.loop.run_in_executor(None, self._query, timeout)
+        # Every reply (parts share one key, so none may be merged), each assembled as it arrives.
+        await self.bus.get_raw(keys.weights_all(self.run), self._on_payload, timeout=timeout)
         return self._latest is not None
 
-    def _query(self, timeout: float) -> None:
-        # Blocking replies so no part is dropped; no consolidation, as every part has the same key.
-        replies = self.bus.session.get(keys.weights_all(self.run), consolidation=zenoh.ConsolidationMode.NONE,
-                                       congestion_control=zenoh.CongestionControl.BLOCK, timeout=timeout)
-        for reply in replies:
-            if reply.ok is not None:
-                self._on_payload(str(reply.ok.key_expr), reply.ok.payload.to_bytes())
-
-    def _on_payload(self, key: str, payload: bytes) -> None:  # a Zenoh thread, or the query thread
-        limit = self.bus.options.max_message_bytes
-        if len(payload) > limit:
-            self.bus.oversized[key] += 1
-            self.bus.count_malformed(key, ValueError(f"{len(payload)} bytes, over bus.max_message_bytes = {limit}"))
+    def _on_payload(self, key: str, payload: bytes) -> None:  # a bus thread, or the query's
+        if not self.bus.fits(key, len(payload)):
             return
         try:
             if key == self._parts_key:

@@ -1,12 +1,13 @@
-"""Test helpers: free loopback ports, a bus on loopback, waiting for conditions."""
+"""Test helpers: free loopback ports, a bus on loopback, a connected pair of buses, waiting for conditions."""
 
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import socket
 import time
 
-from ebrl.bus import Bus, BusOptions
+from ebrl.bus import Bus, BusOptions, MemoryBus, MemoryNetwork
 
 
 def free_port() -> int:
@@ -20,6 +21,46 @@ def loopback_bus(port: int, *, listen: bool = True) -> Bus:
     if listen:
         return Bus(BusOptions(listen=[f"tcp/127.0.0.1:{port}"]))
     return Bus(BusOptions(listen=["tcp/127.0.0.1:0"], connect=[f"tcp/127.0.0.1:{port}"]))
+
+
+BUS_KINDS = ("zenoh", "memory")
+
+
+class BusPair:
+    """Two connected buses on one loop: ``sender`` and ``receiver`` (either can do both)."""
+
+    def __init__(self, sender, receiver):
+        self.sender, self.receiver = sender, receiver
+        self._seen: set[str] = set()
+        self._tokens = 0
+        sender.watch_liveliness("test/settled/*", lambda key, alive: self._seen.add(key) if alive else None)
+
+    async def settled(self) -> None:
+        """Return once the sender knows every declaration the receiver made so far: over Zenoh they travel
+        in order on one link, so the receiver's newest liveliness token comes after them."""
+        self._tokens += 1
+        key = f"test/settled/{self._tokens}"
+        self.receiver.declare_token(key)
+        await until(lambda: key in self._seen, 10, "the receiver's declarations")
+
+
+@contextlib.asynccontextmanager
+async def bus_pair(kind: str, receiver_options: BusOptions | None = None):
+    """A :class:`BusPair`: two Zenoh peers on loopback, or two ``MemoryBus`` on one network; closed after."""
+    if kind == "zenoh":
+        port = free_port()
+        sender = loopback_bus(port)
+        options = receiver_options or BusOptions()
+        receiver = Bus(BusOptions(**{**vars(options), "listen": ["tcp/127.0.0.1:0"],
+                                     "connect": [f"tcp/127.0.0.1:{port}"]}))
+    else:
+        network = MemoryNetwork()
+        sender, receiver = MemoryBus(network), MemoryBus(network, receiver_options)
+    try:
+        yield BusPair(sender, receiver)
+    finally:
+        await receiver.close()
+        await sender.close()
 
 
 async def until(predicate, timeout: float = 10.0, what: str = "condition") -> None:

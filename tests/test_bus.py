@@ -1,4 +1,7 @@
-"""Bus: a round trip between two processes, liveliness, request-reply, queue policies, malformed input."""
+"""Bus: a round trip between two processes, liveliness, request-reply, queue policies, malformed input.
+
+The behaviour tests run over both buses with the same API: two Zenoh peers on loopback, and two MemoryBus
+on one network (``kind``)."""
 
 import asyncio
 import os
@@ -12,10 +15,15 @@ import pytest
 
 from ebrl.bus import keys
 from ebrl.messages import Event, Observation, StatsReport
-from ebrl.bus import Bus, BusOptions
-from helpers import free_port, loopback_bus, until
+from ebrl.bus import BusOptions
+from helpers import BUS_KINDS, bus_pair, free_port, loopback_bus, until
 
 HERE = pathlib.Path(__file__).resolve().parent
+
+
+@pytest.fixture(params=BUS_KINDS)
+def kind(request):
+    return request.param
 
 
 def observation(seq: int, group: int = 0, n: int = 4) -> Observation:
@@ -68,43 +76,79 @@ def test_round_trip_between_two_processes_with_liveliness_and_query(echo_process
     asyncio.run(scenario())
 
 
-def test_malformed_messages_are_counted_and_dropped():
+def test_a_round_trip_with_liveliness_and_query_in_one_process(kind):
     async def scenario():
-        port = free_port()
-        bus = loopback_bus(port)
-        sub = bus.subscribe("test/spans/*", Event, capacity=16)
-        good = Event(time=1.0, service="gen", instance=0, kind="forward", text="a forward pass")
-        await bus.put_bytes("test/spans/a", b"\xc1garbage")
-        await bus.put("test/spans/a", StatsReport(run="r", service="s", instance=0, time=0.0, seq=0, metrics={}))
-        await bus.put_bytes("test/spans/b", os.urandom(64))
-        await bus.put("test/spans/a", good)
-        key, msg = await asyncio.wait_for(sub.next(), 5)
-        assert (key, msg) == ("test/spans/a", good)
-        assert bus.malformed["test/spans/a"] == 2 and bus.malformed["test/spans/b"] == 1
-        await bus.close()
+        async with bus_pair(kind) as pair:
+            bus, echo = pair.sender, pair.receiver
+            live = {}
+            bus.watch_liveliness(keys.live("test", "echo", "*"), lambda k, alive: live.__setitem__(k, alive))
+            pings = echo.subscribe("test/ping/*", Observation, capacity=8)
+            pongs = bus.subscribe("test/pong/*", Observation, capacity=64)
+
+            async def answer(request: bytes) -> bytes:
+                return b"pong:" + request
+
+            async def echo_pings() -> None:
+                async for _, msg in pings:
+                    await echo.put(f"test/pong/{msg.group}", msg)
+
+            echo.declare_queryable("test/query", answer)
+            echo.declare_token(keys.live("test", "echo", 0))
+            task = asyncio.create_task(echo_pings())
+            await until(lambda: live.get(keys.live("test", "echo", 0)), 10, "the echo's liveliness token")
+            await pair.settled()
+            assert await bus.get("test/query", payload=b"hi", timeout=5.0) == [("test/query", b"pong:hi")]
+            for seq in range(20):
+                await bus.put(f"test/ping/{seq % 3}", observation(seq, group=seq % 3))
+            got = [await asyncio.wait_for(pongs.next(), 10) for _ in range(20)]
+            assert sorted(m.seq for _, m in got) == list(range(20))
+            assert all(key == f"test/pong/{msg.group}" for key, msg in got)
+            task.cancel()
+            await echo.close()
+            await until(lambda: live.get(keys.live("test", "echo", 0)) is False, 10, "the token to vanish")
+            assert await bus.get("test/query", timeout=0.5) == []
 
     asyncio.run(scenario())
 
 
-def test_latest_policy_keeps_the_newest_and_block_policy_loses_nothing():
+def test_malformed_messages_are_counted_and_dropped(kind):
     async def scenario():
-        port = free_port()
-        bus = loopback_bus(port)
-        latest = bus.subscribe("test/latest", Event, policy="latest", capacity=2)
-        blocking = bus.subscribe("test/block", Observation, policy="block", capacity=2)
-        for i in range(10):
-            await bus.put("test/latest", Event(time=float(i), service="s", instance=0, kind="k", text=""))
-        await until(lambda: latest.received >= 2 and latest.dropped + latest.received >= 10, 5, "latest samples")
-        assert [m.time for _, m in latest.drain()] == [8.0, 9.0]
-        for seq in range(50):
-            await bus.put("test/block", observation(seq))
-        seen = []
-        while len(seen) < 50:
-            _, msg = await asyncio.wait_for(blocking.next(), 5)
-            seen.append(msg.seq)
-            assert len(blocking) <= 2  # never more than its capacity
-        assert seen == list(range(50)) and blocking.dropped == 0
-        await bus.close()
+        async with bus_pair(kind) as pair:
+            bus, receiver = pair.sender, pair.receiver
+            sub = receiver.subscribe("test/spans/*", Event, capacity=16)
+            await pair.settled()
+            good = Event(time=1.0, service="gen", instance=0, kind="forward", text="a forward pass")
+            await bus.put_bytes("test/spans/a", b"\xc1garbage")
+            await bus.put("test/spans/a", StatsReport(run="r", service="s", instance=0, time=0.0, seq=0, metrics={}))
+            await bus.put_bytes("test/spans/b", os.urandom(64))
+            await bus.put("test/spans/a", good)
+            key, msg = await asyncio.wait_for(sub.next(), 5)
+            assert (key, msg) == ("test/spans/a", good)
+            assert receiver.malformed["test/spans/a"] == 2 and receiver.malformed["test/spans/b"] == 1
+            assert not bus.malformed  # counted where it is received
+
+    asyncio.run(scenario())
+
+
+def test_latest_policy_keeps_the_newest_and_block_policy_loses_nothing(kind):
+    async def scenario():
+        async with bus_pair(kind) as pair:
+            bus = pair.sender
+            latest = pair.receiver.subscribe("test/latest", Event, policy="latest", capacity=2)
+            blocking = pair.receiver.subscribe("test/block", Observation, policy="block", capacity=2)
+            await pair.settled()
+            for i in range(10):
+                await bus.put("test/latest", Event(time=float(i), service="s", instance=0, kind="k", text=""))
+            await until(lambda: latest.received >= 2 and latest.dropped + latest.received >= 10, 5, "latest samples")
+            assert [m.time for _, m in latest.drain()] == [8.0, 9.0]
+            for seq in range(50):
+                await bus.put("test/block", observation(seq))
+            seen = []
+            while len(seen) < 50:
+                _, msg = await asyncio.wait_for(blocking.next(), 5)
+                seen.append(msg.seq)
+                assert len(blocking) <= 2  # never more than its capacity
+            assert seen == list(range(50)) and blocking.dropped == 0
 
     asyncio.run(scenario())
 
@@ -164,19 +208,16 @@ def test_a_bus_left_open_does_not_hang_interpreter_exit(tmp_path):
     assert proc.returncode == 3, proc.stderr.decode()
 
 
-def test_messages_over_the_size_limit_are_dropped_before_decoding():
+def test_messages_over_the_size_limit_are_dropped_before_decoding(kind):
     async def scenario():
-        port = free_port()
-        bus = loopback_bus(port)
-        small = Bus(BusOptions(listen=["tcp/127.0.0.1:0"], connect=[f"tcp/127.0.0.1:{port}"], max_message_bytes=4096))
-        sub = small.subscribe("test/obs", Observation, capacity=8)
-        await asyncio.sleep(0.5)
-        await bus.put("test/obs", observation(1, n=1))  # 12 KB of pixels
-        await bus.put("test/obs", Observation(group=0, seq=2, env_ids=np.zeros(1, np.int64),
-                                              obs=np.zeros((1, 4), np.float32), sent_at=0.0))
-        _, msg = await asyncio.wait_for(sub.next(), 10)
-        assert msg.seq == 2 and small.oversized["test/obs"] == 1 and small.malformed["test/obs"] == 1
-        await small.close()
-        await bus.close()
+        async with bus_pair(kind, receiver_options=BusOptions(max_message_bytes=4096)) as pair:
+            small = pair.receiver
+            sub = small.subscribe("test/obs", Observation, capacity=8)
+            await pair.settled()
+            await pair.sender.put("test/obs", observation(1, n=1))  # 12 KB of pixels
+            await pair.sender.put("test/obs", Observation(group=0, seq=2, env_ids=np.zeros(1, np.int64),
+                                                          obs=np.zeros((1, 4), np.float32), sent_at=0.0))
+            _, msg = await asyncio.wait_for(sub.next(), 10)
+            assert msg.seq == 2 and small.oversized["test/obs"] == 1 and small.malformed["test/obs"] == 1
 
     asyncio.run(scenario())

@@ -1,15 +1,18 @@
-"""Weights over the bus: whole and in parts, bit-identical; incomplete versions never handed out; late joiners."""
+"""Weights over the bus: whole and in parts, bit-identical; incomplete versions never handed out; late joiners.
+
+Every test runs over Zenoh (two peers on loopback) and over the in-memory bus (``kind``)."""
 
 import asyncio
 import contextlib
 
 import msgpack
 import numpy as np
+import pytest
 
 from ebrl.bus import keys
 from ebrl.messages import StatsReport, Weights, WeightsPart, decode_message, encode_message
 from ebrl.weights import ALIGN, WeightsPublisher, WeightsReceiver
-from helpers import free_port, loopback_bus, until
+from helpers import BUS_KINDS, bus_pair, until
 
 RUN = "w"
 
@@ -34,25 +37,17 @@ def assert_identical(got: dict[str, np.ndarray], want: dict[str, np.ndarray]) ->
         assert got[name].tobytes() == array.tobytes(), name
 
 
+@pytest.fixture(params=BUS_KINDS)
+def kind(request):
+    return request.param
+
+
 @contextlib.asynccontextmanager
-async def two_peers():
-    """A publishing and a receiving bus on loopback, connected: the receiver's subscriptions are known to
-    the publisher once its liveliness token is (declarations travel in order on one link)."""
-    port = free_port()
-    pub_bus = loopback_bus(port)
-    sub_bus = loopback_bus(port, listen=False)
-    seen = set()
-    pub_bus.watch_liveliness("test/w/*", lambda key, alive: seen.add(key) if alive else None)
-    try:
-        yield pub_bus, sub_bus, seen
-    finally:
-        await sub_bus.close()
-        await pub_bus.close()
-
-
-async def connected(sub_bus, seen, name: str) -> None:
-    sub_bus.declare_token(f"test/w/{name}")
-    await until(lambda: f"test/w/{name}" in seen, 10, "the receiver's token")
+async def two_peers(kind: str):
+    """A publishing and a receiving bus, connected; ``pair.settled()`` returns once the receiver's
+    subscriptions so far are known to the publisher."""
+    async with bus_pair(kind) as pair:
+        yield pair.sender, pair.receiver, pair
 
 
 def encoded_parts(version: int, arrays: dict[str, np.ndarray], part_bytes: int, created_at: float = 1.0) -> list[bytes]:
@@ -78,14 +73,14 @@ def encoded_parts(version: int, arrays: dict[str, np.ndarray], part_bytes: int, 
     return parts
 
 
-def test_small_weights_go_whole_and_large_ones_in_parts_bit_identical():
+def test_small_weights_go_whole_and_large_ones_in_parts_bit_identical(kind):
     async def scenario():
-        async with two_peers() as (pub_bus, sub_bus, seen):
+        async with two_peers(kind) as (pub_bus, sub_bus, pair):
             wake = asyncio.Event()
             receiver = WeightsReceiver(sub_bus, RUN, notify=wake)
             whole = sub_bus.subscribe(keys.weights(RUN), Weights, policy="latest", capacity=1)  # today's gen
             publisher = WeightsPublisher(pub_bus, RUN)
-            await connected(sub_bus, seen, "r")
+            await pair.settled()
 
             small = model()
             stats = await publisher.publish(1, small)
@@ -112,11 +107,11 @@ def test_small_weights_go_whole_and_large_ones_in_parts_bit_identical():
     asyncio.run(scenario())
 
 
-def test_an_incomplete_version_is_never_handed_out_and_a_newer_one_supersedes_it():
+def test_an_incomplete_version_is_never_handed_out_and_a_newer_one_supersedes_it(kind):
     async def scenario():
-        async with two_peers() as (pub_bus, sub_bus, seen):
+        async with two_peers(kind) as (pub_bus, sub_bus, pair):
             receiver = WeightsReceiver(sub_bus, RUN)
-            await connected(sub_bus, seen, "r")
+            await pair.settled()
             key = keys.weights_parts(RUN)
             old, new = model(1), model(2)
             old_parts, new_parts = encoded_parts(5, old, 1024), encoded_parts(6, new, 1024)
@@ -139,11 +134,11 @@ def test_an_incomplete_version_is_never_handed_out_and_a_newer_one_supersedes_it
     asyncio.run(scenario())
 
 
-def test_parts_of_a_version_number_sent_twice_never_mix():
+def test_parts_of_a_version_number_sent_twice_never_mix(kind):
     async def scenario():
-        async with two_peers() as (pub_bus, sub_bus, seen):
+        async with two_peers(kind) as (pub_bus, sub_bus, pair):
             receiver = WeightsReceiver(sub_bus, RUN)
-            await connected(sub_bus, seen, "r")
+            await pair.settled()
             key = keys.weights_parts(RUN)
             dying, restarted = model(1), {name: a + 1 if a.dtype != bool else ~a for name, a in model(1).items()}
             for payload in encoded_parts(4, dying, 1024, created_at=10.0)[:-1]:  # train died before its last part
@@ -160,11 +155,11 @@ def test_parts_of_a_version_number_sent_twice_never_mix():
     asyncio.run(scenario())
 
 
-def test_malformed_parts_are_counted_and_dropped():
+def test_malformed_parts_are_counted_and_dropped(kind):
     async def scenario():
-        async with two_peers() as (pub_bus, sub_bus, seen):
+        async with two_peers(kind) as (pub_bus, sub_bus, pair):
             receiver = WeightsReceiver(sub_bus, RUN)
-            await connected(sub_bus, seen, "r")
+            await pair.settled()
             key = keys.weights_parts(RUN)
             arrays = model()
             good = encoded_parts(3, arrays, 4096)
@@ -201,17 +196,17 @@ def test_malformed_parts_are_counted_and_dropped():
     asyncio.run(scenario())
 
 
-def test_a_late_receiver_gets_a_complete_version_by_query():
+def test_a_late_receiver_gets_a_complete_version_by_query(kind):
     async def scenario():
-        async with two_peers() as (pub_bus, sub_bus, seen):
+        async with two_peers(kind) as (pub_bus, sub_bus, pair):
             publisher = WeightsPublisher(pub_bus, RUN, part_bytes=64 << 10, single_max_bytes=256 << 10)
-            await connected(sub_bus, seen, "early")
+            await pair.settled()
             assert await WeightsReceiver(sub_bus, RUN).request(timeout=1.0) is False  # nothing published yet
             large = model(40)  # 700 KB: 11 parts
             stats = await asyncio.gather(publisher.publish(7, model(39)), publisher.publish(8, large))
             assert stats[1].sent and stats[1].mode == "parts" and publisher.published + publisher.superseded == 2
             receiver = WeightsReceiver(sub_bus, RUN)  # joins after the last publish
-            await connected(sub_bus, seen, "late")
+            await pair.settled()
             assert await receiver.request(timeout=10.0) is True
             got = receiver.take_newer(-1)
             assert got.version == 8 and receiver.discarded == 0
@@ -228,12 +223,12 @@ def test_a_late_receiver_gets_a_complete_version_by_query():
     asyncio.run(scenario())
 
 
-def test_the_receiver_reuses_a_buffer_only_once_nothing_reads_it():
+def test_the_receiver_reuses_a_buffer_only_once_nothing_reads_it(kind):
     async def scenario():
-        async with two_peers() as (pub_bus, sub_bus, seen):
+        async with two_peers(kind) as (pub_bus, sub_bus, pair):
             receiver = WeightsReceiver(sub_bus, RUN)
             publisher = WeightsPublisher(pub_bus, RUN, part_bytes=4096, single_max_bytes=0)
-            await connected(sub_bus, seen, "r")
+            await pair.settled()
 
             def arrays(version: int) -> dict[str, np.ndarray]:
                 out = model(2)  # the same size every version, so a buffer fits the next one

@@ -1,7 +1,8 @@
-"""Zenoh bus: session and asyncio bridge, codec, key builders, liveliness.
+"""The bus: session and asyncio bridge, in-memory bus for tests, codec, key builders, liveliness.
 
-``Bus`` and friends load on first use, so that ``ebrl.messages`` (which the session
-module needs) can import ``ebrl.bus.codec`` and ``ebrl.bus.keys`` without a cycle."""
+``Bus`` (Zenoh) and ``MemoryBus`` (one process, for tests) share one API, :class:`BusBase`. They load on
+first use, so that ``ebrl.messages`` (which the session module needs) can import ``ebrl.bus.codec`` and
+``ebrl.bus.keys`` without a cycle."""
 
 from __future__ import annotations
 
@@ -10,14 +11,22 @@ from typing import TYPE_CHECKING, Any
 from ebrl.bus import keys
 
 if TYPE_CHECKING:
-    from ebrl.bus.session import Bus, BusOptions, Subscription, zenoh_config
+    from ebrl.bus.memory import MemoryBus, MemoryNetwork
+    from ebrl.bus.session import Bus, BusBase, BusOptions, Query, Subscription, zenoh_config
 
-__all__ = ["Bus", "BusOptions", "Subscription", "keys", "zenoh_config"]
+__all__ = ["Bus", "BusBase", "BusOptions", "MemoryBus", "MemoryNetwork", "Query", "Subscription", "keys",
+           "zenoh_config"]
+_SESSION = ("Bus", "BusBase", "BusOptions", "Query", "Subscription", "zenoh_config")
+_MEMORY = ("MemoryBus", "MemoryNetwork")
 
 
 def __getattr__(name: str) -> Any:
-    if name in ("Bus", "BusOptions", "Subscription", "zenoh_config"):
+    if name in _SESSION:
         from ebrl.bus import session
 
         return getattr(session, name)
+    if name in _MEMORY:
+        from ebrl.bus import memory
+
+        return getattr(memory, name)
     raise AttributeError(f"module 'ebrl.bus' has no attribute {name!r}")

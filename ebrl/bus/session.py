@@ -1,4 +1,4 @@
-"""The one asyncio bridge to Zenoh: sessions, publishing, bounded subscriptions, liveliness, queries.
+"""The one asyncio bridge to the bus: publishing, bounded subscriptions, liveliness, queries; over Zenoh here.
 
 zenoh-python has no asyncio API. Its callbacks run on Zenoh-owned threads, and
 a put with blocking congestion control can block its thread. So:
@@ -11,13 +11,18 @@ a put with blocking congestion control can block its thread. So:
   waits, which back-pressures the publisher) or ``latest`` (weights, stats:
   the oldest item is dropped);
 * a malformed payload is counted per key, logged once per key, and dropped.
+
+:class:`BusBase` holds all of that except the transport, and so is the bus API; :class:`Bus` carries it
+over a Zenoh session, :class:`ebrl.bus.memory.MemoryBus` over an in-process network (tests).
 """
 
 from __future__ import annotations
 
+import abc
 import asyncio
 import atexit
 import collections
+import functools
 import json
 import logging
 import queue
@@ -81,27 +86,90 @@ def zenoh_config(options: BusOptions) -> zenoh.Config:
     return conf
 
 
-class Bus:
-    """One Zenoh session bridged to one asyncio loop. Create it inside the running loop."""
+@functools.lru_cache(maxsize=4096)
+def intersects(a: str, b: str) -> bool:
+    """Whether two key expressions share a key, by Zenoh's own rules (``*``, ``**``, ``@`` chunks)."""
+    return zenoh.KeyExpr(a).intersects(zenoh.KeyExpr(b))
 
-    def __init__(self, options: BusOptions | None = None, *, session: zenoh.Session | None = None):
+
+@dataclass(eq=False)
+class Query:
+    """A query being answered (:meth:`BusBase.declare_queryable_raw`): reply from any thread, any number of
+    times, with a key that :meth:`matches` the query's; then :meth:`finish`."""
+
+    key: str  # the query's key expression: may hold wildcards, so not the key to reply on
+    payload: bytes
+    _reply: Callable[[str, bytes], None]
+    _finish: Callable[[], None]
+
+    def matches(self, key: str) -> bool:
+        return intersects(self.key, key)
+
+    def reply(self, key: str, payload: bytes) -> None:
+        self._reply(key, payload)
+
+    def finish(self) -> None:
+        """No more replies: the asker's ``get`` returns once every answerer finished (or at its timeout)."""
+        self._finish()
+
+
+class BusBase(abc.ABC):
+    """The bus API, bridged to one asyncio loop: everything but the transport. Create it inside the running
+    loop; ``loop`` is that loop. Declarations return a handle with ``undeclare()``."""
+
+    _FLUSH_SETTLE_S = 0.05  # after the queue is empty, for the last put to leave the socket
+
+    def __init__(self, options: BusOptions | None):
         self.options = options or BusOptions()
-        self.session = session or zenoh.open(zenoh_config(self.options))
         self.loop = asyncio.get_running_loop()
         self.malformed: collections.Counter[str] = collections.Counter()
         self.oversized: collections.Counter[str] = collections.Counter()
         self.sender_dropped = 0
+        self._loop_thread = threading.get_ident()
         self._logged_keys: set[str] = set()
-        self._publishers: dict[tuple[str, bool], zenoh.Publisher] = {}
         self._outbox: queue.Queue = queue.Queue(maxsize=SENDER_QUEUE)
+        self._closed = False
+        self._subscriptions: list[Subscription] = []
+        self._tasks: set[asyncio.Future] = set()
         self._sender = threading.Thread(target=self._send_loop, name="ebrl-bus-sender", daemon=True)
         self._sender.start()
-        self._closed = False
-        self._declared: list[Any] = []
-        self._tasks: set[asyncio.Future] = set()
-        _open_buses.add(self)
 
-    # --- publishing -------------------------------------------------------------
+    # --- the transport --------------------------------------------------------------------
+
+    @abc.abstractmethod
+    def _put(self, key: str, payload: bytes, express: bool) -> None:
+        """Hand one sample to the transport, blocking while a subscriber applies back-pressure."""
+
+    @abc.abstractmethod
+    def _feed(self, key: str, callback: Callable[[str, Any], None]) -> Any:
+        """Call ``callback(key, payload)`` on a transport thread per sample on ``key`` (payload: bytes-like)."""
+
+    @abc.abstractmethod
+    def declare_token(self, key: str) -> Any:
+        """A liveliness token on ``key``: present until undeclared, or until this bus closes or dies."""
+
+    @abc.abstractmethod
+    def watch_liveliness(self, key: str, on_change: Callable[[str, bool], None]) -> Any:
+        """Call ``on_change(key, alive)`` on the event loop for every token matching ``key``
+        (tokens already present are reported first)."""
+
+    @abc.abstractmethod
+    def declare_queryable_raw(self, key: str, on_query: Callable[[Query], None]) -> Any:
+        """Call ``on_query(query)`` on a transport thread for every query on ``key``; it must return at
+        once, and the query be answered from elsewhere (a worker thread, a task): see :class:`Query`."""
+
+    @abc.abstractmethod
+    async def get_raw(self, selector: str, on_reply: Callable[[str, bytes], None], payload: bytes | None = None,
+                      timeout: float = 1.0) -> None:
+        """Query ``selector``: call ``on_reply(key, payload)`` on a transport thread as every reply arrives (none
+        merged, each sent with blocking congestion control); return when all answerers finished or at
+        ``timeout`` seconds, at once if nobody answers."""
+
+    @abc.abstractmethod
+    def _close_now(self) -> None:
+        """Close without flushing: the synchronous tail of :meth:`close`."""
+
+    # --- publishing -------------------------------------------------------------------------
 
     async def put(self, key: str, msg: Any, *, express: bool = False) -> None:
         """Publish ``msg`` (a message dataclass) on ``key``; waits only if the sender queue is full."""
@@ -124,6 +192,14 @@ class Bus:
             self.sender_dropped += 1
             return False
 
+    def put_bytes_blocking(self, key: str, payload: bytes) -> None:
+        """Publish from a worker thread, past the sender queue (so unordered with ``put``): returns once the
+        transport has the sample, blocking while a subscriber applies back-pressure. Large, many-part
+        sends (weights) use it to know when each part has left."""
+        if threading.get_ident() == self._loop_thread:
+            raise RuntimeError("put_bytes_blocking blocks its thread: call it from a worker thread")
+        self._put(key, payload, False)
+
     def _send_loop(self) -> None:
         while True:
             item = self._outbox.get()
@@ -132,21 +208,11 @@ class Bus:
             key, payload, express = item
             try:
                 self._put(key, payload, express)
+            except Exception as exc:  # a closed session at shutdown, mostly
+                if not self._closed:
+                    log.warning("put on %s failed: %s", key, exc)
             finally:
                 self._outbox.task_done()
-
-    def _put(self, key: str, payload: bytes, express: bool) -> None:
-        try:
-            pub = self._publishers.get((key, express))
-            if pub is None:
-                pub = self.session.declare_publisher(
-                    key, congestion_control=zenoh.CongestionControl.BLOCK, express=express
-                )
-                self._publishers[(key, express)] = pub
-            pub.put(payload)
-        except Exception as exc:  # a closed session at shutdown, mostly
-            if not self._closed:
-                log.warning("put on %s failed: %s", key, exc)
 
     async def flush(self, timeout: float = 2.0) -> None:
         """Wait until the sender queue is empty (best effort, bounded by ``timeout``)."""
@@ -155,19 +221,13 @@ class Bus:
             if time.monotonic() > deadline:
                 return
             await asyncio.sleep(0.005)
-        await asyncio.sleep(0.05)  # let the last put leave the socket before close
+        await asyncio.sleep(self._FLUSH_SETTLE_S)
 
-    # --- subscribing ------------------------------------------------------------
+    # --- subscribing ------------------------------------------------------------------------
 
-    def subscribe(
-        self,
-        key: str,
-        cls: type[T] | Callable[[str, bytes], T],
-        *,
-        policy: Literal["block", "latest"] = "block",
-        capacity: int = 64,
-        notify: asyncio.Event | None = None,
-    ) -> "Subscription[T]":
+    def subscribe(self, key: str, cls: type[T] | Callable[[str, bytes], T], *,
+                  policy: Literal["block", "latest"] = "block", capacity: int = 64,
+                  notify: asyncio.Event | None = None) -> Subscription[T]:
         """A bounded, typed async iterator of ``(key, message)`` for samples on ``key``.
 
         ``cls`` is a message class, or a function ``(key, payload) -> message`` for keys that
@@ -175,20 +235,30 @@ class Bus:
         on a malformed payload. ``notify`` is set too when a sample arrives, so one task can
         wait on several subscriptions."""
         sub = Subscription(self, key, cls, policy, capacity, notify)
-        self._declared.append(sub)
+        sub._source = self._feed(key, sub.offer)
+        self._subscriptions.append(sub)
         return sub
 
-    def subscribe_raw(self, key: str, callback: Callable[[str, bytes], None]) -> None:
-        """Call ``callback(key, payload)`` on a Zenoh thread for every sample: no decoding, no
-        queue. For recorders that must stay cheap; the callback must be fast and never raise."""
+    def subscribe_raw(self, key: str, callback: Callable[[str, bytes], None]) -> Any:
+        """Call ``callback(key, payload)`` on a transport thread for every sample: no decoding, no queue.
+        For recorders that must stay cheap; the callback must be fast and never raise."""
 
-        def on_sample(sample: zenoh.Sample) -> None:
+        def on_sample(sample_key: str, payload: Any) -> None:
             try:
-                callback(str(sample.key_expr), sample.payload.to_bytes())
-            except Exception as exc:  # never let an exception escape into Zenoh
+                callback(sample_key, bytes(payload))
+            except Exception as exc:  # never let an exception escape into the transport
                 log.warning("raw subscriber on %s: %s", key, exc)
 
-        self._declared.append(self.session.declare_subscriber(key, on_sample))
+        return self._feed(key, on_sample)
+
+    def fits(self, key: str, size: int) -> bool:
+        """False, counted as oversized and malformed, for a payload over ``options.max_message_bytes``."""
+        limit = self.options.max_message_bytes
+        if size <= limit:
+            return True
+        self.oversized[key] += 1
+        self.count_malformed(key, ValueError(f"{size} bytes, over bus.max_message_bytes = {limit}"))
+        return False
 
     def count_malformed(self, key: str, error: Exception) -> None:
         self.malformed[key] += 1
@@ -196,62 +266,33 @@ class Bus:
             self._logged_keys.add(key)
             log.warning("dropped malformed message on %s: %s (further ones on this key are only counted)", key, error)
 
-    # --- liveliness -------------------------------------------------------------
+    # --- request / reply --------------------------------------------------------------------
 
-    def declare_token(self, key: str) -> zenoh.LivelinessToken:
-        token = self.session.liveliness().declare_token(key)
-        self._declared.append(token)
-        return token
-
-    def watch_liveliness(self, key: str, on_change: Callable[[str, bool], None]) -> None:
-        """Call ``on_change(key, alive)`` on the event loop for every token matching ``key``
-        (tokens already present are reported first)."""
-
-        def callback(sample: zenoh.Sample) -> None:
-            alive = sample.kind == zenoh.SampleKind.PUT
-            self._call_soon(on_change, str(sample.key_expr), alive)
-
-        sub = self.session.liveliness().declare_subscriber(key, callback, history=True)
-        self._declared.append(sub)
-
-    # --- request / reply --------------------------------------------------------
-
-    def declare_queryable(self, key: str, answer: Callable[[bytes], Awaitable[bytes | None]]) -> None:
+    def declare_queryable(self, key: str, answer: Callable[[bytes], Awaitable[bytes | None]]) -> Any:
         """Answer queries on ``key`` with ``await answer(request_payload)`` (None: no reply)."""
 
-        def callback(query: zenoh.Query) -> None:
-            request = query.payload.to_bytes() if query.payload is not None else b""
-            reply_key = str(query.key_expr) if "*" not in str(query.key_expr) else key
-
+        def on_query(query: Query) -> None:
             async def respond() -> None:
                 try:
-                    payload = await answer(request)
+                    payload = await answer(query.payload)
                     if payload is not None:
-                        query.reply(reply_key, payload)
+                        query.reply(query.key if "*" not in query.key else key, payload)
                 except Exception as exc:
                     log.warning("query on %s failed: %s", key, exc)
                 finally:
-                    query.drop()
+                    query.finish()
 
             self._call_soon(self._start_task, respond())
 
-        queryable = self.session.declare_queryable(key, callback)
-        self._declared.append(queryable)
+        return self.declare_queryable_raw(key, on_query)
 
     async def get(self, selector: str, payload: bytes | None = None, timeout: float = 1.0) -> list[tuple[str, bytes]]:
-        """Query ``selector``; return ``(key, payload)`` of every reply within ``timeout`` seconds."""
+        """Query ``selector``; return ``(key, payload)`` of every reply (none merged) within ``timeout`` seconds."""
+        replies: list[tuple[str, bytes]] = []
+        await self.get_raw(selector, lambda key, data: replies.append((key, data)), payload, timeout)
+        return replies
 
-        def run() -> list[tuple[str, bytes]]:
-            replies = self.session.get(selector, payload=payload, timeout=timeout)
-            out = []
-            for reply in replies:
-                if reply.ok is not None:
-                    out.append((str(reply.ok.key_expr), reply.ok.payload.to_bytes()))
-            return out
-
-        return await self.loop.run_in_executor(None, run)
-
-    # --- lifecycle --------------------------------------------------------------
+    # --- lifecycle --------------------------------------------------------------------------
 
     def _start_task(self, coro: Awaitable[None]) -> None:
         task = asyncio.ensure_future(coro)
@@ -265,24 +306,91 @@ class Bus:
             pass
 
     async def close(self) -> None:
+        """Flush, then withdraw everything this bus declared (watchers see its tokens go)."""
         if self._closed:
             return
         await self.flush()
         self._closed = True
-        for obj in self._declared:
-            if isinstance(obj, Subscription):
-                obj.close()
+        for sub in self._subscriptions:
+            sub.close()
         self._outbox.put(None)
         await self.loop.run_in_executor(None, self._sender.join, 2.0)
         self._close_now()
+
+
+class Bus(BusBase):
+    """One Zenoh session bridged to one asyncio loop. Create it inside the running loop."""
+
+    def __init__(self, options: BusOptions | None = None, *, session: zenoh.Session | None = None):
+        options = options or BusOptions()
+        self.session = session or zenoh.open(zenoh_config(options))
+        super().__init__(options)
+        self._publishers: dict[tuple[str, bool], zenoh.Publisher] = {}
+        self._publishers_lock = threading.Lock()  # the sender thread and put_bytes_blocking's callers
+        self._declared: list[Any] = []  # zenoh-python undeclares what is no longer referenced
+        _open_buses.add(self)
+
+    def _put(self, key: str, payload: bytes, express: bool) -> None:
+        with self._publishers_lock:
+            pub = self._publishers.get((key, express))
+            if pub is None:
+                pub = self.session.declare_publisher(
+                    key, congestion_control=zenoh.CongestionControl.BLOCK, express=express
+                )
+                self._publishers[(key, express)] = pub
+        pub.put(payload)
+
+    def _feed(self, key: str, callback: Callable[[str, Any], None]) -> zenoh.Subscriber:
+        sub = self.session.declare_subscriber(key, lambda sample: callback(str(sample.key_expr), sample.payload))
+        self._declared.append(sub)
+        return sub
+
+    def declare_token(self, key: str) -> zenoh.LivelinessToken:
+        token = self.session.liveliness().declare_token(key)
+        self._declared.append(token)
+        return token
+
+    def watch_liveliness(self, key: str, on_change: Callable[[str, bool], None]) -> zenoh.Subscriber:
+        def callback(sample: zenoh.Sample) -> None:
+            alive = sample.kind == zenoh.SampleKind.PUT
+            self._call_soon(on_change, str(sample.key_expr), alive)
+
+        sub = self.session.liveliness().declare_subscriber(key, callback, history=True)
+        self._declared.append(sub)
+        return sub
+
+    def declare_queryable_raw(self, key: str, on_query: Callable[[Query], None]) -> zenoh.Queryable:
+        def callback(query: zenoh.Query) -> None:
+            request = query.payload.to_bytes() if query.payload is not None else b""
+            try:
+                on_query(Query(str(query.key_expr), request, query.reply, query.drop))
+            except Exception as exc:  # never let an exception escape into Zenoh
+                log.warning("query on %s failed: %s", key, exc)
+                query.drop()
+
+        queryable = self.session.declare_queryable(key, callback)
+        self._declared.append(queryable)
+        return queryable
+
+    async def get_raw(self, selector: str, on_reply: Callable[[str, bytes], None], payload: bytes | None = None,
+                      timeout: float = 1.0) -> None:
+        def run() -> None:
+            # Replies travel with the query's congestion control: blocking, so no reply is dropped.
+            replies = self.session.get(selector, payload=payload, timeout=timeout,
+                                       consolidation=zenoh.ConsolidationMode.NONE,
+                                       congestion_control=zenoh.CongestionControl.BLOCK)
+            for reply in replies:
+                if reply.ok is not None:
+                    on_reply(str(reply.ok.key_expr), reply.ok.payload.to_bytes())
+
+        await self.loop.run_in_executor(None, run)
 
     def _close_now(self) -> None:
         """Close without flushing (the synchronous tail of close; also run at interpreter exit)."""
         self._closed = True
         _open_buses.discard(self)
-        for obj in self._declared:
-            if isinstance(obj, Subscription):
-                obj.close()
+        for sub in self._subscriptions:
+            sub.close()
         try:
             self.session.close()
         except Exception as exc:
@@ -290,9 +398,9 @@ class Bus:
 
 
 class Subscription(Generic[T]):
-    """Bounded bridge from a Zenoh subscriber to the event loop (see module docstring)."""
+    """Bounded bridge from a bus's transport thread to the event loop (see module docstring)."""
 
-    def __init__(self, bus: Bus, key: str, cls: type[T] | Callable[[str, bytes], T], policy: str, capacity: int,
+    def __init__(self, bus: BusBase, key: str, cls: type[T] | Callable[[str, bytes], T], policy: str, capacity: int,
                  notify: asyncio.Event | None = None):
         if policy not in ("block", "latest"):
             raise ValueError(f"unknown queue policy {policy!r}")
@@ -308,24 +416,18 @@ class Subscription(Generic[T]):
         self._ready = asyncio.Event()
         self._notify = notify
         self._closed = False
-        self._sub = bus.session.declare_subscriber(key, self._on_sample)
+        self._source: Any = None  # the transport's declaration feeding offer(); undeclared on close
 
     def __len__(self) -> int:
         return len(self._items)
 
-    def _on_sample(self, sample: zenoh.Sample) -> None:  # runs on a Zenoh thread
-        key = str(sample.key_expr)
-        if len(sample.payload) > self.bus.options.max_message_bytes:
-            self.bus.oversized[key] += 1
-            self.bus.count_malformed(key, ValueError(f"{len(sample.payload)} bytes, over bus.max_message_bytes = "
-                                                     f"{self.bus.options.max_message_bytes}"))
+    def offer(self, key: str, payload: Any) -> None:  # a transport thread; payload: bytes-like
+        """Check, decode and queue one sample; for a full ``block`` queue, wait for room (back-pressure)."""
+        if self._closed or not self.bus.fits(key, len(payload)):
             return
         try:
-            msg = self._decode(key, sample.payload.to_bytes())
-        except messages.MessageError as exc:
-            self.bus.count_malformed(key, exc)
-            return
-        except Exception as exc:  # never let an exception escape into Zenoh
+            msg = self._decode(key, bytes(payload))
+        except Exception as exc:  # MessageError mostly; never let an exception escape into the transport
             self.bus.count_malformed(key, exc)
             return
         with self._cond:
@@ -342,8 +444,8 @@ class Subscription(Generic[T]):
                             log.warning("%s: consumer stalled %.0f s, dropped a sample", self.key, BLOCK_LIMIT_S)
                             return
                         self._cond.wait(left)
-                    if self._closed:
-                        return
+            if self._closed:
+                return
             self._items.append((key, msg))
             self.received += 1
             was_empty = len(self._items) == 1
@@ -386,6 +488,7 @@ class Subscription(Generic[T]):
             self._closed = True
             self._cond.notify_all()
         try:
-            self._sub.undeclare()
+            if self._source is not None:
+                self._source.undeclare()
         except Exception:
             pass

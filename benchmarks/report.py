@@ -2,7 +2,7 @@
 
     python benchmarks/report.py             # rewrite BENCHMARKS.md
     python benchmarks/report.py --check     # exit 1 with a short diff if BENCHMARKS.md is out of date
-    python benchmarks/report.py --list      # the result files whose recorded command can be re-run
+    python benchmarks/report.py --list      # the result files whose recorded command can be re-run (and those that cannot)
     python benchmarks/report.py --run bench_w1_lift,scaling   # re-run those commands, then regenerate
 
 ``--results DIR``, ``--template FILE`` and ``--out FILE`` point elsewhere (default:
@@ -650,6 +650,9 @@ def main(argv: list[str] | None = None) -> int:
         if args.list:
             for name, command in list_runnable(args.results).items():
                 print(f"{name}: {shlex.join(command)}")
+            for name, why in HISTORICAL.items():
+                if (args.results / f"{name}.json").is_file():
+                    print(f"{name}: not re-runnable ({why})")
             return 0
         if args.run:
             if args.results.resolve() != RESULTS.resolve():

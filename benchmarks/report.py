@@ -2,7 +2,7 @@
 
     python benchmarks/report.py             # rewrite BENCHMARKS.md
     python benchmarks/report.py --check     # exit 1 with a short diff if BENCHMARKS.md is out of date
-    python benchmarks/report.py --list      # the result files whose recorded command can be re-run (and those that cannot)
+    python benchmarks/report.py --list      # the result files whose command can be re-run, and those that cannot
     python benchmarks/report.py --run bench_w1_lift,scaling   # re-run those commands, then regenerate
 
 ``--results DIR``, ``--template FILE`` and ``--out FILE`` point elsewhere (default:
@@ -40,7 +40,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from jinja2 import FileSystemLoader, StrictUndefined, TemplateError, TemplateSyntaxError
+from jinja2 import BaseLoader, FileSystemLoader, StrictUndefined, TemplateError, TemplateSyntaxError
 from jinja2.sandbox import ImmutableSandboxedEnvironment
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -99,11 +99,11 @@ class _Located:
 
 
 class Node(_Located, dict):
-    pass
+    """A JSON object of a results file."""
 
 
 class Nodes(_Located, list):
-    pass
+    """A JSON array of a results file."""
 
 
 def child_path(path: str, key: Any) -> str:
@@ -347,7 +347,8 @@ def scaling_table(node: Node) -> str:
         low, high = s["env_steps_per_s_min_max"]
         rows.append([str(s["hosts"]), str(s["world_size"]), str(s["cores"]),
                      f"{s['env_steps_per_s']:,.0f} ({low:,.0f}-{high:,.0f})", f"{s['segments_per_s']:.1f}",
-                     f"{s['updates_per_s']:.2f}", f"{s['env_steps_per_s_ratio']:.2f}x", f"{s['updates_per_s_ratio']:.2f}x"])
+                     f"{s['updates_per_s']:.2f}", f"{s['env_steps_per_s_ratio']:.2f}x",
+                     f"{s['updates_per_s_ratio']:.2f}x"])
     return md_table(["H sim hosts", "W ranks", "cores", "env steps/s median (min-max)", "segments/s", "updates/s",
                      "env steps vs H1W1", "updates vs H1W1"], rows)
 
@@ -482,9 +483,9 @@ def seeds_table(main: Node, seed_files: list[Node], shown: Callable[[Node], str]
 # The template
 
 
-def environment() -> ImmutableSandboxedEnvironment:
+def environment(loader: BaseLoader | None = None) -> ImmutableSandboxedEnvironment:
     """The sandbox the template runs in, with the helpers that need no results folder."""
-    env = ImmutableSandboxedEnvironment(undefined=MissingValue, finalize=finalize, trim_blocks=True,
+    env = ImmutableSandboxedEnvironment(loader=loader, undefined=MissingValue, finalize=finalize, trim_blocks=True,
                                        lstrip_blocks=True, keep_trailing_newline=True, autoescape=False)
     env.filters.update(FILTERS)
     env.globals.update({
@@ -555,12 +556,11 @@ class Report:
     def render(self) -> str:
         if not self.template.is_file():
             raise ReportError(f"{self.template}: missing template")
-        env = environment()
-        env.loader = FileSystemLoader(self.template.parent)
+        env = environment(FileSystemLoader(self.template.parent))
         env.globals.update({
-            "section": self.section, "src": self.src,
-            "chunk_table": lambda *nodes: chunk_table(*nodes, shown=self.shown_node), "cmd": self.cmd, "plot": self.plot,
+            "section": self.section, "src": self.src, "cmd": self.cmd, "plot": self.plot,
             "machines_table": self.machines_table, "seed_files": self.seed_files,
+            "chunk_table": lambda *nodes: chunk_table(*nodes, shown=self.shown_node),
             "seeds_table": lambda main, run="ebrl": seeds_table(main, self.seed_files(run), self.shown_node, run),
         })
         try:

@@ -2,27 +2,24 @@
 
     python benchmarks/report.py             # rewrite BENCHMARKS.md
     python benchmarks/report.py --check     # exit 1 with a short diff if BENCHMARKS.md is out of date
-    python benchmarks/report.py --list      # the result files whose recorded command can be re-run
+    python benchmarks/report.py --list      # the result files whose command can be re-run, and those that cannot
     python benchmarks/report.py --run bench_w1_lift,scaling   # re-run those commands, then regenerate
 
 ``--results DIR``, ``--template FILE`` and ``--out FILE`` point elsewhere (default:
 benchmarks/results/, benchmarks/BENCHMARKS.template.md, BENCHMARKS.md).
 
 Every number in BENCHMARKS.md comes from a JSON file under benchmarks/results/, each written by a
-command in this repository (its ``command`` key). The template is Markdown with three additions:
+command in this repository (its ``command`` key). The template is Markdown rendered by Jinja2 in a
+sandbox (``ImmutableSandboxedEnvironment``: no Python builtins, no ``_`` attributes, no mutation), with
+the filters and globals below. A section reads its result files through a call block:
 
-``<!-- section NAME: alias=stem, alias=stem -->`` ... ``<!-- end -->``
-    A section that uses ``benchmarks/results/<stem>.json`` under the name ``alias``. A section
-    declared ``<!-- section NAME optional: ... -->`` is dropped, leaving a note, when one of its
-    files is missing; a missing file of any other section is an error.
-``<!-- let NAME = EXPRESSION -->``
-    A name for the rest of the section (on a line of its own; not copied to the output).
-``{{ EXPRESSION }}`` or ``{{ EXPRESSION | FORMAT_SPEC }}``
-    A Python expression over the section's aliases and the helpers in ``helpers()``, formatted
-    with ``format(value, FORMAT_SPEC)``. ``alias.key`` and ``alias["key"]`` read the JSON; a
-    missing or null key is an error naming the file and the key.
+    {% call(q, p) section("name", "quickstart_learning", "peer_comparison_quickstart") %}
+    ... {{ q.summary.env_steps_per_s | fmt(",.0f") }} ...
+    {% endcall %}
 
-The template is trusted code (its expressions are evaluated), like the rest of the repository.
+passes ``benchmarks/results/<stem>.json`` to the block's arguments in order; a missing file is an
+error, or, with ``optional=True``, drops the section and leaves a note. ``q.key`` and ``q["key"]`` read
+the JSON; a missing or null key is an error naming the file and the key.
 """
 
 from __future__ import annotations
@@ -37,10 +34,14 @@ import statistics
 import subprocess
 import sys
 import tomllib
-from collections.abc import Callable, Iterable, Iterator
+import traceback
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
+
+from jinja2 import BaseLoader, FileSystemLoader, StrictUndefined, TemplateError, TemplateSyntaxError
+from jinja2.sandbox import ImmutableSandboxedEnvironment
 
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
@@ -72,81 +73,61 @@ class ReportError(Exception):
     """A results file, key or template expression the report cannot use (the message says which)."""
 
 
+class MissingKey(ReportError, LookupError):
+    """A key a results file lacks, or holds null (a LookupError, so Jinja2 makes it a ``MissingValue``)."""
+
+
 # ---------------------------------------------------------------------------------------------------
 # Reading results
 
 
-class Node:
-    """A JSON object or array from one results file that names the file and the key on every miss."""
+class _Located:
+    """A JSON object or array that knows its file and key path; reading a missing or null key raises
+    ``MissingKey`` naming both (``get`` returns None instead)."""
 
-    def __init__(self, value: dict | list, file: str, path: str = "") -> None:
-        self._value = value
-        self._file = file
-        self._path = path
+    _file: str
+    _path: str
 
-    def _child_path(self, key: str | int | slice) -> str:
-        if isinstance(key, int):
-            return f"{self._path}[{key}]"
-        if isinstance(key, slice):
-            return f"{self._path}[{'' if key.start is None else key.start}:{'' if key.stop is None else key.stop}]"
-        return f"{self._path}.{key}" if self._path else str(key)
-
-    def _wrap(self, value: Any, path: str) -> Any:
-        if isinstance(value, (dict, list)):
-            return Node(value, self._file, path)
+    def __getitem__(self, key: Any) -> Any:
+        try:
+            value = super().__getitem__(key)
+        except (KeyError, IndexError, TypeError):
+            raise MissingKey(missing_key(self, key)) from None
         if value is None:
-            raise ReportError(f"{self._file}: key '{path}' is null")
+            raise MissingKey(missing_key(self, key))
         return value
 
-    def __getitem__(self, key: str | int | slice) -> Any:
-        path = self._child_path(key)
-        try:
-            value = self._value[key]
-        except (KeyError, IndexError, TypeError):
-            raise ReportError(f"{self._file}: missing key '{path}'") from None
-        return self._wrap(value, path)
 
-    def __getattr__(self, name: str) -> Any:
-        if name.startswith("_"):
-            raise AttributeError(name)
-        return self[name]
+class Node(_Located, dict):
+    """A JSON object of a results file."""
 
-    def get(self, key: str, default: Any = None) -> Any:
-        """The value at ``key``, or ``default`` where it is missing or null (no error)."""
-        if not isinstance(self._value, dict) or self._value.get(key) is None:
-            return default
-        return self[key]
 
-    def __contains__(self, key: object) -> bool:
-        return key in self._value
+class Nodes(_Located, list):
+    """A JSON array of a results file."""
 
-    def __iter__(self) -> Iterator[Any]:
-        if isinstance(self._value, dict):
-            return iter(self._value)
-        return (self[i] for i in range(len(self._value)))
 
-    def __len__(self) -> int:
-        return len(self._value)
+def child_path(path: str, key: Any) -> str:
+    if isinstance(key, int):
+        return f"{path}[{key}]"
+    return f"{path}.{key}" if path else str(key)
 
-    def keys(self) -> list[str]:
-        return list(self._value)
 
-    def values(self) -> list[Any]:
-        return [self[k] for k in self._value]
+def missing_key(node: Node | Nodes, key: Any) -> str:
+    path = child_path(node._path, key)
+    null = isinstance(node, dict) and key in node
+    return f"{node._file}: key '{path}' is null" if null else f"{node._file}: missing key '{path}'"
 
-    def items(self) -> list[tuple[str, Any]]:
-        return [(k, self[k]) for k in self._value]
 
-    @property
-    def raw(self) -> Any:
-        return self._value
-
-    @property
-    def file(self) -> str:
-        return self._file
-
-    def __repr__(self) -> str:
-        return f"Node({self._file}:{self._path or '<root>'})"
+def located(value: Any, file: str, path: str = "") -> Any:
+    """``value`` with every JSON object and array in it a ``Node`` or ``Nodes`` that knows where it is."""
+    if isinstance(value, dict):
+        node = Node((key, located(v, file, child_path(path, key))) for key, v in value.items())
+    elif isinstance(value, list):
+        node = Nodes(located(v, file, child_path(path, i)) for i, v in enumerate(value))
+    else:
+        return value
+    node._file, node._path = file, path
+    return node
 
 
 def load_json(path: Path) -> Node:
@@ -158,11 +139,33 @@ def load_json(path: Path) -> Node:
         raise ReportError(f"{path}: cannot read it as JSON ({exc})") from None
     if not isinstance(value, dict):
         raise ReportError(f"{path}: expected a JSON object at the top level")
-    return Node(value, str(path))
+    return located(value, str(path))
+
+
+class MissingValue(StrictUndefined):
+    """What a template reads where a results file has no value: any use of it is an error that names the
+    file and the key."""
+
+    __slots__ = ()
+    __format__ = StrictUndefined._fail_with_undefined_error
+
+    @property
+    def _undefined_message(self) -> str:
+        if self._undefined_hint is None and isinstance(self._undefined_obj, _Located):
+            return missing_key(self._undefined_obj, self._undefined_name)
+        return super()._undefined_message
 
 
 # ---------------------------------------------------------------------------------------------------
-# Formatting helpers (available in the template)
+# Formatting helpers (filters and globals of the template)
+
+
+def fmt(value: Any, spec: str = "") -> str:
+    """``{{ x | fmt(".1f") }}``: ``format(x, spec)`` (a ``MissingValue`` raises, naming the file and key)."""
+    try:
+        return format(value, spec)
+    except (TypeError, ValueError) as exc:
+        raise ReportError(f"cannot format {value!r} as '{spec}' ({exc})") from None
 
 
 def k(x: float) -> str:
@@ -170,21 +173,13 @@ def k(x: float) -> str:
     return f"{x / 1000:,.0f}k"
 
 
-def fmt(value: Any, spec: str | Callable[[Any], str]) -> str:
-    return spec(value) if callable(spec) else format(value, spec)
-
-
 def rng(values: Iterable[float], spec: str | Callable[[Any], str] = ".2f") -> str:
     """'low-high' of the values, or one value where both read the same."""
     values = sorted(values)
     if not values:
         raise ReportError("rng() of no values")
-    low, high = fmt(values[0], spec), fmt(values[-1], spec)
+    low, high = (spec(v) if callable(spec) else fmt(v, spec) for v in (values[0], values[-1]))
     return low if low == high else f"{low}-{high}"
-
-
-def joined(values: Iterable[Any], spec: str = "", sep: str = "/") -> str:
-    return sep.join(fmt(v, spec) for v in values)
 
 
 def change(new: float, old: float) -> str:
@@ -193,19 +188,39 @@ def change(new: float, old: float) -> str:
     return f"{'+' if pct >= 0 else '−'}{abs(pct):.0f} %"
 
 
-def pick(nodes: Node, **match: Any) -> Node:
+def pick(nodes: Nodes, **match: Any) -> Node:
     """The first element of a list of objects whose keys equal ``match``."""
     for node in nodes:
         if all(node.get(key) == value for key, value in match.items()):
             return node
     wanted = ", ".join(f"{key}={value!r}" for key, value in match.items())
-    raise ReportError(f"{nodes.file}: no element of '{nodes._path}' with {wanted}")
+    raise ReportError(f"{nodes._file}: no element of '{nodes._path}' with {wanted}")
 
 
 def md_table(header: list[str], rows: list[list[str]]) -> str:
     lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
     lines += ["| " + " | ".join(str(cell) for cell in row) + " |" for row in rows]
     return "\n".join(lines)
+
+
+def finalize(value: Any) -> Any:
+    """What ``{{ }}`` prints: a value, never a whole JSON object or array."""
+    if isinstance(value, _Located):
+        raise ReportError(f"{value._file}: '{value._path or '<root>'}' is a JSON object or array, not a value")
+    return value
+
+
+def spread(values: Iterable[float]) -> float:
+    values = list(values)
+    return max(values) - min(values)
+
+
+FILTERS = {
+    "fmt": fmt,
+    "spread": spread,
+    "times": lambda x, factor: x * factor,  # values | map("times", 100)
+    "over": lambda x, divisor: x / divisor,  # values | map("over", 1000)
+}
 
 
 # ---------------------------------------------------------------------------------------------------
@@ -215,31 +230,35 @@ BENCH_KEYS = ("traj_per_s", "env_steps_per_s", "chunk_latency_avg_ms", "chunk_la
               "chunk_latency_p99_ms", "idle_sim", "idle_gen", "idle_train", "useful_work_utilisation")
 
 
-def bench_results(node: Node) -> dict[str, list[dict[str, Any]]]:
+def bench_results(node: Node) -> Node:
     """The ``results`` of an ``ebrl bench --json`` file, every key ``bench.table`` reads checked."""
-    results = node.results
+    results = node["results"]
     for mode, runs in results.items():
-        if not len(runs):
-            raise ReportError(f"{node.file}: no runs in 'results.{mode}'")
+        if not runs:
+            raise ReportError(f"{node._file}: no runs in 'results.{mode}'")
         with_eff = "sim_efficiency" in runs[0]
         for run in runs:
             for key in BENCH_KEYS + (("sim_efficiency",) if with_eff else ()):
-                run[key]  # a missing key raises ReportError with the file and the key
-    return results.raw
+                run[key]  # a missing key raises MissingKey with the file and the key
+    return results
 
 
 def med(node: Node, mode: str, key: str) -> float:
     """Median of ``key`` over the repeats of ``mode`` in an ``ebrl bench`` file."""
-    return statistics.median(run[key] for run in node.results[mode])
+    return statistics.median(run[key] for run in node["results"][mode])
+
+
+def medians(node: Node, key: str) -> dict[str, float]:
+    """``med`` of every mode of an ``ebrl bench`` file."""
+    return {mode: med(node, mode, key) for mode in node["results"]}
 
 
 def vs_best(node: Node, mode: str) -> float:
     """Median trajectories/s of ``mode`` over that of the best baseline (as ``bench.table``)."""
-    baselines = [m for m in node.results.keys() if m in bench.BASELINES]
+    baselines = [m for m in node["results"] if m in bench.BASELINES]
     if not baselines:
-        raise ReportError(f"{node.file}: no baseline mode ({', '.join(bench.BASELINES)}) in 'results'")
-    best = max(med(node, m, "traj_per_s") for m in baselines)
-    return med(node, mode, "traj_per_s") / best
+        raise ReportError(f"{node._file}: no baseline mode ({', '.join(bench.BASELINES)}) in 'results'")
+    return med(node, mode, "traj_per_s") / max(med(node, m, "traj_per_s") for m in baselines)
 
 
 def modes_table(node: Node) -> str:
@@ -247,10 +266,10 @@ def modes_table(node: Node) -> str:
     text = bench.table(bench_results(node))
     rows = [re.split(r" {2,}", line.strip()) for line in text.splitlines()]
     if any(len(row) != len(rows[0]) for row in rows):
-        raise ReportError(f"{node.file}: cannot split bench.table's output into columns:\n{text}")
+        raise ReportError(f"{node._file}: cannot split bench.table's output into columns:\n{text}")
     keep = [i for i in range(len(rows[0])) if any(row[i] != "-" for row in rows[1:])]
     rows = [[row[i] for i in keep] for row in rows]
-    if all(len(runs) == 1 for runs in node.results.values()):
+    if all(len(runs) == 1 for runs in node["results"].values()):
         column = rows[0].index("traj/s min-med-max")
         rows[0][column] = "traj/s"
         for row in rows[1:]:
@@ -263,97 +282,90 @@ def modes_table(node: Node) -> str:
 
 
 def chunk_table(*nodes: Node, shown: Callable[[Node], str]) -> str:
-    rows = []
-    for n in nodes:
-        rows.append([
-            f"{n.latency.sigma:g}", f"`{n.best_batch_baseline}`",
-            f"{n.avg_ratio:.2f}x ({n.ideal_avg_ratio:.2f}x)", f"{n.avg_ratio_of_ideal:.2f}",
-            f"{n.p99_ratio:.2f}x ({n.ideal_p99_ratio:.2f}x)", f"{n.p99_ratio_of_ideal:.2f}", f"`{shown(n)}`",
-        ])
+    rows = [[f"{n['latency']['sigma']:g}", f"`{n['best_batch_baseline']}`",
+             f"{n['avg_ratio']:.2f}x ({n['ideal_avg_ratio']:.2f}x)", f"{n['avg_ratio_of_ideal']:.2f}",
+             f"{n['p99_ratio']:.2f}x ({n['ideal_p99_ratio']:.2f}x)", f"{n['p99_ratio_of_ideal']:.2f}", f"`{shown(n)}`"]
+            for n in nodes]
     return md_table(["sigma", "best batch baseline", "avg ratio (ideal)", "of ideal", "P99 ratio (ideal)",
                      "of ideal", "file"], rows)
 
 
 def denoise_table(node: Node) -> str:
-    steps = sorted({row.denoise_steps for row in node.rows if row.get("denoise_steps") is not None})
+    table = node["rows"]
+    steps = sorted({row["denoise_steps"] for row in table if row.get("denoise_steps") is not None})
     header = ["layout", "batch", "mlp/cnn", *[f"flow N={n}" if i == 0 else f"N={n}" for i, n in enumerate(steps)],
               f"N={steps[-1]} / N={steps[0]}"]
     rows = []
-    cases = dict.fromkeys((row.layout, row.batch) for row in node.rows)
-    for layout, batch in cases:
-        reference = next((r for r in node.rows if (r.layout, r.batch) == (layout, batch)
+    for layout, batch in dict.fromkeys((row["layout"], row["batch"]) for row in table):
+        reference = next((r for r in table if (r["layout"], r["batch"]) == (layout, batch)
                           and r.get("denoise_steps") is None), None)
         if reference is None:
-            raise ReportError(f"{node.file}: no mlp/cnn row in 'rows' for layout={layout!r}, batch={batch}")
-        flows = [pick(node.rows, layout=layout, batch=batch, policy="flow", denoise_steps=n) for n in steps]
-        rows.append([layout, str(batch), f"{reference.median_ms_per_act:.3f}",
-                     *[f"{f.median_ms_per_act:.3f}" for f in flows],
-                     f"{flows[-1].median_ms_per_act / flows[0].median_ms_per_act:.1f}x"])
+            raise ReportError(f"{node._file}: no mlp/cnn row in 'rows' for layout={layout!r}, batch={batch}")
+        flows = [pick(table, layout=layout, batch=batch, policy="flow", denoise_steps=n)["median_ms_per_act"]
+                 for n in steps]
+        rows.append([layout, str(batch), f"{reference['median_ms_per_act']:.3f}", *[f"{f:.3f}" for f in flows],
+                     f"{flows[-1] / flows[0]:.1f}x"])
     return md_table(header, rows)
 
 
 def denoise_round_spread(node: Node) -> float:
     """The largest (max - min) / median of one variant's round medians, in percent."""
-    spreads = []
-    for row in node.rows:
-        rounds = list(row.round_medians_ms)
-        spreads.append((max(rounds) - min(rounds)) / statistics.median(rounds))
-    return 100 * max(spreads)
+    rounds = [list(row["round_medians_ms"]) for row in node["rows"]]
+    return 100 * max((max(r) - min(r)) / statistics.median(r) for r in rounds)
 
 
-def _weights_cell(node: Node, size: int, variant: str) -> Node:
-    return pick(node.summary, size_mb=size, variant=variant)
+def weights_cell(node: Node, size: int, variant: str) -> Node:
+    return pick(node["summary"], size_mb=size, variant=variant)
 
 
 def weights_latency_table(node: Node) -> str:
-    variants = list(dict.fromkeys(row.variant for row in node.summary))
-    sizes = sorted({row.size_mb for row in node.summary})
+    variants = list(dict.fromkeys(row["variant"] for row in node["summary"]))
     rows = []
-    for size in sizes:
-        cells = [_weights_cell(node, size, v) for v in variants]
-        rows.append([str(size), *[f"{c.latency_median_ms:.1f} / {c.latency_p90_ms:.1f}" for c in cells]])
+    for size in sorted({row["size_mb"] for row in node["summary"]}):
+        cells = [weights_cell(node, size, v) for v in variants]
+        rows.append([str(size), *[f"{c['latency_median_ms']:.1f} / {c['latency_p90_ms']:.1f}" for c in cells]])
     return md_table(["MB", *variants], rows)
 
 
 def weights_loop_table(node: Node, variants: list[str]) -> str:
-    sizes = sorted({row.size_mb for row in node.summary})
     header = ["MB", *[f"train loop: {v}" if i == 0 else v for i, v in enumerate(variants)],
               *[f"gen loop: {v}" if i == 0 else v for i, v in enumerate(variants)],
               "load ms: " + " / ".join(variants)]
     rows = []
-    for size in sizes:
-        cells = [_weights_cell(node, size, v) for v in variants]
+    for size in sorted({row["size_mb"] for row in node["summary"]}):
+        cells = [weights_cell(node, size, v) for v in variants]
         rows.append([str(size),
-                     *[f"{c.pub_loop_max_gap_median_ms:.1f} ({c.pub_loop_max_gap_ms:.1f})" for c in cells],
-                     *[f"{c.sub_loop_max_gap_median_ms:.1f} ({c.sub_loop_max_gap_ms:.1f})" for c in cells],
-                     " / ".join(f"{c.load_median_ms:.1f}" for c in cells)])
+                     *[f"{c['pub_loop_max_gap_median_ms']:.1f} ({c['pub_loop_max_gap_ms']:.1f})" for c in cells],
+                     *[f"{c['sub_loop_max_gap_median_ms']:.1f} ({c['sub_loop_max_gap_ms']:.1f})" for c in cells],
+                     " / ".join(f"{c['load_median_ms']:.1f}" for c in cells)])
     return md_table(header, rows)
 
 
 def scaling_table(node: Node) -> str:
     rows = []
-    for s in node.summary:
-        low, high = s.env_steps_per_s_min_max
-        rows.append([str(s.hosts), str(s.world_size), str(s.cores),
-                     f"{s.env_steps_per_s:,.0f} ({low:,.0f}-{high:,.0f})", f"{s.segments_per_s:.1f}",
-                     f"{s.updates_per_s:.2f}", f"{s.env_steps_per_s_ratio:.2f}x", f"{s.updates_per_s_ratio:.2f}x"])
+    for s in node["summary"]:
+        low, high = s["env_steps_per_s_min_max"]
+        rows.append([str(s["hosts"]), str(s["world_size"]), str(s["cores"]),
+                     f"{s['env_steps_per_s']:,.0f} ({low:,.0f}-{high:,.0f})", f"{s['segments_per_s']:.1f}",
+                     f"{s['updates_per_s']:.2f}", f"{s['env_steps_per_s_ratio']:.2f}x",
+                     f"{s['updates_per_s_ratio']:.2f}x"])
     return md_table(["H sim hosts", "W ranks", "cores", "env steps/s median (min-max)", "segments/s", "updates/s",
                      "env steps vs H1W1", "updates vs H1W1"], rows)
 
 
 def scaling_row(node: Node, hosts: int, world_size: int) -> Node:
-    return pick(node.summary, hosts=hosts, world_size=world_size)
+    return pick(node["summary"], hosts=hosts, world_size=world_size)
 
 
 def data_parallel_table(node: Node) -> str:
     rows = []
-    for world_size, summary in node.summary.items():
-        for seed, run in summary.per_seed.items():
-            rows.append([world_size, seed, str(run.first_iteration_at_threshold), f"{run.final_return_last5:.1f}",
-                         f"{run.best_return:.1f}", f"{run.wall_s:.0f}"])
-        rows.append([world_size, "mean", f"{summary.first_iteration_at_threshold_mean:.0f}",
-                     f"{summary.final_return_last5_mean:.1f}", "", f"{summary.wall_s_mean:.0f}"])
-    return md_table(["W ranks", "seed", f"first update with mean return >= {node.threshold:g}",
+    for world_size, summary in node["summary"].items():
+        for seed, run in summary["per_seed"].items():
+            rows.append([world_size, seed, str(run["first_iteration_at_threshold"]),
+                         f"{run['final_return_last5']:.1f}", f"{run['best_return']:.1f}", f"{run['wall_s']:.0f}"])
+        rows.append([world_size, "mean", f"{summary['first_iteration_at_threshold_mean']:.0f}",
+                     f"{summary['final_return_last5_mean']:.1f}", "", f"{summary['wall_s_mean']:.0f}"])
+    return md_table(["W ranks", "seed", f"first update with mean return >= {node['threshold']:g}",
                      "final return (mean of last 5 reports)", "best", "wall s"], rows)
 
 
@@ -361,20 +373,20 @@ def learning_table(node: Node, modes: tuple[str, ...] = ("ebrl", "colocated")) -
     """learning_speed.json: seconds, final and best return of each mode per seed, and their medians."""
     keys = (("wall_s", "seconds"), ("final_return_last5", "final return"), ("best_return", "best"))
     head = ["seed", *[f"{mode}: {label}" for _, label in keys for mode in modes]]
-    rows = [[str(seed), *[f"{node.per_seed[mode][str(seed)][key]:.0f}" for key, _ in keys for mode in modes]]
-            for seed in node.seeds]
-    rows.append(["median", *[f"{node.summary[mode][key]:.0f}" for key, _ in keys for mode in modes]])
+    rows = [[str(seed), *[f"{node['per_seed'][mode][str(seed)][key]:.0f}" for key, _ in keys for mode in modes]]
+            for seed in node["seeds"]]
+    rows.append(["median", *[f"{node['summary'][mode][key]:.0f}" for key, _ in keys for mode in modes]])
     return md_table(head, rows)
 
 
 def reports_ahead(node: Node, mode: str, other: str) -> tuple[int, int]:
     """Of ``mode``'s learning-curve reports, how many show a return at least ``other``'s latest report
     at the same wall-clock time (reports before ``other``'s first count as ahead); and how many there are."""
-    others = sorted((p.wall_s, p["return"]) for p in node.curves[other])
+    others = sorted((p["wall_s"], p["return"]) for p in node["curves"][other])
+    points = node["curves"][mode]
     ahead = 0
-    points = list(node.curves[mode])
     for point in points:
-        earlier = [r for t, r in others if t <= point.wall_s]
+        earlier = [r for t, r in others if t <= point["wall_s"]]
         ahead += not earlier or point["return"] >= earlier[-1]
     return ahead, len(points)
 
@@ -390,8 +402,18 @@ def extra_sets(command: str, base: str) -> str:
 
 
 def soak_services(node: Node) -> str:
-    return ", ".join(f"{name.split('/')[0]} {s.warm_mb:.1f} → {s.end_mb:.1f} MB ({s.growth_pct:+.2f} %)"
-                     for name, s in node.services.items())
+    return ", ".join(f"{name.split('/')[0]} {s['warm_mb']:.1f} → {s['end_mb']:.1f} MB ({s['growth_pct']:+.2f} %)"
+                     for name, s in node["services"].items())
+
+
+def describe_machine(value: Any) -> str:
+    if isinstance(value, dict):
+        return "; ".join(f"{key.replace('_', ' ')}: {describe_machine(v)}" for key, v in value.items())
+    if isinstance(value, list):
+        return ", ".join(describe_machine(v) for v in value)
+    if isinstance(value, float):
+        return f"{value:.1f}"
+    return str(value)
 
 
 # ---------------------------------------------------------------------------------------------------
@@ -414,70 +436,74 @@ class SeedRun:
 INF = float("inf")
 
 
-def _seed_of(node: Node, root: Path, run: str = "ebrl") -> str:
+def ebrl_seed(node: Node, run: str = "ebrl") -> str:
     """EBRL's seed of ``run`` in a comparison file: --ebrl-seed N, else run.seed=N, else the config's run.seed."""
-    found = re.search(r"--ebrl-seed[= ](\d+)", node.command) or re.search(r"run\.seed=(\d+)", node[run].command)
+    command = node[run]["command"]
+    found = re.search(r"--ebrl-seed[= ](\d+)", node["command"]) or re.search(r"run\.seed=(\d+)", command)
     if found:
         return found.group(1)
-    argv = shlex.split(node[run].command)
-    config = root / argv[argv.index("up") + 1] if "up" in argv[:-1] else None
+    argv = shlex.split(command)
+    config = ROOT / argv[argv.index("up") + 1] if "up" in argv[:-1] else None
     if config is None or not config.is_file():
         return "config default"
     seed = tomllib.loads(config.read_text()).get("run", {}).get("seed")
     return "config default" if seed is None else str(seed)
 
 
-def _seed_run(node: Node, root: Path, shown: str, run: str) -> SeedRun:
-    reached = node[run].summary.get("target_reached")
-    return SeedRun(seed=_seed_of(node, root, run), time_s=INF if reached is None else reached.wall_s,
-                   max_seconds=node.max_seconds, env_steps_per_s=node[run].summary.env_steps_per_s,
-                   command=node.command, shown=shown)
+def seed_run(node: Node, shown: str, run: str) -> SeedRun:
+    reached = node[run]["summary"].get("target_reached")
+    return SeedRun(seed=ebrl_seed(node, run), time_s=INF if reached is None else reached["wall_s"],
+                   max_seconds=node["max_seconds"], env_steps_per_s=node[run]["summary"]["env_steps_per_s"],
+                   command=node["command"], shown=shown)
 
 
-def seeds_table(main: Node, seed_files: list[Node], root: Path, shown: Callable[[Node], str], run: str = "ebrl") -> str:
+def seeds_table(main: Node, seed_files: list[Node], shown: Callable[[Node], str], run: str = "ebrl") -> str:
     """The time to the target of EBRL's ``run`` in the main comparison and in every per-seed file, with
     min/median/max and the median's speed-up over the fastest peer of the main comparison."""
+    target = main["target_return"]
     for node in seed_files:
-        if node.target_return != main.target_return:
-            raise ReportError(f"{node.file}: target_return {node.target_return:g} differs from "
-                              f"{main.target_return:g} in {main.file}")
-    runs = [_seed_run(main, root, shown(main), run)]
-    runs += sorted((_seed_run(n, root, shown(n), run) for n in seed_files),
+        if node["target_return"] != target:
+            raise ReportError(f"{node._file}: target_return {node['target_return']:g} differs from "
+                              f"{target:g} in {main._file}")
+    runs = [seed_run(main, shown(main), run)]
+    runs += sorted((seed_run(n, shown(n), run) for n in seed_files),
                    key=lambda r: (int(r.seed) if r.seed.isdigit() else 1 << 30, r.shown))
     rows = [[r.seed, r.seconds(), f"{r.env_steps_per_s:,.0f}", f"`{r.command}`", f"`{r.shown}`"] for r in runs]
-    ordered = sorted(runs, key=lambda r: r.time_s)
-    middle = statistics.median(r.time_s for r in runs)
-    fastest = main.time_to_target_s[main.fastest_peer]
-    summary = " / ".join("not reached" if t == INF else f"{t:.1f}" for t in (ordered[0].time_s, middle,
-                                                                             ordered[-1].time_s))
+    times = sorted(r.time_s for r in runs)
+    middle = statistics.median(times)
+    fastest = main["time_to_target_s"][main["fastest_peer"]]
+    summary = " / ".join("not reached" if t == INF else f"{t:.1f}" for t in (times[0], middle, times[-1]))
     rows.append([f"min / median / max of {len(runs)}", summary, "", "", ""])
     speedup = "-" if middle == INF else f"**{fastest / middle:.2f}x**"
-    rows.append([f"median vs the fastest peer (`{main.fastest_peer}`, {fastest:.1f} s)", speedup, "", "", ""])
-    return md_table(["EBRL seed", f"seconds to {main.target_return:g}", "env steps/s", "command", "file"], rows)
-
-
-# ---------------------------------------------------------------------------------------------------
-# The machine
-
-
-def describe_machine(value: Any) -> str:
-    if isinstance(value, dict):
-        return "; ".join(f"{key.replace('_', ' ')}: {describe_machine(v)}" for key, v in value.items())
-    if isinstance(value, list):
-        return ", ".join(describe_machine(v) for v in value)
-    if isinstance(value, float):
-        return f"{value:.1f}"
-    return str(value)
+    rows.append([f"median vs the fastest peer (`{main['fastest_peer']}`, {fastest:.1f} s)", speedup, "", "", ""])
+    return md_table(["EBRL seed", f"seconds to {target:g}", "env steps/s", "command", "file"], rows)
 
 
 # ---------------------------------------------------------------------------------------------------
 # The template
 
 
-SECTION = re.compile(r"^<!-- section (?P<name>[\w-]+)(?P<optional> optional)?: (?P<uses>[^>]*?) -->\n"
-                     r"(?P<body>.*?)^<!-- end -->\n", re.M | re.S)
-LET = re.compile(r"<!-- let (?P<name>\w+) = (?P<expr>.*) -->\s*$")
-PLACEHOLDER = re.compile(r"\{\{(.*?)\}\}")
+def environment(loader: BaseLoader | None = None) -> ImmutableSandboxedEnvironment:
+    """The sandbox the template runs in, with the helpers that need no results folder."""
+    env = ImmutableSandboxedEnvironment(loader=loader, undefined=MissingValue, finalize=finalize, trim_blocks=True,
+                                       lstrip_blocks=True, keep_trailing_newline=True, autoescape=False)
+    env.filters.update(FILTERS)
+    env.globals.update({
+        "k": k, "rng": rng, "change": change, "pick": pick, "med": med, "medians": medians, "vs_best": vs_best,
+        "modes_table": modes_table, "denoise_table": denoise_table, "denoise_round_spread": denoise_round_spread,
+        "weights_cell": weights_cell, "weights_latency_table": weights_latency_table,
+        "weights_loop_table": weights_loop_table, "scaling_table": scaling_table, "scaling_row": scaling_row,
+        "data_parallel_table": data_parallel_table, "learning_table": learning_table,
+        "reports_ahead": reports_ahead, "extra_sets": extra_sets, "soak_services": soak_services,
+        "ebrl_seed": ebrl_seed,
+    })
+    return env
+
+
+def template_line(exc: BaseException, filename: str) -> str:
+    """Where in the template ``exc`` was raised (Jinja2 puts the template's lines in the traceback)."""
+    lines = [frame.lineno for frame in traceback.extract_tb(exc.__traceback__) if frame.filename == filename]
+    return f"{filename}:{lines[-1]}" if lines else filename
 
 
 @dataclass
@@ -491,13 +517,13 @@ class Report:
         return Path(os.path.relpath(path.resolve(), self.out.resolve().parent)).as_posix()
 
     def shown_node(self, node: Node) -> str:
-        return self.shown(Path(node.file))
+        return self.shown(Path(node._file))
 
     def src(self, *nodes: Node) -> str:
         return ", ".join(f"`{self.shown_node(n)}`" for n in nodes)
 
     def cmd(self, *nodes: Node) -> str:
-        return " and ".join(f"`{n.command.strip()}`" for n in nodes)
+        return " and ".join(f"`{n['command'].strip()}`" for n in nodes)
 
     def plot(self, name: str, alt: str) -> str:
         path = self.results / name
@@ -514,82 +540,40 @@ class Report:
         for path in sorted(self.results.glob("*.json")):
             node = load_json(path)
             if "machine" in node:
-                where.setdefault(describe_machine(node.raw["machine"]), []).append(f"`{path.name}`")
-        rows = [[machine, ", ".join(files)] for machine, files in where.items()]
-        return md_table(["machine (as recorded)", "files"], rows)
+                where.setdefault(describe_machine(node.get("machine")), []).append(f"`{path.name}`")
+        return md_table(["machine (as recorded)", "files"], [[m, ", ".join(files)] for m, files in where.items()])
 
-    def helpers(self) -> dict[str, Any]:
-        """The names every template expression can use, besides its section's aliases."""
-        return {
-            "k": k, "rng": rng, "joined": joined, "change": change, "pick": pick, "med": med, "vs_best": vs_best,
-            "median": statistics.median, "mean": statistics.fmean,
-            "modes_table": modes_table, "denoise_table": denoise_table, "denoise_round_spread": denoise_round_spread,
-            "weights_latency_table": weights_latency_table, "weights_loop_table": weights_loop_table,
-            "scaling_table": scaling_table, "scaling_row": scaling_row, "data_parallel_table": data_parallel_table,
-            "soak_services": soak_services, "reports_ahead": reports_ahead, "learning_table": learning_table, "extra_sets": extra_sets,
-            "chunk_table": lambda *nodes: chunk_table(*nodes, shown=self.shown_node),
-            "seeds_table": lambda main, run="ebrl": seeds_table(main, self.seed_files(run), ROOT, self.shown_node, run),
-            "seed_files": self.seed_files, "ebrl_seed": lambda node, run="ebrl": _seed_of(node, ROOT, run),
-            "src": self.src, "cmd": self.cmd, "plot": self.plot, "machines_table": self.machines_table,
-        }
+    def section(self, name: str, *stems: str, caller: Callable[..., str], optional: bool = False) -> str:
+        """``{% call(alias, ...) section(name, stem, ...) %}``: the block with results/<stem>.json as its
+        arguments; an optional section whose file is missing is left out with a note."""
+        paths = [self.results / f"{stem}.json" for stem in stems]
+        missing = [path for path in paths if not path.is_file()]
+        if optional and missing:
+            print(f"note: section '{name}' dropped: {missing[0]} is missing", file=sys.stderr)
+            return f"*(Section \"{name}\" left out: `{self.shown(missing[0])}` is not recorded.)*\n"
+        return caller(*(load_json(path) for path in paths))
 
     def render(self) -> str:
         if not self.template.is_file():
             raise ReportError(f"{self.template}: missing template")
-        text = self.template.read_text()
-        out, pos = [], 0
-        for match in SECTION.finditer(text):
-            out.append(self.fill(text, pos, match.start(), {}))
-            out.append(self.section(text, match))
-            pos = match.end()
-        out.append(self.fill(text, pos, len(text), {}))
-        return HEADER + "".join(out)
-
-    def section(self, text: str, match: re.Match[str]) -> str:
-        names: dict[str, Any] = {}
-        for item in match["uses"].split(","):
-            alias, _, stem = (part.strip() for part in item.partition("="))
-            path = self.results / f"{stem}.json"
-            if match["optional"] and not path.is_file():
-                print(f"note: section '{match['name']}' dropped: {path} is missing", file=sys.stderr)
-                return f"*(Section \"{match['name']}\" left out: `{self.shown(path)}` is not recorded.)*\n"
-            names[alias] = load_json(path)
-        return self.fill(text, match.start("body"), match.end("body"), names)
-
-    def fill(self, text: str, start: int, end: int, names: dict[str, Any]) -> str:
-        """Template text start..end with its let-lines evaluated (and left out) and placeholders filled in."""
-        namespace = {**self.helpers(), **names}
-        first = text.count("\n", 0, start) + 1
-        out = []
-        for number, line in enumerate(text[start:end].splitlines(keepends=True), first):
-            where = f"{self.template}:{number}"
-            let = LET.match(line)
-            if let:
-                namespace[let["name"]] = self.evaluate(let["expr"], namespace, where)
-            else:
-                out.append(PLACEHOLDER.sub(lambda m: self.placeholder(m[1], namespace, where), line))
-        return "".join(out)
-
-    def placeholder(self, inner: str, namespace: dict[str, Any], where: str) -> str:
-        expr, sep, spec = inner.rpartition(" | ")
-        if not sep:
-            expr, spec = inner, ""
-        value = self.evaluate(expr, namespace, where)
-        if isinstance(value, Node):
-            raise ReportError(f"{where}: {{{{{inner}}}}} is {value!r}, not a value")
+        env = environment(FileSystemLoader(self.template.parent))
+        env.globals.update({
+            "section": self.section, "src": self.src, "cmd": self.cmd, "plot": self.plot,
+            "machines_table": self.machines_table, "seed_files": self.seed_files,
+            "chunk_table": lambda *nodes: chunk_table(*nodes, shown=self.shown_node),
+            "seeds_table": lambda main, run="ebrl": seeds_table(main, self.seed_files(run), self.shown_node, run),
+        })
         try:
-            return format(value, spec.strip())
-        except (TypeError, ValueError) as exc:
-            raise ReportError(f"{where}: cannot format {value!r} as '{spec.strip()}' ({exc})") from None
-
-    @staticmethod
-    def evaluate(expr: str, namespace: dict[str, Any], where: str) -> Any:
+            template = env.get_template(self.template.name)
+        except TemplateSyntaxError as exc:
+            raise ReportError(f"{self.template}:{exc.lineno}: {exc.message}") from None
         try:
-            return eval(expr.strip(), namespace)  # noqa: S307 -- the template is part of the repository
-        except ReportError as exc:
-            raise ReportError(f"{exc}\n  (needed by {where}: {expr.strip()})") from None
-        except Exception as exc:
-            raise ReportError(f"{where}: {expr.strip()} failed: {type(exc).__name__}: {exc}") from None
+            return HEADER + template.render()
+        except Exception as exc:  # any failure of the template's expressions, reported where it happened
+            where = template_line(exc, template.filename)
+            if isinstance(exc, (ReportError, TemplateError)):
+                raise ReportError(f"{exc}\n  (needed by {where})") from None
+            raise ReportError(f"{where}: {type(exc).__name__}: {exc}") from None
 
 
 # ---------------------------------------------------------------------------------------------------
@@ -666,6 +650,9 @@ def main(argv: list[str] | None = None) -> int:
         if args.list:
             for name, command in list_runnable(args.results).items():
                 print(f"{name}: {shlex.join(command)}")
+            for name, why in HISTORICAL.items():
+                if (args.results / f"{name}.json").is_file():
+                    print(f"{name}: not re-runnable ({why})")
             return 0
         if args.run:
             if args.results.resolve() != RESULTS.resolve():

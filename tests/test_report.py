@@ -12,6 +12,8 @@ from pathlib import Path
 from types import ModuleType
 
 import pytest
+from jinja2.exceptions import SecurityError, UndefinedError
+from jinja2.sandbox import SandboxedEnvironment
 
 ROOT = Path(__file__).resolve().parent.parent
 RESULTS = ROOT / "benchmarks" / "results"
@@ -69,8 +71,19 @@ def test_a_missing_key_names_the_file_and_the_key(results, tmp_path, capsys):
     edit(results / "quickstart_learning.json", lambda d: d["summary"].pop("env_steps_per_s"))
     rc, _, err = render(results, tmp_path, capsys)
     assert rc == 2
-    assert "quickstart_learning.json" in err and "summary.env_steps_per_s" in err
+    assert "quickstart_learning.json: missing key 'summary.env_steps_per_s'" in err
+    assert "BENCHMARKS.template.md:" in err  # and the template line that reads it
     assert "Traceback" not in err
+
+    edit(results / "quickstart_learning.json", lambda d: d["summary"].update(env_steps_per_s=None))
+    rc, _, err = render(results, tmp_path, capsys)
+    assert rc == 2 and "quickstart_learning.json: key 'summary.env_steps_per_s' is null" in err
+
+
+def test_a_missing_key_in_a_list_names_its_index(results, tmp_path, capsys):
+    edit(results / "allocator_quality.json", lambda d: d["cases"][2].pop("ratio_median"))
+    rc, _, err = render(results, tmp_path, capsys)
+    assert rc == 2 and "allocator_quality.json: missing key 'cases[2].ratio_median'" in err
 
 
 def test_a_missing_key_in_a_modes_table_names_the_run(results, tmp_path, capsys):
@@ -145,3 +158,40 @@ def test_halfcheetah_seeds_table(results, tmp_path, capsys):
     assert f"| min / median / max of 3 | {low:.1f} / {middle:.1f} / not reached |" in text
     fastest = main["time_to_target_s"][main["fastest_peer"]]
     assert f"**{fastest / middle:.2f}x**" in text
+
+
+def test_list_shows_the_commands_it_can_rerun_and_refuses_historical_files(capsys):
+    assert report.main(["--list"]) == 0
+    listed = dict(line.split(": ", 1) for line in capsys.readouterr().out.splitlines())
+    assert listed["bench_w1_lift"].startswith(f"{sys.executable} -m ebrl.cli bench configs/robosuite_lift.toml")
+    assert listed["soak"] == f"{sys.executable} benchmarks/soak.py --minutes 30"
+    assert listed["bench_w2_lift_4M"] == f"not re-runnable ({report.HISTORICAL['bench_w2_lift_4M']})"
+
+    assert report.main(["--run", "bench_w2_lift_4M"]) == 2  # refused before anything runs
+    assert "cannot re-run (an earlier W2 sizing" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("tag, refused", [
+    ("{{ ''.__class__.__mro__ }}", "unsafe"),
+    ("{{ cmd.__globals__ }}", "unsafe"),  # a helper's module, and through it os and subprocess
+    ("{{ q.__class__ }}", "unsafe"),
+    ("{{ q.update({}) }}", "unsafe"),  # results are read-only
+    ("{{ __import__('os').getcwd() }}", "'__import__' is undefined"),
+    ("{{ open('/etc/hostname').read() }}", "'open' is undefined"),
+])
+def test_a_template_cannot_reach_python(tag, refused, tmp_path, capsys):
+    template = tmp_path / "template.md"
+    template.write_text(f'{{% call(q) section("quickstart", "quickstart_learning") %}}\n{tag}\n{{% endcall %}}\n')
+    rc = report.main(["--template", str(template), "--out", str(tmp_path / "out.md")])
+    err = capsys.readouterr().err
+    assert rc == 2 and refused in err and f"{template}:2" in err
+    assert not (tmp_path / "out.md").exists()
+
+
+def test_the_environment_is_a_sandbox():
+    env = report.environment()
+    assert isinstance(env, SandboxedEnvironment)
+    with pytest.raises(SecurityError):
+        env.from_string("{{ k.__globals__ }}").render()
+    with pytest.raises(UndefinedError):
+        env.from_string("{{ __builtins__ }}").render()

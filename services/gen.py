@@ -1,10 +1,6 @@
 """gen service: batches the groups whose observations are ready, answers each with an action chunk.
 
-Staleness bound: a group's chunk ``seq`` belongs to iteration ``seq // Schedule.length(live sim hosts)``;
-it is answered only by a policy version at least ``iteration - max_staleness``
-(``Schedule.min_version``). Observations that would need a newer policy wait
-here — back-pressure on their group, never an unbounded buffer (one observation
-per group at most).
+Which observations a policy version may answer (the staleness bound) is ``ebrl.sched.batching``.
 """
 
 from __future__ import annotations
@@ -18,9 +14,11 @@ import numpy as np
 import torch
 
 from ebrl.bus import keys
+from ebrl.bus.peers import LivePeers
 from ebrl.envs import EnvSpec, describe
 from ebrl.messages import ActionChunk, Observation, Quota
 from ebrl.policies import load_arrays, make_policy
+from ebrl.sched.batching import ObservationQueue
 from ebrl.sched.modes import resolve
 from ebrl.service import Service, service_main
 from ebrl.weights import WeightsReceiver
@@ -40,9 +38,8 @@ class GenService(Service):
         self.policy.eval()
         self.version = -1
         self.batch_groups = cfg.gen.max_batch_groups  # 0: every group of every live sim host
-        self.sim_hosts: set[str] = set()
-        self.bus.watch_liveliness(keys.live(self.run_name, "sim"), self._on_sim_liveliness)
-        self.waiting: list[Observation] = []  # observations whose iteration needs a newer policy
+        self.sims = LivePeers(self.bus, self.run_name, "sim", warn=lambda: False)
+        self.waiting = ObservationQueue(self.schedule)  # observations whose iteration needs a newer policy
         # Forward passes run on one dedicated thread, never on the event loop.
         self.pool = concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix="gen-forward")
         self.wake = asyncio.Event()
@@ -51,29 +48,22 @@ class GenService(Service):
                                       notify=self.wake)
         self.weights = WeightsReceiver(self.bus, self.run_name, notify=self.wake)  # assembles off the event loop
 
-    def _on_sim_liveliness(self, key: str, alive: bool) -> None:
-        (self.sim_hosts.add if alive else self.sim_hosts.discard)(key)
-
     @property
     def max_groups(self) -> int:
-        return self.batch_groups or self.schedule.groups * max(1, len(self.sim_hosts))
+        return self.batch_groups or self.schedule.groups * max(1, self.sims.count("sim"))
 
     async def run(self) -> None:
         await self.initial_weights()
         while True:
             self.wake.clear()
             await self.apply_latest_weights()
-            self.waiting.extend(m for _, m in self.obs.drain())
-            hosts = len(self.sim_hosts)
-            batch = [m for m in self.waiting
-                     if self.version >= self.schedule.min_version(m.seq, hosts)][:self.max_groups]
+            self.waiting.extend([m for _, m in self.obs.drain()])
+            batch = self.waiting.take(self.version, self.sims.count("sim"), self.max_groups)
             if not batch:
-                if self.waiting:
+                if len(self.waiting):
                     self.count("gen/throttled")
                 await self.wake.wait()  # new observations or new weights
                 continue
-            served = {id(m) for m in batch}
-            self.waiting = [m for m in self.waiting if id(m) not in served]
             await self.serve(batch)
 
     async def serve(self, batch: list[Observation]) -> None:

@@ -63,8 +63,6 @@ class Service:
             on_slowdown=lambda f: self.event("slowdown", f"{self.role}/{self.instance}: injected slowdown x{f:g} "
                                                          "from now on"),
             on_full=self.flush_spans)
-        self._control_versions: dict[str, int] = {}
-        self._tasks: set[asyncio.Task] = set()
         self._stats_seq = 0
         self._proc = psutil.Process()
         self.started_at = self.recorder.started_at
@@ -147,7 +145,7 @@ class Service:
         exit_code = 0
         try:
             await self.setup()
-            self._declare_control()
+            self.controls = ControlInbox(self)
             self.bus.declare_token(keys.live(self.run_name, self.role, self.instance))
             self.log.info("%s/%d ready", self.role, self.instance)
             stats_task = asyncio.create_task(self._stats_loop())
@@ -180,41 +178,6 @@ class Service:
             self.log.info("stopping: %s", reason)
             self.stop_reason = reason
             self.stopping.set()
-
-    def _declare_control(self) -> None:
-        self._spawn_control(keys.ctl(self.run_name, self.role, self.instance, "stop"), Stop,
-                            lambda m: self.request_stop(m.reason))
-        self._spawn_control(keys.ctl(self.run_name, self.role, self.instance, "affinity"), Affinity,
-                            lambda m: self._versioned("affinity", m, lambda: self.on_affinity(m.cores)))
-        self._spawn_control(keys.ctl(self.run_name, self.role, self.instance, "quota"), Quota,
-                            lambda m: self._versioned("quota", m, lambda: self.on_quota(m)))
-
-        async def status(_: bytes) -> bytes:
-            return encode_message(self._report())
-
-        self.bus.declare_queryable(keys.ctl(self.run_name, self.role, self.instance, "status"), status)
-
-    def _spawn_control(self, key: str, cls: type, apply: Any) -> None:
-        sub = self.bus.subscribe(key, cls, policy="latest", capacity=8)
-
-        async def consume() -> None:
-            async for _, msg in sub:
-                try:
-                    apply(msg)
-                except Exception as exc:
-                    self.log.warning("control %s not applied: %s", key, exc)
-
-        self._tasks.add(asyncio.create_task(consume()))  # keep a reference: the loop holds tasks weakly
-
-    def _versioned(self, kind: str, msg: Any, apply: Any) -> None:
-        if msg.version <= self._control_versions.get(kind, -1):
-            self.count(f"ctl/{kind}_ignored")
-            return
-        apply()
-        self._control_versions[kind] = msg.version
-        self.count(f"ctl/{kind}_applied")
-        self.log.info("applied %s version %d", kind, msg.version)
-        self.event(kind, f"{self.role}/{self.instance} applied {kind} v{msg.version}: {_describe_control(msg)}")
 
     async def _spans_loop(self) -> None:
         while True:
@@ -252,6 +215,53 @@ class Service:
                              seq=self._stats_seq, metrics=metrics)
         self._stats_seq += 1
         return report
+
+
+class ControlInbox:
+    """A service's control keys (``ebrl/ctl/<run>/<role>/<instance>/<kind>``): ``stop``; ``affinity`` and
+    ``quota``, applied once per version (a repeated or older version is counted and ignored); ``status``, a
+    query answered with the service's stats report."""
+
+    def __init__(self, service: Service):
+        self.service = service
+        self.versions: dict[str, int] = {}
+        self._tasks: set[asyncio.Task] = set()
+        s = service
+        self._consume("stop", Stop, lambda m: s.request_stop(m.reason))
+        self._consume("affinity", Affinity, lambda m: self._versioned("affinity", m, lambda: s.on_affinity(m.cores)))
+        self._consume("quota", Quota, lambda m: self._versioned("quota", m, lambda: s.on_quota(m)))
+
+        async def status(_: bytes) -> bytes:
+            return encode_message(s._report())
+
+        s.bus.declare_queryable(self.key("status"), status)
+
+    def key(self, kind: str) -> str:
+        return keys.ctl(self.service.run_name, self.service.role, self.service.instance, kind)
+
+    def _consume(self, kind: str, cls: type, apply: Any) -> None:
+        key = self.key(kind)
+        sub = self.service.bus.subscribe(key, cls, policy="latest", capacity=8)
+
+        async def consume() -> None:
+            async for _, msg in sub:
+                try:
+                    apply(msg)
+                except Exception as exc:
+                    self.service.log.warning("control %s not applied: %s", key, exc)
+
+        self._tasks.add(asyncio.create_task(consume()))  # keep a reference: the loop holds tasks weakly
+
+    def _versioned(self, kind: str, msg: Any, apply: Any) -> None:
+        s = self.service
+        if msg.version <= self.versions.get(kind, -1):
+            s.count(f"ctl/{kind}_ignored")
+            return
+        apply()
+        self.versions[kind] = msg.version
+        s.count(f"ctl/{kind}_applied")
+        s.log.info("applied %s version %d", kind, msg.version)
+        s.event(kind, f"{s.role}/{s.instance} applied {kind} v{msg.version}: {_describe_control(msg)}")
 
 
 def _describe_control(msg: Any) -> str:

@@ -87,7 +87,8 @@ class TrainService(Service):
                 await self.publish_weights()
                 every = self.cfg.train.checkpoint_every
                 if every and self.learner.version % every == 0:
-                    await asyncio.get_running_loop().run_in_executor(self.pool, self.save_checkpoint)
+                    await asyncio.get_running_loop().run_in_executor(self.pool, self.learner.save_checkpoint,
+                                                                     self.run_name)
             self.log.info("reached run.iterations = %d; idle until stopped", self.cfg.run.iterations)
             if self.ranks:
                 await self.ranks.stop()
@@ -120,12 +121,6 @@ class TrainService(Service):
         self.count("train/weights_published")
         self.last["train/weights_publish_s"] = stats.pack_s + stats.send_s
 
-    def save_checkpoint(self) -> None:
-        start = time.time()
-        if self.learner.save_checkpoint(self.run_name):
-            self.publish_span("train", "checkpoint", start, time.time())
-            self.count("train/checkpoints")
-
     def metrics(self) -> dict[str, float]:
         out = {**self.learner.metrics(), **self.last}
         if self.instance == 0:
@@ -149,7 +144,7 @@ class TrainService(Service):
             if n := self.learner.hand_over():
                 self.log.info("handed over %d segments not yet trained on (%s)", n, HANDOVER_FILE)
         if self.learner.version > 0:
-            self.save_checkpoint()
+            self.learner.save_checkpoint(self.run_name)
             path = self.learner.save_policy(self.run_name)
             self.log.info("policy v%d saved to %s", self.learner.version, path)
 

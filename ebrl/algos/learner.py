@@ -19,6 +19,7 @@ import collections
 import contextlib
 import logging
 import os
+import time
 from typing import Any, Callable
 
 import msgpack
@@ -165,6 +166,7 @@ class Learner:
         """Write the training state (on the update thread, between updates); False if there was nothing new."""
         if self.version == self.saved_version:
             return False
+        start = time.time()
         model_state, optimizer = None, self.ppo.optimizer
         if self.sharded:  # what the ranks gathered (sync, and the stop)
             if self.train_state is None or self.train_state[0] != self.version:
@@ -173,6 +175,8 @@ class Learner:
         checkpoint.save(self.run_dir, self.model, optimizer, self.version, {"ppo": self.ppo.generator},
                         {"run": run_name}, model_state=model_state)
         self.saved_version = self.version
+        self.telemetry.publish_span("train", "checkpoint", start, time.time())
+        self.telemetry.count("train/checkpoints")
         return True
 
     def save_policy(self, run_name: str) -> str:

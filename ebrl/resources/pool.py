@@ -29,7 +29,6 @@ from typing import Any, Literal
 
 from ebrl.resources.nvml import load_nvml
 
-STAGES = ("sim", "gen", "train")
 MPS_PIPE_DEFAULT = "/tmp/nvidia-mps"
 
 

@@ -1,27 +1,22 @@
-"""Regenerate BENCHMARKS.md from the template and the recorded results.
+"""Regenerate BENCHMARKS.md from benchmarks/BENCHMARKS.template.md and the results in benchmarks/results/.
 
     python benchmarks/report.py             # rewrite BENCHMARKS.md
     python benchmarks/report.py --check     # exit 1 with a short diff if BENCHMARKS.md is out of date
     python benchmarks/report.py --list      # the result files whose command can be re-run, and those that cannot
     python benchmarks/report.py --run bench_w1_lift,scaling   # re-run those commands, then regenerate
 
-``--results DIR``, ``--template FILE`` and ``--out FILE`` point elsewhere (default:
-benchmarks/results/, benchmarks/BENCHMARKS.template.md, BENCHMARKS.md).
-
-Every number in BENCHMARKS.md comes from a JSON file under benchmarks/results/, each written by a
-command in this repository (its ``command`` key). The template is Markdown rendered by Jinja2 in a
-sandbox (``ImmutableSandboxedEnvironment``: no Python builtins, no ``_`` attributes, no mutation); its
-tables are Markdown loops and macros in the template, and this file only gives it the results, the
-filters in ``FILTERS`` and the globals of ``environment`` and ``Report.render``. A section reads its
-result files through a call block:
+(``--results DIR``, ``--template FILE`` and ``--out FILE`` point elsewhere.) Every number comes from a
+results JSON file written by the command in its ``command`` key. The template is Markdown with its
+tables written as Jinja2 loops and macros, rendered in a sandbox (``ImmutableSandboxedEnvironment``: no
+Python builtins, no ``_`` attributes, no mutation) with the filters and globals below. A section reads
+its files through a call block, ``benchmarks/results/<stem>.json`` to each argument in order:
 
     {% call(q, p) section("name", "quickstart_learning", "peer_comparison_quickstart") %}
     ... {{ q.summary.env_steps_per_s | fmt(",.0f") }} ...
     {% endcall %}
 
-passes ``benchmarks/results/<stem>.json`` to the block's arguments in order; a missing file is an
-error, or, with ``optional=True``, drops the section and leaves a note. ``q.key`` and ``q["key"]`` read
-the JSON; a missing or null key is an error naming the file and the key.
+A missing file is an error, or, with ``optional=True``, drops the section with a note. ``q.key`` and
+``q["key"]`` read the JSON; a missing or null key is an error naming the file and the key.
 """
 from __future__ import annotations
 
@@ -191,10 +186,7 @@ def change(new: float, old: float) -> str:
 
 def median(values: Iterable[Any], attribute: str | None = None) -> float:
     """``runs | median("env_steps_per_s")``: the median of the values, or of one key of each."""
-    values = list(values)
-    if not values:
-        raise ReportError("median of no values")
-    return statistics.median(v[attribute] for v in values) if attribute else statistics.median(values)
+    return statistics.median([v[attribute] for v in values] if attribute else values)
 
 
 def medians(groups: Node, attribute: str) -> dict[str, float]:
@@ -393,12 +385,8 @@ def runnable(node: Node, stem: str) -> list[str] | None:
 
 
 def list_runnable(results: Path) -> dict[str, list[str]]:
-    out = {}
-    for path in sorted(results.glob("*.json")):
-        argv = runnable(load_json(path), path.stem)
-        if argv is not None:
-            out[path.stem] = argv
-    return out
+    commands = {path.stem: runnable(load_json(path), path.stem) for path in sorted(results.glob("*.json"))}
+    return {stem: argv for stem, argv in commands.items() if argv is not None}
 
 
 def rerun(results: Path, names: list[str]) -> None:

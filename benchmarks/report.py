@@ -299,12 +299,6 @@ def environment(loader: BaseLoader | None = None) -> ImmutableSandboxedEnvironme
     return env
 
 
-def template_line(exc: BaseException, filename: str) -> str:
-    """Where in the template ``exc`` was raised (Jinja2 puts the template's lines in the traceback)."""
-    lines = [frame.lineno for frame in traceback.extract_tb(exc.__traceback__) if frame.filename == filename]
-    return f"{filename}:{lines[-1]}" if lines else filename
-
-
 @dataclass
 class Report:
     results: Path
@@ -361,7 +355,9 @@ class Report:
         try:
             return HEADER + template.render()
         except Exception as exc:  # any failure of the template's expressions, reported where it happened
-            where = template_line(exc, template.filename)
+            # where in the template it was raised: Jinja2 puts the template's lines in the traceback
+            lines = [f.lineno for f in traceback.extract_tb(exc.__traceback__) if f.filename == template.filename]
+            where = f"{template.filename}:{lines[-1]}" if lines else template.filename
             if isinstance(exc, (ReportError, TemplateError)):
                 raise ReportError(f"{exc}\n  (needed by {where})") from None
             raise ReportError(f"{where}: {type(exc).__name__}: {exc}") from None

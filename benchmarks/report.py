@@ -1,27 +1,23 @@
-"""Regenerate BENCHMARKS.md from the template and the recorded results.
+"""Regenerate BENCHMARKS.md from benchmarks/BENCHMARKS.template.md and the results in benchmarks/results/.
 
     python benchmarks/report.py             # rewrite BENCHMARKS.md
     python benchmarks/report.py --check     # exit 1 with a short diff if BENCHMARKS.md is out of date
     python benchmarks/report.py --list      # the result files whose command can be re-run, and those that cannot
     python benchmarks/report.py --run bench_w1_lift,scaling   # re-run those commands, then regenerate
 
-``--results DIR``, ``--template FILE`` and ``--out FILE`` point elsewhere (default:
-benchmarks/results/, benchmarks/BENCHMARKS.template.md, BENCHMARKS.md).
-
-Every number in BENCHMARKS.md comes from a JSON file under benchmarks/results/, each written by a
-command in this repository (its ``command`` key). The template is Markdown rendered by Jinja2 in a
-sandbox (``ImmutableSandboxedEnvironment``: no Python builtins, no ``_`` attributes, no mutation), with
-the filters and globals below. A section reads its result files through a call block:
+(``--results DIR``, ``--template FILE`` and ``--out FILE`` point elsewhere.) Every number comes from a
+results JSON file written by the command in its ``command`` key. The template is Markdown with its
+tables written as Jinja2 loops and macros, rendered in a sandbox (``ImmutableSandboxedEnvironment``: no
+Python builtins, no ``_`` attributes, no mutation) with the filters and globals below. A section reads
+its files through a call block, ``benchmarks/results/<stem>.json`` to each argument in order:
 
     {% call(q, p) section("name", "quickstart_learning", "peer_comparison_quickstart") %}
     ... {{ q.summary.env_steps_per_s | fmt(",.0f") }} ...
     {% endcall %}
 
-passes ``benchmarks/results/<stem>.json`` to the block's arguments in order; a missing file is an
-error, or, with ``optional=True``, drops the section and leaves a note. ``q.key`` and ``q["key"]`` read
-the JSON; a missing or null key is an error naming the file and the key.
+A missing file is an error, or, with ``optional=True``, drops the section with a note. ``q.key`` and
+``q["key"]`` read the JSON; a missing or null key is an error naming the file and the key.
 """
-
 from __future__ import annotations
 
 import argparse
@@ -157,7 +153,7 @@ class MissingValue(StrictUndefined):
 
 
 # ---------------------------------------------------------------------------------------------------
-# Formatting helpers (filters and globals of the template)
+# Filters and globals of the template
 
 
 def fmt(value: Any, spec: str = "") -> str:
@@ -188,8 +184,23 @@ def change(new: float, old: float) -> str:
     return f"{'+' if pct >= 0 else '−'}{abs(pct):.0f} %"
 
 
+def median(values: Iterable[Any], attribute: str | None = None) -> float:
+    """``runs | median("env_steps_per_s")``: the median of the values, or of one key of each."""
+    return statistics.median([v[attribute] for v in values] if attribute else values)
+
+
+def medians(groups: Node, attribute: str) -> dict[str, float]:
+    """``bench.results | medians("traj_per_s")``: each group's median of one key (e.g. per `ebrl bench` mode)."""
+    return {name: median(items, attribute) for name, items in groups.items()}
+
+
+def spread(values: Iterable[float]) -> float:
+    values = list(values)
+    return max(values) - min(values)
+
+
 def pick(nodes: Nodes, **match: Any) -> Node:
-    """The first element of a list of objects whose keys equal ``match``."""
+    """The first element of a list of objects whose keys equal ``match`` (a null key equals ``none``)."""
     for node in nodes:
         if all(node.get(key) == value for key, value in match.items()):
             return node
@@ -197,10 +208,9 @@ def pick(nodes: Nodes, **match: Any) -> Node:
     raise ReportError(f"{nodes._file}: no element of '{nodes._path}' with {wanted}")
 
 
-def md_table(header: list[str], rows: list[list[str]]) -> str:
-    lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
-    lines += ["| " + " | ".join(str(cell) for cell in row) + " |" for row in rows]
-    return "\n".join(lines)
+def fail(message: str) -> None:
+    """``{{ fail("...") }}``: stop the report with this message (a check the template makes on the results)."""
+    raise ReportError(message)
 
 
 def finalize(value: Any) -> Any:
@@ -210,60 +220,13 @@ def finalize(value: Any) -> Any:
     return value
 
 
-def spread(values: Iterable[float]) -> float:
-    values = list(values)
-    return max(values) - min(values)
-
-
-FILTERS = {
-    "fmt": fmt,
-    "spread": spread,
-    "times": lambda x, factor: x * factor,  # values | map("times", 100)
-    "over": lambda x, divisor: x / divisor,  # values | map("over", 1000)
-}
-
-
-# ---------------------------------------------------------------------------------------------------
-# `ebrl bench` results (modes and ablations)
-
-BENCH_KEYS = ("traj_per_s", "env_steps_per_s", "chunk_latency_avg_ms", "chunk_latency_p50_ms",
-              "chunk_latency_p99_ms", "idle_sim", "idle_gen", "idle_train", "useful_work_utilisation")
-
-
-def bench_results(node: Node) -> Node:
-    """The ``results`` of an ``ebrl bench --json`` file, every key ``bench.table`` reads checked."""
-    results = node["results"]
-    for mode, runs in results.items():
-        if not runs:
-            raise ReportError(f"{node._file}: no runs in 'results.{mode}'")
-        with_eff = "sim_efficiency" in runs[0]
-        for run in runs:
-            for key in BENCH_KEYS + (("sim_efficiency",) if with_eff else ()):
-                run[key]  # a missing key raises MissingKey with the file and the key
-    return results
-
-
-def med(node: Node, mode: str, key: str) -> float:
-    """Median of ``key`` over the repeats of ``mode`` in an ``ebrl bench`` file."""
-    return statistics.median(run[key] for run in node["results"][mode])
-
-
-def medians(node: Node, key: str) -> dict[str, float]:
-    """``med`` of every mode of an ``ebrl bench`` file."""
-    return {mode: med(node, mode, key) for mode in node["results"]}
-
-
-def vs_best(node: Node, mode: str) -> float:
-    """Median trajectories/s of ``mode`` over that of the best baseline (as ``bench.table``)."""
-    baselines = [m for m in node["results"] if m in bench.BASELINES]
-    if not baselines:
-        raise ReportError(f"{node._file}: no baseline mode ({', '.join(bench.BASELINES)}) in 'results'")
-    return med(node, mode, "traj_per_s") / max(med(node, m, "traj_per_s") for m in baselines)
-
-
 def modes_table(node: Node) -> str:
-    """``bench.table`` of the file as Markdown; all-'-' columns dropped, 'a-a-a' shown as 'a' for one repeat."""
-    text = bench.table(bench_results(node))
+    """``bench.table`` of an ``ebrl bench --json`` file as Markdown (the table `ebrl bench` prints, in one
+    place); all-'-' columns dropped, 'a-a-a' shown as 'a' where every mode ran once."""
+    empty = [mode for mode, runs in node["results"].items() if not runs]
+    if empty:
+        raise ReportError(f"{node._file}: no runs in 'results.{empty[0]}'")
+    text = bench.table(node["results"])
     rows = [re.split(r" {2,}", line.strip()) for line in text.splitlines()]
     if any(len(row) != len(rows[0]) for row in rows):
         raise ReportError(f"{node._file}: cannot split bench.table's output into columns:\n{text}")
@@ -274,121 +237,18 @@ def modes_table(node: Node) -> str:
         rows[0][column] = "traj/s"
         for row in rows[1:]:
             row[column] = row[column].split("-")[0]
-    return md_table(rows[0], rows[1:])
+    lines = ["| " + " | ".join(rows[0]) + " |", "|" + "---|" * len(rows[0])]
+    return "\n".join(lines + ["| " + " | ".join(row) + " |" for row in rows[1:]])
 
 
-# ---------------------------------------------------------------------------------------------------
-# Tables of the other benchmarks
-
-
-def chunk_table(*nodes: Node, shown: Callable[[Node], str]) -> str:
-    rows = [[f"{n['latency']['sigma']:g}", f"`{n['best_batch_baseline']}`",
-             f"{n['avg_ratio']:.2f}x ({n['ideal_avg_ratio']:.2f}x)", f"{n['avg_ratio_of_ideal']:.2f}",
-             f"{n['p99_ratio']:.2f}x ({n['ideal_p99_ratio']:.2f}x)", f"{n['p99_ratio_of_ideal']:.2f}", f"`{shown(n)}`"]
-            for n in nodes]
-    return md_table(["sigma", "best batch baseline", "avg ratio (ideal)", "of ideal", "P99 ratio (ideal)",
-                     "of ideal", "file"], rows)
-
-
-def denoise_table(node: Node) -> str:
-    table = node["rows"]
-    steps = sorted({row["denoise_steps"] for row in table if row.get("denoise_steps") is not None})
-    header = ["layout", "batch", "mlp/cnn", *[f"flow N={n}" if i == 0 else f"N={n}" for i, n in enumerate(steps)],
-              f"N={steps[-1]} / N={steps[0]}"]
-    rows = []
-    for layout, batch in dict.fromkeys((row["layout"], row["batch"]) for row in table):
-        reference = next((r for r in table if (r["layout"], r["batch"]) == (layout, batch)
-                          and r.get("denoise_steps") is None), None)
-        if reference is None:
-            raise ReportError(f"{node._file}: no mlp/cnn row in 'rows' for layout={layout!r}, batch={batch}")
-        flows = [pick(table, layout=layout, batch=batch, policy="flow", denoise_steps=n)["median_ms_per_act"]
-                 for n in steps]
-        rows.append([layout, str(batch), f"{reference['median_ms_per_act']:.3f}", *[f"{f:.3f}" for f in flows],
-                     f"{flows[-1] / flows[0]:.1f}x"])
-    return md_table(header, rows)
-
-
-def denoise_round_spread(node: Node) -> float:
-    """The largest (max - min) / median of one variant's round medians, in percent."""
-    rounds = [list(row["round_medians_ms"]) for row in node["rows"]]
-    return 100 * max((max(r) - min(r)) / statistics.median(r) for r in rounds)
-
-
-def weights_cell(node: Node, size: int, variant: str) -> Node:
-    return pick(node["summary"], size_mb=size, variant=variant)
-
-
-def weights_latency_table(node: Node) -> str:
-    variants = list(dict.fromkeys(row["variant"] for row in node["summary"]))
-    rows = []
-    for size in sorted({row["size_mb"] for row in node["summary"]}):
-        cells = [weights_cell(node, size, v) for v in variants]
-        rows.append([str(size), *[f"{c['latency_median_ms']:.1f} / {c['latency_p90_ms']:.1f}" for c in cells]])
-    return md_table(["MB", *variants], rows)
-
-
-def weights_loop_table(node: Node, variants: list[str]) -> str:
-    header = ["MB", *[f"train loop: {v}" if i == 0 else v for i, v in enumerate(variants)],
-              *[f"gen loop: {v}" if i == 0 else v for i, v in enumerate(variants)],
-              "load ms: " + " / ".join(variants)]
-    rows = []
-    for size in sorted({row["size_mb"] for row in node["summary"]}):
-        cells = [weights_cell(node, size, v) for v in variants]
-        rows.append([str(size),
-                     *[f"{c['pub_loop_max_gap_median_ms']:.1f} ({c['pub_loop_max_gap_ms']:.1f})" for c in cells],
-                     *[f"{c['sub_loop_max_gap_median_ms']:.1f} ({c['sub_loop_max_gap_ms']:.1f})" for c in cells],
-                     " / ".join(f"{c['load_median_ms']:.1f}" for c in cells)])
-    return md_table(header, rows)
-
-
-def scaling_table(node: Node) -> str:
-    rows = []
-    for s in node["summary"]:
-        low, high = s["env_steps_per_s_min_max"]
-        rows.append([str(s["hosts"]), str(s["world_size"]), str(s["cores"]),
-                     f"{s['env_steps_per_s']:,.0f} ({low:,.0f}-{high:,.0f})", f"{s['segments_per_s']:.1f}",
-                     f"{s['updates_per_s']:.2f}", f"{s['env_steps_per_s_ratio']:.2f}x",
-                     f"{s['updates_per_s_ratio']:.2f}x"])
-    return md_table(["H sim hosts", "W ranks", "cores", "env steps/s median (min-max)", "segments/s", "updates/s",
-                     "env steps vs H1W1", "updates vs H1W1"], rows)
-
-
-def scaling_row(node: Node, hosts: int, world_size: int) -> Node:
-    return pick(node["summary"], hosts=hosts, world_size=world_size)
-
-
-def data_parallel_table(node: Node) -> str:
-    rows = []
-    for world_size, summary in node["summary"].items():
-        for seed, run in summary["per_seed"].items():
-            rows.append([world_size, seed, str(run["first_iteration_at_threshold"]),
-                         f"{run['final_return_last5']:.1f}", f"{run['best_return']:.1f}", f"{run['wall_s']:.0f}"])
-        rows.append([world_size, "mean", f"{summary['first_iteration_at_threshold_mean']:.0f}",
-                     f"{summary['final_return_last5_mean']:.1f}", "", f"{summary['wall_s_mean']:.0f}"])
-    return md_table(["W ranks", "seed", f"first update with mean return >= {node['threshold']:g}",
-                     "final return (mean of last 5 reports)", "best", "wall s"], rows)
-
-
-def learning_table(node: Node, modes: tuple[str, ...] = ("ebrl", "colocated")) -> str:
-    """learning_speed.json: seconds, final and best return of each mode per seed, and their medians."""
-    keys = (("wall_s", "seconds"), ("final_return_last5", "final return"), ("best_return", "best"))
-    head = ["seed", *[f"{mode}: {label}" for _, label in keys for mode in modes]]
-    rows = [[str(seed), *[f"{node['per_seed'][mode][str(seed)][key]:.0f}" for key, _ in keys for mode in modes]]
-            for seed in node["seeds"]]
-    rows.append(["median", *[f"{node['summary'][mode][key]:.0f}" for key, _ in keys for mode in modes]])
-    return md_table(head, rows)
-
-
-def reports_ahead(node: Node, mode: str, other: str) -> tuple[int, int]:
-    """Of ``mode``'s learning-curve reports, how many show a return at least ``other``'s latest report
-    at the same wall-clock time (reports before ``other``'s first count as ahead); and how many there are."""
-    others = sorted((p["wall_s"], p["return"]) for p in node["curves"][other])
-    points = node["curves"][mode]
-    ahead = 0
-    for point in points:
-        earlier = [r for t, r in others if t <= point["wall_s"]]
-        ahead += not earlier or point["return"] >= earlier[-1]
-    return ahead, len(points)
+def vs_best(node: Node, mode: str) -> float:
+    """Median trajectories/s of ``mode`` in an ``ebrl bench`` file over that of its best baseline mode
+    (``bench.BASELINES``), as the table's 'vs best baseline' column."""
+    traj = medians(node["results"], "traj_per_s")
+    baselines = [traj[m] for m in traj if m in bench.BASELINES]
+    if not baselines:
+        raise ReportError(f"{node._file}: no baseline mode ({', '.join(bench.BASELINES)}) in 'results'")
+    return traj[mode] / max(baselines)
 
 
 def extra_sets(command: str, base: str) -> str:
@@ -399,41 +259,6 @@ def extra_sets(command: str, base: str) -> str:
 
     extra = [item for item in sets(command) if item not in sets(base)]
     return ", ".join(f"`{item}`" for item in extra) or "no extra overrides"
-
-
-def soak_services(node: Node) -> str:
-    return ", ".join(f"{name.split('/')[0]} {s['warm_mb']:.1f} → {s['end_mb']:.1f} MB ({s['growth_pct']:+.2f} %)"
-                     for name, s in node["services"].items())
-
-
-def describe_machine(value: Any) -> str:
-    if isinstance(value, dict):
-        return "; ".join(f"{key.replace('_', ' ')}: {describe_machine(v)}" for key, v in value.items())
-    if isinstance(value, list):
-        return ", ".join(describe_machine(v) for v in value)
-    if isinstance(value, float):
-        return f"{value:.1f}"
-    return str(value)
-
-
-# ---------------------------------------------------------------------------------------------------
-# HalfCheetah: EBRL's time to the target over seeds
-
-
-@dataclass
-class SeedRun:
-    seed: str
-    time_s: float  # inf: the target was not reached within max_seconds
-    max_seconds: float
-    env_steps_per_s: float
-    command: str
-    shown: str
-
-    def seconds(self) -> str:
-        return f"not reached in {self.max_seconds:.0f}" if self.time_s == INF else f"{self.time_s:.1f}"
-
-
-INF = float("inf")
 
 
 def ebrl_seed(node: Node, run: str = "ebrl") -> str:
@@ -450,33 +275,15 @@ def ebrl_seed(node: Node, run: str = "ebrl") -> str:
     return "config default" if seed is None else str(seed)
 
 
-def seed_run(node: Node, shown: str, run: str) -> SeedRun:
-    reached = node[run]["summary"].get("target_reached")
-    return SeedRun(seed=ebrl_seed(node, run), time_s=INF if reached is None else reached["wall_s"],
-                   max_seconds=node["max_seconds"], env_steps_per_s=node[run]["summary"]["env_steps_per_s"],
-                   command=node["command"], shown=shown)
-
-
-def seeds_table(main: Node, seed_files: list[Node], shown: Callable[[Node], str], run: str = "ebrl") -> str:
-    """The time to the target of EBRL's ``run`` in the main comparison and in every per-seed file, with
-    min/median/max and the median's speed-up over the fastest peer of the main comparison."""
-    target = main["target_return"]
-    for node in seed_files:
-        if node["target_return"] != target:
-            raise ReportError(f"{node._file}: target_return {node['target_return']:g} differs from "
-                              f"{target:g} in {main._file}")
-    runs = [seed_run(main, shown(main), run)]
-    runs += sorted((seed_run(n, shown(n), run) for n in seed_files),
-                   key=lambda r: (int(r.seed) if r.seed.isdigit() else 1 << 30, r.shown))
-    rows = [[r.seed, r.seconds(), f"{r.env_steps_per_s:,.0f}", f"`{r.command}`", f"`{r.shown}`"] for r in runs]
-    times = sorted(r.time_s for r in runs)
-    middle = statistics.median(times)
-    fastest = main["time_to_target_s"][main["fastest_peer"]]
-    summary = " / ".join("not reached" if t == INF else f"{t:.1f}" for t in (times[0], middle, times[-1]))
-    rows.append([f"min / median / max of {len(runs)}", summary, "", "", ""])
-    speedup = "-" if middle == INF else f"**{fastest / middle:.2f}x**"
-    rows.append([f"median vs the fastest peer (`{main['fastest_peer']}`, {fastest:.1f} s)", speedup, "", "", ""])
-    return md_table(["EBRL seed", f"seconds to {target:g}", "env steps/s", "command", "file"], rows)
+FILTERS = {
+    "fmt": fmt, "median": median, "medians": medians, "spread": spread,
+    "times": lambda x, factor: x * factor,  # values | map("times", 100)
+    "over": lambda x, divisor: x / divisor,  # values | map("over", 1000)
+}
+GLOBALS = {
+    "k": k, "rng": rng, "change": change, "pick": pick, "fail": fail, "modes_table": modes_table,
+    "vs_best": vs_best, "extra_sets": extra_sets, "ebrl_seed": ebrl_seed, "inf": float("inf"),
+}
 
 
 # ---------------------------------------------------------------------------------------------------
@@ -488,22 +295,8 @@ def environment(loader: BaseLoader | None = None) -> ImmutableSandboxedEnvironme
     env = ImmutableSandboxedEnvironment(loader=loader, undefined=MissingValue, finalize=finalize, trim_blocks=True,
                                        lstrip_blocks=True, keep_trailing_newline=True, autoescape=False)
     env.filters.update(FILTERS)
-    env.globals.update({
-        "k": k, "rng": rng, "change": change, "pick": pick, "med": med, "medians": medians, "vs_best": vs_best,
-        "modes_table": modes_table, "denoise_table": denoise_table, "denoise_round_spread": denoise_round_spread,
-        "weights_cell": weights_cell, "weights_latency_table": weights_latency_table,
-        "weights_loop_table": weights_loop_table, "scaling_table": scaling_table, "scaling_row": scaling_row,
-        "data_parallel_table": data_parallel_table, "learning_table": learning_table,
-        "reports_ahead": reports_ahead, "extra_sets": extra_sets, "soak_services": soak_services,
-        "ebrl_seed": ebrl_seed,
-    })
+    env.globals.update(GLOBALS)
     return env
-
-
-def template_line(exc: BaseException, filename: str) -> str:
-    """Where in the template ``exc`` was raised (Jinja2 puts the template's lines in the traceback)."""
-    lines = [frame.lineno for frame in traceback.extract_tb(exc.__traceback__) if frame.filename == filename]
-    return f"{filename}:{lines[-1]}" if lines else filename
 
 
 @dataclass
@@ -516,11 +309,8 @@ class Report:
         """A path as written in the report: relative to the report's folder."""
         return Path(os.path.relpath(path.resolve(), self.out.resolve().parent)).as_posix()
 
-    def shown_node(self, node: Node) -> str:
-        return self.shown(Path(node._file))
-
     def src(self, *nodes: Node) -> str:
-        return ", ".join(f"`{self.shown_node(n)}`" for n in nodes)
+        return ", ".join(f"`{self.shown(Path(n._file))}`" for n in nodes)
 
     def cmd(self, *nodes: Node) -> str:
         return " and ".join(f"`{n['command'].strip()}`" for n in nodes)
@@ -531,17 +321,16 @@ class Report:
             raise ReportError(f"{path}: missing plot")
         return f"![{alt}]({self.shown(path)})"
 
-    def seed_files(self, run: str = "ebrl") -> list[Node]:
-        return [load_json(p) for p in sorted(self.results.glob(SEED_FILES[run]))]
+    def all_results(self) -> dict[str, Node]:
+        """Every results file, by stem, in order of name."""
+        return {path.stem: load_json(path) for path in sorted(self.results.glob("*.json"))}
 
-    def machines_table(self) -> str:
-        """Every distinct ``machine`` recorded under results/, with the files that record it."""
-        where: dict[str, list[str]] = {}
-        for path in sorted(self.results.glob("*.json")):
-            node = load_json(path)
-            if "machine" in node:
-                where.setdefault(describe_machine(node.get("machine")), []).append(f"`{path.name}`")
-        return md_table(["machine (as recorded)", "files"], [[m, ", ".join(files)] for m, files in where.items()])
+    def seed_files(self, run: str = "ebrl") -> list[Node]:
+        """The per-seed files of the HalfCheetah comparison's ``run`` (``SEED_FILES``), in order of EBRL seed."""
+        def order(node: Node) -> tuple[int, str]:
+            seed = ebrl_seed(node, run)
+            return int(seed) if seed.isdigit() else 1 << 30, node._file
+        return sorted((load_json(p) for p in self.results.glob(SEED_FILES[run])), key=order)
 
     def section(self, name: str, *stems: str, caller: Callable[..., str], optional: bool = False) -> str:
         """``{% call(alias, ...) section(name, stem, ...) %}``: the block with results/<stem>.json as its
@@ -557,12 +346,8 @@ class Report:
         if not self.template.is_file():
             raise ReportError(f"{self.template}: missing template")
         env = environment(FileSystemLoader(self.template.parent))
-        env.globals.update({
-            "section": self.section, "src": self.src, "cmd": self.cmd, "plot": self.plot,
-            "machines_table": self.machines_table, "seed_files": self.seed_files,
-            "chunk_table": lambda *nodes: chunk_table(*nodes, shown=self.shown_node),
-            "seeds_table": lambda main, run="ebrl": seeds_table(main, self.seed_files(run), self.shown_node, run),
-        })
+        env.globals.update({"section": self.section, "src": self.src, "cmd": self.cmd, "plot": self.plot,
+                            "all_results": self.all_results, "seed_files": self.seed_files})
         try:
             template = env.get_template(self.template.name)
         except TemplateSyntaxError as exc:
@@ -570,7 +355,9 @@ class Report:
         try:
             return HEADER + template.render()
         except Exception as exc:  # any failure of the template's expressions, reported where it happened
-            where = template_line(exc, template.filename)
+            # where in the template it was raised: Jinja2 puts the template's lines in the traceback
+            lines = [f.lineno for f in traceback.extract_tb(exc.__traceback__) if f.filename == template.filename]
+            where = f"{template.filename}:{lines[-1]}" if lines else template.filename
             if isinstance(exc, (ReportError, TemplateError)):
                 raise ReportError(f"{exc}\n  (needed by {where})") from None
             raise ReportError(f"{where}: {type(exc).__name__}: {exc}") from None
@@ -594,12 +381,8 @@ def runnable(node: Node, stem: str) -> list[str] | None:
 
 
 def list_runnable(results: Path) -> dict[str, list[str]]:
-    out = {}
-    for path in sorted(results.glob("*.json")):
-        argv = runnable(load_json(path), path.stem)
-        if argv is not None:
-            out[path.stem] = argv
-    return out
+    commands = {path.stem: runnable(load_json(path), path.stem) for path in sorted(results.glob("*.json"))}
+    return {stem: argv for stem, argv in commands.items() if argv is not None}
 
 
 def rerun(results: Path, names: list[str]) -> None:

@@ -195,3 +195,48 @@ def test_the_environment_is_a_sandbox():
         env.from_string("{{ k.__globals__ }}").render()
     with pytest.raises(UndefinedError):
         env.from_string("{{ __builtins__ }}").render()
+
+
+def test_median_filters_read_one_key_and_name_a_missing_one():
+    env = report.environment()
+    runs = report.located({"results": {"a": [{"x": 3}, {"x": 1}, {"x": 2}], "b": [{"x": 4}, {"x": 6}]}}, "f.json")
+    text = env.from_string('{{ r.results.a | median("x") }} {{ (r.results | medians("x")).b }} {{ [5, 1, 4] | median }}')
+    assert text.render(r=runs) == "2 5.0 4"
+    runs["results"]["b"][1].pop("x")
+    with pytest.raises(report.MissingKey, match=r"f\.json: missing key 'results\.b\[1\]\.x'"):
+        text.render(r=runs)
+
+
+def test_reports_ahead_follow_the_curves(results, tmp_path, capsys):
+    curves = json.loads((results / "learning_speed.json").read_text())["curves"]
+    first_colocated = min(p["wall_s"] for p in curves["colocated"])
+    before = sum(p["wall_s"] < first_colocated for p in curves["ebrl"])
+    for colocated_return, ahead in ((-1e9, len(curves["ebrl"])), (1e9, before)):
+        edit(results / "learning_speed.json",
+             lambda d: [p.update({"return": colocated_return}) for p in d["curves"]["colocated"]])
+        rc, text, _ = render(results, tmp_path, capsys)
+        assert rc == 0 and f"at {ahead} of ebrl's\n{len(curves['ebrl'])} reports" in text
+
+
+def test_machines_table_groups_the_files_by_machine(results, tmp_path, capsys):
+    machine = json.loads((results / "quickstart_learning.json").read_text())["machine"]
+    edit(results / "soak.json", lambda d: d.update(machine=machine))
+    edit(results / "allocator_quality.json", lambda d: d.update(machine={"cores_seen": [2, 1.25]}))
+    rc, text, _ = render(results, tmp_path, capsys)
+    assert rc == 0
+    assert f"| {machine} | `quickstart_learning.json`, `soak.json` |" in text
+    assert "| cores seen: 2, 1.2 | `allocator_quality.json` |" in text
+
+
+def test_a_missing_row_of_a_table_names_the_file(results, tmp_path, capsys):
+    edit(results / "denoise_cost.json", lambda d: d.update(rows=[r for r in d["rows"] if not (
+        r["layout"] == "vision" and r["batch"] == 1 and r.get("denoise_steps") == 8)]))
+    rc, _, err = render(results, tmp_path, capsys)
+    assert rc == 2
+    assert "denoise_cost.json: no element of 'rows' with layout='vision', batch=1, policy='flow', denoise_steps=8" in err
+
+
+def test_a_per_seed_file_with_another_target_is_an_error(results, tmp_path, capsys):
+    edit(results / "peer_comparison_halfcheetah_ebrl_s2.json", lambda d: d.update(target_return=900.0))
+    rc, _, err = render(results, tmp_path, capsys)
+    assert rc == 2 and "peer_comparison_halfcheetah_ebrl_s2.json`: target_return 900.0 differs from 1000" in err

@@ -8,4 +8,5 @@ from ebrl.envs.obs import ObsField, ObsLayout, tokenize
 from ebrl.envs.spec import EnvError, EnvInfo, EnvSpec
 from ebrl.envs.worker import ChunkResult, EnvWorker
 
-__all__ = ["ChunkResult", "EnvError", "EnvInfo", "EnvSpec", "EnvWorker", "ObsField", "ObsLayout", "describe", "make_env", "preflight", "tokenize"]
+__all__ = ["ChunkResult", "EnvError", "EnvInfo", "EnvSpec", "EnvWorker", "ObsField", "ObsLayout", "describe",
+           "make_env", "preflight", "tokenize"]

@@ -248,7 +248,7 @@ def summarize(window: dict[str, list[dict[str, Any]]], duration: float) -> dict[
 def raw_capacity(config: str, variants: dict[str, list[str]], seconds: float) -> dict[str, dict[str, Any]]:
     """The physical limit of each variant: raw env steps/s of the cores its simulation holds (measured once
     per distinct core set, before the runs, with nothing else running)."""
-    from ebrl.envs.gym import EnvSpec
+    from ebrl.envs import EnvSpec
     from ebrl.envs.worker import raw_steps_per_s
     from ebrl.sched.modes import resolve
 

@@ -57,7 +57,7 @@ def assert_feasible(p: Profiles, alloc: Allocation, *, total: int, M_gpu: float,
 
 
 def only_simulator_of(p: Profiles, alloc: Allocation) -> Profiles:
-    """``p`` with the simulator fixed to ``alloc``'s choice: exhaustive over it is the optimum of lines 5-15."""
+    """``p`` with the simulator fixed to ``alloc``'s choice: exhaustive over it is the optimum of lines 5-19."""
     return Profiles({(alloc.c_env, alloc.E, alloc.s_sim): alloc.T_sim}, p.gen, p.train, p.gen_mem, p.train_mem)
 
 
@@ -102,7 +102,7 @@ def test_simulator_choice_follows_lines_1_to_3():
 @pytest.mark.parametrize("monotone", [True, False])
 @pytest.mark.parametrize("M_gpu", [math.inf, 60.0])
 def test_random_tables(monotone, M_gpu):
-    """Lines 5-15 are exact given the simulator choice (bisection where its premise holds, scan elsewhere);
+    """Lines 5-19 are exact given the simulator choice (bisection where its premise holds, scan elsewhere);
     with the simulator scanned too (scan_sim) the result is the global optimum; nothing is ever infeasible."""
     methods = set()
     for seed in range(40):
@@ -242,3 +242,12 @@ def test_refine_scales_a_slowed_stage_everywhere():
     assert halved.gen == pytest.approx({k: 0.5 * v for k, v in p.gen.items()})
     with pytest.raises(ValueError):
         refine(p, alloc, measured_rollout=0.0, measured_train=1.0)
+
+
+def test_cpu_host_without_a_simulator_respects_the_minimum_quotas():
+    """All N cores to generation and training still leave each its minimum, or the split is infeasible."""
+    p = cpu_tables(N=4)
+    alloc = allocate_cpu(p, N=3, s_g_min=2, s_t_min=1, remote_sim=50.0, local_sim=False)
+    assert (alloc.s_sim, alloc.s_gen, alloc.s_train) == (0, 2, 1)
+    with pytest.raises(InfeasibleError, match=r"infeasible split: .*s_g_min=2 \+ s_t_min=1 = 3 exceeds total=2"):
+        allocate_cpu(p, N=2, s_g_min=2, s_t_min=1, remote_sim=50.0, local_sim=False)

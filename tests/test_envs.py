@@ -1,12 +1,33 @@
 """Env adapter and worker processes: ids in module:EnvId form, chunks, auto-reset, clear errors."""
 
 import asyncio
+import pathlib
+import subprocess
+import sys
+import typing
 
 import numpy as np
 import pytest
 
-from ebrl.envs import EnvSpec, EnvWorker, describe, make_env
-from ebrl.envs.gym import EnvError
+from ebrl.config import EnvSection
+from ebrl.envs import EnvError, EnvSpec, EnvWorker, describe, make_env
+from ebrl.envs.backends import BACKENDS
+
+
+def test_importing_ebrl_envs_imports_no_simulator():
+    """Each backend's module, and its simulator, is imported only when an environment of it is built."""
+    code = ("import sys, ebrl.envs\n"
+            "print(sorted(m for m in sys.modules if m.split('.')[0] in ('robosuite', 'mani_skill', 'sapien', "
+            "'mujoco', 'torch') or m in ('ebrl.envs.gym', 'ebrl.envs.robosuite', 'ebrl.envs.maniskill')))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60, check=True,
+                         cwd=pathlib.Path(__file__).resolve().parent.parent)
+    assert out.stdout.strip() == "[]"
+
+
+def test_every_configurable_backend_has_an_entry_and_unknown_ones_are_a_clear_error():
+    assert set(BACKENDS) == set(typing.get_args(typing.get_type_hints(EnvSection)["backend"]))
+    with pytest.raises(EnvError, match="env.backend = 'isaac'.*'gymnasium'"):
+        make_env(EnvSpec("Lift", backend="isaac"))
 
 
 def test_module_colon_id_imports_the_users_module():

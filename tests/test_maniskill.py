@@ -13,7 +13,7 @@ import torch
 from ebrl import config
 from ebrl.envs import EnvSpec, EnvWorker, tokenize
 from ebrl.envs import maniskill
-from ebrl.envs.gym import EnvError
+from ebrl.envs import EnvError
 from ebrl.envs.maniskill import CPU_CONFIGS, INSTRUCTIONS, ManiSkillEnv, preflight, scan_vulkan
 
 REPO = Path(__file__).resolve().parent.parent
@@ -134,7 +134,7 @@ def test_preflight_is_quick_here():
     import time
 
     started = time.perf_counter()
-    code = ("from ebrl.envs.maniskill import preflight; from ebrl.envs.gym import EnvSpec, EnvError\n"
+    code = ("from ebrl.envs.maniskill import preflight; from ebrl.envs.spec import EnvSpec, EnvError\n"
             "try: preflight(EnvSpec('PickCube-v1', backend='maniskill'))\nexcept EnvError: pass")
     subprocess.run([sys.executable, "-c", code], check=True, timeout=30)
     assert time.perf_counter() - started < 10.0  # a fresh interpreter included; well under a second itself

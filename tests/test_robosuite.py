@@ -14,7 +14,7 @@ import pytest
 
 from ebrl.envs import EnvSpec, EnvWorker, describe, make_env, tokenize
 from ebrl.envs import render
-from ebrl.envs.gym import EnvError
+from ebrl.envs import EnvError
 from ebrl.envs.robosuite import INSTRUCTIONS
 
 TASKS = ["Lift", "PickPlaceCan", "Stack"]

@@ -56,7 +56,7 @@ def test_robosuite_camera_config_trains(tmp_path):
 
 def test_maniskill_without_a_gpu_stops_at_once_naming_the_cpu_configs(tmp_path):
     from ebrl.envs import EnvSpec, preflight
-    from ebrl.envs.gym import EnvError
+    from ebrl.envs import EnvError
 
     try:
         preflight(EnvSpec("PickCube-v1", backend="maniskill"))

@@ -2,6 +2,9 @@
 
 Pure functions over measured lookup tables, no I/O. Names follow the paper: ``c_env``, ``E``,
 ``s_sim``/``s_g``/``s_t`` quotas, ``B_g``/``B_t`` batches, ``T_s``/``T_r``/``T_t`` rates, ``Theta``.
+:func:`elastic_allocation` is the algorithm, one function in the order of the paper's block, whose comments
+cite its lines by number and label (line 1 alloc-cores ... line 20 alloc-return; algpseudocode numbers the
+else, end if and end while lines too, so the loop is lines 6-17 and the endpoints lines 18-19).
 
 Units. Rates are in one unit, chunk-steps per second (the caller normalises each stage's measurement).
 Quotas are integers out of ``total``: SM percent (total 100) on a GPU machine, cores on a CPU-only one.
@@ -19,14 +22,15 @@ Robustness, where the paper leaves it open (its "AUTHOR CHECK" notes):
   fit both stages' fastest batches lets the best pair switch with s_g, which breaks the premise even for
   monotone tables); where it fails, a scan replaces the bisection. The scan evaluates only the breakpoints
   of the step functions (where a gen or train lookup changes): exactly as good as every integer s_g, and
-  much cheaper. Where the premise holds the bisection is exact too, so lines 5-15 always return the best
+  much cheaper. Where the premise holds the bisection is exact too, so lines 5-19 always return the best
   split for the simulator lines 1-3 chose.
 * The search never returns a configuration with Theta = 0 (a stage below its grid): if neither endpoint
-  is feasible it falls back to the scan, and if the scan finds nothing it raises InfeasibleError.
+  is feasible it falls back to the scan, and if the scan finds nothing the callers raise InfeasibleError.
 
 A known gap of line 3: the knee quota is reserved even when the simulator is not the bottleneck, and that
 quota is lost to generation and training (up to ~40 % of Theta on the benchmark's tables). ``allocate(...,
-scan_sim=True)`` scans the profiled simulator configurations instead, which finds the optimum.
+scan_sim=True)`` scans the profiled simulator configurations instead (:func:`scan_simulators`, lines 1-3
+replaced), which finds the optimum.
 
 :func:`allocate` is Algorithm 1 on a GPU machine; :func:`allocate_cpu` adapts it to a CPU-only machine,
 where every stage draws from the same cores (see there); :func:`exhaustive` is the reference optimum the
@@ -38,7 +42,7 @@ from __future__ import annotations
 import math
 from bisect import bisect_right
 from collections.abc import Callable, Hashable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from functools import cached_property
 from typing import Any
 
@@ -264,130 +268,155 @@ def _breakpoints(profiles: Profiles, lo: int, hi: int, R: int) -> list[int]:
     return sorted(points)
 
 
-def _split(profiles: Profiles, T_s: float, R: int, s_g_min: int, s_t_min: int,
-           M_gpu: float) -> tuple[_Point | None, int, str]:
-    """Lines 5-15: split the quota R left after the simulator between generation and training.
+def _choose_c_env(profiles: Profiles, N: int) -> tuple[int, int]:
+    """Lines 1-2 (alloc-cores, alloc-concurrency): c_env* and E = floor(N / c_env*).
 
-    Returns (best point or None when every split predicts Theta = 0, candidates evaluated, method).
-    """
-    lo, hi = s_g_min, R - s_t_min  # line 5
-    evaluated: dict[int, _Point] = {}
-
-    def evaluate(s_g: int) -> _Point:
-        if s_g not in evaluated:
-            evaluated[s_g] = _best_pair(profiles, T_s, s_g, R - s_g, M_gpu)  # lines 8-11
-        return evaluated[s_g]
-
-    if _bisection_applies(profiles, lo, hi, R, M_gpu):
-        while hi - lo > 1:  # line 6
-            s_g = (lo + hi) // 2  # line 7
-            point = evaluate(s_g)
-            if point.T_r > point.T_train:  # line 12: rollout is faster, give training more
-                hi = s_g
-            else:
-                lo = s_g
-        best = max(evaluate(lo), evaluate(hi), key=lambda p: p.theta)  # lines 14-15 (ties: lo)
-        if best.theta > 0:
-            return best, len(evaluated), "bisection"
-    best = max((evaluate(s_g) for s_g in _breakpoints(profiles, s_g_min, R - s_t_min, R)), key=lambda p: p.theta)
-    return (best if best.theta > 0 else None), len(evaluated), "scan"
-
-
-def _concurrency(profiles: Profiles, c_env: int, N: int) -> int | None:
-    """Line 2: E = floor(N / c_env), or the largest profiled E below it; None when none fits."""
-    return max((E for c, E in profiles._sim_curves if c == c_env and E <= N // c_env), default=None)
-
-
-def _choose_c_env(profiles: Profiles, N: int) -> int:
-    """Line 1: the profiled cores per environment whose simulator capacity at E = floor(N / c_env) is highest.
-
-    Capacity is the best T_sim over the profiled s_sim at that (c_env, E), which is the largest s_sim's for a
-    monotone table. Ties go to fewer cores per environment.
+    E is read on the profiled grid: the largest profiled E up to floor(N / c_env). Line 1 compares the profiled
+    cores per environment by their simulator capacity at that E: the best T_sim over its profiled s_sim, which
+    is the largest s_sim's for a monotone table. Ties go to fewer cores per environment.
     """
     best, best_rate = None, -1.0
     for c_env in sorted({c for c, _ in profiles._sim_curves}):
-        E = _concurrency(profiles, c_env, N)
+        E = max((E for c, E in profiles._sim_curves if c == c_env and E <= N // c_env), default=None)
         if E is not None and max(profiles._sim_curves[c_env, E].rates) > best_rate:
-            best, best_rate = c_env, max(profiles._sim_curves[c_env, E].rates)
+            best, best_rate = (c_env, E), max(profiles._sim_curves[c_env, E].rates)
     if best is None:
         smallest = min((c * E for c, E in profiles._sim_curves), default=None)
         raise InfeasibleError(f"no profiled simulator configuration fits N={N} cores (smallest needs {smallest})")
     return best
 
 
-def _knee_quota(curve: _Curve, knee: float) -> int:
-    """Line 3: the smallest profiled s_sim whose T_sim is within ``knee`` (a fraction) of the curve's best."""
-    target = (1 - knee) * max(curve.rates)
-    return next(q for q, r in zip(curve.quotas, curve.rates) if r >= target)
+def _infeasible_split(s_sim: int, s_g_min: int, s_t_min: int, total: int) -> InfeasibleError:
+    """Line 5 with hi < lo: the simulator's quota and the two minimum quotas do not fit in ``total``."""
+    return InfeasibleError(f"infeasible split: s_sim*={s_sim} + s_g_min={s_g_min} + s_t_min={s_t_min} = "
+                           f"{s_sim + s_g_min + s_t_min} exceeds total={total}")
 
 
-def _allocation(c_env: int, E: int, s_sim: int, T_s: float, point: _Point, evaluations: int,
-                method: str) -> Allocation:
-    return Allocation(c_env, E, s_sim, point.s_g, point.s_t, point.B_g, point.B_t, T_s, point.T_gen,
-                      point.T_train, point.theta, evaluations, method)
+def elastic_allocation(profiles: Profiles, *, N: int | None = None, total: int = 100, M_gpu: float = math.inf,
+                       s_g_min: int, s_t_min: int, knee: float = 0.05, simulator: tuple[int, int, int] | None = None,
+                       remote_sim: float = 0.0) -> Allocation:
+    """Algorithm 1, in the order of the paper's block; each comment names the line it implements, with its label.
 
+    Require: the profiles, N simulation cores, the memory budget M_gpu; quotas are out of ``total`` (the
+    paper's 100). Ensure: C*, whose ``evaluations`` counts the generation quotas evaluated and whose ``method``
+    is "bisection", or "scan" where the tables break the bisection's premise or no endpoint has a positive
+    Theta (module docstring). C* is returned even when its Theta is 0 (no split gives every stage a profiled
+    rate); the callers raise, each naming its own setting. InfeasibleError: no batch pair fits M_gpu, no
+    simulator configuration fits N (line 1), or the minimum quotas do not fit next to the simulator's (line 5).
 
-_Split = Callable[[float, int], tuple[_Point | None, int, str]]  # (T_s, quota R left) -> (point, evaluations, method)
-
-
-def _best_over_sim(candidates: list[tuple[int, int, int, int]], profiles: Profiles, split: _Split,
-                   remote_sim: float = 0.0) -> Allocation | None:
-    """Lines 4-15 for each simulator candidate (c_env, E, s_sim, R = quota it leaves), keeping the best Theta.
-
-    Candidates are tried fastest simulator first; one whose T_s is no higher than the best Theta so far is
-    skipped without a search, since Theta <= T_s. With a single candidate this is exactly Algorithm 1.
-    ``remote_sim``: simulation on other hosts (decisions/s), added to every candidate's T_s.
+    The wrappers: :func:`scan_simulators` gives ``simulator`` = (c_env, E, s_sim) in place of lines 1-3 (N is
+    then not needed), and ``remote_sim``, simulation on other hosts in decisions/s, is added to T_s at line 4.
     """
-    rated = [(profiles.P_sim(c_env, E, s_sim) + remote_sim, c_env, E, s_sim, R)
-             for c_env, E, s_sim, R in candidates]  # line 4
+    _require_batch_pair(profiles, M_gpu)  # Require: some (B_g, B_t) fits M_gpu, whatever the quotas
+    if simulator is None:
+        if N is None:
+            raise TypeError("elastic_allocation needs N (simulation cores) to choose the simulator (lines 1-3)")
+        c_env, E = _choose_c_env(profiles, N)  # line 1 (alloc-cores): c_env*; line 2 (alloc-concurrency): E
+        # line 3 (alloc-sim-quota): the knee, the smallest profiled s_sim within `knee` of the best T_sim at (c_env, E)
+        curve = profiles._sim_curves[c_env, E]
+        s_sim = next(q for q, r in zip(curve.quotas, curve.rates) if r >= (1 - knee) * max(curve.rates))
+    else:
+        c_env, E, s_sim = simulator
+    T_s = profiles.P_sim(c_env, E, s_sim) + remote_sim  # line 4 (alloc-sim-rate)
+    R = total - s_sim  # the quota left to generation and training (100 - s_sim* in the paper)
+    lo, hi = s_g_min, R - s_t_min  # line 5 (alloc-bounds)
+    if hi < lo:
+        raise _infeasible_split(s_sim, s_g_min, s_t_min, total)
+    evaluated: dict[int, _Point] = {}  # s_g -> lines 8-11 there, each quota evaluated once
+
+    def evaluate(s_g: int) -> _Point:
+        if s_g not in evaluated:
+            s_t = R - s_g  # line 8 (alloc-train-quota)
+            # line 9 (alloc-batches): the best feasible (B_g, B_t); lines 10-11 (alloc-rollout-rate,
+            # alloc-train-rate): T_r = min(T_s, P_gen(s_g, B_g)) and T_t = P_train(s_t, B_t) with it
+            evaluated[s_g] = _best_pair(profiles, T_s, s_g, s_t, M_gpu)
+        return evaluated[s_g]
+
+    best, method = None, "bisection"
+    if _bisection_applies(profiles, lo, hi, R, M_gpu):  # the premise of lines 6-17 (module docstring)
+        while hi - lo > 1:  # line 6 (alloc-loop)
+            s_g = (lo + hi) // 2  # line 7 (alloc-gen-quota)
+            point = evaluate(s_g)  # lines 8-11
+            if point.T_r > point.T_train:  # line 12 (alloc-compare): rollout is faster, give training more
+                hi = s_g  # line 13 (alloc-upper)
+            else:  # line 14 (alloc-else)
+                lo = s_g  # line 15 (alloc-lower)
+        # line 18 (alloc-endpoints): both endpoints with their pairs; line 19 (alloc-select): the higher Theta
+        best = max(evaluate(lo), evaluate(hi), key=lambda p: p.theta)  # ties: lo
+    if best is None or best.theta <= 0:  # no premise, or no endpoint runs every stage: the exact scan instead
+        best, method = max((evaluate(s_g) for s_g in _breakpoints(profiles, s_g_min, R - s_t_min, R)),
+                           key=lambda p: p.theta), "scan"
+    return Allocation(c_env, E, s_sim, best.s_g, best.s_t, best.B_g, best.B_t, T_s, best.T_gen, best.T_train,
+                      best.theta, len(evaluated), method)  # line 20 (alloc-return): C*
+
+
+def _time_shared_models(profiles: Profiles, simulator: tuple[int, int, int], k: int, remote_sim: float) -> Allocation:
+    """The CPU adaptation where generation and training cannot be pinned apart: they time-share the same k cores
+    (rates combined by :func:`_time_shared`), so there is no split to search; line 9 once, at s_g = s_t = k."""
+    c_env, E, s_sim = simulator
+    T_s = profiles.P_sim(c_env, E, s_sim) + remote_sim  # line 4
+    point = _best_pair(profiles, T_s, k, k, math.inf, shared=True)  # line 9
+    return Allocation(c_env, E, s_sim, k, k, point.B_g, point.B_t, T_s, point.T_gen, point.T_train, point.theta, 1,
+                      "shared")
+
+
+def scan_simulators(profiles: Profiles, simulators: list[tuple[int, int, int]], *, total: int, M_gpu: float,
+                    s_g_min: int, s_t_min: int, remote_sim: float = 0.0,
+                    shared_cores: int | None = None) -> Allocation | None:
+    """Algorithm 1 with lines 1-3 replaced by a scan: :func:`elastic_allocation` (lines 4-20) for each simulator
+    configuration (c_env, E, s_sim), keeping the best Theta; None when no configuration's Theta is positive.
+
+    Each configuration must leave s_g_min + s_t_min of ``total`` (line 5). They are tried fastest simulator
+    first; one whose T_s is no higher than the best Theta so far is skipped without a search, since Theta <= T_s.
+    ``evaluations`` sums over the scan. ``shared_cores`` = k: generation and training time-share k cores
+    instead (:func:`allocate_cpu`). ``remote_sim``: simulation on other hosts (decisions/s), added to every T_s.
+    """
+    rated = sorted(((profiles.P_sim(*sim) + remote_sim, sim) for sim in simulators), key=lambda c: -c[0])
     best, evaluations = None, 0
-    for T_s, c_env, E, s_sim, R in sorted(rated, key=lambda c: -c[0]):
+    for T_s, sim in rated:
         if best is not None and T_s <= best.theta:
             break
-        point, n, method = split(T_s, R)
-        evaluations += n
-        if point is not None and point.theta > 0 and (best is None or point.theta > best.theta):
-            best = _allocation(c_env, E, s_sim, T_s, point, 0, method)
-    if best is not None:
-        best.evaluations = evaluations
-    return best
+        if shared_cores is None:
+            alloc = elastic_allocation(profiles, total=total, M_gpu=M_gpu, s_g_min=s_g_min, s_t_min=s_t_min,
+                                       simulator=sim, remote_sim=remote_sim)
+        else:
+            alloc = _time_shared_models(profiles, sim, shared_cores, remote_sim)
+        evaluations += alloc.evaluations
+        if alloc.theta > 0 and (best is None or alloc.theta > best.theta):
+            best = alloc
+    return None if best is None else replace(best, evaluations=evaluations)
 
 
 def allocate(profiles: Profiles, *, N: int, total: int = 100, M_gpu: float = math.inf, s_g_min: int, s_t_min: int,
              knee: float = 0.05, scan_sim: bool = False) -> Allocation:
-    """Algorithm 1 on a GPU machine: N simulation cores, quotas out of ``total`` (SM %), memory budget M_gpu.
+    """Algorithm 1 on a GPU machine (:func:`elastic_allocation`): N simulation cores, quotas out of ``total``
+    (SM %), memory budget M_gpu. InfeasibleError when no configuration gives every stage a profiled rate.
 
-    The simulator is settled first (lines 1-4: cores per env, concurrency, knee quota), then the rest of the
-    GPU is bisected between generation and training (lines 5-15), or scanned when the tables break the
+    The simulator is settled first (lines 1-4: cores per env, concurrency, knee quota, its rate), then the rest
+    of the GPU is bisected between generation and training (lines 5-19), or scanned when the tables break the
     bisection's premise.
 
-    ``scan_sim`` (not in the paper): lines 1-3 become an outer scan over every profiled simulator configuration
-    (c_env, E, s_sim) that fits N cores, each followed by lines 4-15. The knee reserves the simulator's full
-    capacity even when it is not the bottleneck, and a smaller E can reach the needed rate on a smaller quota;
-    either way quota is missing from generation and training (benchmarks/allocator_quality.py measures it).
-    The inner search being exact, this finds the optimum, at a fraction of :func:`exhaustive`'s evaluations.
+    ``scan_sim`` (not in the paper): lines 1-3 become an outer scan (:func:`scan_simulators`) over every
+    profiled simulator configuration (c_env, E, s_sim) that fits N cores, each followed by lines 4-20. The knee
+    reserves the simulator's full capacity even when it is not the bottleneck, and a smaller E can reach the
+    needed rate on a smaller quota; either way quota is missing from generation and training
+    (benchmarks/allocator_quality.py measures it). The inner search being exact, this finds the optimum, at a
+    fraction of :func:`exhaustive`'s evaluations.
     """
-    _require_batch_pair(profiles, M_gpu)
     if scan_sim:
+        _require_batch_pair(profiles, M_gpu)
         configs = [(c, E, s_sim) for (c, E), curve in profiles._sim_curves.items() if c * E <= N
                    for s_sim in curve.quotas]
+        if not configs:
+            raise InfeasibleError(f"no profiled simulator configuration fits N={N} cores")
+        feasible = [sim for sim in configs if total - sim[2] - s_t_min >= s_g_min]  # line 5: lo <= hi
+        if not feasible:
+            raise _infeasible_split(min(s_sim for _, _, s_sim in configs), s_g_min, s_t_min, total)
+        alloc = scan_simulators(profiles, feasible, total=total, M_gpu=M_gpu, s_g_min=s_g_min, s_t_min=s_t_min)
     else:
-        c_env = _choose_c_env(profiles, N)  # line 1
-        E = _concurrency(profiles, c_env, N)  # line 2
-        configs = [(c_env, E, _knee_quota(profiles._sim_curves[c_env, E], knee))]  # line 3
-    if not configs:
-        raise InfeasibleError(f"no profiled simulator configuration fits N={N} cores")
-    candidates = [(c, E, s_sim, total - s_sim) for c, E, s_sim in configs if total - s_sim - s_t_min >= s_g_min]
-    if not candidates:  # line 5: hi < lo
-        s_sim = min(s_sim for _, _, s_sim in configs)
-        raise InfeasibleError(f"infeasible split: s_sim*={s_sim} + s_g_min={s_g_min} + s_t_min={s_t_min} = "
-                              f"{s_sim + s_g_min + s_t_min} exceeds total={total}")
-
-    def split(T_s: float, R: int) -> tuple[_Point | None, int, str]:
-        return _split(profiles, T_s, R, s_g_min, s_t_min, M_gpu)
-
-    alloc = _best_over_sim(candidates, profiles, split)
-    if alloc is None:
+        alloc = elastic_allocation(profiles, N=N, total=total, M_gpu=M_gpu, s_g_min=s_g_min, s_t_min=s_t_min,
+                                   knee=knee)
+    if alloc is None or alloc.theta <= 0:
         raise InfeasibleError(f"no split of the quota left after the simulator (s_g >= {s_g_min}, s_t >= {s_t_min}) "
                               f"gives simulation, generation and training a profiled rate")
     return alloc
@@ -395,13 +424,14 @@ def allocate(profiles: Profiles, *, N: int, total: int = 100, M_gpu: float = mat
 
 def allocate_cpu(profiles: Profiles, *, N: int, s_g_min: int = 1, s_t_min: int = 1,
                  shared_model_cores: int | None = None, remote_sim: float = 0.0, local_sim: bool = True) -> Allocation:
-    """Algorithm 1 on a CPU-only machine: simulation, generation and training share the same N cores.
+    """Algorithm 1 adapted to a CPU-only machine: simulation, generation and training share the same N cores.
 
     Quotas are cores and total = N. The simulator's quota is its core count E * c_env, so it competes with
-    generation and training and no GPU knee can settle it. The CPU adaptation of line 3 is an outer scan:
-    with c_env* from line 1 (on the N - s_g_min - s_t_min cores the simulator may take), every profiled E
-    that fits is tried, the rest is bisected between generation and training (lines 5-15, unchanged), and
-    the best Theta is kept. ``evaluations`` sums over the outer scan.
+    generation and training and no GPU knee can settle it. The CPU adaptation keeps line 1 (c_env*, on the
+    N - s_g_min - s_t_min cores the simulator may take) and turns lines 2-3 into an outer scan
+    (:func:`scan_simulators`): every profiled E that fits, with s_sim = c_env* * E, each followed by lines 4-20
+    unchanged (the cores left bisected between generation and training); the best Theta is kept.
+    ``evaluations`` sums over the outer scan.
 
     ``shared_model_cores`` = k: generation and training are not split but time-share the same k cores (a
     machine too small to pin them apart); their rates combine as in :func:`_time_shared`, the simulator gets
@@ -413,14 +443,12 @@ def allocate_cpu(profiles: Profiles, *, N: int, s_g_min: int = 1, s_t_min: int =
     """
     if not local_sim:
         _require_batch_pair(profiles, math.inf)
-        if shared_model_cores is not None:
-            point, evaluations, method = _best_pair(profiles, remote_sim, N, N, math.inf, shared=True), 1, "shared"
-        else:
-            point, evaluations, method = _split(profiles, remote_sim, N, s_g_min, s_t_min, math.inf)
-        if point is None or point.theta <= 0:
+        alloc = scan_simulators(profiles, [(0, 0, 0)], total=N, M_gpu=math.inf, s_g_min=s_g_min, s_t_min=s_t_min,
+                                remote_sim=remote_sim, shared_cores=None if shared_model_cores is None else N)
+        if alloc is None:
             raise InfeasibleError(f"no split of N={N} cores between generation and training has a profiled rate "
                                   f"(simulation on other hosts: {remote_sim:g} decisions/s)")
-        return _allocation(0, 0, 0, remote_sim, point, evaluations, method)
+        return alloc
     reserved = shared_model_cores if shared_model_cores is not None else s_g_min + s_t_min
     budget = N - reserved  # cores the simulator may take
     if budget < 1:
@@ -429,16 +457,10 @@ def allocate_cpu(profiles: Profiles, *, N: int, s_g_min: int = 1, s_t_min: int =
         raise InfeasibleError(f"a CPU-only allocation needs at least {reserved + 1} cores ({what} + 1 for the "
                               f"simulator), N={N}")
     _require_batch_pair(profiles, math.inf)
-    c_env = _choose_c_env(profiles, budget)  # line 1
-
-    def split(T_s: float, R: int) -> tuple[_Point | None, int, str]:
-        if shared_model_cores is None:
-            return _split(profiles, T_s, R, s_g_min, s_t_min, math.inf)
-        return _best_pair(profiles, T_s, reserved, reserved, math.inf, shared=True), 1, "shared"
-
-    concurrency = [E for c, E in profiles._sim_curves if c == c_env and c * E <= budget]
-    alloc = _best_over_sim([(c_env, E, c_env * E, N - c_env * E) for E in concurrency], profiles, split,
-                           remote_sim)  # line 3
+    c_env, _ = _choose_c_env(profiles, budget)  # line 1
+    simulators = [(c_env, E, c_env * E) for c, E in profiles._sim_curves if c == c_env and c * E <= budget]
+    alloc = scan_simulators(profiles, simulators, total=N, M_gpu=math.inf, s_g_min=s_g_min, s_t_min=s_t_min,
+                            remote_sim=remote_sim, shared_cores=shared_model_cores)
     if alloc is None:
         raise InfeasibleError(f"no split of N={N} cores gives simulation, generation and training a profiled rate")
     return alloc

@@ -39,8 +39,8 @@ from typing import Any
 import gymnasium as gym
 import numpy as np
 
-from ebrl.envs.gym import EnvError, EnvSpec
 from ebrl.envs.obs import ObsField, ObsLayout, tokenize
+from ebrl.envs.spec import EnvError, EnvSpec
 
 OBS_MODES = ("state", "rgb")
 SIM_BACKENDS = ("physx_cpu", "physx_cuda")  # "physx_cuda:N" picks GPU N
@@ -150,6 +150,11 @@ class ManiSkillEnv(gym.Env):
 
     def close(self) -> None:
         self.env.close()
+
+
+def build(spec: EnvSpec) -> ManiSkillEnv:
+    """The backend's builder (ebrl/envs/backends.py): the task's own episode limit unless the spec sets one."""
+    return ManiSkillEnv(spec.id, max_episode_steps=spec.max_episode_steps or None, **spec.kwargs)
 
 
 def _make_maniskill(task: str, **kwargs: Any) -> gym.Env:

@@ -30,6 +30,7 @@ import gymnasium as gym
 import numpy as np
 
 from ebrl.envs.obs import ObsField, ObsLayout, tokenize
+from ebrl.envs.spec import EnvSpec
 
 DEFAULT_HORIZON = 200
 OBS_MODES = ("state", "rgb")
@@ -157,6 +158,11 @@ class RobosuiteEnv(gym.Env):
 
     def close(self) -> None:
         self.env.close()
+
+
+def build(spec: EnvSpec) -> RobosuiteEnv:
+    """The backend's builder (ebrl/envs/backends.py): episodes end at ``max_episode_steps``, else DEFAULT_HORIZON."""
+    return RobosuiteEnv(spec.id, horizon=spec.max_episode_steps or DEFAULT_HORIZON, **spec.kwargs)
 
 
 def _use_gl(backend: str) -> None:

@@ -15,15 +15,15 @@ import signal
 import time
 from dataclasses import dataclass
 from multiprocessing.connection import Connection
+from typing import Any
 
 import numpy as np
 
-from ebrl.envs.gym import EnvSpec, as_obs, make_env
+from ebrl.envs.backends import backend, make_env
 from ebrl.envs.render import ensure_gl_for
+from ebrl.envs.spec import EnvSpec
 
 _CTX = None
-PRELOAD = {"gymnasium": ["gymnasium", "mujoco"], "robosuite": ["gymnasium", "mujoco", "robosuite"],
-           "maniskill": ["gymnasium", "torch", "mani_skill.envs"]}
 
 
 def _context(spec: EnvSpec) -> mp.context.BaseContext:
@@ -35,7 +35,7 @@ def _context(spec: EnvSpec) -> mp.context.BaseContext:
     ensure_gl_for(spec)
     if _CTX is None:
         _CTX = mp.get_context("forkserver")
-        _CTX.set_forkserver_preload(PRELOAD.get(spec.backend, []) + ["ebrl.envs.worker", "ebrl.envs.latency"])
+        _CTX.set_forkserver_preload([*backend(spec).preload, "ebrl.envs.worker", "ebrl.envs.latency"])
     return _CTX
 
 
@@ -54,6 +54,10 @@ class ChunkResult:
     episode_success: bool | None = None  # set at episode end when the env reports info["success"]
     busy_s: float = 0.0  # CPU seconds spent inside env.step (useful work, excluding IPC and waiting)
     episode: int = 0  # index of the episode these steps belong to (per env, from 0)
+
+
+def as_obs(obs: Any) -> np.ndarray:
+    return np.asarray(obs, dtype=np.float32)
 
 
 def _worker_main(conn: Connection, spec: EnvSpec, seed: int) -> None:

@@ -1,0 +1,54 @@
+"""What an environment is, whatever simulator runs it: the spec a worker builds it from, the info policies
+read from it, and the error for one that cannot be built. Imports no simulator (a leaf of ebrl.envs)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Any
+
+from ebrl.envs.obs import ObsLayout
+
+if TYPE_CHECKING:
+    import gymnasium as gym
+
+
+class EnvError(ValueError):
+    """An environment that cannot be built or used; the message says why."""
+
+
+@dataclass(frozen=True)
+class EnvSpec:
+    """What a worker needs to build its environment (picklable); ``backend`` names an entry of
+    ``ebrl.envs.backends.BACKENDS``."""
+
+    id: str
+    backend: str = "gymnasium"
+    max_episode_steps: int = 0
+    kwargs: dict[str, Any] = field(default_factory=dict)
+    latency: str = "none"
+    latency_mean_ms: float = 16.0
+    latency_sigma: float = 0.3
+
+    @classmethod
+    def from_config(cls, env_cfg: Any) -> "EnvSpec":
+        return cls(id=env_cfg.id, backend=env_cfg.backend, max_episode_steps=env_cfg.max_episode_steps,
+                   kwargs=dict(env_cfg.kwargs), latency=env_cfg.latency, latency_mean_ms=env_cfg.latency_mean_ms,
+                   latency_sigma=env_cfg.latency_sigma)
+
+
+@dataclass(frozen=True)
+class EnvInfo:
+    """What gen and train need to know about the environment: spaces, observation layout, instruction."""
+
+    observation_space: gym.spaces.Box
+    action_space: gym.spaces.Box
+    layout: ObsLayout
+    instruction: str = ""
+
+    @property
+    def obs_shape(self) -> tuple[int, ...]:
+        return tuple(self.observation_space.shape)
+
+    @property
+    def action_dim(self) -> int:
+        return int(self.action_space.shape[0])

@@ -1,0 +1,203 @@
+"""The import graph of ``ebrl/`` has no cycle.
+
+The graph is read from the source (the AST of every module under ebrl/), not by importing anything, and
+holds only what runs when a module is imported:
+
+* Module-level imports only. An import inside a function (a lazy import, e.g. ``ebrl.bus.__getattr__``)
+  or under ``if TYPE_CHECKING:`` / ``if __name__ == "__main__":`` runs later or never, so it is no edge.
+  Imports in class bodies, ``try`` blocks and other module-level statements are edges.
+* ``import ebrl.a.b`` and ``from ebrl.a import b`` where ``ebrl/a/b`` is a module depend on ``ebrl.a.b``;
+  ``from ebrl.a import name`` where ``name`` is not a module depends on ``ebrl.a`` (its ``__init__``, or
+  ``a.py``), which must have defined ``name`` by then.
+* Importing ``ebrl.a.b`` first runs the ``__init__`` of each package on the way (``ebrl``, ``ebrl.a``), so
+  the importer depends on those too, except on the packages that contain the importer itself: those
+  ``__init__`` have already started before any module inside them runs, so the import needs nothing more
+  of them. This is what makes the normal case acyclic: ``ebrl/a/__init__.py`` importing ``ebrl.a.b``, and
+  ``ebrl/a/b.py`` importing its sibling ``ebrl.a.c``, add no edge back to ``ebrl.a``. A module that asks its
+  own package for a name (``from ebrl.a import name`` inside ``ebrl/a/b.py``) does depend on ``ebrl.a``'s
+  ``__init__``, and is a cycle when that ``__init__`` imports it (the name is not defined yet).
+
+A toy package checks the model against Python itself: the one cycle it finds is an import that fails.
+"""
+
+from __future__ import annotations
+
+import ast
+import subprocess
+import sys
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parent.parent
+PACKAGE = "ebrl"
+
+Edge = tuple[str, str]
+
+
+def modules(root: Path = ROOT, package: str = PACKAGE) -> dict[str, Path]:
+    """Every module of ``package`` under ``root``, by dotted name (a package by its own name: its __init__.py)."""
+    found = {}
+    for path in sorted((root / package).rglob("*.py")):
+        parts = path.relative_to(root).with_suffix("").parts
+        found[".".join(parts[:-1] if parts[-1] == "__init__" else parts)] = path
+    return found
+
+
+def module_level_imports(tree: ast.Module) -> list[ast.Import | ast.ImportFrom]:
+    """The import statements that run when the module is imported (see the module docstring)."""
+    found: list[ast.Import | ast.ImportFrom] = []
+
+    def visit(statements: list[ast.stmt]) -> None:
+        for node in statements:
+            if isinstance(node, (ast.Import, ast.ImportFrom)):
+                found.append(node)
+            elif isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)):
+                continue
+            elif isinstance(node, ast.If) and (_type_checking(node.test) or _main_guard(node.test)):
+                visit(node.orelse)
+            else:  # class bodies, try/except/finally, with, for, while, if/else, match: all run on import
+                for child in ast.iter_child_nodes(node):
+                    if isinstance(child, ast.stmt):
+                        visit([child])
+                    elif isinstance(child, (ast.excepthandler, ast.match_case)):
+                        visit(child.body)
+
+    visit(tree.body)
+    return found
+
+
+def _type_checking(test: ast.expr) -> bool:
+    return (isinstance(test, ast.Name) and test.id == "TYPE_CHECKING") or (
+        isinstance(test, ast.Attribute) and test.attr == "TYPE_CHECKING")
+
+
+def _main_guard(test: ast.expr) -> bool:
+    return (isinstance(test, ast.Compare) and isinstance(test.left, ast.Name) and test.left.id == "__name__"
+            and any(isinstance(c, ast.Constant) and c.value == "__main__" for c in test.comparators))
+
+
+def import_graph(root: Path = ROOT, package: str = PACKAGE) -> dict[Edge, str]:
+    """Edges importer -> imported module within ``package``, each with where it comes from (``path:line``)."""
+    known = modules(root, package)
+    packages = {name for name, path in known.items() if path.name == "__init__.py"}
+    edges: dict[Edge, str] = {}
+    for importer, path in known.items():
+        own_package = importer if importer in packages else importer.rpartition(".")[0]
+        containing = {".".join(importer.split(".")[:i]) for i in range(1, importer.count(".") + 1)}
+        for node in module_level_imports(ast.parse(path.read_text(), str(path))):
+            if isinstance(node, ast.Import):
+                targets = [alias.name for alias in node.names]
+            else:
+                base = node.module or ""
+                if node.level:  # relative: from the importer's package, up level - 1
+                    anchor = own_package.split(".")[:len(own_package.split(".")) - (node.level - 1)]
+                    base = ".".join(anchor + ([node.module] if node.module else []))
+                targets = [f"{base}.{alias.name}" if f"{base}.{alias.name}" in known else base
+                           for alias in node.names]
+            for target in targets:
+                if target not in known:  # another package, or no module of this one
+                    continue
+                parents = [".".join(target.split(".")[:i]) for i in range(1, target.count(".") + 1)]
+                for dep in [p for p in parents if p not in containing and p != importer] + [target]:
+                    if dep != importer:
+                        edges.setdefault((importer, dep), f"{path.relative_to(root)}:{node.lineno}")
+    return edges
+
+
+def cycles(edges: dict[Edge, str]) -> list[list[str]]:
+    """The strongly connected components with more than one module (Tarjan), each as a node list."""
+    graph: dict[str, list[str]] = {}
+    for a, b in edges:
+        graph.setdefault(a, []).append(b)
+        graph.setdefault(b, [])
+    index: dict[str, int] = {}
+    low: dict[str, int] = {}
+    stack: list[str] = []
+    on_stack: set[str] = set()
+    found: list[list[str]] = []
+
+    def connect(v: str) -> None:
+        index[v] = low[v] = len(index)
+        stack.append(v)
+        on_stack.add(v)
+        for w in sorted(graph[v]):
+            if w not in index:
+                connect(w)
+                low[v] = min(low[v], low[w])
+            elif w in on_stack:
+                low[v] = min(low[v], index[w])
+        if low[v] == index[v]:
+            component = []
+            while True:
+                w = stack.pop()
+                on_stack.discard(w)
+                component.append(w)
+                if w == v:
+                    break
+            if len(component) > 1:
+                found.append(sorted(component))
+
+    for v in sorted(graph):
+        if v not in index:
+            connect(v)
+    return found
+
+
+def one_cycle(component: list[str], edges: dict[Edge, str]) -> str:
+    """A shortest cycle through the component's first module, each import with where it is."""
+    members, start = set(component), component[0]
+    paths = {start: [start]}
+    queue = [start]
+    while queue:
+        v = queue.pop(0)
+        for a, b in sorted(edges):
+            if a == v and b in members:
+                if b == start:
+                    hops = paths[v] + [start]
+                    return "\n".join(f"  {x} -> {y}   ({edges[x, y]})" for x, y in zip(hops, hops[1:]))
+                if b not in paths:
+                    paths[b] = paths[v] + [b]
+                    queue.append(b)
+    raise AssertionError(f"no cycle through {start}")
+
+
+TOY = {  # a package whose one cycle is real, next to the normal cases that are not cycles
+    "toy/__init__.py": "",
+    "toy/a/__init__.py": "from toy.a.x import X\n",  # a package's __init__ importing its submodule
+    "toy/a/x.py": "from toy.a.y import Y\nfrom toy.a import y\nimport toy.b.z\nX = 1\n",  # siblings
+    "toy/a/y.py": ("from typing import TYPE_CHECKING\nif TYPE_CHECKING:\n    from toy.a import X\n"
+                   "def f():\n    from toy.a import X\nclass K:\n    import toy.b\nY = 1\n"),
+    "toy/b/__init__.py": ("try:\n    import toy.b.w\nexcept ImportError:\n    pass\n"
+                          "if __name__ == '__main__':\n    import toy.a\n"),
+    "toy/b/w.py": "",
+    "toy/b/z.py": "from toy.a import X\n",  # asks toy.a for a name toy.a is still importing: the cycle
+}
+
+
+def toy(root: Path, **replaced: str) -> Path:
+    for name, text in {**TOY, **replaced}.items():
+        (root / name).parent.mkdir(parents=True, exist_ok=True)
+        (root / name).write_text(text)
+    return root
+
+
+def imports_cleanly(root: Path, module: str) -> bool:
+    code = f"import sys; sys.path.insert(0, {str(root)!r}); import {module}"
+    return subprocess.run([sys.executable, "-c", code], capture_output=True, timeout=60).returncode == 0
+
+
+def test_the_graph_has_an_edge_where_python_runs_an_import_and_finds_the_cycles_python_fails_on(tmp_path):
+    edges = import_graph(toy(tmp_path / "cyclic"), "toy")
+    assert set(edges) == {("toy.a", "toy.a.x"), ("toy.a.x", "toy.a.y"), ("toy.a.x", "toy.b"),
+                          ("toy.a.x", "toy.b.z"), ("toy.a.y", "toy.b"), ("toy.b", "toy.b.w"), ("toy.b.z", "toy.a")}
+    assert cycles(edges) == [["toy.a", "toy.a.x", "toy.b.z"]]
+    assert "toy.b.z -> toy.a   (toy/b/z.py:1)" in one_cycle(cycles(edges)[0], edges)
+    assert not imports_cleanly(tmp_path / "cyclic", "toy.a")  # Python agrees: "partially initialized module"
+    fixed = toy(tmp_path / "fixed", **{"toy/b/z.py": "Z = 1\n"})
+    assert cycles(import_graph(fixed, "toy")) == [] and imports_cleanly(fixed, "toy.a")
+
+
+def test_no_import_cycle_in_ebrl():
+    edges = import_graph()
+    found = cycles(edges)
+    report = "\n\n".join(f"cycle among {', '.join(c)}:\n{one_cycle(c, edges)}" for c in found)
+    assert not found, f"import cycles in ebrl/ (module-level imports):\n\n{report}"

@@ -201,3 +201,42 @@ def test_no_import_cycle_in_ebrl():
     found = cycles(edges)
     report = "\n\n".join(f"cycle among {', '.join(c)}:\n{one_cycle(c, edges)}" for c in found)
     assert not found, f"import cycles in ebrl/ (module-level imports):\n\n{report}"
+
+
+# --- the shape the services and the library keep (issue 16) ---------------------------------------------
+
+SERVICE_LINES = 160  # a service is an adapter: subscribe, call ebrl.*, publish
+CLASS_LINES = 210  # a class that grows past this holds two concepts
+KEY_PREFIXES = ("ebrl/data", "ebrl/ctl", "ebrl/stats", "ebrl/live")
+
+
+def test_services_are_thin_adapters():
+    long = {p.name: n for p in sorted((ROOT / "services").glob("*.py"))
+            if (n := len(p.read_text().splitlines())) > SERVICE_LINES}
+    assert not long, f"services over {SERVICE_LINES} lines (move their logic into ebrl/): {long}"
+
+
+def test_no_class_in_ebrl_is_oversized():
+    long = {}
+    for name, path in modules().items():
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, ast.ClassDef) and node.end_lineno - node.lineno + 1 > CLASS_LINES:
+                long[f"{name}.{node.name}"] = node.end_lineno - node.lineno + 1
+    assert not long, f"classes over {CLASS_LINES} lines: {long}"
+
+
+def test_keys_are_built_and_parsed_only_in_the_key_module():
+    """No key f-strings (``f"ebrl/..."``) and no positional key parsing outside ebrl/bus/keys.py."""
+    offenders = []
+    for path in sorted([*(ROOT / "ebrl").rglob("*.py"), *(ROOT / "services").glob("*.py")]):
+        if path.name == "keys.py":
+            continue
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, ast.JoinedStr) and node.values and isinstance(node.values[0], ast.Constant) \
+                    and str(node.values[0].value).startswith(KEY_PREFIXES):
+                offenders.append(f"{path.relative_to(ROOT)}:{node.lineno}: key f-string")
+            if isinstance(node, ast.Subscript) and isinstance(node.value, ast.Call) \
+                    and getattr(node.value.func, "attr", "") == "parse" \
+                    and getattr(node.value.func.value, "id", "") == "keys":
+                offenders.append(f"{path.relative_to(ROOT)}:{node.lineno}: keys.parse(...)[i]")
+    assert not offenders, "\n".join(offenders)

@@ -11,14 +11,22 @@ sim service ``sim/<n>``, whose group and env ids follow those of the hosts befor
 it, so ids are unique in the run. The host that runs ``train`` is the primary: it
 ends the run (``run.iterations``, ``run.target_return``) and tells the other
 hosts' launchers to stop.
+
+While a run goes on, each launcher follows the run's liveliness tokens
+(:class:`Membership`): which services are live, which other hosts joined and
+left, and on a secondary host whether the primary is gone.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import time
 from dataclasses import dataclass
 
+from ebrl.bus import keys
 from ebrl.config import ROLES, Config, ConfigError
+
+PRIMARY_LOST_S = 30.0  # a secondary host stops when no train has been live for this long
 
 
 @dataclass(frozen=True)
@@ -93,3 +101,67 @@ def _allocator_with_train(roles: set[str], where: str) -> None:
     if "alloc" in roles and "train" not in roles:
         raise ConfigError(f"{where}: the allocator (alloc) runs on the host that trains: it plans that host's "
                           "cores, reading every host's stats")
+
+
+@dataclass(frozen=True)
+class HostChange:
+    """Another host's launcher came up (``joined``) or went away."""
+
+    host: int
+    joined: bool
+
+
+class Membership:
+    """The run's liveliness tokens as one host's launcher sees them: the processes that are live, the other
+    hosts that joined and left, whether the primary host (its ``train``) is gone."""
+
+    def __init__(self, run: str, me: int = 0, multi: bool = False, lost_after_s: float = PRIMARY_LOST_S):
+        self.run, self.me, self.multi, self.lost_after_s = run, me, multi, lost_after_s
+        self.live: set[str] = set()  # every live token of the run
+        self.hosts_up: set[int] = set()  # the other hosts, while up
+        self.hosts_joined: set[int] = set()  # ... and every one that ever joined
+        self.ending = False  # this host is stopping: hosts that leave now are not news
+        self.train_seen_at: float | None = None  # when a train was last live
+
+    def update(self, key: str, alive: bool) -> HostChange | None:
+        """A token appeared or vanished; a change when it was another host's launcher."""
+        if alive:
+            self.live.add(key)
+        else:
+            self.live.discard(key)
+        try:
+            parsed = keys.parse(key)
+        except ValueError:  # not a process's token: nothing to say about hosts
+            return None
+        if not (self.multi and parsed.service == "launcher" and parsed.instance.isdigit()):
+            return None
+        host = int(parsed.instance)
+        if host == self.me:
+            return None
+        if alive and host not in self.hosts_up:
+            self.hosts_up.add(host)
+            self.hosts_joined.add(host)
+            return HostChange(host, joined=True)
+        if not alive and host in self.hosts_up and not self.ending:
+            self.hosts_up.discard(host)
+            return HostChange(host, joined=False)
+        return None
+
+    def is_live(self, role: str, instance: int | str) -> bool:
+        return keys.live(self.run, role, instance) in self.live
+
+    def services_live(self) -> int:
+        """Live service processes (launchers not counted)."""
+        return sum(1 for k in self.live if keys.role_of(k) != "launcher")
+
+    def hosts(self) -> list[int]:
+        """Every host that took part: this one and each that joined."""
+        return sorted(self.hosts_joined | {self.me})
+
+    def primary_lost(self, now: float | None = None) -> bool:
+        """A secondary host: True once no train has been live for ``lost_after_s`` after one was."""
+        now = time.monotonic() if now is None else now
+        if any(keys.role_of(k) == "train" for k in self.live):
+            self.train_seen_at = now
+            return False
+        return self.train_seen_at is not None and now - self.train_seen_at >= self.lost_after_s

@@ -4,7 +4,11 @@ The launcher is a bus peer like the services: it listens on ``bus.listen``
 (services and scripts connect there), watches liveliness tokens to know who is
 up, reads ``ebrl/stats/<run>/**`` for the progress line, and stops the run with
 ``ctl/.../stop`` messages, then SIGTERM, then SIGKILL, so that no process is
-left after ``SHUTDOWN_S`` seconds.
+left after ``ebrl.supervisor.SHUTDOWN_S`` seconds. :class:`Launcher` wires its
+parts to the bus: the processes (``ebrl.supervisor``), the run as the stats
+show it (``ebrl.runview``) and the liveliness tokens (``ebrl.hosts.Membership``).
+The allocator tells it when a stage needs a new GPU share (``GpuShare`` on
+``ctl/<run>/launcher/<host>/gpu_share``): it restarts that stage with it.
 
 In a run over several hosts (``--only``, ``--host``: ``ebrl.hosts``) there is
 one launcher per host, started the same way. Each is then a Zenoh *router*: the
@@ -17,57 +21,28 @@ all/stop``); a host whose primary is gone for ``PRIMARY_LOST_S`` stops too.
 from __future__ import annotations
 
 import asyncio
-import ctypes
-import dataclasses
 import json
 import logging
 import os
 import signal
-import subprocess
 import sys
-import threading
 import time
 from pathlib import Path
 
 from ebrl import config as config_mod, procenv
 from ebrl.bus import Bus, BusOptions, keys
-from ebrl.bus.endpoints import free_port, listen_endpoint
-from ebrl.hosts import HostPlan, enabled_roles, plan as plan_host
-from ebrl.messages import Event, MessageError, Quota, StatsReport, Stop, decode_message
-from ebrl.resources.pool import mps_env
+from ebrl.bus.endpoints import listen_endpoint
+from ebrl.hosts import PRIMARY_LOST_S, HostPlan, Membership, enabled_roles, plan as plan_host
+from ebrl.messages import Event, GpuShare, StatsReport, Stop
+from ebrl.runview import Console, RunView, write_report, write_summary
 from ebrl.service import STOP_TO_RESTART
+from ebrl.supervisor import Argv, RestartPolicy, Supervisor
 from ebrl.viz import record
 
 log = logging.getLogger("ebrl.launch")
 
-STOP_GRACE_S = 5.0  # after the stop message, before SIGTERM
-SHUTDOWN_S = 8.0  # after which anything left is SIGKILLed
-LOG_TAIL = 20
-PRIMARY_LOST_S = 30.0  # a secondary host stops when no train has been live for this long
 EVERY_HOST = "all"  # the instance chunk of the run-wide stop: ctl/<run>/launcher/all/stop
 PRIMARY_ENDED = "the primary host ended the run"
-
-
-@dataclasses.dataclass
-class Child:
-    role: str
-    instance: int
-    proc: subprocess.Popen
-    log_path: Path
-    restarts: int = 0
-    restart_at: float | None = None  # monotonic time of a scheduled restart
-    requota: bool = False  # asked to stop for a new GPU share: started again with it once it has exited
-
-    @property
-    def name(self) -> str:
-        return f"{self.role}/{self.instance}"
-
-    def tail(self, n: int = LOG_TAIL) -> str:
-        try:
-            lines = self.log_path.read_text(errors="replace").splitlines()
-        except OSError:
-            return "(no log)"
-        return "\n".join("    " + line for line in lines[-n:])
 
 
 def make_run_dir(cfg: config_mod.Config) -> Path:
@@ -81,287 +56,185 @@ def make_run_dir(cfg: config_mod.Config) -> Path:
     return run_dir
 
 
-def _die_with_parent() -> None:  # runs in the child between fork and exec
-    os.setpgrp()  # Ctrl-C reaches the launcher only; it stops the children in order
-    libc = ctypes.CDLL("libc.so.6", use_errno=True)
-    libc.prctl(1, signal.SIGTERM)  # PR_SET_PDEATHSIG: a killed launcher takes its children along
+def service_argv(config_path: Path, endpoint: str) -> Argv:
+    """``python -m services.<role> --config ... --instance N [--connect <the launcher's endpoint>]``."""
+    def argv(role: str, instance: int) -> list[str]:
+        cmd = [sys.executable, "-m", f"services.{role}", "--config", str(config_path), "--instance", str(instance)]
+        return cmd + (["--connect", endpoint] if endpoint else [])
+    return argv
+
+
+def banner(cfg: config_mod.Config, plan: HostPlan, run_dir: Path, endpoint: str) -> str:
+    where = f"host {plan.name or plan.instance}: {', '.join(plan.roles)}; " if plan.multi else ""
+    return f"run {cfg.run.name}: {run_dir}  ({where}bus {endpoint or ', '.join(cfg.bus.connect)})"
+
+
+def viz_line(viz: config_mod.VizSection, run_dir: Path) -> str:
+    return f"viz: rerun {viz.rerun} -> {run_dir / 'timeline.rrd'}" + (
+        f" (viewer: rerun --connect rerun+http://127.0.0.1:{viz.port}/proxy)" if viz.rerun == "serve" else "")
+
+
+class LauncherBus:
+    """This host's launcher on the bus (a router when the run spans hosts): where it listens (``bus.json``), the
+    recording of the run's stats, and what it publishes: events, its stats report, stops."""
+
+    def __init__(self, cfg: config_mod.Config, plan: HostPlan, endpoint: str, run_dir: Path):
+        self.run = cfg.run.name
+        listen = [endpoint, *cfg.bus.listen[1:]] if endpoint else []
+        self.bus = Bus(BusOptions(mode="router" if plan.multi else "peer", listen=listen,
+                                  connect=list(cfg.bus.connect), config_file=cfg.bus.config_file))
+        (run_dir / "bus.json").write_text(json.dumps({"listen": listen, "run": self.run}) + "\n")
+        self.recorder = record.Recorder(run_dir / record.FILENAME) if cfg.viz.record else None
+        if self.recorder is not None:
+            self.bus.subscribe_raw(keys.stats_all(self.run), self.recorder.write)
+        self._seq = 0
+
+    def consume(self, key: str, cls: type, handler, capacity: int) -> asyncio.Task:
+        """Call ``handler(key, message)`` on the event loop for each message on ``key`` (the latest
+        ``capacity`` ones are kept while it is busy)."""
+        async def consume(sub) -> None:
+            async for at, msg in sub:
+                handler(at, msg)
+        return asyncio.create_task(consume(self.bus.subscribe(key, cls, policy="latest", capacity=capacity)))
+
+    def event(self, kind: str, text: str) -> None:
+        self.bus.put_nowait(keys.events(self.run, "launcher"),
+                            Event(time=time.time(), service="launcher", instance=0, kind=kind, text=text))
+
+    def publish_stats(self, metrics: dict[str, float]) -> None:
+        self.bus.put_nowait(keys.stats(self.run, "launcher", 0), StatsReport(
+            run=self.run, service="launcher", instance=0, time=time.time(), seq=self._seq, metrics=metrics))
+        self._seq += 1
+
+    async def stop(self, role: str, instance: int | str, reason: str) -> None:
+        await self.bus.put(keys.ctl(self.run, role, instance, "stop"), Stop(reason=reason))
+
+    async def close(self) -> None:
+        await self.bus.close()
+        if self.recorder is not None:
+            self.recorder.close()
 
 
 class Launcher:
     def __init__(self, cfg: config_mod.Config, run_dir: Path, out=sys.stdout, plan: HostPlan | None = None,
                  gpu_env: dict[str, dict[str, str]] | None = None):
-        self.cfg, self.run_dir, self.out = cfg, run_dir, out
-        # stage -> the CUDA variables its processes start with (the allocator's GPU share), and new shares
-        # pushed by the allocator (kept by a Zenoh thread, applied by the supervise loop)
-        self.gpu_env: dict[str, dict[str, str]] = dict(gpu_env or {})
-        self.quota_pending: dict[str, dict[str, str]] = {}
-        self.quota_lock = threading.Lock()
+        self.cfg, self.run_dir, self.run_name = cfg, run_dir, cfg.run.name
         self.plan = plan or HostPlan(enabled_roles(cfg))
-        self.run_name = cfg.run.name
-        self.dist_addr = ""  # rank 0's rendezvous of the training ranks (train.world_size > 1)
-        self.hosts_seen: set[str] = set()  # launcher instances of the other hosts, while up
-        self.hosts_joined: set[int] = set()  # ... and every one that joined
-        self.ending = False
-        self.train_seen_at: float | None = None  # when a train was last live (a secondary waits for it)
-        self.children: list[Child] = []
-        self.live: set[str] = set()
-        self.stats: dict[str, StatsReport] = {}
-        self.best_return: float | None = None
+        self.roles = enabled_roles(cfg)  # every service of the run, on any host
+        self.console = Console(out)
+        self.view = RunView(cfg.run.name, cfg.run.iterations, cfg.run.target_return)
+        self.members = Membership(cfg.run.name, self.plan.instance, self.plan.multi)
+        self.gpu_env = gpu_env or {}  # stage -> the CUDA variables it starts with (the allocator's first GPU share)
         self.failure: str | None = None
-        self.reached: tuple[int, float, float] | None = None  # (iteration, seconds, return) at target_return
+        self.stop_reason = ""
+        self.ctl_unknown = 0
         self.started = time.monotonic()
-        self.tty = hasattr(out, "isatty") and out.isatty()
-        self._last_line = 0.0
-        self._stats_seq = 0
 
     async def main(self) -> int:
         self.stopping = asyncio.Event()
-        self.stop_reason = ""
-        loop = asyncio.get_running_loop()
         for sig in (signal.SIGINT, signal.SIGTERM):
-            loop.add_signal_handler(sig, self._on_signal, sig)
-        multi = self.plan.multi
+            asyncio.get_running_loop().add_signal_handler(sig, self._on_signal, sig)
         try:
-            self.endpoint = listen_endpoint(self.cfg.bus.listen[0], strict=multi) if self.cfg.bus.listen else ""
+            listen = self.cfg.bus.listen
+            endpoint = listen_endpoint(listen[0], strict=self.plan.multi) if listen else ""
         except OSError as exc:
-            self._say(f"ebrl: {exc}")
+            self.console.say(f"ebrl: {exc}")
             return 2
-        listen = [self.endpoint, *self.cfg.bus.listen[1:]] if self.endpoint else []
-        self.bus = Bus(BusOptions(mode="router" if multi else "peer", listen=listen,
-                                  connect=list(self.cfg.bus.connect), config_file=self.cfg.bus.config_file))
-        (self.run_dir / "bus.json").write_text(json.dumps({"listen": listen, "run": self.run_name}) + "\n")
-        self.recorder = record.Recorder(self.run_dir / record.FILENAME) if self.cfg.viz.record else None
-        if self.recorder is not None:
-            self.bus.subscribe_raw(keys.stats_all(self.run_name), self.recorder.write)
-        self.bus.watch_liveliness(keys.live_all(self.run_name), self._on_liveliness)
-        self.ctl_unknown = 0
-        self.bus.subscribe_raw(keys.ctl(self.run_name, "*", "*", "*"), self._on_control)
-        me = keys.live(self.run_name, "launcher", self.plan.instance)
-        where = f"host {self.plan.name or self.plan.instance}: {', '.join(self.plan.roles)}; " if multi else ""
-        bus = self.endpoint or ", ".join(self.cfg.bus.connect)
-        self._say(f"run {self.run_name}: {self.run_dir}  ({where}bus {bus})")
-        if multi:  # the other hosts' tokens arrive once the routers met: is this host number taken?
-            await asyncio.sleep(1.0)
-            if me in self.live:
-                self._say(f"ebrl: host {self.plan.instance} of run {self.run_name} is already up elsewhere on the "
-                          "bus; give each host its own --instance (or --host)")
-                await self.bus.close()
-                if self.recorder is not None:
-                    self.recorder.close()
-                return 2
-        self.bus.declare_token(me)
-        stats_tasks = [asyncio.create_task(self._collect(self.bus.subscribe(
-            keys.stats(self.run_name, role, "*"), StatsReport, policy="latest", capacity=64)))
-            for role in enabled_roles(self.cfg)]
+        self.link = LauncherBus(self.cfg, self.plan, endpoint, self.run_dir)
+        self.supervisor = Supervisor(
+            service_argv(self.run_dir / "config.toml", endpoint), self.run_dir / "logs",
+            RestartPolicy(self.cfg.run.restart == "on-failure", self.cfg.run.max_restarts),
+            say=self.console.say, event=self.link.event, gpu_env=self.gpu_env, train_ranks=self.cfg.train.world_size,
+            role_env={"alloc": procenv.service_env(local_sim="sim" in self.plan.roles)},  # it plans this host
+            version_floor=self.view.version_floor)
+        self.link.bus.watch_liveliness(keys.live_all(self.run_name), self._on_liveliness)
+        self.link.bus.subscribe_raw(keys.ctl(self.run_name, "*", "*", "*"), self._on_control)
+        self.console.say(banner(self.cfg, self.plan, self.run_dir, endpoint))
+        if self.plan.multi and not await self.host_number_free():
+            await self.link.close()
+            return 2
+        self.link.bus.declare_token(keys.live(self.run_name, "launcher", self.plan.instance))
+        stats_tasks = [self.link.consume(keys.stats(self.run_name, role, "*"), StatsReport, self.view.on_report, 64)
+                       for role in self.roles]
+        control_tasks = [self.link.consume(keys.gpu_share(self.run_name, self.plan.instance), GpuShare,
+                                           self.on_gpu_share, 16)]
+        if self.plan.multi and not self.plan.primary:
+            control_tasks.append(self.link.consume(keys.ctl(self.run_name, "launcher", "*", "stop"), Stop,
+                                                   self.on_primary_ended, 4))
         code = 1
         try:
-            self.spawn_all()
+            for role in self.plan.roles:
+                for instance in self.plan.instances(role, self.cfg):
+                    self.supervisor.start(role, instance)
             if await self.wait_live():
                 code = await self.supervise()
         finally:
-            self.ending = True
-            self.event("stopping", self.failure or self.stop_reason or "run finished")
-            if multi and self.plan.primary:  # every host ends with the primary
-                await self.bus.put(keys.ctl(self.run_name, "launcher", EVERY_HOST, "stop"),
-                                   Stop(reason=self.failure or self.stop_reason or "run finished"))
-            await self.shutdown()
+            for task in control_tasks:  # no new GPU share while stopping
+                task.cancel()
+            await self.stop_services()
             for task in stats_tasks:
                 task.cancel()
-            await self.bus.close()
-            if self.recorder is not None:
-                self.recorder.close()
-        self.write_summary(code)
-        self.write_report()
+            await self.link.close()
+        self.finish(code)
         return code
 
-    def event(self, kind: str, text: str) -> None:
-        self.bus.put_nowait(keys.events(self.run_name, "launcher"),
-                            Event(time=time.time(), service="launcher", instance=0, kind=kind, text=text))
-
-    # --- processes ----------------------------------------------------------------
-
-    def spawn_all(self) -> None:
-        if self.cfg.train.world_size > 1:
-            self.dist_addr = f"127.0.0.1:{free_port()}"
-        for role in self.plan.roles:
-            for instance in self.plan.instances(role, self.cfg):
-                log_path = self.run_dir / "logs" / f"{role}-{instance}.log"
-                self.children.append(Child(role, instance, self.spawn(role, instance, log_path), log_path))
-
-    def spawn(self, role: str, instance: int, log_path: Path, extra_env: dict[str, str] | None = None
-              ) -> subprocess.Popen:
-        """Start ``python -m services.<role>``; its output is appended to ``log_path``."""
-        env = dict(os.environ, PYTHONUNBUFFERED="1", **self.gpu_env.get(role, {}), **(extra_env or {}))
-        if role == "alloc":  # the allocator plans this host's cores: with or without a simulator among them
-            env.update(procenv.service_env(local_sim="sim" in self.plan.roles))
-        if role == "train":
-            env.update(procenv.service_env(dist_addr=self.dist_addr))
-        root = str(Path(__file__).resolve().parent.parent)
-        env["PYTHONPATH"] = root + os.pathsep + env.get("PYTHONPATH", "")  # `services` beside `ebrl`
-        cmd = [sys.executable, "-m", f"services.{role}", "--config", str(self.run_dir / "config.toml"),
-               "--instance", str(instance)]
-        if self.endpoint:
-            cmd += ["--connect", self.endpoint]
-        with open(log_path, "ab") as fh:
-            return subprocess.Popen(cmd, stdout=fh, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
-                                    env=env, preexec_fn=_die_with_parent)
-
-    async def wait_live(self) -> bool:
-        wanted = {keys.live(self.run_name, c.role, c.instance) for c in self.children}
-        deadline = time.monotonic() + self.cfg.run.startup_timeout
-        while not wanted <= self.live:
-            if self.stopping.is_set():
-                return False
-            if self.check_children():
-                return False
-            if time.monotonic() > deadline:
-                missing = sorted(k.split("/", 3)[3] for k in wanted - self.live)
-                self.failure = f"not up after {self.cfg.run.startup_timeout:.0f} s: {', '.join(missing)}"
-                self._say("ebrl: " + self.failure)
-                for child in self.children:
-                    if keys.live(self.run_name, child.role, child.instance) not in self.live:
-                        self._say(f"--- last lines of {child.log_path}:\n{child.tail()}")
-                return False
-            await asyncio.sleep(0.05)
-        self._say(f"all services live after {time.monotonic() - self.started:.1f} s: "
-                  + ", ".join(c.name for c in self.children))
-        self.event("live", f"{', '.join(c.name for c in self.children)} live after "
-                           f"{time.monotonic() - self.started:.1f} s")
-        if self.cfg.viz.rerun != "off":
-            self._say(f"viz: rerun {self.cfg.viz.rerun} -> {self.run_dir / 'timeline.rrd'}"
-                      + (f" (viewer: rerun --connect rerun+http://127.0.0.1:{self.cfg.viz.port}/proxy)"
-                         if self.cfg.viz.rerun == "serve" else ""))
-        return True
-
-    def check_children(self, restart: bool = False) -> bool:
-        """Notice a child that exited on its own: restart it (``run.restart``, with backoff, at most
-        ``run.max_restarts`` times) when ``restart``, else report it; True when the run must stop. A child
-        that stopped for a new GPU share starts again with it at once (no restart counted)."""
-        self.apply_gpu_quotas()
-        now = time.monotonic()
-        for child in self.children:
-            if child.restart_at is not None:
-                if now >= child.restart_at:
-                    self.restart(child)
-                continue
-            rc = child.proc.poll()
-            if rc is None:
-                continue
-            if child.requota:
-                self.restart(child, requota=True)
-                continue
-            what = f"{child.name} exited with status {rc}"
-            if restart and self.cfg.run.restart == "on-failure" and child.restarts < self.cfg.run.max_restarts:
-                delay = min(2.0 ** child.restarts, 30.0)
-                child.restart_at = now + delay
-                if child.role == "train" and self.dist_addr:  # one rank gone breaks the group: restart every rank
-                    for rank in self.children:
-                        if rank.role == "train" and rank is not child:
-                            if rank.proc.poll() is None:
-                                os.killpg(rank.proc.pid, signal.SIGKILL)
-                                rank.proc.wait(5.0)
-                            rank.restart_at = now + delay
-                    self.dist_addr = f"127.0.0.1:{free_port()}"
-                self.event("exited", f"{what}; restart {child.restarts + 1}/{self.cfg.run.max_restarts} in "
-                                     f"{delay:.0f} s")
-                self._say(f"\nebrl: {what}; restarting it in {delay:.0f} s "
-                          f"({child.restarts + 1}/{self.cfg.run.max_restarts}); last lines of {child.log_path}:"
-                          f"\n{child.tail(8)}")
-                continue
-            self.failure = what + (f" (after {child.restarts} restarts)" if child.restarts else "")
-            self.event("exited", self.failure)
-            self._say(f"\nebrl: {self.failure}; last lines of {child.log_path}:\n{child.tail()}")
+    async def host_number_free(self) -> bool:
+        """The other hosts' tokens arrive once the routers met: is this host's number taken?"""
+        await asyncio.sleep(1.0)
+        if not self.members.is_live("launcher", self.plan.instance):
             return True
+        self.console.say(f"ebrl: host {self.plan.instance} of run {self.run_name} is already up elsewhere on the "
+                         "bus; give each host its own --instance (or --host)")
         return False
 
-    def restart(self, child: Child, requota: bool = False) -> None:
-        """Start ``child`` again: after a failure (counted), or after it stopped for a new GPU share."""
-        if requota:
-            child.requota = False
-        else:
-            child.restarts += 1
-        child.restart_at = None
-        extra = {}
-        if child.role == "train":  # never reuse a version: the new train starts past every one seen
-            extra = procenv.service_env(
-                version_floor=max(self.version(), int(self.metric("gen/policy_version", "max") or 0)))
-        why = f"with GPU share {self.gpu_env.get(child.role)}" if requota else f"restart {child.restarts}"
-        with open(child.log_path, "ab") as fh:
-            fh.write(f"\n--- {why} by the launcher ---\n".encode())
-        child.proc = self.spawn(child.role, child.instance, child.log_path, extra)
-        if requota:
-            self.event("requota", f"{child.name} started again {why}")
-        else:
-            self.event("restart", f"{child.name} restarted ({child.restarts}/{self.cfg.run.max_restarts})")
+    def elapsed(self) -> float:
+        return time.monotonic() - self.started
 
-    def on_gpu_quota(self, role: str, quota: Quota) -> None:
-        """(Zenoh thread) The allocator gave ``role`` a new GPU share: remembered for the supervise loop."""
-        if quota.sm_percent is None or role not in ("gen", "train") or role not in self.gpu_env:
-            return
-        current = self.gpu_env[role]
-        env = {**current, **mps_env(int(current.get("CUDA_VISIBLE_DEVICES", "0")), quota.sm_percent,
-                                    quota.mem_bytes or 0)}
-        if not quota.mem_bytes:  # no new memory budget: the one it has
-            env["CUDA_MPS_PINNED_DEVICE_MEM_LIMIT"] = current.get("CUDA_MPS_PINNED_DEVICE_MEM_LIMIT", "")
-            env = {k: v for k, v in env.items() if v}
-        with self.quota_lock:
-            self.quota_pending[role] = env
-
-    def apply_gpu_quotas(self) -> None:
-        """A GPU share takes a new process (MPS reads it when the CUDA context is made): ask the stage's
-        processes to stop at their safe boundary -- generation between batches, training after its update,
-        with its state in a checkpoint that the new process resumes from -- and start them again with it."""
-        with self.quota_lock:
-            pending, self.quota_pending = self.quota_pending, {}
-        for role, env in pending.items():
-            if env == self.gpu_env.get(role):
-                continue
-            if role == "train" and self.cfg.train.world_size > 1:
-                log.warning("train: a new GPU share is not applied to %d data-parallel ranks (one rank only)",
-                            self.cfg.train.world_size)
-                continue
-            self.gpu_env[role] = env
-            for child in self.children:
-                if child.role == role and child.proc.poll() is None and not child.requota:
-                    child.requota = True
-                    self.bus.put_nowait(keys.ctl(self.run_name, role, child.instance, "stop"),
-                                        Stop(reason=STOP_TO_RESTART))
-
-    def restarts(self) -> int:
-        return sum(c.restarts for c in self.children)
-
-    def publish_stats(self) -> None:
-        """The launcher's own stats report: restarts per service, services up."""
-        metrics = {"launcher/restarts": float(self.restarts()), "launcher/ctl_unknown_service": float(self.ctl_unknown),
-                   "launcher/services_live": float(sum(1 for k in self.live if "/launcher/" not in k))}
-        metrics.update({f"launcher/restarts_{c.role}": float(c.restarts) for c in self.children})
-        self.bus.put_nowait(keys.stats(self.run_name, "launcher", 0), StatsReport(
-            run=self.run_name, service="launcher", instance=0, time=time.time(), seq=self._stats_seq,
-            metrics=metrics))
-        self._stats_seq += 1
+    async def wait_live(self) -> bool:
+        children = self.supervisor.children
+        deadline = time.monotonic() + self.cfg.run.startup_timeout
+        while missing := [c for c in children if not self.members.is_live(c.role, c.instance)]:
+            if self.stopping.is_set():
+                return False
+            self.failure = self.supervisor.check(restart=False)
+            if self.failure is not None:
+                return False
+            if time.monotonic() > deadline:
+                self.failure = (f"not up after {self.cfg.run.startup_timeout:.0f} s: "
+                                + ", ".join(sorted(c.name for c in missing)))
+                self.console.say("ebrl: " + self.failure)
+                for child in missing:
+                    self.console.say(f"--- last lines of {child.log_path}:\n{child.tail()}")
+                return False
+            await asyncio.sleep(0.05)
+        names = ", ".join(c.name for c in children)
+        self.console.say(f"all services live after {self.elapsed():.1f} s: {names}")
+        self.link.event("live", f"{names} live after {self.elapsed():.1f} s")
+        if self.cfg.viz.rerun != "off":
+            self.console.say(viz_line(self.cfg.viz, self.run_dir))
+        return True
 
     async def supervise(self) -> int:
-        target = self.cfg.run.iterations
         last_stats = 0.0
         while not self.stopping.is_set():
-            if self.check_children(restart=True):
+            self.failure = self.supervisor.check(restart=True)
+            if self.failure is not None:
                 return 1
             if time.monotonic() - last_stats >= self.cfg.run.stats_interval:
                 self.publish_stats()
                 last_stats = time.monotonic()
-            self.progress()
+            self.show_progress()
             if not self.plan.primary:
-                if self.primary_lost():
+                if self.members.primary_lost():
+                    self.failure = f"no train on the bus for {PRIMARY_LOST_S:.0f} s: the primary host is gone"
+                    self.console.say(f"\nebrl: {self.failure}")
                     return 1
-            elif target and self.version() >= target:
-                self.progress(force=True)
+            elif self.view.iterations_done():
+                self.show_progress(force=True)
                 return 0
-            goal, ret = self.cfg.run.target_return, self.metric("sim/episode_return_mean", "mean")
-            if self.plan.primary and goal is not None and ret is not None and ret >= goal:
-                self.progress(force=True)
-                self.reached = (self.version(), time.monotonic() - self.started, ret)
-                self._say(f"reached run.target_return = {goal:g}: mean return {ret:.1f} at iteration "
-                          f"{self.version()} after {self.reached[1]:.0f} s")
+            elif (reached := self.view.target_reached(self.elapsed())) is not None:
+                self.show_progress(force=True)
+                self.console.say(reached)
                 return 0
             try:
                 await asyncio.wait_for(self.stopping.wait(), 0.5)
@@ -371,180 +244,72 @@ class Launcher:
             return 0
         return 130 if self.stop_reason.startswith("signal SIGINT") else 143
 
-    def primary_lost(self) -> bool:
-        """A secondary host: True (and the failure said) once the run's train has been gone too long."""
-        if any(keys.role_of(k) == "train" for k in self.live):
-            self.train_seen_at = time.monotonic()
-            return False
-        if self.train_seen_at is None or time.monotonic() - self.train_seen_at < PRIMARY_LOST_S:
-            return False
-        self.failure = f"no train on the bus for {PRIMARY_LOST_S:.0f} s: the primary host is gone"
-        self._say(f"\nebrl: {self.failure}")
-        return True
+    def show_progress(self, force: bool = False) -> None:
+        hosts = len(self.members.hosts_up) + 1 if self.plan.multi else None
+        restarts = sum(self.supervisor.restarts().values())
+        self.console.progress(self.view.progress_line(self.elapsed(), restarts, hosts), force)
 
-    async def shutdown(self) -> None:
-        if self.tty:
-            self.out.write("\n")
-        running = [c for c in self.children if c.proc.poll() is None]
-        for child in running:
-            await self.bus.put(keys.ctl(self.run_name, child.role, child.instance, "stop"),
-                               Stop(reason=self.stop_reason or "run finished"))
-        deadline = time.monotonic() + STOP_GRACE_S
-        await self._wait_exit(deadline)
-        for child in self.children:
-            if child.proc.poll() is None:
-                log.warning("%s did not stop in %.0f s; SIGTERM", child.name, STOP_GRACE_S)
-                child.proc.terminate()
-        await self._wait_exit(time.monotonic() + SHUTDOWN_S - STOP_GRACE_S)
-        for child in self.children:
-            if child.proc.poll() is None:
-                self._say(f"ebrl: {child.name} ignored SIGTERM; killing it")
-                os.killpg(child.proc.pid, signal.SIGKILL)
-                child.proc.wait(1.0)
+    def publish_stats(self) -> None:
+        """The launcher's own stats report: restarts per service, services up."""
+        metrics = {**self.supervisor.metrics(), "launcher/ctl_unknown_service": float(self.ctl_unknown),
+                   "launcher/services_live": float(self.members.services_live())}
+        self.link.publish_stats(metrics)
 
-    async def _wait_exit(self, deadline: float) -> None:
-        while time.monotonic() < deadline and any(c.proc.poll() is None for c in self.children):
-            await asyncio.sleep(0.05)
+    async def stop_services(self) -> None:
+        self.members.ending = True
+        self.link.event("stopping", self.failure or self.stop_reason or "run finished")
+        if self.plan.multi and self.plan.primary:  # every host ends with the primary
+            await self.link.stop("launcher", EVERY_HOST, self.failure or self.stop_reason or "run finished")
+        self.console.end_progress()
+        await self.supervisor.shutdown(
+            lambda child: self.link.stop(child.role, child.instance, self.stop_reason or "run finished"))
+
+    def finish(self, code: int) -> None:
+        """summary.json, its line, and the headless report."""
+        summary = self.view.summary(code, self.elapsed(), run_dir=self.run_dir, failure=self.failure,
+                                    restarts=self.supervisor.restarts(), host=self.plan.instance,
+                                    hosts=self.members.hosts())
+        self.console.say(write_summary(summary, self.run_dir / "summary.json"))
+        if self.cfg.viz.report and self.link.recorder is not None and self.link.recorder.samples:
+            self.console.say(write_report(self.run_dir))
 
     # --- bus events ---------------------------------------------------------------
 
-    def _on_signal(self, sig: signal.Signals) -> None:
+    def on_gpu_share(self, key: str, share: GpuShare) -> None:
+        """A new GPU share for a stage of this host: its processes stop at their safe point (generation between
+        batches, training after its update, its state in a checkpoint) and start again with it."""
+        for child in self.supervisor.new_gpu_share(share.stage, share.env, share.version):
+            self.link.bus.put_nowait(keys.ctl(self.run_name, child.role, child.instance, "stop"),
+                                     Stop(reason=STOP_TO_RESTART))
+
+    def on_primary_ended(self, key: str, stop: Stop) -> None:
+        self.stop(PRIMARY_ENDED, f"\nebrl: {PRIMARY_ENDED}; stopping this host's services")
+
+    def stop(self, reason: str, line: str) -> None:
         if not self.stopping.is_set():
-            self.stop_reason = f"signal {sig.name}"
-            self._say(f"\nebrl: {sig.name} received, stopping every service")
+            self.stop_reason = reason
+            self.console.say(line)
             self.stopping.set()
 
+    def _on_signal(self, sig: signal.Signals) -> None:
+        self.stop(f"signal {sig.name}", f"\nebrl: {sig.name} received, stopping every service")
+
     def _on_control(self, key: str, payload: bytes) -> None:
-        """Control messages for a service this run does not have are ignored by everyone; counted here.
-        A secondary host's launcher stops when the primary ends the run."""
+        """(Zenoh thread) Control messages for a service this run does not have are ignored by everyone;
+        counted here."""
         role = keys.role_of(key)
-        if role == "launcher":
-            if self.plan.multi and not self.plan.primary and key.endswith("/stop") and not self.stopping.is_set():
-                self.stop_reason = PRIMARY_ENDED
-                self._say(f"\nebrl: {self.stop_reason}; stopping this host's services")
-                self.stopping.set()
-            return
-        if key.endswith("/quota") and self.gpu_env:
-            try:
-                self.on_gpu_quota(role, decode_message(Quota, payload))
-            except MessageError:
-                pass  # counted by the service it was meant for
-        if role not in enabled_roles(self.cfg):
+        if role != "launcher" and role not in self.roles:
             if not self.ctl_unknown:
                 log.warning("control message for an unknown service ignored: %s (further ones only counted)", key)
             self.ctl_unknown += 1
 
     def _on_liveliness(self, key: str, alive: bool) -> None:
-        if alive:
-            self.live.add(key)
-        else:
-            self.live.discard(key)
-        parsed = keys.parse(key)
-        role, instance = parsed.service, parsed.instance
-        other_host = role == "launcher" and instance.isdigit() and instance != str(self.plan.instance)
-        if not (self.plan.multi and other_host):
+        change = self.members.update(key, alive)
+        if change is None:
             return
-        if alive and instance not in self.hosts_seen:
-            self.hosts_seen.add(instance)
-            self.hosts_joined.add(int(instance))
-            self._say(f"\nebrl: host {instance} joined the run")
-            self.event("host", f"host {instance} joined the run")
-        elif not alive and instance in self.hosts_seen and not self.ending:
-            self.hosts_seen.discard(instance)
-            self._say(f"\nebrl: host {instance} left the run; nothing waits for its groups")
-            self.event("host", f"host {instance} left the run")
-
-    async def _collect(self, sub) -> None:
-        async for key, report in sub:
-            self.stats[key] = report
-
-    # --- progress -----------------------------------------------------------------
-
-    def metric(self, name: str, how: str = "sum") -> float | None:
-        values = [r.metrics[name] for r in self.stats.values() if name in r.metrics]
-        if not values:
-            return None
-        return sum(values) if how == "sum" else (max(values) if how == "max" else sum(values) / len(values))
-
-    def version(self) -> int:
-        return int(self.metric("train/policy_version", "max") or 0)
-
-    def progress(self, force: bool = False) -> None:
-        ret = self.metric("sim/episode_return_mean", "mean")
-        if ret is not None:
-            self.best_return = ret if self.best_return is None else max(self.best_return, ret)
-        target = self.cfg.run.iterations
-        fields = [
-            f"iter {self.version()}" + (f"/{target}" if target else ""),
-            f"{self.metric('sim/env_steps_per_s') or 0:,.0f} env steps/s",
-            f"{self.metric('sim/segments_per_s') or 0:,.1f} traj/s",
-            f"policy v{max(int(self.metric('gen/policy_version', 'max') or 0), 0)}",
-            f"staleness {self.metric('train/staleness_mean', 'mean') or 0:.2f}",
-            f"return {ret:.1f}" if ret is not None else "return -",
-            *([f"restarts {self.restarts()}"] if self.restarts() else []),
-            *([f"hosts {len(self.hosts_seen) + 1}"] if self.plan.multi else []),
-            _clock(time.monotonic() - self.started),
-        ]
-        line = " | ".join(fields)
-        if self.tty:
-            self.out.write("\r\033[K" + line)
-            self.out.flush()
-        elif force or time.monotonic() - self._last_line >= 5.0:
-            self._say(line)
-            self._last_line = time.monotonic()
-
-    def _say(self, text: str) -> None:
-        if self.tty:
-            text = "\r\033[K" + text.lstrip("\n")
-        print(text, file=self.out, flush=True)
-
-    def write_summary(self, code: int) -> None:
-        elapsed = time.monotonic() - self.started
-        steps = self.metric("sim/env_steps") or 0
-        summary = {
-            "run": self.run_name,
-            "run_dir": str(self.run_dir),
-            "exit_code": code,
-            "failure": self.failure,
-            "iterations": self.version(),
-            "wall_s": round(elapsed, 2),
-            "env_steps": int(steps),
-            "env_steps_per_s": round(steps / elapsed, 1) if elapsed > 0 else 0.0,
-            "segments": int(self.metric("sim/segments") or 0),
-            "episodes": int(self.metric("sim/episodes") or 0),
-            "final_return": self.metric("sim/episode_return_mean", "mean"),
-            "best_return": self.best_return,
-            "target_return": self.cfg.run.target_return,
-            "restarts": {c.name: c.restarts for c in self.children if c.restarts},
-            "host": self.plan.instance,
-            "hosts": sorted(self.hosts_joined | {self.plan.instance}),  # every host that took part
-            "target_reached": None if self.reached is None else
-            {"iteration": self.reached[0], "wall_s": round(self.reached[1], 2), "return": self.reached[2]},
-        }
-        (self.run_dir / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
-        final = f"{summary['final_return']:.1f}" if summary["final_return"] is not None else "-"
-        best = f"{summary['best_return']:.1f}" if summary["best_return"] is not None else "-"
-        self._say(f"run {self.run_name} {'finished' if code == 0 else 'stopped'}: {summary['iterations']} iterations "
-                  f"in {elapsed:.0f} s, {summary['env_steps']:,} env steps ({summary['env_steps_per_s']:,.0f}/s), "
-                  f"mean return {final} (best {best}); summary in {self.run_dir / 'summary.json'}")
-
-    def write_report(self) -> None:
-        """The headless report of the run (``ebrl report``), from the recording; never fails the run."""
-        if not (self.cfg.viz.report and self.recorder is not None and self.recorder.samples):
-            return
-        from ebrl.viz import report
-
-        try:
-            paths = report.write(self.run_dir)
-        except Exception as exc:  # a report is a convenience: say why, keep the exit code
-            self._say(f"ebrl: no report: {exc}")
-            return
-        self._say(f"report: {paths['markdown']} (Gantt: {paths['gantt']})")
-
-
-def _clock(seconds: float) -> str:
-    s = int(seconds)
-    return f"{s // 3600}:{s // 60 % 60:02d}:{s % 60:02d}"
+        what = f"host {change.host} {'joined' if change.joined else 'left'} the run"
+        self.console.say(f"\nebrl: {what}" + ("" if change.joined else "; nothing waits for its groups"))
+        self.link.event("host", what)
 
 
 def preflight(cfg: config_mod.Config) -> str | None:

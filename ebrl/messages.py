@@ -219,6 +219,23 @@ class Quota:
     batch: int | None = doc("batch size the stage should use (gen: most envs per forward pass)", default=None)
 
 
+@dataclass
+class GpuShare:
+    """Start one stage's processes again with a new GPU share (allocator -> the launcher of its host). MPS
+    fixes a process's share when it makes its CUDA context: the launcher stops the stage's processes at their
+    safe point (``Stop``, reason ``STOP_TO_RESTART``) and starts them with ``env``; not counted as a restart."""
+
+    KEY = "ebrl/ctl/<run>/launcher/<host>/gpu_share"
+    version: int = doc("plan version; a share whose version the stage already has is ignored")
+    stage: Literal["gen", "train"] = doc("the stage whose processes take the share")
+    env: dict[str, str] = doc("the CUDA variables its processes start with: CUDA_VISIBLE_DEVICES, CUDA_MPS_*")
+
+    def __post_init__(self) -> None:
+        other = sorted(k for k in self.env if not k.startswith("CUDA_"))
+        if other:
+            raise MessageError(f"GpuShare: env may only set CUDA_* variables, not {', '.join(other)}")
+
+
 MESSAGES: tuple[type, ...] = (
     Observation,
     ActionChunk,
@@ -231,6 +248,7 @@ MESSAGES: tuple[type, ...] = (
     Stop,
     Affinity,
     Quota,
+    GpuShare,
 )
 
 # --- validation ----------------------------------------------------------------------

@@ -1,5 +1,7 @@
 """alloc service: the elastic allocator. Reads the stages' stats, re-plans after a sustained imbalance,
-pushes the new cores, threads and batch to the services (``ctl/.../{affinity,quota}``, versioned).
+pushes the new cores, threads and batch to the services (``ctl/.../{affinity,quota}``, versioned) and, on a
+GPU, the stages' new shares to the launcher of its host (``ctl/<run>/launcher/<host>/gpu_share``), which
+starts those stages again with them.
 
 It runs on the host that trains and plans that host's cores. On a run over several hosts it reads every
 host's simulator stats: the other hosts' simulation capacity counts toward the simulator's side of
@@ -14,7 +16,7 @@ import asyncio
 import time
 
 from ebrl import procenv
-from ebrl.alloc.runtime import capacities, describe, make_placement, metrics_of
+from ebrl.alloc.runtime import capacities, describe, gpu_shares, make_placement, metrics_of
 from ebrl.bus import keys
 from ebrl.messages import Affinity, Quota, StatsReport
 from ebrl.service import Service, service_main
@@ -79,13 +81,15 @@ class AllocService(Service):
             await self.bus.put(keys.ctl(self.run_name, stage, instance, "affinity"),
                                Affinity(version=plan.version, cores=plan.cores[stage]))
             if stage != "sim":
-                # on a GPU, the stage's SM share and memory: the launcher restarts the stage's process with them
+                # on a GPU, the stage's SM share and memory too (a new share takes a new process: see below)
                 binding = self.placement.bindings().get(f"{stage}/0")
                 await self.bus.put(keys.ctl(self.run_name, stage, 0, "quota"), Quota(
                     version=plan.version, threads=plan.threads[stage],
                     sm_percent=binding.sm_percent if binding else None,
                     mem_bytes=binding.mem_bytes if binding else None,
                     batch=plan.gen_batch if stage == "gen" else None))
+        for share in gpu_shares(self.placement):  # the launcher restarts a stage whose share changed
+            await self.bus.put(keys.gpu_share(self.run_name, self.instance), share)
         reverted = plan.reason.startswith("reverted")
         self.count("alloc/reverts" if reverted else "alloc/reallocations")
         self.publish_span("alloc", "realloc", start, time.time())

@@ -80,7 +80,7 @@ def test_a_gpu_plan_starts_generation_and_training_with_their_mps_shares(tmp_pat
     import dataclasses
 
     from ebrl.alloc.placement import EmbodiPlacement
-    from ebrl.alloc.runtime import gpu_env
+    from ebrl.alloc.runtime import gpu_env, gpu_shares
     from ebrl.alloc.synthetic import random_tables
     from ebrl.resources.pool import Core
     from test_resources import FakeGpuNVML
@@ -100,6 +100,11 @@ def test_a_gpu_plan_starts_generation_and_training_with_their_mps_shares(tmp_pat
     placement.pending = placement._plan(swapped, "test")
     placement.apply()  # one stage at a time, the shares would add up to over 100 %
     assert gpu_env(placement)["gen"]["CUDA_MPS_ACTIVE_THREAD_PERCENTAGE"] == f"{swapped.s_gen:g}"
+    # what the allocator tells the launcher of its host: each stage's new share, with the plan's version
+    shares = {s.stage: s for s in gpu_shares(placement)}
+    assert set(shares) == {"gen", "train"} and {s.version for s in shares.values()} == {placement.applied.version}
+    assert shares["train"].env == gpu_env(placement)["train"]
+    assert shares["train"].env["CUDA_MPS_ACTIVE_THREAD_PERCENTAGE"] == "10"
 
 
 LAUNCH_WITH_GPU_SHARES = """
@@ -116,9 +121,9 @@ sys.exit(asyncio.run(Launcher(cfg, run_dir, gpu_env={"gen": share, "train": dict
 
 
 def test_a_new_gpu_share_restarts_training_at_a_safe_point_and_loses_nothing(tmp_path):
-    """What the launcher does when the allocator pushes a new SM share (the GPU faked at its boundary: the
-    share is only the environment a process starts with): train stops after its update, hands over its
-    state and the segments not yet trained on, and starts again with the new share; the run goes on."""
+    """What the launcher does when the allocator tells it of a new SM share (``GpuShare``; the GPU faked at its
+    boundary: the share is only the environment a process starts with): train stops after its update, hands
+    over its state and the segments not yet trained on, and starts again with the new share; the run goes on."""
     import subprocess
     import sys
 
@@ -127,7 +132,7 @@ def test_a_new_gpu_share_restarts_training_at_a_safe_point_and_loses_nothing(tmp
     import zenoh
 
     from ebrl.bus import keys
-    from ebrl.messages import Quota, encode_message
+    from ebrl.messages import GpuShare, encode_message
     from ebrl.viz import record
 
     port = helpers.free_port()
@@ -160,8 +165,9 @@ def test_a_new_gpu_share_restarts_training_at_a_safe_point_and_loses_nothing(tmp
                 assert proc.poll() is None and time.monotonic() < deadline, "no fourth update in 120 s"
                 time.sleep(0.2)
             assert train_share() == "50"  # started with the allocator's first share
-            session.put(keys.ctl("requota", "train", 0, "quota"),
-                        encode_message(Quota(version=2, threads=1, sm_percent=30.0, mem_bytes=2 * 2**30)))
+            session.put(keys.gpu_share("requota", 0), encode_message(GpuShare(version=2, stage="train", env={
+                "CUDA_VISIBLE_DEVICES": "0", "CUDA_MPS_ACTIVE_THREAD_PERCENTAGE": "30",
+                "CUDA_MPS_PINNED_DEVICE_MEM_LIMIT": "0=2048M"})))
             while train_share() != "30":
                 assert proc.poll() is None and time.monotonic() < deadline, "train never came back with 30 %"
                 time.sleep(0.2)

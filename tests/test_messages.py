@@ -76,6 +76,20 @@ def test_literal_and_optional_fields():
         m.from_wire(m.Stop, wire)
 
 
+def test_a_gpu_share_sets_cuda_variables_only():
+    share = m.GpuShare(version=2, stage="train", env={"CUDA_VISIBLE_DEVICES": "0",
+                                                      "CUDA_MPS_ACTIVE_THREAD_PERCENTAGE": "30"})
+    assert m.decode_message(m.GpuShare, m.encode_message(share)) == share
+    wire = m.to_wire(share)
+    wire["env"] = {"LD_PRELOAD": "/tmp/x.so"}
+    with pytest.raises(m.MessageError, match="only set CUDA_"):
+        m.from_wire(m.GpuShare, wire)
+    wire = m.to_wire(share)
+    wire["stage"] = "sim"
+    with pytest.raises(m.MessageError):
+        m.from_wire(m.GpuShare, wire)
+
+
 def test_schemas_directory_is_up_to_date(tmp_path):
     m.write_schemas(str(tmp_path))
     for cls in m.MESSAGES:

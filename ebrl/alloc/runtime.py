@@ -7,6 +7,8 @@
 * :func:`capacities` (the allocator service, every stats report): what each
   stage could sustain on its cores, in decisions/s, from the services' stats
   (decisions per CPU-second times its cores).
+* :func:`gpu_shares` (the allocator service, after a re-plan): the GPU share
+  each stage's processes must start again with, for the launcher of its host.
 """
 
 from __future__ import annotations
@@ -19,6 +21,7 @@ from typing import Any
 from ebrl import config as config_mod
 from ebrl.alloc.placement import EmbodiPlacement, Plan, StageRates
 from ebrl.alloc.profile import default_path, fingerprint, load, load_or_profile
+from ebrl.messages import GpuShare
 from ebrl.resources.pool import ResourcePool
 
 MIN_CPU = 0.05  # cores' worth of CPU below which a stage was idle: its capacity cannot be told
@@ -67,6 +70,13 @@ def gpu_env(placement: EmbodiPlacement) -> dict[str, dict[str, str]]:
     """Stage -> the CUDA variables of its binding (device, MPS share, MIG instance); empty without a GPU."""
     return {binding.stage: {k: v for k, v in binding.env.items() if k.startswith("CUDA_")}
             for binding in placement.bindings().values() if binding.gpu is not None}
+
+
+def gpu_shares(placement: EmbodiPlacement) -> list[GpuShare]:
+    """The applied plan's GPU share of each stage, for the launcher of the allocator's host: MPS fixes a share
+    when a process makes its CUDA context, so a new one takes a new process (empty without a GPU)."""
+    version = placement.applied.version
+    return [GpuShare(version=version, stage=stage, env=env) for stage, env in gpu_env(placement).items()]
 
 
 def describe(plan: Plan) -> str:

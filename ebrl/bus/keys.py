@@ -12,7 +12,7 @@ import re
 from dataclasses import dataclass
 
 ROOT = "ebrl"
-CONTROL_KINDS = ("quota", "affinity", "stop", "status")
+CONTROL_KINDS = ("quota", "affinity", "stop", "status", "gpu_share")
 
 _CHUNK = re.compile(r"^[a-z0-9_.=-]+$")
 
@@ -74,10 +74,19 @@ def data(run: str) -> str:
 
 def ctl(run: str, service: str, instance: int | str, kind: str) -> str:
     """``ebrl/ctl/<run>/<service>/<instance>/<kind>``; kind is one of quota, affinity, stop
-    (published, versioned, idempotent) or status (a queryable answering the service's stats)."""
+    (published, versioned, idempotent), status (a queryable answering the service's stats) or gpu_share
+    (to a launcher: :func:`gpu_share`)."""
     if kind not in CONTROL_KINDS and kind != "*":
         raise ValueError(f"unknown control kind {kind!r}; expected one of {CONTROL_KINDS}")
     return f"{ROOT}/ctl/{run}/{service}/{instance}/{kind}"
+
+
+def gpu_share(run: str, host: int | str) -> str:
+    """``ebrl/ctl/<run>/launcher/<host>/gpu_share``: the allocator tells the launcher of host ``<host>`` that a
+    stage's processes must start again with a new GPU share (``GpuShare``). MPS reads a share only when a
+    process makes its CUDA context, so only the launcher, which owns the processes, can apply one; it is told
+    on a key of its own, not left to read the stages' ``quota`` messages."""
+    return ctl(run, "launcher", host, "gpu_share")
 
 
 # --- observability ---------------------------------------------------------------

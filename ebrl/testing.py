@@ -152,7 +152,7 @@ class Run:
                     raise self.error(f"its output ended without {what}")
                 left = deadline - time.monotonic()
                 if left <= 0:
-                    raise self.error(f"gave up waiting for {what} after {timeout:.0f} s")
+                    raise self.error(f"gave up waiting for {what} after {timeout:g} s")
                 self._changed.wait(min(left, 1.0))
 
     @property
@@ -298,5 +298,5 @@ class StatsWatcher:
         while not predicate():
             self.run.check_running(what)
             if time.monotonic() > deadline:
-                raise self.run.error(f"gave up waiting for {what} after {timeout:.0f} s")
+                raise self.run.error(f"gave up waiting for {what} after {timeout:g} s")
             time.sleep(0.2)

@@ -27,7 +27,7 @@ from ebrl.bus import keys
 from ebrl.bus.endpoints import free_port
 from ebrl.messages import MessageError, StatsReport, decode_stats_sample
 
-__all__ = ["Run", "RunError", "StatsWatcher", "free_port", "run_name", "source", "up_command", "up_sets"]
+__all__ = ["Output", "Run", "RunError", "StatsWatcher", "free_port", "run_name", "source", "up_command", "up_sets"]
 
 REPO = Path(__file__).resolve().parent.parent  # where `ebrl` and `services` are
 STOP_S = 30.0  # after SIGINT, before SIGKILL (the launcher itself stops every service within SHUTDOWN_S)
@@ -70,44 +70,16 @@ def source(report: StatsReport) -> str:
     return f"{report.service}/{report.instance}"
 
 
-class Run:
-    """``ebrl up CONFIG --set ...`` running as a subprocess on a free loopback port.
+class Output:
+    """What a subprocess prints (its stdout, with stderr merged into it), read line by line by a thread so
+    that the pipe never fills; also written to ``log`` if given. ``label`` names the process in errors."""
 
-    ``name`` is the name asked for; :attr:`name` is the one the run got (a ``run.name`` among
-    ``overrides`` wins). A thread reads what the launcher prints (so its pipe never fills), also into
-    ``log`` if given. Leaving the ``with`` block stops the run (:meth:`stop`)."""
-
-    _RUN_LINE = "run {name}: "  # the launcher's first line: "run NAME: RUN_DIR  (bus ENDPOINT)"
-
-    def __init__(self, config: str | os.PathLike, *overrides: str, name: str, out_dir: str | os.PathLike,
-                 args: Sequence[str] = (), port: int | None = None, stats_interval: float | None = 0.5,
-                 log: str | os.PathLike | None = None, cwd: str | os.PathLike | None = None):
-        self.port = port or free_port()
-        self.endpoint = f"tcp/127.0.0.1:{self.port}"
-        sets = up_sets(out_dir, self.port, name, stats_interval, overrides)
-        self.name = run_name(config, sets, cwd)
-        self.command = up_command(config, sets, args)
-        env = dict(os.environ)
-        env["PYTHONPATH"] = os.pathsep.join(p for p in (str(REPO), env.get("PYTHONPATH", "")) if p)
+    def __init__(self, proc: subprocess.Popen, label: str, log: str | os.PathLike | None = None):
+        self.proc, self.label = proc, label
         self._lines: list[str] = []
         self._changed = threading.Condition()
-        self._run_dir: Path | None = None
-        self.proc = subprocess.Popen(self.command, cwd=cwd, env=env, stdin=subprocess.DEVNULL,
-                                     stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
-        self._reader = threading.Thread(target=self._read, args=(log,), name=f"ebrl-up-{self.name}", daemon=True)
+        self._reader = threading.Thread(target=self._read, args=(log,), name=f"output of {label}", daemon=True)
         self._reader.start()
-
-    def __enter__(self) -> "Run":
-        return self
-
-    def __exit__(self, *exc) -> None:
-        self.stop()
-
-    def __repr__(self) -> str:
-        state = "running" if self.proc.poll() is None else f"exit {self.proc.returncode}"
-        return f"<ebrl up run {self.name} on {self.endpoint}, {state}>"
-
-    # --- output -------------------------------------------------------------------------------------
 
     def _read(self, log: str | os.PathLike | None) -> None:
         fh = open(log, "w") if log is not None else None
@@ -126,14 +98,23 @@ class Run:
                 self._changed.notify_all()
 
     @property
-    def output(self) -> str:
-        """Everything the launcher printed so far."""
+    def text(self) -> str:
+        """Everything printed so far."""
         with self._changed:
             return "".join(self._lines)
 
     def tail(self, lines: int = TAIL_LINES) -> str:
         with self._changed:
             return "".join(self._lines[-lines:])
+
+    def join(self, timeout: float = 10.0) -> None:
+        """Wait for the rest of the output once the process has ended."""
+        self._reader.join(timeout)
+
+    def error(self, what: str) -> RunError:
+        """A RunError saying ``what``, naming the process and ending with its last output lines."""
+        state = "still running" if self.proc.poll() is None else f"exit status {self.proc.returncode}"
+        return RunError(f"{self.label} ({state}): {what}; its output ended:\n{self.tail()}")
 
     def wait_for_line(self, match: str | Callable[[str], bool], timeout: float = STARTUP_S) -> str:
         """The first line printed so far or later that contains ``match`` (or satisfies it); raises RunError
@@ -155,6 +136,59 @@ class Run:
                     raise self.error(f"gave up waiting for {what} after {timeout:g} s")
                 self._changed.wait(min(left, 1.0))
 
+
+class Run:
+    """``ebrl up CONFIG --set ...`` running as a subprocess on a free loopback port.
+
+    ``name`` is the name asked for; :attr:`name` is the one the run got (a ``run.name`` among
+    ``overrides`` wins). What the launcher prints is kept (:attr:`output`, :meth:`wait_for_line`), also in
+    ``log`` if given. Leaving the ``with`` block stops the run (:meth:`stop`)."""
+
+    _RUN_LINE = "run {name}: "  # the launcher's first line: "run NAME: RUN_DIR  (bus ENDPOINT)"
+
+    def __init__(self, config: str | os.PathLike, *overrides: str, name: str, out_dir: str | os.PathLike,
+                 args: Sequence[str] = (), port: int | None = None, stats_interval: float | None = 0.5,
+                 log: str | os.PathLike | None = None, cwd: str | os.PathLike | None = None):
+        self.port = port or free_port()
+        self.endpoint = f"tcp/127.0.0.1:{self.port}"
+        sets = up_sets(out_dir, self.port, name, stats_interval, overrides)
+        self.name = run_name(config, sets, cwd)
+        self.command = up_command(config, sets, args)
+        env = dict(os.environ)
+        env["PYTHONPATH"] = os.pathsep.join(p for p in (str(REPO), env.get("PYTHONPATH", "")) if p)
+        self._run_dir: Path | None = None
+        self.proc = subprocess.Popen(self.command, cwd=cwd, env=env, stdin=subprocess.DEVNULL,
+                                     stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+        self._output = Output(self.proc, f"ebrl up (run {self.name})", log)
+
+    def __enter__(self) -> "Run":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.stop()
+
+    def __repr__(self) -> str:
+        state = "running" if self.proc.poll() is None else f"exit {self.proc.returncode}"
+        return f"<ebrl up run {self.name} on {self.endpoint}, {state}>"
+
+    # --- output -------------------------------------------------------------------------------------
+
+    @property
+    def output(self) -> str:
+        """Everything the launcher printed so far."""
+        return self._output.text
+
+    def tail(self, lines: int = TAIL_LINES) -> str:
+        return self._output.tail(lines)
+
+    def wait_for_line(self, match: str | Callable[[str], bool], timeout: float = STARTUP_S) -> str:
+        """The first line the launcher printed (so far or later) that contains ``match`` or satisfies it."""
+        return self._output.wait_for_line(match, timeout)
+
+    def error(self, what: str) -> RunError:
+        """A RunError saying ``what``, naming this run and ending with its last output lines."""
+        return self._output.error(what)
+
     @property
     def run_dir(self) -> Path:
         """The run directory, as the launcher announced it (waits for that line, at most STARTUP_S)."""
@@ -166,11 +200,6 @@ class Run:
                 raise self.error(f"cannot read the run directory from {line.strip()!r}")
             self._run_dir = Path(found.group(1))
         return self._run_dir
-
-    def error(self, what: str) -> RunError:
-        """A RunError saying ``what``, naming this run and ending with its last output lines."""
-        state = "still running" if self.proc.poll() is None else f"exit status {self.proc.returncode}"
-        return RunError(f"ebrl up (run {self.name}, {state}): {what}; its output ended:\n{self.tail()}")
 
     # --- lifetime -----------------------------------------------------------------------------------
 
@@ -193,7 +222,7 @@ class Run:
             code = self.proc.wait(timeout)
         except subprocess.TimeoutExpired:
             raise self.error(f"it did not end within {timeout:.0f} s") from None
-        self._reader.join(10)  # the rest of its output
+        self._output.join()  # the rest of its output
         return code
 
     def interrupt(self) -> None:
@@ -209,7 +238,7 @@ class Run:
         except subprocess.TimeoutExpired:
             self.proc.kill()
             self.proc.wait()
-        self._reader.join(10)
+        self._output.join()
         return self.proc.returncode
 
 

@@ -114,13 +114,13 @@ class Output:
     def error(self, what: str) -> RunError:
         """A RunError saying ``what``, naming the process and ending with its last output lines."""
         state = "still running" if self.proc.poll() is None else f"exit status {self.proc.returncode}"
-        return RunError(f"{self.label} ({state}): {what}; its output ended:\n{self.tail()}")
+        return RunError(f"{self.label} ({state}): {what}. Its last lines:\n{self.tail()}")
 
-    def wait_for_line(self, match: str | Callable[[str], bool], timeout: float = STARTUP_S) -> str:
+    def wait_for_line(self, match: str | Callable[[str], bool], timeout: float = STARTUP_S, what: str = "") -> str:
         """The first line printed so far or later that contains ``match`` (or satisfies it); raises RunError
-        when the output ends without one or ``timeout`` seconds pass."""
+        naming ``what`` (default: the line looked for) when the output ends without one or ``timeout`` s pass."""
         test = match if callable(match) else (lambda line: match in line)
-        what = "a line" if callable(match) else f"a line with {match!r}"
+        what = what or (f"a line with {match!r}" if isinstance(match, str) else "the line looked for")
         deadline = time.monotonic() + timeout
         seen = 0
         with self._changed:
@@ -181,9 +181,9 @@ class Run:
     def tail(self, lines: int = TAIL_LINES) -> str:
         return self._output.tail(lines)
 
-    def wait_for_line(self, match: str | Callable[[str], bool], timeout: float = STARTUP_S) -> str:
+    def wait_for_line(self, match: str | Callable[[str], bool], timeout: float = STARTUP_S, what: str = "") -> str:
         """The first line the launcher printed (so far or later) that contains ``match`` or satisfies it."""
-        return self._output.wait_for_line(match, timeout)
+        return self._output.wait_for_line(match, timeout, what)
 
     def error(self, what: str) -> RunError:
         """A RunError saying ``what``, naming this run and ending with its last output lines."""
@@ -194,7 +194,7 @@ class Run:
         """The run directory, as the launcher announced it (waits for that line, at most STARTUP_S)."""
         if self._run_dir is None:
             head = self._RUN_LINE.format(name=self.name)
-            line = self.wait_for_line(lambda text: text.startswith(head))
+            line = self.wait_for_line(lambda text: text.startswith(head), what=f"its first line, {head}RUN_DIR")
             found = re.match(re.escape(head) + r"(.+?)  \(", line)
             if found is None:
                 raise self.error(f"cannot read the run directory from {line.strip()!r}")

@@ -506,7 +506,7 @@ def test_a_late_host_is_admitted_and_a_host_that_leaves_is_not_waited_for(tmp_pa
         return lambda line: "iter " in line and int(line.split("iter ")[1].split("/")[0]) >= n
 
     with primary, sim_host(1) as first:
-        primary.wait_for_line(at_iteration(3), 600)
+        primary.wait_for_line(at_iteration(3), 600, "iteration 3")
         with sim_host(2) as second:
             primary.wait_for_line("host 2 joined the run", 300)
             second.wait_for_line("all services live", 300)

@@ -253,7 +253,8 @@ def main() -> int:
                     "load_average_after": os.getloadavg()},
         "cores_shared": any(r["cores"] == "shared" for r in runs),
         "config": args.config, "hosts": hosts, "world_sizes": worlds, "cores_per_host": args.cores_per_host,
-        "warmup_s": args.warmup, "duration_s": args.duration, "min_updates": args.min_updates, "repeat": args.repeat, "overrides": args.set,
+        "warmup_s": args.warmup, "duration_s": args.duration, "min_updates": args.min_updates,
+        "repeat": args.repeat, "overrides": args.set,
         "summary": rows, "runs": runs,
     }, indent=2) + "\n")
     return 1 if leftover else 0

@@ -2,9 +2,10 @@
 
 :class:`Run` starts ``ebrl up CONFIG --set ...`` as a user would (a subprocess with its own bus on a
 free loopback port) and stops it with SIGINT, then SIGKILL; :class:`StatsWatcher` subscribes to the
-run's ``ebrl/stats/<run>/**`` on that port and keeps every :class:`~ebrl.messages.StatsReport`.
-Waiting is always for a condition with a deadline, never for a fixed time, and a wait that fails says
-what it waited for and how the run's output ended.
+run's ``ebrl/stats/<run>/**`` on that port and keeps every :class:`~ebrl.messages.StatsReport`;
+:class:`Output` keeps what a subprocess prints (a run's launcher, ``ebrl router``). Waiting is always
+for a condition with a deadline, never for a fixed time, and a wait that fails says what it waited for
+and how the process's output ended.
 """
 
 from __future__ import annotations

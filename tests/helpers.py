@@ -10,7 +10,8 @@ from pathlib import Path
 from ebrl.bus import Bus, BusOptions
 from ebrl.testing import Run, StatsWatcher, free_port, up_command, up_sets
 
-__all__ = ["ROOT", "Run", "StatsWatcher", "ebrl_up", "free_port", "loopback_bus", "run_collecting_stats", "until"]
+__all__ = ["ROOT", "Run", "StatsWatcher", "ebrl_up", "free_port", "loopback_bus", "run_collecting_stats", "until",
+           "up"]
 
 ROOT = Path(__file__).resolve().parent.parent
 

@@ -65,7 +65,7 @@ def test_ebrl_bench_prints_the_table_and_writes_json(tmp_path):
     proc = subprocess.run([sys.executable, "-m", "ebrl.cli", "bench", "configs/quickstart.toml", "--modes",
                            "ebrl,colocated,async", "--duration", "4", "--json", str(out_json), "--raw-seconds", "2",
                            "--set", f"run.output_dir={json.dumps(str(tmp_path / 'runs'))}"],
-                          cwd=ROOT, capture_output=True, text=True, timeout=300)
+                          cwd=ROOT, capture_output=True, text=True, timeout=850)
     assert proc.returncode == 0, proc.stderr
     assert "vs best baseline" in proc.stdout and "colocated" in proc.stdout and "(best)" in proc.stdout
     results = json.loads(out_json.read_text())["results"]

@@ -14,7 +14,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import signal
 import statistics
 import sys
 import time
@@ -23,19 +22,19 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from ebrl import bench, config  # noqa: E402
+from ebrl.testing import Run  # noqa: E402
 from ebrl.viz import record  # noqa: E402
 
 RESULTS = Path(__file__).resolve().parent / "results"
 
 
 def run(config_path: str, name: str, overrides: list[str], duration: float, out_dir: str) -> Path:
-    proc, _ = bench.launch(config_path, name, ["run.iterations=0", *overrides], out_dir)
-    try:
-        time.sleep(duration)
-    finally:
-        proc.send_signal(signal.SIGINT)
-        proc.wait(60)
-    return max(Path(out_dir).glob(f"{name}-*"), key=lambda p: p.stat().st_mtime)
+    """Run ``config_path`` for ``duration`` seconds, stop it as Ctrl-C would; its run directory."""
+    with Run(config_path, "run.iterations=0", *bench.RUN_SETS, *overrides, name=name, out_dir=out_dir,
+             stats_interval=1.0) as up:
+        time.sleep(duration)  # the run itself: the slowdown comes mid-way, and the allocator's answer (or none)
+        up.stop(60)
+    return up.run_dir
 
 
 def analyse(run_dir: Path, chunk: int, slow_after: float) -> dict:

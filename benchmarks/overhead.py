@@ -35,6 +35,7 @@ from ebrl import bench  # noqa: E402
 from ebrl.bus import Bus, BusOptions, keys  # noqa: E402
 from ebrl import config as config_mod  # noqa: E402
 from ebrl.service import SPAN_FLUSH_S, Service  # noqa: E402
+from ebrl.testing import free_port  # noqa: E402
 from ebrl.viz.record import Recorder  # noqa: E402
 
 RESULTS = Path(__file__).resolve().parent / "results"
@@ -62,7 +63,7 @@ def _recorder(port: int, path: str, ready, done, out) -> None:
 
 
 def micro(args) -> dict:
-    port = bench._free_port()
+    port = free_port()
     ctx = mp.get_context("spawn")
     ready, done, out = ctx.Event(), ctx.Event(), ctx.Queue()
     with tempfile.TemporaryDirectory() as tmp:

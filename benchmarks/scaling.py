@@ -7,8 +7,9 @@ the primary (``--only gen,train --instance 0``, ``train.world_size = W``) and H 
 --instance k``, k = 1..H), each launcher on its own loopback port, the sim hosts connecting to the primary.
 An update stays ``train.batch_size`` decisions: with more live sim hosts each env's share of an iteration
 is shorter, not the batch bigger. Once rank 0 published its first update and ``--warmup`` seconds passed,
-the script reads ``ebrl/stats/<run>/**`` for ``--duration`` seconds and takes each counter's difference between
-the first and last report of the window: env steps/s and segments/s summed over the sim hosts, updates/s of
+the script reads ``ebrl/stats/<run>/**`` for ``--duration`` seconds (longer where rank 0 has not finished
+``--min-updates`` updates in the window yet) and takes each counter's difference between the first and last
+report of the window: env steps/s and segments/s summed over the sim hosts, updates/s of
 rank 0. Configurations run interleaved (all of them, then all again for ``--repeat``) so that drift of a shared
 machine hits all alike.
 
@@ -24,21 +25,19 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import signal
 import statistics
-import subprocess
 import sys
 import time
 from pathlib import Path
 from typing import Any
 
 import psutil
-import zenoh
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from ebrl import bench, config  # noqa: E402
-from ebrl.bus.endpoints import free_port  # noqa: E402
+from ebrl import config  # noqa: E402
+from ebrl.messages import StatsReport  # noqa: E402
+from ebrl.testing import Run, StatsWatcher  # noqa: E402
 
 ROOT = Path(__file__).resolve().parent.parent
 RESULTS = ROOT / "benchmarks" / "results"
@@ -52,50 +51,42 @@ def core_plan(hosts: int, per_host: int, usable: list[int]) -> dict[int, list[in
     return {k: usable[k * per_host:(k + 1) * per_host] for k in range(hosts + 1)}
 
 
-def host_command(args, run: str, k: int, port: int, primary_port: int, world: int, hosts: int,
-                 cores: list[int] | None) -> list[str]:
-    """``ebrl up`` for host ``k`` of the run (0: gen and train; others: one sim host each)."""
-    cmd = [sys.executable, "-m", "ebrl.cli", "up", args.config, "--only", "gen,train" if k == 0 else "sim",
-           "--instance", str(k)]
-    sets = [f"run.name={run}", f"run.output_dir={json.dumps(str(Path(args.runs_dir) / run / f'host{k}'))}",
-            f'bus.listen=["tcp/127.0.0.1:{port}"]', f"train.world_size={world}",
-            "run.iterations=0", "run.target_return=1e9", "run.stats_interval=1.0", 'viz.rerun="off"',
+def host_run(args, run: str, k: int, primary: Run | None, world: int, cores: list[int] | None) -> Run:
+    """``ebrl up`` for host ``k`` of the run (0, the primary: gen and train; others: one sim host each, joining
+    the primary's bus); its launcher's output goes to ``launcher-<k>.log`` beside the hosts' run directories."""
+    out_dir = Path(args.runs_dir) / run / f"host{k}"
+    sets = [f"train.world_size={world}", "run.iterations=0", "run.target_return=1e9", 'viz.rerun="off"',
             "viz.report=false", *args.set]
-    if k > 0:
-        sets.append(f'bus.connect=["tcp/127.0.0.1:{primary_port}"]')
+    if primary is not None:
+        sets.append(f'bus.connect=["{primary.endpoint}"]')
     if cores is not None:
         sets += [f"gen.cores={cores}", f"train.cores={cores}"] if k == 0 else [f"sim.cores={cores}"]
-    for item in sets:
-        cmd += ["--set", item]
-    return cmd
+    return Run(args.config, *sets, name=run, out_dir=out_dir, stats_interval=1.0, cwd=ROOT,
+               args=["--only", "gen,train" if k == 0 else "sim", "--instance", str(k)],
+               log=Path(args.runs_dir) / run / f"launcher-{k}.log")
 
 
-def rate(reports: list[dict[str, Any]], name: str) -> float:
+def rate(reports: list[StatsReport], name: str) -> float:
     """Counter ``name`` per second between the first and last report that carry it."""
-    having = [r for r in reports if name in r["metrics"]]
+    having = [r for r in reports if name in r.metrics]
     if len(having) < 2:
         return 0.0
-    return (having[-1]["metrics"][name] - having[0]["metrics"][name]) / (having[-1]["time"] - having[0]["time"])
+    return (having[-1].metrics[name] - having[0].metrics[name]) / (having[-1].time - having[0].time)
 
 
-def stop(launchers: list[subprocess.Popen]) -> int:
+def stop(launchers: list[Run]) -> int:
     """SIGINT every launcher, wait, and make sure none of their processes is left; returns how many had to be
     killed (0 when every process stopped on its own)."""
     started = set()
-    for proc in launchers:
+    for run in launchers:
         try:
-            started |= {p.pid for p in psutil.Process(proc.pid).children(recursive=True)}
+            started |= {p.pid for p in psutil.Process(run.proc.pid).children(recursive=True)}
         except psutil.NoSuchProcess:
             pass
-    for proc in launchers:
-        if proc.poll() is None:
-            proc.send_signal(signal.SIGINT)
-    for proc in launchers:
-        try:
-            proc.wait(STOP_S)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            proc.wait()
+    for run in launchers:
+        run.interrupt()
+    for run in launchers:
+        run.stop(STOP_S)
     left = []
     for pid in started:
         try:
@@ -110,48 +101,59 @@ def stop(launchers: list[subprocess.Popen]) -> int:
     return len(alive)
 
 
+def grew(reports: list[StatsReport], name: str, by: float) -> bool:
+    """Did counter ``name`` grow by at least ``by`` between the first and last of ``reports``?"""
+    values = [r.metrics[name] for r in reports if name in r.metrics]
+    return len(values) > 1 and values[-1] - values[0] >= by
+
+
 def measure(args, hosts: int, world: int, rep: int) -> dict[str, Any]:
     """One run with ``hosts`` sim hosts and ``world`` training ranks: its throughput over the window."""
     run = f"scale-h{hosts}-w{world}-r{rep}"
     usable = sorted(os.sched_getaffinity(0))
     plan = core_plan(hosts, args.cores_per_host, usable)
-    ports = [free_port() for _ in range(hosts + 1)]
-    logs = Path(args.runs_dir) / run
-    logs.mkdir(parents=True, exist_ok=True)
-    window = bench.StatsWindow()
-    conf = zenoh.Config()
-    conf.insert_json5("scouting/multicast/enabled", "false")
-    conf.insert_json5("connect/endpoints", json.dumps([f"tcp/127.0.0.1:{ports[0]}"]))
-    launchers: list[subprocess.Popen] = []
+    (Path(args.runs_dir) / run).mkdir(parents=True, exist_ok=True)
+    sims = [f"sim/{k}" for k in range(1, hosts + 1)]
+    launchers: list[Run] = []
     began = time.monotonic()
     try:
-        for k in range(hosts + 1):
-            cmd = host_command(args, run, k, ports[k], ports[0], world, hosts, plan and plan[k])
-            with open(logs / f"launcher-{k}.log", "w") as fh:
-                launchers.append(subprocess.Popen(cmd, cwd=ROOT, stdout=fh, stderr=subprocess.STDOUT,
-                                                  stdin=subprocess.DEVNULL))
-            if k == 0:
-                time.sleep(1.0)  # the primary listens before the sim hosts connect
-        with zenoh.open(conf) as session:
-            session.declare_subscriber(f"ebrl/stats/{run}/**", window.on_sample)
-            sims = [f"sim/{k}" for k in range(1, hosts + 1)]
-            deadline = time.monotonic() + args.startup_timeout
-            while ((window.latest("train/0", "train/policy_version") or 0) < 1
-                   or any(window.latest(s, "sim/env_steps") is None for s in sims)):
-                ended = [k for k, p in enumerate(launchers) if p.poll() is not None]
-                if ended or time.monotonic() > deadline:
-                    why = f"host {ended[0]} exited" if ended else f"no update after {args.startup_timeout:.0f} s"
-                    tail = (logs / f"launcher-{ended[0] if ended else 0}.log").read_text()[-3000:]
-                    raise RuntimeError(f"{run}: {why}; its launcher said:\n{tail}")
-                time.sleep(0.2)
+        primary = host_run(args, run, 0, None, world, plan and plan[0])
+        launchers.append(primary)
+        primary.wait_for_line(f"run {run}: ")  # its first line: the primary's bus is open for the sim hosts
+        for k in range(1, hosts + 1):
+            launchers.append(host_run(args, run, k, primary, world, plan and plan[k]))
+
+        def all_running() -> None:
+            for host in launchers:
+                host.check_running(f"{run} to measure")
+
+        with StatsWatcher(primary) as stats:
+
+            def warm() -> bool:
+                all_running()
+                return ((stats.latest("train/0", "train/policy_version") or 0) >= 1
+                        and all(stats.latest(s, "sim/env_steps") is not None for s in sims))
+
+            stats.wait_for(warm, args.startup_timeout, "the first update and every sim host's report")
             warm_s = time.monotonic() - began
-            time.sleep(args.warmup)
-            t0 = time.time()
-            time.sleep(args.duration)
+            t0 = time.time() + args.warmup
+
+            def window_done() -> bool:
+                """At least --duration s, and every counter moved inside the window (a loaded machine may take
+                longer for one update than --duration)."""
+                all_running()
+                now = time.time()
+                reports = stats.between(t0, now)
+                return (now - t0 >= args.duration
+                        and grew(reports.get("train/0", []), "train/updates", args.min_updates)
+                        and all(grew(reports.get(s, []), "sim/env_steps", 1) for s in sims))
+
+            stats.wait_for(window_done, args.warmup + args.duration + args.startup_timeout,
+                           f"a window of {args.duration:g} s with {args.min_updates} update(s) of rank 0")
             t1 = time.time()
     finally:
         leftover = stop(launchers)
-    reports = window.between(t0, t1)
+    reports = stats.between(t0, t1)
     return {
         "hosts": hosts, "world_size": world, "repeat": rep, "run": run,
         "cores": {("primary" if k == 0 else f"sim{k}"): c for k, c in plan.items()} if plan else "shared",
@@ -159,7 +161,7 @@ def measure(args, hosts: int, world: int, rep: int) -> dict[str, Any]:
         "segments_per_s": sum(rate(reports.get(s, []), "sim/segments") for s in sims),
         "updates_per_s": rate(reports.get("train/0", []), "train/updates"),
         "per_host_env_steps_per_s": {s: rate(reports.get(s, []), "sim/env_steps") for s in sims},
-        "first_update_after_s": round(warm_s, 1), "leftover_processes": leftover,
+        "window_s": round(t1 - t0, 1), "first_update_after_s": round(warm_s, 1), "leftover_processes": leftover,
     }
 
 
@@ -207,6 +209,8 @@ def main() -> int:
                         help="disjoint cores per host when the machine has (H + 1) x C; 0: every host shares all")
     parser.add_argument("--warmup", type=float, default=5.0, help="seconds after the first update, not measured")
     parser.add_argument("--duration", type=float, default=15.0, help="seconds measured per configuration")
+    parser.add_argument("--min-updates", type=int, default=1,
+                        help="the window goes on past --duration until rank 0 finished this many updates in it")
     parser.add_argument("--repeat", type=int, default=2, help="rounds over every configuration (interleaved)")
     parser.add_argument("--startup-timeout", type=float, default=240.0)
     parser.add_argument("--set", action="append", default=[], metavar="SECTION.KEY=VALUE",
@@ -249,7 +253,8 @@ def main() -> int:
                     "load_average_after": os.getloadavg()},
         "cores_shared": any(r["cores"] == "shared" for r in runs),
         "config": args.config, "hosts": hosts, "world_sizes": worlds, "cores_per_host": args.cores_per_host,
-        "warmup_s": args.warmup, "duration_s": args.duration, "repeat": args.repeat, "overrides": args.set,
+        "warmup_s": args.warmup, "duration_s": args.duration, "min_updates": args.min_updates,
+        "repeat": args.repeat, "overrides": args.set,
         "summary": rows, "runs": runs,
     }, indent=2) + "\n")
     return 1 if leftover else 0

@@ -4,8 +4,8 @@
     python benchmarks/soak.py --minutes 2 --out /tmp/soak.json  # what `make test-slow` runs
 
 Starts a real `ebrl up` (the target return is set out of reach, so it runs for
-``--minutes``), records every service's ``proc/rss_mb`` from its stats
-reports, then stops it with SIGINT. For each service: resident memory at the end
+``--minutes`` after its first stats report), records every service's
+``proc/rss_mb`` from its stats reports, then stops it with SIGINT. For each service: resident memory at the end
 of the warm-up (the median over the minute after ``--warmup`` of the run; less
 for short runs) and at the end (the median over the last minute), the growth
 between them, and the least-squares slope after warm-up in MB per hour. A
@@ -21,79 +21,53 @@ import argparse
 import json
 import os
 import platform
-import signal
-import subprocess
 import sys
-import threading
 import time
 from pathlib import Path
 
-import msgpack
 import numpy as np
-import zenoh
+
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+
+from ebrl.testing import STARTUP_S, Run, RunError, StatsWatcher, source  # noqa: E402
 
 ROOT = Path(__file__).resolve().parent.parent
 RESULTS = Path(__file__).resolve().parent / "results"
 
 
-def free_port() -> int:
-    import socket
-
-    with socket.socket() as sock:
-        sock.bind(("127.0.0.1", 0))
-        return sock.getsockname()[1]
-
-
 def soak(config: str, minutes: float, warmup: float, out_dir: str, overrides: list[str]) -> dict:
-    port, run = free_port(), "soak"
-    cmd = [sys.executable, "-m", "ebrl.cli", "up", config, "--set", f"run.name={run}",
-           "--set", "run.iterations=0", "--set", "run.target_return=1e12",
-           "--set", f'bus.listen=["tcp/127.0.0.1:{port}"]', "--set", f'run.output_dir="{out_dir}"']
-    for item in overrides:
-        cmd += ["--set", item]
+    overrides = ["run.iterations=0", "run.target_return=1e12", *overrides]
+    try:
+        with Run(config, *overrides, name="soak", out_dir=out_dir, stats_interval=None, cwd=ROOT) as run, \
+                StatsWatcher(run) as stats:
+            # the soak's clock starts at the run's first stats report: start-up is no part of its minutes
+            stats.wait_for(lambda: stats.reports(), STARTUP_S, "the run's first stats report")
+            start = stats.reports()[0].time
+            stats.wait_for(lambda: time.time() >= start + minutes * 60, minutes * 60 + 60, f"{minutes:g} minutes")
+            code = run.stop(60)
+    except RunError as exc:
+        raise SystemExit(str(exc)) from None
+    if code not in (0, 130):
+        raise SystemExit(f"ebrl up failed ({code}):\n{run.output}")
     samples: dict[str, list[tuple[float, float]]] = {}
-    lock = threading.Lock()
-    start = time.time()
-
-    def on_sample(sample) -> None:
-        key = str(sample.key_expr).split("/", 3)[3]
-        if key.startswith(("spans/", "events/")):
-            return
-        metrics = msgpack.unpackb(sample.payload.to_bytes())["metrics"]
-        if "proc/rss_mb" in metrics:
-            with lock:
-                samples.setdefault(key, []).append((time.time() - start, metrics["proc/rss_mb"]))
-
-    proc = subprocess.Popen(cmd, cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
-    conf = zenoh.Config()
-    conf.insert_json5("scouting/multicast/enabled", "false")
-    conf.insert_json5("connect/endpoints", f'["tcp/127.0.0.1:{port}"]')
-    with zenoh.open(conf) as session:
-        session.declare_subscriber(f"ebrl/stats/{run}/**", on_sample)
-        deadline = start + minutes * 60
-        while time.time() < deadline and proc.poll() is None:
-            time.sleep(1.0)
-        if proc.poll() is None:
-            proc.send_signal(signal.SIGINT)
-        out, _ = proc.communicate(timeout=60)
-    if proc.returncode not in (0, 130):
-        raise SystemExit(f"ebrl up failed ({proc.returncode}):\n{out}")
+    for report in stats.reports():
+        if "proc/rss_mb" in report.metrics:
+            samples.setdefault(source(report), []).append((report.time - start, report.metrics["proc/rss_mb"]))
     elapsed = time.time() - start
     window = min(60.0, elapsed * 0.2)
     rows = {}
-    with lock:
-        for service, points in sorted(samples.items()):
-            t = np.array([p[0] for p in points])
-            rss = np.array([p[1] for p in points])
-            after = t >= warmup
-            if after.sum() < 3:
-                continue
-            warm = rss[after & (t < warmup + window)]
-            end = rss[t >= t[-1] - window]
-            slope = np.polyfit(t[after] / 3600, rss[after], 1)[0]  # MB per hour
-            rows[service] = {"warm_mb": round(float(np.median(warm)), 1), "end_mb": round(float(np.median(end)), 1),
-                             "growth_pct": round(100 * (np.median(end) / np.median(warm) - 1), 2),
-                             "slope_mb_per_h": round(float(slope), 1), "samples": int(len(points))}
+    for service, points in sorted(samples.items()):
+        t = np.array([p[0] for p in points])
+        rss = np.array([p[1] for p in points])
+        after = t >= warmup
+        if after.sum() < 3:
+            continue
+        warm = rss[after & (t < warmup + window)]
+        end = rss[t >= t[-1] - window]
+        slope = np.polyfit(t[after] / 3600, rss[after], 1)[0]  # MB per hour
+        rows[service] = {"warm_mb": round(float(np.median(warm)), 1), "end_mb": round(float(np.median(end)), 1),
+                         "growth_pct": round(100 * (np.median(end) / np.median(warm) - 1), 2),
+                         "slope_mb_per_h": round(float(slope), 1), "samples": int(len(points))}
     return {"config": config, "minutes": round(elapsed / 60, 2), "warmup_s": warmup, "services": rows,
             "command": "python benchmarks/soak.py " + " ".join(sys.argv[1:]),
             "machine": f"{platform.machine()}, {os.cpu_count()} cores"}

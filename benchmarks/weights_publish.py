@@ -41,7 +41,6 @@ import multiprocessing as mp
 import os
 import platform
 import resource
-import socket
 import statistics
 import sys
 import time
@@ -54,6 +53,7 @@ import zenoh
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from ebrl.bus import Bus, BusOptions, keys, zenoh_config  # noqa: E402
+from ebrl.bus.endpoints import free_port  # noqa: E402
 from ebrl.messages import Weights, encode_message  # noqa: E402
 from ebrl.policies import load_arrays  # noqa: E402
 from ebrl.weights import PART_BYTES, SINGLE_MAX_BYTES, WeightsPublisher, WeightsReceiver  # noqa: E402
@@ -265,12 +265,6 @@ def print_table(summary: list[dict]) -> None:
               f"{s['latency_cold_ms']} | {s['throughput_mb_per_s']} | {s['pub_loop_max_gap_median_ms']}/"
               f"{s['pub_loop_max_gap_ms']} | {s['sub_loop_max_gap_median_ms']}/{s['sub_loop_max_gap_ms']} | "
               f"{s['load_median_ms']} |")
-
-
-def free_port() -> int:
-    with socket.socket() as sock:
-        sock.bind(("127.0.0.1", 0))
-        return sock.getsockname()[1]
 
 
 def main() -> None:

@@ -1,6 +1,6 @@
 """``ebrl bench``: the same workload in several modes, interleaved, measured from the stats stream.
 
-Each measurement is a real ``ebrl up`` run (a subprocess with its own bus port):
+Each measurement is a real ``ebrl up`` run (``ebrl.testing.Run``: a subprocess with its own bus port):
 after every service is live and the first policy update is published, the
 bench process reads ``ebrl/stats/<run>/**`` for ``--duration`` seconds (or until
 ``--trajectories`` more segments are done) and takes the difference of the
@@ -13,22 +13,18 @@ from __future__ import annotations
 
 import json
 import os
-import signal
-import socket
 import statistics
-import subprocess
 import sys
-import threading
 import time
 from pathlib import Path
 from typing import Any
 
-import msgpack
-import zenoh
-
 from ebrl import config as config_mod
+from ebrl.messages import StatsReport
+from ebrl.testing import Run, RunError, StatsWatcher, source
 
 BASELINES = ("colocated", "hybrid", "async")
+RUN_SETS = ("viz.report=false",)  # before the user's overrides: a measured run writes no report
 # The mechanisms ``--ablations`` switches, each by its config key. A variant flips one of them from what the
 # ebrl mode runs with this config: ``ebrl-no_<name>`` switches it off, ``ebrl+<name>`` on where the config
 # leaves it off (the allocator is off by default, so its variant is usually ``ebrl+allocator``).
@@ -66,115 +62,30 @@ def ablation_variants(config: str, overrides: list[str]) -> dict[str, list[str]]
     return out
 
 
-def _free_port() -> int:
-    with socket.socket() as sock:
-        sock.bind(("127.0.0.1", 0))
-        return sock.getsockname()[1]
-
-
-class StatsWindow:
-    """Collects every stats report of one run (thread-safe; filled by a Zenoh callback)."""
-
-    def __init__(self) -> None:
-        self.lock = threading.Lock()
-        self.reports: list[tuple[str, dict[str, Any]]] = []
-
-    def on_sample(self, sample: zenoh.Sample) -> None:
-        key = str(sample.key_expr).split("/", 3)[3]
-        if key.startswith(("spans/", "events/")):  # timeline spans and the event log are not stats
-            return
-        try:
-            report = msgpack.unpackb(sample.payload.to_bytes())
-        except Exception:
-            return
-        with self.lock:
-            self.reports.append((key, report))
-
-    def latest(self, source: str, name: str) -> float | None:
-        with self.lock:
-            for key, report in reversed(self.reports):
-                if key == source and name in report["metrics"]:
-                    return report["metrics"][name]
-        return None
-
-    def latest_report(self, source: str, name: str) -> tuple[float, float] | None:
-        """(report time, value) of the newest report of ``source`` that has ``name``."""
-        with self.lock:
-            for key, report in reversed(self.reports):
-                if key == source and name in report["metrics"]:
-                    return report["time"], report["metrics"][name]
-        return None
-
-    def between(self, t0: float, t1: float) -> dict[str, list[dict[str, Any]]]:
-        with self.lock:
-            out: dict[str, list[dict[str, Any]]] = {}
-            for key, report in self.reports:
-                if t0 <= report["time"] <= t1:
-                    out.setdefault(key, []).append(report)
-            return out
-
-
-def launch(config: str, name: str, overrides: list[str], out_dir: str) -> tuple[subprocess.Popen, zenoh.Config]:
-    """Start ``ebrl up config`` as run ``name`` on a free loopback port; return the process and a
-    Zenoh config that connects to its bus."""
-    port = _free_port()
-    cmd = [sys.executable, "-m", "ebrl.cli", "up", config, "--set", f"run.name={name}",
-           "--set", f"run.output_dir={json.dumps(out_dir)}", "--set", f'bus.listen=["tcp/127.0.0.1:{port}"]',
-           "--set", "run.stats_interval=1.0", "--set", "viz.report=false"]
-    for item in overrides:
-        cmd += ["--set", item]
-    conf = zenoh.Config()
-    conf.insert_json5("scouting/multicast/enabled", "false")
-    conf.insert_json5("connect/endpoints", f'["tcp/127.0.0.1:{port}"]')
-    return subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True), conf
-
-
 def measure(config: str, mode: str, extra: list[str], duration: float, startup_timeout: float = 300.0,
             out_dir: str = "runs/bench", trajectories: int = 0, max_seconds: float = 3600.0) -> dict[str, Any]:
     """One run of ``config`` in ``mode`` (a mode or a variant name): throughput and latencies over
     ``duration`` seconds after warm-up or, with ``trajectories`` > 0, until that many more trajectory
-    segments are done (at most ``max_seconds``)."""
+    segments are done (at most ``max_seconds``). The run keeps a ``run.name`` given in ``extra``."""
     name = f"bench-{mode}".replace("_", "-").replace("+", "-with-")[:40]
-    proc, conf = launch(config, name, [f"run.mode={base_mode(mode)}", "run.iterations=0", *extra], out_dir)
-    window = StatsWindow()
-
-    def wait(done: Any, timeout: float, what: str) -> None:
-        deadline = time.monotonic() + timeout
-        while not done():
-            if proc.poll() is not None:
-                raise RuntimeError(f"{mode}: the run ended (exit {proc.returncode}) {what}:\n{proc.stdout.read()}")
-            if time.monotonic() > deadline:
-                raise RuntimeError(f"{mode}: no result after {timeout:.0f} s {what}")
-            time.sleep(0.2)
-
-    try:
-        with zenoh.open(conf) as session:
-            session.declare_subscriber(f"ebrl/stats/{name}/**", window.on_sample)
-            # warm: one update done, so start-up and the first compile are outside the window
-            wait(lambda: (window.latest("train/0", "train/policy_version") or 0) >= 1, startup_timeout,
-                 "while warming up")
-            if trajectories > 0:
-                wait(lambda: window.latest_report("sim/0", "sim/segments") is not None, startup_timeout,
-                     "before its first sim report")
-                t0, base = window.latest_report("sim/0", "sim/segments")
-
-                def enough() -> bool:
-                    return window.latest_report("sim/0", "sim/segments")[1] - base >= trajectories
-
-                wait(enough, max_seconds, f"before {trajectories} trajectories")
-                t1 = window.latest_report("sim/0", "sim/segments")[0]
-            else:
-                t0 = time.time()
-                wait(lambda: time.time() - t0 >= duration, duration + 60, "during the measurement")
-                t1 = time.time()
-    finally:
-        if proc.poll() is None:
-            proc.send_signal(signal.SIGINT)
-        try:
-            proc.wait(30)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-    return summarize(window.between(t0, t1), t1 - t0)
+    overrides = [f"run.mode={base_mode(mode)}", "run.iterations=0", *RUN_SETS, *extra]
+    with Run(config, *overrides, name=name, out_dir=out_dir, stats_interval=1.0) as run, StatsWatcher(run) as stats:
+        # warm: one update done, so start-up and the first compile are outside the window
+        stats.wait_for(lambda: (stats.latest("train/0", "train/policy_version") or 0) >= 1, startup_timeout,
+                       f"{mode}'s first policy update (warm-up)")
+        if trajectories > 0:
+            stats.wait_for(lambda: stats.latest_report("sim/0", "sim/segments") is not None, startup_timeout,
+                           f"{mode}'s first sim report")
+            first = stats.latest_report("sim/0", "sim/segments")
+            t0, base = first.time, first.metrics["sim/segments"]
+            stats.wait_for(lambda: stats.latest("sim/0", "sim/segments") - base >= trajectories, max_seconds,
+                           f"{trajectories} trajectories of {mode}")
+            t1 = stats.latest_report("sim/0", "sim/segments").time
+        else:
+            t0 = time.time()
+            stats.wait_for(lambda: time.time() - t0 >= duration, duration + 60, f"the end of {mode}'s window")
+            t1 = time.time()
+    return summarize(stats.between(t0, t1), t1 - t0)
 
 
 def learning_curve(config: str, overrides: list[str], name: str, timeout: float = 1800.0,
@@ -182,40 +93,35 @@ def learning_curve(config: str, overrides: list[str], name: str, timeout: float 
     """Run ``config`` to its end and return the learning curve: one point per sim stats report with
     wall seconds since launch, env steps, policy version and mean return of the last 20 episodes."""
     started = time.time()
-    proc, conf = launch(config, name, overrides, out_dir)
-    window = StatsWindow()
-    with zenoh.open(conf) as session:
-        session.declare_subscriber(f"ebrl/stats/{name}/**", window.on_sample)
+    with Run(config, *RUN_SETS, *overrides, name=name, out_dir=out_dir, stats_interval=1.0) as run, \
+            StatsWatcher(run) as stats:
         try:
-            out, _ = proc.communicate(timeout=timeout)
-        except subprocess.TimeoutExpired:
-            proc.send_signal(signal.SIGINT)
-            out, _ = proc.communicate(timeout=60)
-    if proc.returncode not in (0, 130):
-        raise RuntimeError(f"{name}: ebrl up failed ({proc.returncode}):\n{out}")
-    with window.lock:
-        reports = sorted(window.reports, key=lambda kr: kr[1]["time"])
+            code = run.wait(timeout)
+        except RunError:  # out of time: stopped as Ctrl-C would, keeping the curve so far
+            code = run.stop(60)
+    if code not in (0, 130):
+        raise RuntimeError(f"{run.name}: ebrl up failed ({code}):\n{run.output}")
     curve, version = [], 0.0
-    for key, report in reports:
-        m = report["metrics"]
-        if key == "train/0":
+    for report in sorted(stats.reports(), key=lambda r: r.time):
+        m = report.metrics
+        if source(report) == "train/0":
             version = m.get("train/policy_version", version)
-        elif key == "sim/0" and "sim/episode_return_mean" in m:
-            curve.append({"wall_s": report["time"] - started, "env_steps": m["sim/env_steps"],
+        elif source(report) == "sim/0" and "sim/episode_return_mean" in m:
+            curve.append({"wall_s": report.time - started, "env_steps": m["sim/env_steps"],
                           "policy_version": version, "return": m["sim/episode_return_mean"]})
     return curve
 
 
-def _delta(reports: list[dict[str, Any]], name: str) -> float:
-    values = [r["metrics"][name] for r in reports if name in r["metrics"]]
+def _delta(reports: list[StatsReport], name: str) -> float:
+    values = [r.metrics[name] for r in reports if name in r.metrics]
     return values[-1] - values[0] if len(values) > 1 else 0.0
 
 
-def _span_s(reports: list[dict[str, Any]]) -> float:
-    return reports[-1]["time"] - reports[0]["time"] if len(reports) > 1 else 0.0
+def _span_s(reports: list[StatsReport]) -> float:
+    return reports[-1].time - reports[0].time if len(reports) > 1 else 0.0
 
 
-def summarize(window: dict[str, list[dict[str, Any]]], duration: float) -> dict[str, Any]:
+def summarize(window: dict[str, list[StatsReport]], duration: float) -> dict[str, Any]:
     sim, gen, train = window.get("sim/0", []), window.get("gen/0", []), window.get("train/0", [])
     dt = _span_s(sim) or duration
     out = {
@@ -225,12 +131,12 @@ def summarize(window: dict[str, list[dict[str, Any]]], duration: float) -> dict[
         "env_steps_per_s": _delta(sim, "sim/env_steps") / dt,
         "updates_per_s": _delta(train, "train/updates") / (_span_s(train) or duration),
     }
-    last = sim[-1]["metrics"] if sim else {}
+    last = sim[-1].metrics if sim else {}
     for q in ("avg", "p50", "p99"):
         out[f"chunk_latency_{q}_ms"] = last.get(f"sim/chunk_latency_{q}_ms", float("nan"))
     # Busy fraction of each stage over the window (from spans, via the busy/<lane> metrics).
-    def busy(reports: list[dict[str, Any]], prefix: str) -> float:
-        fractions = [sum(v for k, v in r["metrics"].items() if k.startswith(prefix)) for r in reports[1:]]
+    def busy(reports: list[StatsReport], prefix: str) -> float:
+        fractions = [sum(v for k, v in r.metrics.items() if k.startswith(prefix)) for r in reports[1:]]
         return statistics.fmean(fractions) if fractions else 0.0
 
     groups = max(1, sum(1 for k in last if k.startswith("busy/sim.g")))

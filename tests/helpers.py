@@ -1,19 +1,21 @@
-"""Test helpers: free loopback ports, a bus on loopback, a connected pair of buses, waiting for conditions."""
+"""Test helpers: a bus on loopback, a connected pair of buses, waiting for conditions, and real `ebrl up` runs
+(from ebrl.testing)."""
 
 from __future__ import annotations
 
 import asyncio
 import contextlib
-import socket
+import subprocess
 import time
+from pathlib import Path
 
 from ebrl.bus import Bus, BusOptions, MemoryBus, MemoryNetwork
+from ebrl.testing import Run, StatsWatcher, free_port, up_command, up_sets
 
+__all__ = ["BUS_KINDS", "ROOT", "Run", "StatsWatcher", "bus_pair", "ebrl_up", "free_port", "loopback_bus",
+           "run_collecting_stats", "until", "up"]
 
-def free_port() -> int:
-    with socket.socket() as sock:
-        sock.bind(("127.0.0.1", 0))
-        return sock.getsockname()[1]
+ROOT = Path(__file__).resolve().parent.parent
 
 
 def loopback_bus(port: int, *, listen: bool = True) -> Bus:
@@ -71,46 +73,23 @@ async def until(predicate, timeout: float = 10.0, what: str = "condition") -> No
         await asyncio.sleep(0.02)
 
 
-ROOT = __import__("pathlib").Path(__file__).resolve().parent.parent
+def up(out_dir, config: str, *overrides: str, name: str, args=(), port: int | None = None) -> Run:
+    """A real `ebrl up` of ``config`` (relative to the repository) as run ``name``, writing into ``out_dir``."""
+    return Run(ROOT / config, *overrides, name=name, out_dir=out_dir, args=args, port=port, cwd=ROOT)
 
 
 def ebrl_up(out_dir, config: str, *overrides: str, port: int | None = None):
-    """Start a real `ebrl up` on a free loopback port; return (Popen with text stdout, port)."""
-    import json
-    import subprocess
-    import sys
-
+    """Start a real `ebrl up` on a free loopback port for a test that drives the process itself; return
+    (Popen with text stdout, port). Prefer :func:`up` (an ebrl.testing.Run)."""
     port = port or free_port()
-    cmd = [sys.executable, "-m", "ebrl.cli", "up", str(ROOT / config), "--set", f"run.output_dir={json.dumps(str(out_dir))}",
-           "--set", f'bus.listen=["tcp/127.0.0.1:{port}"]', "--set", "run.stats_interval=0.5"]
-    for item in overrides:
-        cmd += ["--set", item]
+    cmd = up_command(ROOT / config, up_sets(out_dir, port, overrides=overrides))
     proc = subprocess.Popen(cmd, cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     return proc, port
 
 
-def run_collecting_stats(out_dir, config: str, *overrides: str, run: str, timeout: float = 180):
+def run_collecting_stats(out_dir, config: str, *overrides: str, run: str, timeout: float = 300):
     """Run `ebrl up` to the end while collecting every stats report; return (returncode, output, stats)
     with stats as {"<service>/<instance>": [metrics, ...]} in arrival order."""
-    import msgpack
-    import zenoh
-
-    proc, port = ebrl_up(out_dir, config, f"run.name={run}", *overrides)
-    conf = zenoh.Config()
-    conf.insert_json5("scouting/multicast/enabled", "false")
-    conf.insert_json5("connect/endpoints", f'["tcp/127.0.0.1:{port}"]')
-    seen: dict[str, list[dict]] = {}
-
-    def on_sample(sample) -> None:
-        key = str(sample.key_expr).split("/", 3)[3]
-        if not key.startswith(("spans/", "events/")):
-            seen.setdefault(key, []).append(msgpack.unpackb(sample.payload.to_bytes())["metrics"])
-
-    with zenoh.open(conf) as session:
-        session.declare_subscriber(f"ebrl/stats/{run}/**", on_sample)
-        try:
-            out, _ = proc.communicate(timeout=timeout)
-        except Exception:
-            proc.kill()
-            raise
-    return proc.returncode, out, seen
+    with up(out_dir, config, *overrides, name=run) as started, StatsWatcher(started) as stats:
+        code = started.wait(timeout)
+    return code, started.output, stats.by_source()

@@ -123,10 +123,12 @@ def test_ebrl_up_with_a_bad_only_exits_2_and_starts_nothing(tmp_path):
 # --- two hosts on loopback ports ------------------------------------------------------------------------
 
 
-def up(out_dir, *args: str, name: str) -> subprocess.Popen:
-    cmd = [sys.executable, "-m", "ebrl.cli", "up", QUICK, *args, "--set", f"run.output_dir={json.dumps(str(out_dir))}",
-           "--set", f"run.name={name}", "--set", "run.stats_interval=0.5", "--set", 'viz.rerun="off"']
-    return subprocess.Popen(cmd, cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+def host(out_dir, *args: str, name: str, sets=(), joins: helpers.Run | None = None,
+         port: int | None = None) -> helpers.Run:
+    """One host's `ebrl up` of the quickstart on its own loopback port (``args``: --only, --instance), joining
+    the bus of ``joins`` if given."""
+    overrides = ['viz.rerun="off"', *sets] + ([f'bus.connect=["{joins.endpoint}"]'] if joins is not None else [])
+    return helpers.up(out_dir, "configs/quickstart.toml", *overrides, name=name, args=args, port=port)
 
 
 def summary(out_dir) -> dict:
@@ -137,20 +139,13 @@ def summary(out_dir) -> dict:
 def test_sim_on_another_host_trains_and_the_primary_ends_the_run(tmp_path):
     """`--only`: gen+train as host 0, sim as host 1 joining through host 0's endpoint; a second sim host
     with the same number is refused."""
-    port = helpers.free_port()
-    primary = up(tmp_path / "p", "--only", "gen,train", "--set", f'bus.listen=["tcp/127.0.0.1:{port}"]',
-                 "--set", "run.iterations=4", name="multi")
-    sim_args = ["--only", "sim", "--instance", "1", "--set", f'bus.connect=["tcp/127.0.0.1:{port}"]']
-    secondary = up(tmp_path / "s", *sim_args, "--set", f'bus.listen=["tcp/127.0.0.1:{helpers.free_port()}"]',
-                   name="multi")
-    try:
-        out, _ = primary.communicate(timeout=150)
-        sim_out, _ = secondary.communicate(timeout=30)
-    finally:
-        primary.kill()
-        secondary.kill()
-    assert primary.returncode == 0, out
-    assert secondary.returncode == 0, sim_out
+    with host(tmp_path / "p", "--only", "gen,train", sets=["run.iterations=4"], name="multi") as primary, \
+            host(tmp_path / "s", "--only", "sim", "--instance", "1", name="multi", joins=primary) as secondary:
+        code = primary.wait(300)
+        sim_code = secondary.wait(120)  # it stops once the primary said so
+    out, sim_out = primary.output, secondary.output
+    assert code == 0, out
+    assert sim_code == 0, sim_out
     assert "host 1 joined the run" in out and "the primary host ended the run" in sim_out
     done = summary(tmp_path / "p")
     assert done["iterations"] == 4 and done["env_steps"] > 0 and done["hosts"] == [0, 1]
@@ -163,36 +158,30 @@ def test_the_allocator_on_a_host_without_a_simulator_counts_the_other_hosts(tmp_
     from ebrl.alloc.algorithm import Profiles
     from ebrl.alloc.profile import fingerprint, save
     from ebrl.resources.pool import ResourcePool
+    from ebrl.testing import up_sets
     from ebrl.viz import record
 
     port = helpers.free_port()
-    common = ["--set", "alloc.enabled=true", "--set", "alloc.window=3", "--set", "alloc.patience=2"]
-    primary_args = ["--only", "gen,train", "--set", f'bus.listen=["tcp/127.0.0.1:{port}"]', "--set",
-                    "run.iterations=10", *common]
-    cfg = config.load(QUICK, [a for a in primary_args[2:] if a != "--set"] + [
-        f"run.output_dir={json.dumps(str(tmp_path / 'p'))}", "run.name=multialloc", "run.stats_interval=0.5",
-        'viz.rerun="off"'])
+    common = ["alloc.enabled=true", "alloc.window=3", "alloc.patience=2"]
+    primary_sets = ['viz.rerun="off"', "run.iterations=10", *common]
+    cfg = config.load(QUICK, up_sets(tmp_path / "p", port, "multialloc", overrides=primary_sets))  # as the run's
     pool = ResourcePool(gpu_pool="none")
     n = len(pool.cores)
     profiles = Profiles(sim={(1, e, e): 1000.0 * e for e in range(1, n + 1)},
                         gen={(c, b): 4000.0 * c for c in range(1, n + 1) for b in (4, 8)},
                         train={(c, 1024): 3000.0 * c for c in range(1, n + 1)})
     save(tmp_path / "p" / "profiles" / "multialloc.json", profiles, fingerprint(pool, cfg))
-    primary = up(tmp_path / "p", *primary_args, name="multialloc")
-    secondary = up(tmp_path / "s", "--only", "sim", "--instance", "1", *common, "--set",
-                   f'bus.connect=["tcp/127.0.0.1:{port}"]', "--set",
-                   f'bus.listen=["tcp/127.0.0.1:{helpers.free_port()}"]', name="multialloc")
-    try:
-        out, _ = primary.communicate(timeout=180)
-        sim_out, _ = secondary.communicate(timeout=30)
-    finally:
-        primary.kill()
-        secondary.kill()
-    assert primary.returncode == 0, out
-    assert secondary.returncode == 0, sim_out
+    with host(tmp_path / "p", "--only", "gen,train", sets=primary_sets[1:], name="multialloc", port=port) as primary, \
+            host(tmp_path / "s", "--only", "sim", "--instance", "1", sets=common, name="multialloc",
+                 joins=primary) as secondary:
+        code = primary.wait(300)
+        sim_code = secondary.wait(120)
+    out, sim_out = primary.output, secondary.output
+    assert code == 0, out
+    assert sim_code == 0, sim_out
     assert "allocator: reused profile" in out and "sim cores []" in out, out  # no simulator here
     assert "allocator:" not in sim_out  # host 1 runs no allocator
-    (run,) = [p for p in (tmp_path / "p").iterdir() if p.is_dir() and p.name != "profiles"]
+    run = primary.run_dir
     assert "(no simulator on this host)" in (run / "logs" / "alloc-0.log").read_text()
     allocs = [r.metrics for r in record.read(run).stats if r.service == "alloc"]
     assert max(m.get("alloc/sim_hosts", 0) for m in allocs) == 1  # host 1's simulator, seen through the bus
@@ -203,21 +192,11 @@ def test_the_allocator_on_a_host_without_a_simulator_counts_the_other_hosts(tmp_
 
 
 def test_a_host_number_already_on_the_bus_is_refused(tmp_path):
-    port = helpers.free_port()
-    first = up(tmp_path / "a", "--only", "sim", "--instance", "1", "--set", f'bus.listen=["tcp/127.0.0.1:{port}"]',
-               "--set", "run.iterations=0", name="dup")
-    try:
-        deadline = time.monotonic() + 60
-        while "all services live" not in first.stdout.readline():
-            assert time.monotonic() < deadline and first.poll() is None
-        second = up(tmp_path / "b", "--only", "sim", "--instance", "1", "--set",
-                    f'bus.connect=["tcp/127.0.0.1:{port}"]', "--set",
-                    f'bus.listen=["tcp/127.0.0.1:{helpers.free_port()}"]', name="dup")
-        out, _ = second.communicate(timeout=60)
-    finally:
-        first.terminate()
-        first.communicate(timeout=30)
-    assert second.returncode == 2 and "host 1 of run dup is already up" in out
+    with host(tmp_path / "a", "--only", "sim", "--instance", "1", sets=["run.iterations=0"], name="dup") as first:
+        first.wait_for_line("all services live", 300)
+        with host(tmp_path / "b", "--only", "sim", "--instance", "1", name="dup", joins=first) as second:
+            code = second.wait(120)
+    assert code == 2 and "host 1 of run dup is already up" in second.output
 
 
 # --- data-parallel training -----------------------------------------------------------------------------
@@ -248,22 +227,20 @@ def test_two_training_ranks_train_and_stop_cleanly(tmp_path, parallel):
 def test_killing_one_rank_restarts_the_training_group(tmp_path):
     import psutil
 
-    proc, _ = helpers.ebrl_up(tmp_path / "runs", "configs/quickstart.toml", "run.iterations=40", "run.name=ddpkill",
-                              "train.world_size=2", 'viz.rerun="off"', "train.checkpoint_every=2")
-    try:
-        deadline = time.monotonic() + 90
-        while not list((tmp_path / "runs").glob("*/checkpoints/latest")):  # a few updates done
-            assert proc.poll() is None and time.monotonic() < deadline, "no checkpoint after 90 s"
+    with helpers.up(tmp_path / "runs", "configs/quickstart.toml", "run.iterations=40", "train.world_size=2",
+                    'viz.rerun="off"', "train.checkpoint_every=2", name="ddpkill") as run:
+        deadline = time.monotonic() + 300
+        while not (run.run_dir / "checkpoints" / "latest").exists():  # a few updates done
+            run.check_running("a checkpoint")
+            assert time.monotonic() < deadline, "no checkpoint after 300 s"
             time.sleep(0.2)
-        rank1 = [p for p in psutil.Process(proc.pid).children()
+        rank1 = [p for p in psutil.Process(run.proc.pid).children()
                  if p.cmdline()[2:3] == ["services.train"] and "--instance" in p.cmdline()
                  and p.cmdline()[p.cmdline().index("--instance") + 1] == "1"]
         assert len(rank1) == 1
         rank1[0].kill()
-        out, _ = proc.communicate(timeout=180)
-    finally:
-        proc.kill()
-    assert proc.returncode == 0, out
+        code = run.wait(600)
+    assert code == 0, run.output
     done = json.loads(next((tmp_path / "runs").glob("*/summary.json")).read_text())
     assert done["iterations"] == 40
     assert set(done["restarts"]) == {"train/0", "train/1"}  # the whole group started again
@@ -362,11 +339,15 @@ def test_ebrl_router_relays_between_hosts_and_prints_who_joined():
     """Two runs' launchers would meet at a router; here two plain sessions that only know the router."""
     import zenoh
 
+    from ebrl.bus import keys
+    from ebrl.testing import Output
+
     port = helpers.free_port()
     router = subprocess.Popen([sys.executable, "-m", "ebrl.cli", "router", "--listen", f"tcp/127.0.0.1:{port}"],
                               cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    printed = Output(router, "ebrl router")
     try:
-        assert "listening on" in router.stdout.readline()
+        printed.wait_for_line("listening on", 120)
 
         def session() -> zenoh.Session:
             conf = zenoh.Config()
@@ -377,20 +358,21 @@ def test_ebrl_router_relays_between_hosts_and_prints_who_joined():
 
         got = []
         with session() as a, session() as b:
-            a.declare_subscriber("ebrl/data/r/obs/*", lambda s: got.append(s.payload.to_bytes()))
-            token = b.liveliness().declare_token("ebrl/live/r/sim/3")
-            deadline = time.monotonic() + 10
+            a.declare_subscriber(keys.obs("r"), lambda s: got.append(s.payload.to_bytes()))
+            token = b.liveliness().declare_token(keys.live("r", "sim", 3))
+            deadline = time.monotonic() + 60
             while not got and time.monotonic() < deadline:
-                b.put("ebrl/data/r/obs/0", b"x")
+                b.put(keys.obs("r", 0), b"x")
                 time.sleep(0.1)
+            printed.wait_for_line("run r: sim/3 joined", 60)
             token.undeclare()
-            time.sleep(0.3)
+            printed.wait_for_line("run r: sim/3 left", 60)
         assert got
     finally:
         router.terminate()
-        out, _ = router.communicate(timeout=10)
-    assert router.returncode == 0
-    assert "run r: sim/3 joined" in out and "run r: sim/3 left" in out
+        router.wait(60)
+        printed.join()
+    assert router.returncode == 0, printed.text
 
 
 # --- separate hosts: network namespaces -----------------------------------------------------------------
@@ -500,12 +482,11 @@ def test_two_training_ranks_learn_the_quickstart_like_one(tmp_path):
     """The quickstart's stated threshold (mean return 900) with train.world_size = 2, as one rank reaches it
     (tests/test_up.py::test_quickstart_learns_to_the_stated_return); curves side by side:
     benchmarks/data_parallel.py."""
-    proc, _ = helpers.ebrl_up(tmp_path / "runs", "configs/quickstart.toml", "run.name=learn2", "train.world_size=2",
-                              'viz.rerun="off"')
-    out, _ = proc.communicate(timeout=900)
-    assert proc.returncode == 0, out
-    done = json.loads(next((tmp_path / "runs").glob("*/summary.json")).read_text())
-    assert done["target_reached"] is not None, out
+    with helpers.up(tmp_path / "runs", "configs/quickstart.toml", "train.world_size=2", 'viz.rerun="off"',
+                    name="learn2") as run:
+        assert run.wait(900) == 0, run.output
+    done = json.loads((run.run_dir / "summary.json").read_text())
+    assert done["target_reached"] is not None, run.output
     assert done["target_reached"]["return"] >= 900
 
 
@@ -515,40 +496,26 @@ def test_a_late_host_is_admitted_and_a_host_that_leaves_is_not_waited_for(tmp_pa
     services follow it); the run finishes on host 2."""
     import signal
 
-    port = helpers.free_port()
-    connect = ["--set", f'bus.connect=["tcp/127.0.0.1:{port}"]']
+    primary = host(tmp_path / "p", "--only", "gen,train", sets=["run.iterations=30", "train.checkpoint_every=0"],
+                   name="churn")
 
-    def sim_host(n: int) -> subprocess.Popen:
-        return up(tmp_path / f"h{n}", "--only", "sim", "--instance", str(n), *connect,
-                  "--set", f'bus.listen=["tcp/127.0.0.1:{helpers.free_port()}"]', name="churn")
+    def sim_host(n: int) -> helpers.Run:
+        return host(tmp_path / f"h{n}", "--only", "sim", "--instance", str(n), name="churn", joins=primary)
 
-    primary = up(tmp_path / "p", "--only", "gen,train", "--set", f'bus.listen=["tcp/127.0.0.1:{port}"]',
-                 "--set", "run.iterations=30", "--set", "train.checkpoint_every=0",
-                 name="churn")
-    first = sim_host(1)
-    second = None
-    lines: list[str] = []
-    try:
-        deadline = time.monotonic() + 300
-        while True:
-            line = primary.stdout.readline()
-            assert line and time.monotonic() < deadline, "".join(lines)
-            lines.append(line)
-            if "iter " in line and second is None and int(line.split("iter ")[1].split("/")[0]) >= 3:
-                second = sim_host(2)
-            if "host 2 joined the run" in line:
-                time.sleep(5)  # let host 2 simulate a while
-                os.kill(first.pid, signal.SIGKILL)
-            if "run churn finished" in line or "run churn stopped" in line:
-                break
-        primary.wait(30)
-        second_out, _ = second.communicate(timeout=30)
-    finally:
-        for proc in (primary, first, second):
-            if proc is not None:
-                proc.kill()
-    out = "".join(lines)
-    assert primary.returncode == 0, out
+    def at_iteration(n: int):
+        return lambda line: "iter " in line and int(line.split("iter ")[1].split("/")[0]) >= n
+
+    with primary, sim_host(1) as first:
+        primary.wait_for_line(at_iteration(3), 600, "iteration 3")
+        with sim_host(2) as second:
+            primary.wait_for_line("host 2 joined the run", 300)
+            second.wait_for_line("all services live", 300)
+            time.sleep(5)  # let host 2 simulate a while
+            os.kill(first.proc.pid, signal.SIGKILL)
+            code = primary.wait(900)
+            second_code = second.wait(120)
+    out = primary.output
+    assert code == 0, out
     assert "host 1 joined the run" in out and "host 2 joined the run" in out and "host 1 left the run" in out
     assert summary(tmp_path / "p")["iterations"] == 30
-    assert "the primary host ended the run" in second_out and second.returncode == 0
+    assert "the primary host ended the run" in second.output and second_code == 0, second.output

@@ -65,7 +65,7 @@ def test_ebrl_bench_prints_the_table_and_writes_json(tmp_path):
     proc = subprocess.run([sys.executable, "-m", "ebrl.cli", "bench", "configs/quickstart.toml", "--modes",
                            "ebrl,colocated,async", "--duration", "4", "--json", str(out_json), "--raw-seconds", "2",
                            "--set", f"run.output_dir={json.dumps(str(tmp_path / 'runs'))}"],
-                          cwd=ROOT, capture_output=True, text=True, timeout=300)
+                          cwd=ROOT, capture_output=True, text=True, timeout=850)
     assert proc.returncode == 0, proc.stderr
     assert "vs best baseline" in proc.stdout and "colocated" in proc.stdout and "(best)" in proc.stdout
     results = json.loads(out_json.read_text())["results"]
@@ -76,6 +76,27 @@ def test_ebrl_bench_prints_the_table_and_writes_json(tmp_path):
     ebrl, asy = results["ebrl"][0], results["async"][0]
     assert ebrl["raw_env_steps_per_s"] > 0 and 0 < ebrl["sim_efficiency"] < 1.5
     assert len(asy["sim_cores"]) <= len(ebrl["sim_cores"])
+
+
+@pytest.mark.slow
+def test_ebrl_bench_measures_a_run_renamed_with_set(tmp_path):
+    """`ebrl bench CONFIG --set run.name=X` watches run X (it once watched the name bench chose, waited 300 s and
+    failed while the run trained; tests/test_testing.py covers the name resolution fast)."""
+    import json
+    import subprocess
+    import sys
+
+    from helpers import ROOT
+
+    out_json = tmp_path / "bench.json"
+    proc = subprocess.run([sys.executable, "-m", "ebrl.cli", "bench", "configs/quickstart.toml", "--modes", "ebrl",
+                           "--duration", "3", "--raw-seconds", "0", "--json", str(out_json), "--set", "run.name=renamed",
+                           "--set", f"run.output_dir={json.dumps(str(tmp_path / 'runs'))}"],
+                          cwd=ROOT, capture_output=True, text=True, timeout=600)
+    assert proc.returncode == 0, proc.stderr
+    (result,) = json.loads(out_json.read_text())["results"]["ebrl"]
+    assert result["env_steps_per_s"] > 0 and result["traj_per_s"] > 0
+    assert [p.name.split("-")[0] for p in (tmp_path / "runs").iterdir()] == ["renamed"]
 
 
 def test_ablations_flip_each_mechanism_from_what_ebrl_runs_with_the_config():

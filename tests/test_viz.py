@@ -4,7 +4,6 @@ and (slow) a real headless rerun viewer screenshotted during a real run."""
 from __future__ import annotations
 
 import os
-import socket
 import subprocess
 import sys
 import time
@@ -197,10 +196,11 @@ def hue_pixels(png) -> dict[str, int]:
 
 
 def test_up_with_viz_save_writes_timeline_and_report(tmp_path):
-    proc, _ = helpers.ebrl_up(tmp_path / "runs", "configs/quickstart.toml", "run.iterations=3", "run.name=vizsave",
-                              'viz.rerun="save"')
-    out, _ = proc.communicate(timeout=150)
-    assert proc.returncode == 0, out
+    with helpers.up(tmp_path / "runs", "configs/quickstart.toml", "run.iterations=3", 'viz.rerun="save"',
+                    name="vizsave") as run:
+        code = run.wait(300)
+    out = run.output
+    assert code == 0, out
     (run_dir,) = (tmp_path / "runs").iterdir()
     assert (run_dir / "timeline.rrd").exists(), out
     from ebrl.viz.rerun_bridge import describe_recording
@@ -222,12 +222,6 @@ def test_up_with_viz_save_writes_timeline_and_report(tmp_path):
 # --- slow: a real headless viewer -------------------------------------------------------------------
 
 
-def _free_port() -> int:
-    with socket.socket() as sock:
-        sock.bind(("127.0.0.1", 0))
-        return sock.getsockname()[1]
-
-
 @pytest.fixture
 def viewer(tmp_path, monkeypatch):
     icd = "/usr/share/vulkan/icd.d"
@@ -238,7 +232,7 @@ def viewer(tmp_path, monkeypatch):
     monkeypatch.setenv("XDG_RUNTIME_DIR", str(tmp_path))
     monkeypatch.setenv("RUST_LOG", "error")
     exe = os.path.join(os.path.dirname(sys.executable), "rerun")
-    client = ViewerClient.spawn(headless=True, port=_free_port(), hide_welcome_screen=True,
+    client = ViewerClient.spawn(headless=True, port=helpers.free_port(), hide_welcome_screen=True,
                                 executable_path=exe if os.path.exists(exe) else None)
     try:
         client.get_state()
@@ -252,10 +246,9 @@ def viewer(tmp_path, monkeypatch):
 @pytest.mark.slow
 def test_live_gantt_in_a_headless_viewer_shows_every_lane(tmp_path, viewer):
     port = int(viewer.url.rsplit(":", 1)[1].split("/")[0])
-    proc, _ = helpers.ebrl_up(tmp_path / "runs", "configs/quickstart.toml", "run.iterations=0", "run.name=vizlive",
-                              f"viz.port={port}", 'viz.rerun="spawn"')
-    try:
-        deadline = time.monotonic() + 120
+    with helpers.up(tmp_path / "runs", "configs/quickstart.toml", "run.iterations=0", f"viz.port={port}",
+                    'viz.rerun="spawn"', name="vizlive") as run:
+        deadline = time.monotonic() + 300
         view = None
         while time.monotonic() < deadline:  # wait for the run's spans to reach the viewer
             state = viewer.get_state()
@@ -269,29 +262,26 @@ def test_live_gantt_in_a_headless_viewer_shows_every_lane(tmp_path, viewer):
         png = tmp_path / "gantt.png"
         png.write_bytes(viewer.take_screenshot(view.view_id))
         (tmp_path / "viewer.png").write_bytes(viewer.take_screenshot())  # the whole layout, for a human look
-    finally:
-        proc.send_signal(2)
-        out, _ = proc.communicate(timeout=60)
-    assert "streaming to the viewer already listening" in (tmp_path / "runs").joinpath(
-        next((tmp_path / "runs").iterdir()).name, "logs", "viz-0.log").read_text()
+        code = run.stop(60)
+    assert "streaming to the viewer already listening" in (run.run_dir / "logs" / "viz-0.log").read_text()
     # Every stage's bars are on screen: sim chunks (blue), gen forwards (orange), train updates (green).
     pixels = hue_pixels(png)
     for state, count in pixels.items():
         assert count > 300, f"no {state} bars in the live Gantt ({png}): {pixels}"
-    assert proc.returncode in (0, 130), out
+    assert code in (0, 130), run.output
 
 
 @pytest.mark.slow
 def test_serve_lets_a_viewer_that_connects_late_see_the_whole_run(tmp_path, viewer):
-    port = _free_port()
-    started = time.time()
-    proc, _ = helpers.ebrl_up(tmp_path / "runs", "configs/quickstart.toml", "run.iterations=0", "run.name=vizserve",
-                              f"viz.port={port}", 'viz.rerun="serve"')
-    try:
+    port = helpers.free_port()
+    with helpers.up(tmp_path / "runs", "configs/quickstart.toml", "run.iterations=0", f"viz.port={port}",
+                    'viz.rerun="serve"', name="vizserve") as run:
+        run.wait_for_line("all services live", 300)
+        started = time.time()  # the run's spans begin about now (however long a loaded machine took to start)
         time.sleep(20)  # the run goes on with nobody watching
-        assert proc.poll() is None
+        run.check_running("a late viewer")
         viewer.open(f"rerun+http://127.0.0.1:{port}/proxy")
-        deadline, span = time.monotonic() + 60, None
+        deadline, span = time.monotonic() + 300, None
         while time.monotonic() < deadline:
             state = viewer.get_state()
             wall = [t for r in state.recordings for t in r.timelines if t.name == "wall" and t.end]
@@ -300,12 +290,10 @@ def test_serve_lets_a_viewer_that_connects_late_see_the_whole_run(tmp_path, view
                 if span[1] > 20:
                     break
             time.sleep(0.5)
-    finally:
-        proc.send_signal(2)
-        out, _ = proc.communicate(timeout=60)
+        code = run.stop(60)
     assert span is not None, "the late viewer got no data"
     assert span[0] < 15 and span[1] > 20, f"the late viewer sees {span[0]:.1f}-{span[1]:.1f} s of the run"
-    assert proc.returncode == 130, out
+    assert code == 130, run.output
 
 
 def test_spawn_without_a_display_falls_back_to_saving(tmp_path, monkeypatch):
@@ -313,7 +301,7 @@ def test_spawn_without_a_display_falls_back_to_saving(tmp_path, monkeypatch):
 
     monkeypatch.delenv("DISPLAY", raising=False)
     monkeypatch.delenv("WAYLAND_DISPLAY", raising=False)
-    rec, where = open_recording("spawn", str(tmp_path / "t.rrd"), "nodisplay", _free_port(), "64MiB",
+    rec, where = open_recording("spawn", str(tmp_path / "t.rrd"), "nodisplay", helpers.free_port(), "64MiB",
                                 make_blueprint())
     rec.disconnect()
     assert where.startswith("no display") and (tmp_path / "t.rrd").exists()

@@ -1,0 +1,332 @@
+"""A real ``ebrl up`` and its stats stream, for tests, ``ebrl bench`` and benchmarks/.
+
+:class:`Run` starts ``ebrl up CONFIG --set ...`` as a user would (a subprocess with its own bus on a
+free loopback port) and stops it with SIGINT, then SIGKILL; :class:`StatsWatcher` subscribes to the
+run's ``ebrl/stats/<run>/**`` on that port and keeps every :class:`~ebrl.messages.StatsReport`;
+:class:`Output` keeps what a subprocess prints (a run's launcher, ``ebrl router``). Waiting is always
+for a condition with a deadline, never for a fixed time, and a wait that fails says what it waited for
+and how the process's output ended.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+import signal
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+from typing import Callable, Sequence
+
+import zenoh
+
+from ebrl import config as config_mod
+from ebrl.bus import keys
+from ebrl.bus.endpoints import free_port
+from ebrl.messages import MessageError, StatsReport, decode_stats_sample
+
+__all__ = ["Output", "Run", "RunError", "StatsWatcher", "free_port", "run_name", "source", "up_command", "up_sets"]
+
+REPO = Path(__file__).resolve().parent.parent  # where `ebrl` and `services` are
+STOP_S = 30.0  # after SIGINT, before SIGKILL (the launcher itself stops every service within SHUTDOWN_S)
+STARTUP_S = 300.0  # default deadline for the launcher's first line (generous: shared, loaded machines)
+TAIL_LINES = 40
+
+
+class RunError(RuntimeError):
+    """A run ended, or a wait for it ran out of time; the message ends with the run's last output lines."""
+
+
+def up_sets(out_dir: str | os.PathLike, port: int, name: str | None = None, stats_interval: float | None = 0.5,
+            overrides: Sequence[str] = ()) -> list[str]:
+    """The ``--set`` items of a harnessed run: its name, output directory, loopback bus and stats interval,
+    then ``overrides`` (last, so that they win: a ``run.name`` there is the name the run gets)."""
+    sets = [f"run.name={name}"] if name is not None else []
+    sets += [f"run.output_dir={json.dumps(str(out_dir))}", f'bus.listen=["tcp/127.0.0.1:{port}"]']
+    if stats_interval is not None:
+        sets.append(f"run.stats_interval={stats_interval}")
+    return [*sets, *overrides]
+
+
+def up_command(config: str | os.PathLike, sets: Sequence[str], args: Sequence[str] = ()) -> list[str]:
+    """``python -m ebrl.cli up CONFIG ARGS --set ...`` with this interpreter."""
+    cmd = [sys.executable, "-m", "ebrl.cli", "up", str(config), *args]
+    for item in sets:
+        cmd += ["--set", item]
+    return cmd
+
+
+def run_name(config: str | os.PathLike, sets: Sequence[str], cwd: str | os.PathLike | None = None) -> str:
+    """The name ``ebrl up CONFIG --set SETS`` gives its run: the config's, after every override in order
+    (the last ``run.name=`` wins, as in ``ebrl up``). Raises ConfigError for a config ``ebrl up`` refuses."""
+    path = Path(config) if cwd is None else Path(cwd) / config
+    return config_mod.load(str(path), list(sets)).run.name
+
+
+def source(report: StatsReport) -> str:
+    """``<service>/<instance>`` of a report, e.g. ``sim/0``: how stats are looked up here."""
+    return f"{report.service}/{report.instance}"
+
+
+class Output:
+    """What a subprocess prints (its stdout, with stderr merged into it), read line by line by a thread so
+    that the pipe never fills; also written to ``log`` if given. ``label`` names the process in errors."""
+
+    def __init__(self, proc: subprocess.Popen, label: str, log: str | os.PathLike | None = None):
+        self.proc, self.label = proc, label
+        self._lines: list[str] = []
+        self._changed = threading.Condition()
+        self._reader = threading.Thread(target=self._read, args=(log,), name=f"output of {label}", daemon=True)
+        self._reader.start()
+
+    def _read(self, log: str | os.PathLike | None) -> None:
+        fh = open(log, "w") if log is not None else None
+        try:
+            for line in self.proc.stdout:
+                if fh is not None:
+                    fh.write(line)
+                    fh.flush()
+                with self._changed:
+                    self._lines.append(line)
+                    self._changed.notify_all()
+        finally:
+            if fh is not None:
+                fh.close()
+            with self._changed:
+                self._changed.notify_all()
+
+    @property
+    def text(self) -> str:
+        """Everything printed so far."""
+        with self._changed:
+            return "".join(self._lines)
+
+    def tail(self, lines: int = TAIL_LINES) -> str:
+        with self._changed:
+            return "".join(self._lines[-lines:])
+
+    def join(self, timeout: float = 10.0) -> None:
+        """Wait for the rest of the output once the process has ended."""
+        self._reader.join(timeout)
+
+    def error(self, what: str) -> RunError:
+        """A RunError saying ``what``, naming the process and ending with its last output lines."""
+        state = "still running" if self.proc.poll() is None else f"exit status {self.proc.returncode}"
+        return RunError(f"{self.label} ({state}): {what}. Its last lines:\n{self.tail()}")
+
+    def wait_for_line(self, match: str | Callable[[str], bool], timeout: float = STARTUP_S, what: str = "") -> str:
+        """The first line printed so far or later that contains ``match`` (or satisfies it); raises RunError
+        naming ``what`` (default: the line looked for) when the output ends without one or ``timeout`` s pass."""
+        test = match if callable(match) else (lambda line: match in line)
+        what = what or (f"a line with {match!r}" if isinstance(match, str) else "the line looked for")
+        deadline = time.monotonic() + timeout
+        seen = 0
+        with self._changed:
+            while True:
+                for line in self._lines[seen:]:
+                    if test(line):
+                        return line
+                seen = len(self._lines)
+                if not self._reader.is_alive():
+                    raise self.error(f"its output ended without {what}")
+                left = deadline - time.monotonic()
+                if left <= 0:
+                    raise self.error(f"gave up waiting for {what} after {timeout:g} s")
+                self._changed.wait(min(left, 1.0))
+
+
+class Run:
+    """``ebrl up CONFIG --set ...`` running as a subprocess on a free loopback port.
+
+    ``name`` is the name asked for; :attr:`name` is the one the run got (a ``run.name`` among
+    ``overrides`` wins). What the launcher prints is kept (:attr:`output`, :meth:`wait_for_line`), also in
+    ``log`` if given. Leaving the ``with`` block stops the run (:meth:`stop`)."""
+
+    _RUN_LINE = "run {name}: "  # the launcher's first line: "run NAME: RUN_DIR  (bus ENDPOINT)"
+
+    def __init__(self, config: str | os.PathLike, *overrides: str, name: str, out_dir: str | os.PathLike,
+                 args: Sequence[str] = (), port: int | None = None, stats_interval: float | None = 0.5,
+                 log: str | os.PathLike | None = None, cwd: str | os.PathLike | None = None):
+        self.port = port or free_port()
+        self.endpoint = f"tcp/127.0.0.1:{self.port}"
+        sets = up_sets(out_dir, self.port, name, stats_interval, overrides)
+        self.name = run_name(config, sets, cwd)
+        self.command = up_command(config, sets, args)
+        env = dict(os.environ)
+        env["PYTHONPATH"] = os.pathsep.join(p for p in (str(REPO), env.get("PYTHONPATH", "")) if p)
+        self._run_dir: Path | None = None
+        self.proc = subprocess.Popen(self.command, cwd=cwd, env=env, stdin=subprocess.DEVNULL,
+                                     stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+        self._output = Output(self.proc, f"ebrl up (run {self.name})", log)
+
+    def __enter__(self) -> "Run":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.stop()
+
+    def __repr__(self) -> str:
+        state = "running" if self.proc.poll() is None else f"exit {self.proc.returncode}"
+        return f"<ebrl up run {self.name} on {self.endpoint}, {state}>"
+
+    # --- output -------------------------------------------------------------------------------------
+
+    @property
+    def output(self) -> str:
+        """Everything the launcher printed so far."""
+        return self._output.text
+
+    def tail(self, lines: int = TAIL_LINES) -> str:
+        return self._output.tail(lines)
+
+    def wait_for_line(self, match: str | Callable[[str], bool], timeout: float = STARTUP_S, what: str = "") -> str:
+        """The first line the launcher printed (so far or later) that contains ``match`` or satisfies it."""
+        return self._output.wait_for_line(match, timeout, what)
+
+    def error(self, what: str) -> RunError:
+        """A RunError saying ``what``, naming this run and ending with its last output lines."""
+        return self._output.error(what)
+
+    @property
+    def run_dir(self) -> Path:
+        """The run directory, as the launcher announced it (waits for that line, at most STARTUP_S)."""
+        if self._run_dir is None:
+            head = self._RUN_LINE.format(name=self.name)
+            line = self.wait_for_line(lambda text: text.startswith(head), what=f"its first line, {head}RUN_DIR")
+            found = re.match(re.escape(head) + r"(.+?)  \(", line)
+            if found is None:
+                raise self.error(f"cannot read the run directory from {line.strip()!r}")
+            self._run_dir = Path(found.group(1))
+        return self._run_dir
+
+    # --- lifetime -----------------------------------------------------------------------------------
+
+    def poll(self) -> int | None:
+        return self.proc.poll()
+
+    @property
+    def returncode(self) -> int | None:
+        return self.proc.returncode
+
+    def check_running(self, what: str) -> None:
+        """Raise RunError if the run has ended (``what``: what the caller was waiting for)."""
+        if self.proc.poll() is not None:
+            raise self.error(f"the run ended while waiting for {what}")
+
+    def wait(self, timeout: float) -> int:
+        """Wait for the run to end by itself; its exit status. Raises RunError after ``timeout`` seconds (the
+        run is left running: leaving the ``with`` block stops it)."""
+        try:
+            code = self.proc.wait(timeout)
+        except subprocess.TimeoutExpired:
+            raise self.error(f"it did not end within {timeout:.0f} s") from None
+        self._output.join()  # the rest of its output
+        return code
+
+    def interrupt(self) -> None:
+        """Ctrl-C: SIGINT to the launcher, which stops every service."""
+        if self.proc.poll() is None:
+            self.proc.send_signal(signal.SIGINT)
+
+    def stop(self, timeout: float = STOP_S) -> int:
+        """SIGINT, then SIGKILL after ``timeout`` seconds; the exit status (130: stopped by SIGINT)."""
+        self.interrupt()
+        try:
+            self.proc.wait(timeout)
+        except subprocess.TimeoutExpired:
+            self.proc.kill()
+            self.proc.wait()
+        self._output.join()
+        return self.proc.returncode
+
+
+class StatsWatcher:
+    """Every StatsReport of one run, as its bus delivers them: a Zenoh subscriber of
+    ``keys.stats_all(run.name)`` connected to the run's endpoint (thread-safe; filled by Zenoh's callback).
+    ``session`` is that Zenoh session, for a test that also publishes on the run's bus."""
+
+    def __init__(self, run: Run, endpoint: str | None = None):
+        self.run = run
+        conf = zenoh.Config()
+        conf.insert_json5("scouting/multicast/enabled", "false")
+        conf.insert_json5("connect/endpoints", json.dumps([endpoint or run.endpoint]))
+        self._lock = threading.Lock()
+        self._reports: list[StatsReport] = []
+        self.malformed = 0
+        self.session = zenoh.open(conf)
+        self._subscriber = self.session.declare_subscriber(keys.stats_all(run.name), self._on_sample)
+
+    def __enter__(self) -> "StatsWatcher":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    def close(self) -> None:
+        """Stop listening; what was received stays readable."""
+        if self._subscriber is not None:
+            self._subscriber.undeclare()
+            self._subscriber = None
+            self.session.close()
+
+    def _on_sample(self, sample: zenoh.Sample) -> None:
+        try:
+            message = decode_stats_sample(str(sample.key_expr), sample.payload.to_bytes())
+        except MessageError:
+            with self._lock:
+                self.malformed += 1
+            return
+        if isinstance(message, StatsReport):  # spans and events are not stats
+            with self._lock:
+                self._reports.append(message)
+
+    # --- reading ------------------------------------------------------------------------------------
+
+    def reports(self, of: str | None = None) -> list[StatsReport]:
+        """Reports received so far in arrival order: every source's, or those of ``of`` (e.g. ``sim/0``)."""
+        with self._lock:
+            return [r for r in self._reports if of is None or source(r) == of]
+
+    def latest_report(self, of: str, metric: str) -> StatsReport | None:
+        """The newest report of ``of`` that has ``metric``."""
+        with self._lock:
+            return next((r for r in reversed(self._reports) if source(r) == of and metric in r.metrics), None)
+
+    def latest(self, of: str, metric: str, default: float | None = None) -> float | None:
+        """The newest value of ``metric`` reported by ``of`` (``default`` if none yet)."""
+        report = self.latest_report(of, metric)
+        return default if report is None else report.metrics[metric]
+
+    def values(self, of: str, metric: str) -> list[float]:
+        """Every value of ``metric`` reported by ``of``, in arrival order."""
+        return [r.metrics[metric] for r in self.reports(of) if metric in r.metrics]
+
+    def by_source(self) -> dict[str, list[dict[str, float]]]:
+        """``{"<service>/<instance>": [metrics, ...]}`` in arrival order."""
+        out: dict[str, list[dict[str, float]]] = {}
+        for report in self.reports():
+            out.setdefault(source(report), []).append(report.metrics)
+        return out
+
+    def between(self, t0: float, t1: float) -> dict[str, list[StatsReport]]:
+        """Per source, the reports stamped from ``t0`` to ``t1`` (epoch seconds, both included)."""
+        out: dict[str, list[StatsReport]] = {}
+        for report in self.reports():
+            if t0 <= report.time <= t1:
+                out.setdefault(source(report), []).append(report)
+        return out
+
+    # --- waiting ------------------------------------------------------------------------------------
+
+    def wait_for(self, predicate: Callable[[], object], timeout: float, what: str) -> None:
+        """Poll ``predicate()`` until it is true; raise RunError naming ``what`` (and ending with the run's
+        output) if the run ends first or ``timeout`` seconds pass."""
+        deadline = time.monotonic() + timeout
+        while not predicate():
+            self.run.check_running(what)
+            if time.monotonic() > deadline:
+                raise self.run.error(f"gave up waiting for {what} after {timeout:g} s")
+            time.sleep(0.2)

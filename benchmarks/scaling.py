@@ -41,7 +41,7 @@ from ebrl.testing import Run, StatsWatcher  # noqa: E402
 
 ROOT = Path(__file__).resolve().parent.parent
 RESULTS = ROOT / "benchmarks" / "results"
-STOP_S = 30.0  # a launcher stops its services within ebrl.launch.SHUTDOWN_S; this is the margin
+STOP_S = 30.0  # a launcher stops its services within ebrl.supervisor.SHUTDOWN_S; this is the margin
 
 
 def core_plan(hosts: int, per_host: int, usable: list[int]) -> dict[int, list[int]] | None:

@@ -13,6 +13,7 @@ from ebrl.alloc.algorithm import Profiles
 from ebrl.alloc.profile import fingerprint, save
 from ebrl.alloc.runtime import capacities
 from ebrl.resources.pool import ResourcePool
+from ebrl.testing import StatsWatcher
 
 import helpers
 
@@ -43,25 +44,18 @@ def test_up_with_the_allocator_re_plans_from_measurements_and_services_apply_it(
                         gen={(c, b): 50_000.0 for c in range(1, n + 1) for b in (4, 8)},
                         train={(c, 1024): 50_000.0 for c in range(1, n + 1)})
     save(out_dir / "profiles" / "alloc.json", profiles, fingerprint(pool, cfg))
-    proc, port = helpers.ebrl_up(out_dir, "configs/quickstart.toml", *overrides)
-    try:
-        deadline = time.monotonic() + 150
-        realloc = None
-        while time.monotonic() < deadline and realloc is None:
-            time.sleep(1.0)
-            runs = [p for p in out_dir.iterdir() if p.name.startswith("alloc-")]
-            log = runs[0] / "logs" / "alloc-0.log" if runs else None
-            if log and log.exists() and "re-allocated" in log.read_text():
-                realloc = log.read_text()
-        time.sleep(3.0)  # the services apply it and report
-    finally:
-        proc.send_signal(2)
-        out, _ = proc.communicate(timeout=60)
+    with helpers.up(out_dir, "configs/quickstart.toml", *overrides, name="alloc") as run, \
+            StatsWatcher(run) as stats:
+        stats.wait_for(lambda: (stats.latest("alloc/0", "alloc/reallocations") or 0) >= 1, 600, "a re-allocation")
+        stats.wait_for(lambda: all(stats.latest(f"{s}/0", "ctl/affinity_applied") for s in ("sim", "gen", "train")),
+                       300, "sim, gen and train applying the re-allocated cores")
+        run.stop()
+    out = run.output
     assert "allocator: reused profile" in out and "plan v1 (all_shared)" in out, out
-    assert realloc is not None, f"no re-allocation within 150 s:\n{out}"
+    assert "re-allocated" in (run.run_dir / "logs" / "alloc-0.log").read_text()
     from ebrl.viz import record
 
-    rec = record.read(runs[0])
+    rec = record.read(run.run_dir)
     kinds = [(e.service, e.kind) for e in rec.events]
     assert ("alloc", "realloc") in kinds
     for stage in ("sim", "gen", "train"):
@@ -160,9 +154,9 @@ def test_a_new_gpu_share_restarts_training_at_a_safe_point_and_loses_nothing(tmp
     try:
         with zenoh.open(conf) as session:
             session.declare_subscriber(keys.stats("requota", "train", 0), on_stats)
-            deadline = time.monotonic() + 120
+            deadline = time.monotonic() + 600  # a bound for a hang, not a timing window
             while max(versions, default=0) < 4:
-                assert proc.poll() is None and time.monotonic() < deadline, "no fourth update in 120 s"
+                assert proc.poll() is None and time.monotonic() < deadline, "no fourth update in 600 s"
                 time.sleep(0.2)
             assert train_share() == "50"  # started with the allocator's first share
             session.put(keys.gpu_share("requota", 0), encode_message(GpuShare(version=2, stage="train", env={
@@ -171,7 +165,7 @@ def test_a_new_gpu_share_restarts_training_at_a_safe_point_and_loses_nothing(tmp
             while train_share() != "30":
                 assert proc.poll() is None and time.monotonic() < deadline, "train never came back with 30 %"
                 time.sleep(0.2)
-            out, _ = proc.communicate(timeout=120)
+            out, _ = proc.communicate(timeout=600)
     finally:
         proc.kill()
     assert proc.returncode == 0, out

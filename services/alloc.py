@@ -16,13 +16,10 @@ import asyncio
 import time
 
 from ebrl import procenv
-from ebrl.alloc.runtime import capacities, describe, gpu_shares, make_placement, metrics_of
+from ebrl.alloc.runtime import Observations, describe, gpu_shares, make_placement, metrics_of, plan_messages
 from ebrl.bus import keys
-from ebrl.messages import Affinity, Quota, StatsReport
+from ebrl.messages import Affinity, StatsReport
 from ebrl.service import Service, service_main
-
-REMOTE_STALE_REPORTS = 3  # a host's simulator stats older than this many intervals no longer count (it left)
-
 
 class AllocService(Service):
     role = "alloc"
@@ -36,8 +33,7 @@ class AllocService(Service):
         self.placement.apply()
         self.log.info("profile %s; %s%s", path, describe(self.placement.applied),
                       "" if self.local_sim else " (no simulator on this host)")
-        self.latest: dict[str, dict[str, float]] = {}
-        self.sims: dict[str, tuple[float, dict[str, float]]] = {}  # sim instance -> (received at, metrics)
+        self.seen = Observations(self.instance, self.local_sim, self.cfg.run.stats_interval)
         self.rates = None
         self.stats = {role: self.bus.subscribe(keys.stats(self.run_name, role, 0), StatsReport, policy="latest",
                                                capacity=4) for role in ("gen", "train")}
@@ -47,22 +43,15 @@ class AllocService(Service):
     async def run(self) -> None:
         while True:
             _, report = await self.stats["gen"].next()  # one observation per generation report
-            self.latest["gen"] = report.metrics
+            self.seen.stage("gen", report.metrics)
             for _, msg in self.stats["train"].drain():
-                self.latest["train"] = msg.metrics
+                self.seen.stage("train", msg.metrics)
             now = time.monotonic()
             for key, msg in self.sim_stats.drain():
-                self.sims[keys.parse(key).instance] = (now, msg.metrics)
-            stale = REMOTE_STALE_REPORTS * self.cfg.run.stats_interval
-            self.sims = {i: (t, m) for i, (t, m) in self.sims.items() if now - t <= stale}
-            local = self.sims.get(str(self.instance))
-            remote = [m for i, (_, m) in self.sims.items() if i != str(self.instance)]
-            if "train" not in self.latest or (self.local_sim and local is None):
+                self.seen.sim(keys.parse(key).instance, msg.metrics, now)
+            if not self.seen.ready(now):
                 continue
-            plan = self.placement.applied
-            self.rates = capacities(local[1] if self.local_sim else None, self.latest["gen"], self.latest["train"],
-                                    chunk=self.cfg.policy.chunk, batch_size=self.cfg.train.batch_size,
-                                    cores={stage: len(c) for stage, c in plan.cores.items()}, remote=remote)
+            self.rates = self.seen.rates(self.placement.applied, self.cfg.policy.chunk, self.cfg.train.batch_size)
             if self.rates is None:
                 continue
             self.placement.balance(self.rates)
@@ -74,20 +63,9 @@ class AllocService(Service):
         start = time.time()
         self.placement.apply()
         plan = self.placement.applied
-        for stage in ("sim", "gen", "train"):
-            if stage == "sim" and not self.local_sim:
-                continue
-            instance = self.instance if stage == "sim" else 0
-            await self.bus.put(keys.ctl(self.run_name, stage, instance, "affinity"),
-                               Affinity(version=plan.version, cores=plan.cores[stage]))
-            if stage != "sim":
-                # on a GPU, the stage's SM share and memory too (a new share takes a new process: see below)
-                binding = self.placement.bindings().get(f"{stage}/0")
-                await self.bus.put(keys.ctl(self.run_name, stage, 0, "quota"), Quota(
-                    version=plan.version, threads=plan.threads[stage],
-                    sm_percent=binding.sm_percent if binding else None,
-                    mem_bytes=binding.mem_bytes if binding else None,
-                    batch=plan.gen_batch if stage == "gen" else None))
+        for stage, instance, message in plan_messages(self.placement, self.instance, self.local_sim):
+            kind = "affinity" if isinstance(message, Affinity) else "quota"
+            await self.bus.put(keys.ctl(self.run_name, stage, instance, kind), message)
         for share in gpu_shares(self.placement):  # the launcher restarts a stage whose share changed
             await self.bus.put(keys.gpu_share(self.run_name, self.instance), share)
         reverted = plan.reason.startswith("reverted")
@@ -97,7 +75,7 @@ class AllocService(Service):
         self.log.info("re-allocated: %s (%s)", describe(plan), plan.reason)
 
     def metrics(self) -> dict[str, float]:
-        return {**metrics_of(self.placement, self.rates), "alloc/sim_hosts": float(len(self.sims))}
+        return {**metrics_of(self.placement, self.rates), "alloc/sim_hosts": float(len(self.seen.sims))}
 
 
 def main() -> None:

@@ -9,7 +9,7 @@ import psutil
 import pytest
 
 import helpers
-from ebrl.launch import SHUTDOWN_S
+from ebrl.supervisor import SHUTDOWN_S
 
 ROOT = helpers.ROOT
 LOADED_S = 22.0  # slack for a loaded machine on top of the launcher's own deadlines

@@ -21,7 +21,7 @@ from typing import Any
 from ebrl import config as config_mod
 from ebrl.alloc.placement import EmbodiPlacement, Plan, StageRates
 from ebrl.alloc.profile import default_path, fingerprint, load, load_or_profile
-from ebrl.messages import GpuShare
+from ebrl.messages import Affinity, GpuShare, Quota
 from ebrl.resources.pool import ResourcePool
 
 MIN_CPU = 0.05  # cores' worth of CPU below which a stage was idle: its capacity cannot be told
@@ -138,3 +138,54 @@ def metrics_of(placement: EmbodiPlacement, rates: StageRates | None) -> dict[str
         out.update({"alloc/rollout_avg": rollout, "alloc/train_avg": train,
                     "alloc/gap": abs(rollout - train) / max(rollout, train)})
     return out
+
+
+REMOTE_STALE_REPORTS = 3  # a host's simulator stats older than this many intervals no longer count (it left)
+
+
+class Observations:
+    """The newest stats of each stage, as the allocator reads them: gen's and train's, and every sim host's
+    with the time it came (a host that stops reporting for ``REMOTE_STALE_REPORTS`` intervals has left)."""
+
+    def __init__(self, host: int, local_sim: bool, stats_interval: float):
+        self.host, self.local_sim, self.stale_s = str(host), local_sim, REMOTE_STALE_REPORTS * stats_interval
+        self.latest: dict[str, dict[str, float]] = {}
+        self.sims: dict[str, tuple[float, dict[str, float]]] = {}  # sim instance -> (received at, metrics)
+
+    def stage(self, role: str, metrics: dict[str, float]) -> None:
+        self.latest[role] = metrics
+
+    def sim(self, instance: str, metrics: dict[str, float], now: float) -> None:
+        self.sims[instance] = (now, metrics)
+
+    def ready(self, now: float) -> bool:
+        """Forget the hosts that left; True once every report the capacities need is here."""
+        self.sims = {i: (t, m) for i, (t, m) in self.sims.items() if now - t <= self.stale_s}
+        return "gen" in self.latest and "train" in self.latest and (not self.local_sim or self.host in self.sims)
+
+    def rates(self, plan: Plan, chunk: int, batch_size: int) -> StageRates | None:
+        """Each stage's capacity under ``plan`` (``capacities``; None where it cannot be told yet)."""
+        local = self.sims.get(self.host)
+        remote = [m for i, (_, m) in self.sims.items() if i != self.host]
+        return capacities(local[1] if self.local_sim else None, self.latest["gen"], self.latest["train"],
+                          chunk=chunk, batch_size=batch_size, cores={st: len(c) for st, c in plan.cores.items()},
+                          remote=remote)
+
+
+def plan_messages(placement: EmbodiPlacement, host: int, local_sim: bool) -> list[tuple[str, int, Any]]:
+    """What the applied plan tells each stage: ``(stage, instance, message)`` — its cores (``Affinity``) and, for
+    gen and train, threads, batch and GPU share (``Quota``; a new share takes a new process: ``gpu_shares``)."""
+    plan, out = placement.applied, []
+    for stage in ("sim", "gen", "train"):
+        if stage == "sim" and not local_sim:
+            continue
+        instance = host if stage == "sim" else 0
+        out.append((stage, instance, Affinity(version=plan.version, cores=plan.cores[stage])))
+        if stage != "sim":
+            binding = placement.bindings().get(f"{stage}/0")
+            out.append((stage, 0, Quota(version=plan.version, threads=plan.threads[stage],
+                                        sm_percent=binding.sm_percent if binding else None,
+                                        mem_bytes=binding.mem_bytes if binding else None,
+                                        batch=plan.gen_batch if stage == "gen" else None)))
+    return out
+

@@ -14,7 +14,11 @@ def staleness_seen(stats) -> int:
     return max(lags)
 
 
-@pytest.mark.parametrize("mode", MODES)
+# The fast suite runs the product end to end; every mode's logic runs in one process in test_pipeline.py
+E2E_MODES = ["ebrl", *(pytest.param(mode, marks=pytest.mark.slow) for mode in MODES[1:])]
+
+
+@pytest.mark.parametrize("mode", E2E_MODES)
 def test_mode_runs_and_keeps_the_staleness_bound(tmp_path, mode):
     # async trains on stale data with the interpolated proximal log-probs, the others recompute them
     prox = 'algo.prox_logp="interpolate"' if mode == "async" else 'algo.prox_logp="recompute"'

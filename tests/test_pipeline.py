@@ -102,11 +102,13 @@ async def watch_chunks_and_updates(watch, seen: dict, versions: int) -> None:
         await asyncio.sleep(0.05)
 
 
-@pytest.mark.parametrize("mode, max_staleness", [("ebrl", 1), ("colocated", 0), ("async", 2)])
+@pytest.mark.parametrize("mode, max_staleness", [("ebrl", 1), ("colocated", 0), ("hybrid", 0), ("async", 2)])
 def test_every_mode_keeps_its_staleness_bound(tmp_path, mode, max_staleness):
     """Generation answers chunk ``seq`` of iteration i only with version >= i - max_staleness (0 without
-    overlap), and training learns only from decisions at most that many versions old."""
-    cfg = small_config(tmp_path, run={"mode": mode}, algo={"max_staleness": max_staleness})
+    overlap), and training learns only from decisions at most that many versions old (async with the
+    interpolated proximal log-probs, the others recomputing them)."""
+    prox = "interpolate" if mode == "async" else "recompute"
+    cfg = small_config(tmp_path, run={"mode": mode}, algo={"max_staleness": max_staleness, "prox_logp": prox})
     seen: dict = {"chunks": [], "reports": []}
     asyncio.run(_run(cfg, tmp_path, lambda watch: watch_chunks_and_updates(watch, seen, 4)))
     schedule = resolve(cfg)

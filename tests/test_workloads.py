@@ -47,7 +47,8 @@ def test_flow_policy_trains_and_its_checkpoint_starts_the_next_run(tmp_path):
 def test_robosuite_camera_config_trains(tmp_path):
     code, out, stats = run_collecting_stats(
         tmp_path / "runs", "configs/robosuite_lift_rgb.toml", "run.iterations=2", "train.batch_size=16",
-        "policy.denoise_steps=2", "env.max_episode_steps=24", run="rgb-e2e", timeout=600)
+        "sim.groups=1", "sim.envs_per_group=2", "policy.denoise_steps=2", "env.max_episode_steps=24", run="rgb-e2e",
+        timeout=600)
     assert code == 0, out
     assert stats["train/0"][-1]["train/policy_version"] == 2
     assert "sim/success_rate" in stats["sim/0"][-1]

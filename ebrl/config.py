@@ -16,7 +16,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal
 
-from ebrl import typecheck
+from ebrl import devices, typecheck
 from ebrl.bus import keys
 
 
@@ -129,6 +129,8 @@ class GenSection:
     max_batch_groups: int = doc("most groups served by one forward pass; 0 means all groups", 0)
     cores: list[int] = doc("cores for the generation process; empty: the mode's choice", factory=list)
     threads: int = doc("torch threads of the generation process", 1)
+    device: str = doc("torch device of the policy's forward passes: auto (the GPU this process is bound to when "
+                      "torch sees one, else the CPU), cpu, cuda or cuda:N", "auto")
 
 
 @dataclass
@@ -160,7 +162,8 @@ class AlgoSection:
 class TrainSection:
     batch_size: int = doc("chunk decisions per update", 1024)
     lr: float = doc("Adam learning rate", 3e-4)
-    device: str = doc("torch device", "cpu")
+    device: str = doc("torch device of the updates: auto (the GPU this process is bound to when torch sees one, "
+                      "else the CPU), cpu, cuda or cuda:N; ranks spread over the visible GPUs", "auto")
     threads: int = doc("torch threads of the training process", 1)
     max_pending: int = doc("most chunk decisions buffered while an update runs; beyond it the oldest are dropped (counted)", 8192)
     overlap: bool | None = doc("train while rollout goes on (bounded by algo.max_staleness); false restores the "
@@ -376,6 +379,8 @@ def _check_semantics(cfg: Config) -> None:
 
     try:
         keys.check_chunk(cfg.run.name, "run.name")
+        devices.check_syntax(cfg.gen.device, "gen.device")
+        devices.check_syntax(cfg.train.device, "train.device")
     except ValueError as exc:
         raise ConfigError(str(exc)) from None
     if cfg.train.checkpoint_every < 0 or cfg.run.max_restarts < 0:

@@ -29,7 +29,7 @@ import sys
 import time
 from pathlib import Path
 
-from ebrl import config as config_mod, procenv
+from ebrl import config as config_mod, devices, procenv
 from ebrl.bus import Bus, BusOptions, keys
 from ebrl.bus.endpoints import listen_endpoint
 from ebrl.hosts import PRIMARY_LOST_S, HostPlan, Membership, enabled_roles, plan as plan_host
@@ -312,12 +312,16 @@ class Launcher:
         self.link.event("host", what)
 
 
-def preflight(cfg: config_mod.Config) -> str | None:
-    """What would make the run fail at start, found before any process starts (None: nothing)."""
+def preflight(cfg: config_mod.Config, roles: tuple[str, ...] = ("gen", "train")) -> str | None:
+    """What would make the run fail at start, found before any process starts (None: nothing); ``roles``: the
+    services this host runs."""
     from ebrl.envs import EnvError, EnvSpec, preflight as env_preflight
 
     if cfg.policy.checkpoint and not os.path.isfile(cfg.policy.checkpoint):
         return f"policy.checkpoint = {cfg.policy.checkpoint!r}: no such file"
+    device_error = devices.preflight(cfg, roles)  # e.g. train.device = "cuda" on a machine without one
+    if device_error:
+        return device_error
     try:
         env_preflight(EnvSpec.from_config(cfg.env))  # e.g. ManiSkill without a GPU; picks the GL backend for cameras
     except EnvError as exc:
@@ -338,7 +342,7 @@ def up(config_path: str, overrides: list[str], viz: str | None = None, resume: s
     except config_mod.ConfigError as exc:
         print(f"ebrl: config error: {exc}", file=sys.stderr)
         return 2
-    problem = preflight(cfg)
+    problem = preflight(cfg, tuple(plan.roles))
     if problem:
         print(f"ebrl: {problem}", file=sys.stderr)
         return 2

@@ -29,7 +29,7 @@ from typing import Any, Iterator
 
 import psutil
 
-from ebrl import config as config_mod
+from ebrl import config as config_mod, devices
 from ebrl.bus import Bus, BusOptions, keys
 from ebrl.messages import Affinity, Event, Quota, SpanBatch, StatsReport, Stop, encode_message
 from ebrl.recorder import Recorder
@@ -65,6 +65,8 @@ class Service:
             on_full=self.flush_spans)
         self._stats_seq = 0
         self._proc = psutil.Process()
+        self.device: Any = None  # the torch device of gen and train (``use_device``)
+        self.memory_cap: float | None = None  # the fraction of the GPU's memory this process may allocate
         self.started_at = self.recorder.started_at
 
     # --- to override ---------------------------------------------------------------
@@ -92,11 +94,22 @@ class Service:
         return sorted(os.sched_getaffinity(0))
 
     def on_quota(self, quota: Quota) -> None:
-        """Apply a resource quota; the default sets torch's thread count."""
+        """Apply a resource quota; the default sets torch's thread count and, on a GPU, the memory cap."""
         if quota.threads:
             import torch
 
             torch.set_num_threads(quota.threads)
+        if quota.mem_bytes and self.device is not None:
+            self.memory_cap = devices.apply_memory_cap(self.device, quota.mem_bytes)
+
+    def use_device(self, device: Any) -> None:
+        """Run this service's torch work on ``device``: the launcher's GPU memory budget becomes its cap, and the
+        device is said in the log, the run's events and every stats report (``<role>/cuda_*``)."""
+        self.device = device
+        self.memory_cap = devices.launch_memory_cap(device)
+        where = devices.describe(device) + (f", memory cap {self.memory_cap:.0%}" if self.memory_cap else "")
+        self.log.info("%s/%d on %s", self.role, self.instance, where)
+        self.event("device", f"{self.role}/{self.instance} on {where}")
 
     # --- telemetry (ebrl.recorder.Telemetry): for the service and the library code it drives -----
 
@@ -210,6 +223,8 @@ class Service:
         metrics["quota/cores"] = float(len(self.cores_in_use()))
         if "torch" in sys.modules:
             metrics["quota/threads"] = float(sys.modules["torch"].get_num_threads())
+        if self.device is not None:
+            metrics.update(devices.metrics(self.role, self.device, self.memory_cap))
         metrics.update(self.metrics())
         report = StatsReport(run=self.run_name, service=self.role, instance=self.instance, time=time.time(),
                              seq=self._stats_seq, metrics=metrics)

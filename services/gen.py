@@ -13,6 +13,7 @@ import time
 import numpy as np
 import torch
 
+from ebrl import devices
 from ebrl.bus import keys
 from ebrl.bus.peers import LivePeers
 from ebrl.envs import EnvSpec, describe
@@ -34,8 +35,10 @@ class GenService(Service):
             os.sched_setaffinity(0, self.schedule.gen_cores)
         torch.set_num_threads(cfg.gen.threads)
         info = await asyncio.get_running_loop().run_in_executor(None, describe, EnvSpec.from_config(cfg.env))
-        self.policy = make_policy(cfg.policy, info.layout, info.action_dim)
+        self.use_device(devices.resolve(cfg.gen.device, "gen.device"))
+        self.policy = make_policy(cfg.policy, info.layout, info.action_dim).to(self.device)
         self.policy.eval()
+        self.staging = devices.Staging(self.device)  # observations in through a pinned buffer on a GPU
         self.version = -1
         self.batch_groups = cfg.gen.max_batch_groups  # 0: every group of every live sim host
         self.sims = LivePeers(self.bus, self.run_name, "sim", warn=lambda: False)
@@ -70,7 +73,7 @@ class GenService(Service):
         obs = np.concatenate([m.obs for m in batch])
         start = time.time()
         actions, logprobs, values, latents = await asyncio.get_running_loop().run_in_executor(
-            self.pool, self.policy.act, obs)
+            self.pool, lambda: self.policy.act(self.staging(obs)))
         self.publish_span("gen", "forward", start, time.time())
         row = 0
         for m in batch:

@@ -36,6 +36,7 @@ class TrainService(Service):
         torch.set_num_threads(cfg.train.threads)
         info = await loop.run_in_executor(None, describe, EnvSpec.from_config(cfg.env))
         self.learner = learner = Learner(cfg, info, resolve(cfg).max_staleness, self, self.run_dir, rank, world)
+        self.use_device(learner.device)
         if cfg.policy.checkpoint:
             self.log.info("policy initialised from %s", cfg.policy.checkpoint)
             self.event("checkpoint", f"policy initialised from {cfg.policy.checkpoint}")

@@ -118,3 +118,26 @@ def test_every_mode_keeps_its_staleness_bound(tmp_path, mode, max_staleness):
         assert chunk.policy_version >= schedule.min_version(chunk.seq), (chunk.seq, chunk.policy_version)
     lags = [m["train/staleness_max"] for m in seen["reports"] if "train/staleness_max" in m]
     assert lags and max(lags) <= max_staleness
+
+
+@pytest.mark.gpu
+@pytest.mark.skipif(not __import__("torch").cuda.is_available(),
+                    reason="needs a CUDA device (benchmarks/gpu/check.sh runs it on a GPU machine)")
+@pytest.mark.parametrize("kind", ["mlp", "flow"])
+def test_generation_and_training_share_the_gpu(tmp_path, kind):
+    """gen and train on CUDA (``auto`` picks it), the policy learning, and every report saying so."""
+    cfg = small_config(tmp_path, policy={"kind": kind, "denoise_steps": 3})
+    seen: dict = {"chunks": [], "reports": []}
+    gen_reports: list[dict] = []
+
+    async def until(watch):
+        stats = watch.subscribe(keys.stats("pipe", "gen", 0), StatsReport, capacity=256)
+        await watch_chunks_and_updates(watch, seen, 4)
+        gen_reports.extend(r.metrics for _, r in stats.drain())
+
+    services = asyncio.run(_run(cfg, tmp_path, until))
+    train, gen = services[0], services[1]
+    assert train.learner.device.type == "cuda" and gen.device.type == "cuda"
+    assert seen["reports"][-1]["train/cuda_device"] == 0 and gen_reports[-1]["gen/cuda_device"] == 0
+    assert seen["reports"][-1]["train/cuda_mem_allocated_mb"] > 0
+    assert (tmp_path / "policy.safetensors").is_file()

@@ -26,6 +26,7 @@ import msgpack
 import numpy as np
 import torch
 
+from ebrl import devices
 from ebrl.algos import checkpoint
 from ebrl.algos.grpo import GroupCollector
 from ebrl.algos.parallel import Command, DataParallel, shards
@@ -47,9 +48,10 @@ class Learner:
                  rank: int = 0, world: int = 1):
         self.cfg, self.telemetry, self.run_dir, self.rank, self.world = cfg, telemetry, run_dir, rank, world
         torch.manual_seed(cfg.run.seed)
+        self.device = devices.rank_device(cfg.train.device, "train.device", rank)
         self.obs_shape = info.obs_shape
         self.action_shape = (cfg.policy.chunk, info.action_dim)
-        self.model = make_policy(cfg.policy, info.layout, info.action_dim)
+        self.model = make_policy(cfg.policy, info.layout, info.action_dim).to(self.device)  # before the optimizer
         self.latent_shape = tuple(self.model.latent_shape)
         self.ppo = PPO(self.model, cfg.algo, cfg.train.lr, seed=cfg.run.seed)
         self.version = self.saved_version = 0
@@ -65,7 +67,7 @@ class Learner:
         """With several ranks: join the training group (blocks until every rank joined; every rank then
         holds rank 0's weights)."""
         self.dp = DataParallel(self.model, self.ppo.optimizer, self.rank, self.world,
-                               shard=self.cfg.train.parallel == "fsdp")
+                               shard=self.cfg.train.parallel == "fsdp", device=self.device)
         self.ppo.net, self.ppo.optimizer = self.dp.net, self.dp.optimizer
 
     @property
@@ -108,7 +110,7 @@ class Learner:
         """The gradient steps on this rank's items, then ``sync``; a rank without items steps with zero
         gradients. Every rank makes the same collective calls in the same order, items or not."""
         with self.dp.gathered() if self.dp is not None else contextlib.nullcontext():
-            batch = self.collector.build(items, self.model) if items else None
+            batch = self.collector.build(items, self.model).to(self.device) if items else None
         if self.model.obs_norm is not None:  # before the gradient steps, the same statistics on every rank
             sums = self.model.obs_norm.sums(batch.obs if batch is not None else torch.zeros(0, *self.obs_shape))
             self.model.obs_norm.merge(sums if self.dp is None else self.dp.all_sum(sums))
@@ -142,7 +144,7 @@ class Learner:
         zeros = torch.zeros(n)
         return Batch(obs=torch.zeros(n, *self.obs_shape), actions=torch.zeros(n, *self.action_shape),
                      latents=torch.zeros(n, *self.latent_shape), logprobs=zeros, advantages=zeros, returns=zeros,
-                     values=zeros, versions=np.full(n, self.version))
+                     values=zeros, versions=np.full(n, self.version)).to(self.device)
 
     def resume(self, floor: int) -> str | None:
         """Carry on from the run's latest checkpoint, if any, and after version ``floor`` (the newest anyone saw

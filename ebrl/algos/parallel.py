@@ -1,7 +1,7 @@
 """Data-parallel training with torch.distributed (``train.world_size`` > 1).
 
 The ranks are ``train/0 .. train/<world_size - 1>``, one process each, in one
-gloo process group whose address the launcher hands out
+process group (NCCL when each rank has a GPU of its own, else gloo) whose address the launcher hands out
 (``EBRL_DIST_ADDR``). Rank 0 is the train service the rest of the run sees: it
 alone receives trajectories, publishes weights and writes checkpoints. For each
 update it takes a batch, cuts it into ``world_size`` shards of about equal
@@ -78,21 +78,28 @@ class DataParallel:
     checkpoint); with ``shard`` it is replaced by one over the shards (``self.optimizer``), state included."""
 
     def __init__(self, policy: nn.Module, optimizer: torch.optim.Optimizer, rank: int, world: int,
-                 address: str | None = None, shard: bool = False):
+                 address: str | None = None, shard: bool = False, device: torch.device | None = None):
         address = address or procenv.dist_addr()
         if not address:
             raise RuntimeError(f"train.world_size = {world}: {procenv.DIST_ADDR} (rank 0's host:port) is not set; "
                                "start training ranks with `ebrl up`")
         self.rank, self.world, self.shard = rank, world, shard
         self.policy, self.optimizer = policy, optimizer
-        dist.init_process_group("gloo", init_method=f"tcp://{address}", rank=rank, world_size=world,
+        self.device = device or torch.device("cpu")
+        cuda = self.device.type == "cuda"
+        if cuda:
+            torch.cuda.set_device(self.device)
+        # NCCL wants one GPU per rank; ranks sharing a GPU (or on the CPU) use gloo
+        self.backend = "nccl" if cuda and torch.cuda.device_count() >= world else "gloo"
+        dist.init_process_group(self.backend, init_method=f"tcp://{address}", rank=rank, world_size=world,
                                 timeout=datetime.timedelta(seconds=TIMEOUT_S))
         self.names = [f"policy.{name}" for name, _ in policy.named_parameters()]  # optimizer index -> FQN
         if not shard:
             # broadcast_buffers=False: a forward pass is no collective (ranks call value() a different number
             # of times). The one buffer that changes, the observation statistics, every rank updates alike
             # from the sum over ranks (``all_sum``).
-            self.net: nn.Module = nn.parallel.DistributedDataParallel(Methods(policy), broadcast_buffers=False)
+            self.net: nn.Module = nn.parallel.DistributedDataParallel(
+                Methods(policy), broadcast_buffers=False, device_ids=[self.device.index] if cuda else None)
             return
         from torch.distributed.checkpoint.state_dict import StateDictOptions, set_optimizer_state_dict
         from torch.distributed.fsdp import fully_shard
@@ -158,9 +165,9 @@ class DataParallel:
 
     def all_sum(self, values: np.ndarray) -> np.ndarray:
         """Element-wise sum of ``values`` over the ranks (a collective), in float64."""
-        total = torch.from_numpy(np.array(values, dtype=np.float64))
+        total = torch.from_numpy(np.array(values, dtype=np.float64)).to(self.device)
         dist.all_reduce(total)
-        return total.numpy()
+        return total.cpu().numpy()
 
     def send(self, command: Command | list[Command]) -> Command:
         """Rank 0: scatter one command per rank (or the same to all); return rank 0's own."""

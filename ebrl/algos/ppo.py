@@ -26,6 +26,7 @@ policy counted as version v + 1, it takes log pi_prox on the line between behavi
 from __future__ import annotations
 
 import collections
+import dataclasses
 from dataclasses import dataclass
 from typing import Any, Callable, Sequence
 
@@ -72,6 +73,20 @@ class Batch:
     def __len__(self) -> int:
         return self.obs.shape[0]
 
+    def to(self, device: torch.device) -> "Batch":
+        """The same batch with its tensors on ``device`` (pinned, non-blocking copies to a GPU)."""
+        if self.obs.device == device:
+            return self
+        cuda = device.type == "cuda"
+
+        def move(t: torch.Tensor | None) -> torch.Tensor | None:
+            if t is None:
+                return None
+            return (t.pin_memory() if cuda and t.device.type == "cpu" else t).to(device, non_blocking=cuda)
+
+        return dataclasses.replace(self, **{f.name: move(getattr(self, f.name)) for f in dataclasses.fields(self)
+                                            if isinstance(getattr(self, f.name), torch.Tensor)})
+
 
 def build_batch(segments: Sequence[TrajectorySegment], model: nn.Module, gamma: float, lam: float) -> Batch:
     """Advantages for every segment (bootstrap values from the current critic), concatenated."""
@@ -80,7 +95,7 @@ def build_batch(segments: Sequence[TrajectorySegment], model: nn.Module, gamma: 
     if needs_bootstrap:
         with torch.no_grad():
             last_obs = torch.as_tensor(np.stack([segments[i].last_obs for i in needs_bootstrap]))
-            last_values[needs_bootstrap] = model.value(last_obs).numpy()
+            last_values[needs_bootstrap] = model.value(last_obs).cpu().numpy()
     advs, rets = [], []
     for seg, last_value in zip(segments, last_values):
         a, r = gae(seg.rewards, seg.values, gamma ** seg.steps.astype(np.float64), float(last_value), lam)
@@ -116,14 +131,14 @@ class PPO:
         interpolate = decoupled and getattr(cfg, "prox_logp", "recompute") == "interpolate"
         if interpolate:
             lag = torch.as_tensor((version if version is not None else batch.versions.max()) - batch.versions,
-                                  dtype=torch.float32).clamp(min=0)
+                                  dtype=torch.float32, device=batch.obs.device).clamp(min=0)
             alpha = lag / (lag + 1)  # log pi_prox and the weights: per minibatch step, below
         elif decoupled:
             with torch.no_grad():
                 prox = self.net("evaluate", batch.obs, batch.actions, batch.latents)[0]  # log pi_prox, once per update
             weight = (prox - batch.logprobs).exp().clamp(max=cfg.behave_weight_cap)
         else:
-            prox, weight = batch.logprobs, torch.ones(n)
+            prox, weight = batch.logprobs, torch.ones(n, device=batch.obs.device)
         weights: list[float] = [] if interpolate else [weight.mean().item()]
         for _ in range(cfg.epochs):
             order = torch.randperm(n, generator=self.generator)
@@ -146,7 +161,7 @@ class PPO:
                     adv = (adv - adv.mean()) / (adv.std() + 1e-8)
                 pg_loss = (weight_mb * torch.max(-adv * ratio, -adv * ratio.clamp(1 - cfg.clip, 1 + cfg.clip))).mean()
                 if batch.returns is None:
-                    v_loss = torch.zeros(())
+                    v_loss = torch.zeros((), device=batch.obs.device)
                 else:
                     v_loss = 0.5 * ((newvalue - batch.returns[idx]) ** 2).mean()
                 ent = entropy.mean()

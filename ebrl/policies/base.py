@@ -47,12 +47,29 @@ class ChunkPolicy(nn.Module):
         """V(o_t), [B]."""
         raise NotImplementedError
 
+    @property
+    def device(self) -> torch.device:
+        return next(self.parameters()).device
+
     def flat(self, obs: torch.Tensor | np.ndarray) -> torch.Tensor:
-        """Observations as a float32 tensor [B, layout.size], standardised when the policy normalises them
-        (every entry point, ``act``, ``evaluate`` and ``value``, passes its observations through here once)."""
-        o = torch.as_tensor(obs, dtype=torch.float32)
+        """Observations as a float32 tensor [B, layout.size] on the policy's device, standardised when the policy
+        normalises them (every entry point, ``act``, ``evaluate`` and ``value``, passes them through here once)."""
+        o = torch.as_tensor(obs, dtype=torch.float32, device=self.device)
         o = o.reshape(o.shape[0], self.layout.size)
         return o if self.obs_norm is None else self.obs_norm(o)
+
+
+def to_host(*tensors: torch.Tensor) -> tuple[np.ndarray, ...]:
+    """float32 numpy copies of ``tensors`` (same leading size B), in ONE device-to-host transfer: what ``act``
+    returns, once per batch, wherever the policy runs."""
+    batch = tensors[0].shape[0]
+    flat = torch.cat([t.reshape(batch, -1).float() for t in tensors], 1).cpu().numpy()
+    out, col = [], 0
+    for t in tensors:
+        width = int(np.prod(t.shape[1:], dtype=np.int64))
+        out.append(flat[:, col:col + width].reshape(t.shape))
+        col += width
+    return tuple(out)
 
 
 class GaussianChunkPolicy(ChunkPolicy):
@@ -69,8 +86,8 @@ class GaussianChunkPolicy(ChunkPolicy):
         d, v = self.heads(self.flat(obs))
         a = d.sample()
         batch = a.shape[0]
-        return (a.reshape(batch, self.chunk, self.action_dim).numpy(), d.log_prob(a).sum(-1).numpy(), v.numpy(),
-                np.zeros((batch, 0), np.float32))
+        actions, logprobs, values = to_host(a.reshape(batch, self.chunk, self.action_dim), d.log_prob(a).sum(-1), v)
+        return actions, logprobs, values, np.zeros((batch, 0), np.float32)
 
     def evaluate(self, obs: torch.Tensor, actions: torch.Tensor, latents: torch.Tensor) -> Tensors3:
         d, v = self.heads(self.flat(obs))

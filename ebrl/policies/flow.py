@@ -42,15 +42,15 @@ from torch import nn
 from torch.distributions import Normal
 
 from ebrl.envs.obs import ObsLayout
-from ebrl.policies.base import ChunkPolicy, Tensors3
+from ebrl.policies.base import ChunkPolicy, Tensors3, to_host
 from ebrl.policies.nets import ObsEncoder, mlp
 
 TIME_FREQUENCIES = 8  # the time embedding is [sin(2^k pi t), cos(2^k pi t)] for k < 8
 
 
-def time_embedding(t: float, batch: int) -> torch.Tensor:
+def time_embedding(t: float, batch: int, device: torch.device | str = "cpu") -> torch.Tensor:
     """[batch, 2 * TIME_FREQUENCIES] sinusoidal embedding of the flow time t in [0, 1)."""
-    angles = t * math.pi * 2.0 ** torch.arange(TIME_FREQUENCIES, dtype=torch.float32)
+    angles = t * math.pi * 2.0 ** torch.arange(TIME_FREQUENCIES, dtype=torch.float32, device=device)
     return torch.cat([angles.sin(), angles.cos()]).expand(batch, -1)
 
 
@@ -77,7 +77,7 @@ class FlowPolicy(ChunkPolicy):
         """mu(o, x_0): N Euler steps from the flat noise x0 [B, K*A]; differentiable."""
         x, steps, batch = x0, self.denoise_steps, x0.shape[0]
         for i in range(steps):
-            x = x + self.velocity(torch.cat([x, time_embedding(i / steps, batch), features], 1)) / steps
+            x = x + self.velocity(torch.cat([x, time_embedding(i / steps, batch, x.device), features], 1)) / steps
         return x
 
     def dist(self, features: torch.Tensor, x0: torch.Tensor) -> Normal:
@@ -88,12 +88,11 @@ class FlowPolicy(ChunkPolicy):
     def act(self, obs: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         features = self.encoder(self.flat(obs))
         batch = features.shape[0]
-        x0 = torch.randn(batch, self.chunk * self.action_dim)
+        x0 = torch.randn(batch, self.chunk * self.action_dim, device=features.device)
         d = self.dist(features, x0)
         a = d.sample()
         shape = (batch, self.chunk, self.action_dim)
-        return (a.reshape(shape).numpy(), d.log_prob(a).sum(-1).numpy(), self.critic(features).squeeze(-1).numpy(),
-                x0.reshape(shape).numpy())
+        return to_host(a.reshape(shape), d.log_prob(a).sum(-1), self.critic(features).squeeze(-1), x0.reshape(shape))
 
     def evaluate(self, obs: torch.Tensor, actions: torch.Tensor, latents: torch.Tensor) -> Tensors3:
         features = self.encoder(self.flat(obs))

@@ -123,7 +123,8 @@ class ObsNormalizer(nn.Module):
     def sums(self, obs: torch.Tensor | np.ndarray) -> np.ndarray:
         """[count, sum of x (D), sum of x**2 (D)] of a batch of flat observations (possibly none), float64:
         what ranks add up."""
-        o = np.asarray(obs, dtype=np.float64).reshape(len(obs), self.mean.numel())
+        o = (obs.detach().cpu().numpy() if isinstance(obs, torch.Tensor) else np.asarray(obs))
+        o = o.astype(np.float64).reshape(len(obs), self.mean.numel())
         return np.concatenate([[len(o)], o.sum(0), (o ** 2).sum(0)])
 
     @torch.no_grad()
@@ -136,7 +137,8 @@ class ObsNormalizer(nn.Module):
         var = np.maximum(sums[1 + dim:] / n - mean ** 2, 0.0)
         count = self.count.item()
         total = count + n
-        old_mean, old_var = self.mean.double().numpy(), self.var.double().numpy() if count else np.zeros(dim)
+        old_mean = self.mean.double().cpu().numpy()
+        old_var = self.var.double().cpu().numpy() if count else np.zeros(dim)
         delta = mean - old_mean
         m2 = old_var * count + var * n + delta ** 2 * count * n / total
         self.mean.copy_(torch.from_numpy(old_mean + delta * n / total))

@@ -5,6 +5,8 @@ and the measured correction are known in advance."""
 
 from __future__ import annotations
 
+import pytest
+
 import json
 import time
 
@@ -114,6 +116,7 @@ sys.exit(asyncio.run(Launcher(cfg, run_dir, gpu_env={"gen": share, "train": dict
 """
 
 
+@pytest.mark.slow
 def test_a_new_gpu_share_restarts_training_at_a_safe_point_and_loses_nothing(tmp_path):
     """What the launcher does when the allocator tells it of a new SM share (``GpuShare``; the GPU faked at its
     boundary: the share is only the environment a process starts with): train stops after its update, hands

@@ -48,6 +48,7 @@ def test_two_minute_soak_keeps_every_service_memory_flat(tmp_path):
     assert all(row["samples"] >= 60 for row in result["services"].values())
 
 
+@pytest.mark.slow
 def test_scaling_benchmark_measures_a_two_host_run_and_leaves_no_process(tmp_path):
     # The window is 3 s or longer: it ends once rank 0 finished an update in it (--min-updates), so a loaded
     # machine takes longer instead of measuring nothing.

@@ -95,6 +95,7 @@ def test_a_killed_gen_is_restarted_and_every_group_is_served_again(tmp_path):
     assert summary["restarts"] == {"gen/0": 1}
 
 
+@pytest.mark.slow
 def test_a_killed_train_resumes_from_its_checkpoint_with_versions_never_reused(tmp_path):
     with quick(tmp_path, "kill-train") as run, StatsWatcher(run) as stats:
         wait_version(stats, 3)
@@ -125,6 +126,7 @@ def test_random_bytes_on_data_keys_are_counted_and_dropped(tmp_path):
     assert stats.latest("sim/0", "bus/malformed", 0) > 0
 
 
+@pytest.mark.slow
 def test_resume_continues_a_stopped_run_with_the_version_counter(tmp_path):
     with up(tmp_path, "configs/quickstart.toml", "run.iterations=3", "train.batch_size=256", name="resumed") as run:
         assert run.wait(FINISH_S) == 0, run.output

@@ -136,6 +136,7 @@ def summary(out_dir) -> dict:
     return json.loads((run / "summary.json").read_text())
 
 
+@pytest.mark.slow
 def test_sim_on_another_host_trains_and_the_primary_ends_the_run(tmp_path):
     """`--only`: gen+train as host 0, sim as host 1 joining through host 0's endpoint; a second sim host
     with the same number is refused."""
@@ -152,6 +153,7 @@ def test_sim_on_another_host_trains_and_the_primary_ends_the_run(tmp_path):
     assert (tmp_path / "s").glob("*/logs/sim-1.log")
 
 
+@pytest.mark.slow
 def test_the_allocator_on_a_host_without_a_simulator_counts_the_other_hosts(tmp_path):
     """alloc.enabled over two hosts: host 0 (gen, train and the allocator) gives every core to generation and
     training and reads host 1's simulator stats as the rollout capacity it plans with."""
@@ -297,6 +299,7 @@ def test_ddp_ranks_hold_the_same_weights_after_every_update(tmp_path, kind):
     assert any(not (torch.from_numpy(a) == b).all() for a, b in zip(ranks[0]["after"].values(), first))
 
 
+@pytest.mark.slow
 def test_fsdp_takes_the_same_steps_as_ddp(tmp_path):
     """Sharded parameters, gradients and Adam state: after the same updates on the same shards, the gathered
     weights, values and optimizer state match DDP's."""
@@ -467,6 +470,7 @@ def namespaced_run(tmp_path, sims: int, iterations: int, extra: list[str] = ()) 
         hosts.close()
 
 
+@pytest.mark.slow
 def test_sim_and_learner_in_separate_network_namespaces_train(tmp_path):
     why = _netns_unavailable()
     if why:

@@ -195,6 +195,7 @@ def hue_pixels(png) -> dict[str, int]:
 # --- end to end ----------------------------------------------------------------------------------
 
 
+@pytest.mark.slow
 def test_up_with_viz_save_writes_timeline_and_report(tmp_path):
     with helpers.up(tmp_path / "runs", "configs/quickstart.toml", "run.iterations=3", 'viz.rerun="save"',
                     name="vizsave") as run:

@@ -25,6 +25,7 @@ def test_grpo_config_trains(tmp_path):
     assert "train/value_loss" in train and train["train/value_loss"] == 0.0  # no critic is trained
 
 
+@pytest.mark.slow
 def test_flow_policy_trains_and_its_checkpoint_starts_the_next_run(tmp_path):
     code, out, stats = run_collecting_stats(tmp_path / "a", "configs/quickstart.toml", "run.iterations=2",
                                             'policy.kind="flow"', "policy.denoise_steps=3", "train.batch_size=256",
@@ -44,6 +45,7 @@ def test_flow_policy_trains_and_its_checkpoint_starts_the_next_run(tmp_path):
     assert code != 0 and "checkpoint" in out and "kind" in out
 
 
+@pytest.mark.slow
 def test_robosuite_camera_config_trains(tmp_path):
     code, out, stats = run_collecting_stats(
         tmp_path / "runs", "configs/robosuite_lift_rgb.toml", "run.iterations=2", "train.batch_size=16",

@@ -1,0 +1,94 @@
+"""Generation's forward pass on the CPU and on the GPU, side by side: action chunks per second of ``act``.
+
+    python benchmarks/gpu/forward.py --out results.json          # on the lent GPU machine (check.sh runs it)
+
+What the generation service calls per batch: observations staged in (pinned, non-blocking on a GPU), the
+policy's ``act`` (encoder, N denoising steps of the flow policy, sampling), results back in one transfer.
+Policies: the mlp (the quickstart's) and the flow policy at N = 10 with hidden [256, 256] on a camera
+layout (3x64x64 image + 9 proprio + instruction tokens), batch sizes 8 to 512. Each (policy, batch) pair is
+measured on every device in interleaved rounds; the median over rounds is reported with the GPU/CPU ratio.
+The CPU side uses every core this process may run on (the GPU machine has 16).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import statistics
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent.parent))
+
+from ebrl import devices  # noqa: E402
+from ebrl.config import PolicySection  # noqa: E402
+from ebrl.envs.obs import ObsField, ObsLayout, tokenize  # noqa: E402
+from ebrl.policies import make_policy  # noqa: E402
+
+ACTION_DIM, CHUNK = 7, 8
+LAYOUTS = {"state": ObsLayout.vector(42),
+           "vision": ObsLayout((ObsField("image", "image", (3, 64, 64)), ObsField("proprio", "vector", (9,)),
+                                ObsField("instruction", "tokens", (16,))))}
+POLICIES = {"mlp-state": ("state", dict(kind="mlp", hidden=[64, 64])),
+            "flow10-vision": ("vision", dict(kind="flow", hidden=[256, 256], denoise_steps=10))}
+
+
+def observations(layout: ObsLayout, batch: int, rng: np.random.Generator) -> np.ndarray:
+    fill = {"vector": lambda f: rng.normal(size=f.shape).astype(np.float32),
+            "image": lambda f: rng.uniform(0, 1, f.shape).astype(np.float32),
+            "tokens": lambda f: tokenize("lift the red cube", f.size)}
+    return np.stack([layout.pack({f.name: fill[f.kind](f) for f in layout.fields}) for _ in range(batch)])
+
+
+def chunks_per_s(policy, stage, obs: np.ndarray, seconds: float) -> float:
+    for _ in range(3):  # warm-up (CUDA context, kernels, allocator)
+        policy.act(stage(obs))
+    done, start = 0, time.perf_counter()
+    while time.perf_counter() - start < seconds:
+        policy.act(stage(obs))  # returns numpy: the GPU work is finished when it returns
+        done += len(obs)
+    return done / (time.perf_counter() - start)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--batches", type=int, nargs="+", default=[8, 64, 512])
+    parser.add_argument("--seconds", type=float, default=1.0)
+    parser.add_argument("--rounds", type=int, default=3)
+    parser.add_argument("--out", default="gpu_forward.json")
+    args = parser.parse_args()
+    torch.set_num_threads(len(os.sched_getaffinity(0)))
+    targets = [torch.device("cpu")] + ([torch.device("cuda", 0)] if torch.cuda.is_available() else [])
+    rng = np.random.default_rng(0)
+    rows = []
+    for name, (layout_name, kwargs) in POLICIES.items():
+        layout = LAYOUTS[layout_name]
+        cfg = PolicySection(chunk=CHUNK, **kwargs)
+        models = {str(d): make_policy(cfg, layout, ACTION_DIM).to(d).eval() for d in targets}
+        for batch in args.batches:
+            obs = observations(layout, batch, rng)
+            rates: dict[str, list[float]] = {str(d): [] for d in targets}
+            for _ in range(args.rounds):
+                for d in targets:
+                    rates[str(d)].append(chunks_per_s(models[str(d)], devices.Staging(d), obs, args.seconds))
+            row = {"policy": name, "batch": batch, **{f"{d}_chunks_per_s": statistics.median(r) for d, r in rates.items()}}
+            if len(targets) > 1:
+                row["gpu_over_cpu"] = row["cuda:0_chunks_per_s"] / row["cpu_chunks_per_s"]
+            rows.append(row)
+            print(json.dumps(row), flush=True)
+    out = {"command": " ".join(["python", "benchmarks/gpu/forward.py", *sys.argv[1:]]),
+           "machine": {"cpu_threads": torch.get_num_threads(), "platform": platform.platform(),
+                       "torch": torch.__version__,
+                       "gpu": devices.describe(targets[-1]) if len(targets) > 1 else None},
+           "rows": rows}
+    Path(args.out).write_text(json.dumps(out, indent=1) + "\n")
+
+
+if __name__ == "__main__":
+    main()

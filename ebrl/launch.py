@@ -347,15 +347,19 @@ def up(config_path: str, overrides: list[str], viz: str | None = None, resume: s
         print(f"ebrl: {problem}", file=sys.stderr)
         return 2
     gpu_env: dict[str, dict[str, str]] = {}
+    mps = None  # an MPS control daemon this run started, quit when it ends
     if "alloc" in plan.roles:  # profile (or reuse a profile) and start every service inside Algorithm 1's plan
         from ebrl.alloc.algorithm import InfeasibleError
         from ebrl.alloc.runtime import initial_config
         from ebrl.resources.pool import ResourceError
 
         try:
+            mps = start_mps(cfg)
             cfg, gpu_env, line = initial_config(cfg, local_sim="sim" in plan.roles)
         except (InfeasibleError, ResourceError) as exc:
             print(f"ebrl: allocator: {exc}", file=sys.stderr)
+            if mps is not None:
+                mps.quit()
             return 2
         print(line, flush=True)
     if resume is not None:
@@ -372,4 +376,26 @@ def up(config_path: str, overrides: list[str], viz: str | None = None, resume: s
         run_dir = make_run_dir(cfg)
     (run_dir / "config.toml").write_text(config_mod.dump_toml(cfg))
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
-    return asyncio.run(Launcher(cfg, run_dir, plan=plan, gpu_env=gpu_env).main())
+    try:
+        return asyncio.run(Launcher(cfg, run_dir, plan=plan, gpu_env=gpu_env).main())
+    finally:
+        if mps is not None:  # after every service (an MPS client) has exited
+            print("ebrl: MPS control daemon " + ("quit" if mps.quit() else f"did not quit ({mps.pipe_dir})"),
+                  file=sys.stderr)
+
+
+def start_mps(cfg: config_mod.Config):
+    """With ``alloc.gpu_pool = "mps"`` on a host with a GPU and no reachable MPS control daemon: start one for
+    this run (``ebrl.resources.mps``); None otherwise."""
+    if cfg.alloc.gpu_pool != "mps":
+        return None
+    from ebrl.resources.mps import MpsDaemon
+    from ebrl.resources.nvml import load_nvml
+    from ebrl.resources.pool import discover_gpus
+
+    if not discover_gpus(load_nvml(), None):
+        return None  # no GPU: the pool partitions cores only
+    daemon = MpsDaemon.ensure(log_dir=Path(cfg.run.output_dir).resolve() / "mps-log")
+    if daemon is not None:
+        print(f"ebrl: started an MPS control daemon for this run ({daemon.pipe_dir})", flush=True)
+    return daemon

@@ -7,6 +7,8 @@
 #                      the GPU in one process over the in-memory bus), and the fast device/pipeline tests
 #   forward.json       generation's forward pass, CPU vs GPU (benchmarks/gpu/forward.py)
 #   quickstart.json    a real `ebrl up` of the quickstart with gen and train on the GPU (device, memory, rates)
+#   mps.log            the same with the allocator's MPS shares: the launcher starts an MPS control daemon for
+#                      the run and quits it at the end
 set -uo pipefail
 cd "$(dirname "$0")/../.."
 OUT="${OUT:-$PWD/gpu-out}"
@@ -40,4 +42,13 @@ with tempfile.TemporaryDirectory() as out, Run("configs/quickstart.toml", "run.i
     json.dump(result, open(sys.argv[1], "w"), indent=1)
     assert result["gen"]["cuda_device"] == 0 and result["train"]["cuda_device"] == 0, result
 PY
+echo "== ebrl up with MPS shares (the launcher starts the control daemon and quits it)"
+had_mps=0; [ -e /tmp/nvidia-mps/control ] && had_mps=1
+timeout 180 python3 -m ebrl.cli up configs/quickstart.toml --set alloc.enabled=true --set 'alloc.gpu_pool="mps"' \
+    --set run.iterations=20 --set 'run.output_dir="/tmp/mps-run"' --set 'viz.rerun="off"' > "$OUT/mps.log" 2>&1 \
+    || status=1
+tail -n 25 "$OUT/mps.log"
+grep -h "device" /tmp/mps-run/*/logs/gen-0.log /tmp/mps-run/*/logs/train-0.log 2>/dev/null | head -4
+# never leave a daemon this script's run started behind, even if the launcher was killed
+if [ $had_mps = 0 ] && [ -e /tmp/nvidia-mps/control ]; then echo quit | nvidia-cuda-mps-control; status=1; fi
 exit $status

@@ -117,6 +117,14 @@ class PolicySection:
                          "instruction embedding)", 32)
     denoise_steps: int = doc("flow: N, denoising (Euler) steps per chunk; cost grows with N, the interface does "
                              "not change", 4)
+    backbone: Literal["conv", "transformer"] = doc(
+        "flow: the observation encoder: conv (conv image encoder + proprioception + instruction embedding) or "
+        "transformer (image patches, proprioception and instruction tokens through a transformer, as VLAs do)",
+        "conv")
+    width: int = doc("transformer backbone: token width", 256)
+    depth: int = doc("transformer backbone: layers (about 12 * width^2 parameters each)", 4)
+    heads: int = doc("transformer backbone: attention heads (a divisor of width)", 8)
+    patch: int = doc("transformer backbone: image patch side in pixels (a divisor of the image size)", 8)
     normalize_obs: bool = doc("standardise the vector fields of the observation by running mean and variance "
                               "(kept in the policy, updated by training from each batch, shipped with the "
                               "weights); images and tokens pass unchanged", False)
@@ -387,12 +395,16 @@ def _check_semantics(cfg: Config) -> None:
         raise ConfigError("train.checkpoint_every and run.max_restarts must be >= 0")
     if cfg.run.iterations < 0:
         raise ConfigError(f"run.iterations = {cfg.run.iterations}: must be >= 0")
+    if cfg.policy.backbone == "transformer" and cfg.policy.kind != "flow":
+        raise ConfigError(f"policy.backbone = 'transformer' is the flow policy's; policy.kind is {cfg.policy.kind!r}")
+    if cfg.policy.width % max(cfg.policy.heads, 1):
+        raise ConfigError(f"policy.width = {cfg.policy.width}: must be a multiple of policy.heads = {cfg.policy.heads}")
     if cfg.hosts and not any("sim" in entry.services for entry in cfg.hosts.values()):
         raise ConfigError("[hosts]: no host runs sim")
     for path in ("sim.groups", "sim.envs_per_group", "sim.segment_length", "policy.chunk", "algo.epochs",
                  "algo.minibatches", "train.batch_size", "train.lr", "train.threads", "train.world_size", "gen.threads",
                  "run.stats_interval", "train.max_pending", "viz.window_s", "viz.port", "policy.embed_dim",
-                 "policy.denoise_steps"):
+                 "policy.denoise_steps", "policy.width", "policy.depth", "policy.heads", "policy.patch"):
         section, key = path.split(".")
         positive(path, getattr(getattr(cfg, section), key))
     if not 0 < cfg.algo.gamma <= 1:

@@ -16,7 +16,9 @@ STATE = ObsLayout.vector(6)
 VISION = ObsLayout((ObsField("image", "image", (3, 32, 32)), ObsField("proprio", "vector", (5,)),
                     ObsField("instruction", "tokens", (16,))))
 ACTION_DIM, CHUNK, BATCH = 2, 3, 5
-CASES = {"mlp": ("mlp", STATE), "cnn": ("cnn", VISION), "flow-vision": ("flow", VISION), "flow-state": ("flow", STATE)}
+CASES = {"mlp": ("mlp", STATE), "cnn": ("cnn", VISION), "flow-vision": ("flow", VISION), "flow-state": ("flow", STATE),
+         "flow-transformer": ("flow", VISION)}
+CASE_CHANGES = {"flow-transformer": dict(backbone="transformer", width=16, depth=2, heads=2, patch=8)}
 
 
 def policy_cfg(kind: str, **changes) -> PolicySection:
@@ -44,6 +46,7 @@ def observations(layout: ObsLayout, batch: int = BATCH, seed: int = 0,
 
 def build(case: str, seed: int = 0, **changes):
     kind, layout = CASES[case]
+    changes = {**CASE_CHANGES.get(case, {}), **changes}
     torch.manual_seed(seed)
     return make_policy(policy_cfg(kind, **changes), layout, ACTION_DIM), layout
 
@@ -155,7 +158,7 @@ def test_checkpoint_round_trip_gives_identical_actions(case, tmp_path):
     assert os.listdir(tmp_path) == ["policy.safetensors"]  # no temp file left behind
     kind = CASES[case][0]
     torch.manual_seed(4)  # other initial weights, replaced by the checkpoint's
-    fresh = make_policy(policy_cfg(kind, checkpoint=path), layout, ACTION_DIM)
+    fresh = make_policy(policy_cfg(kind, checkpoint=path, **CASE_CHANGES.get(case, {})), layout, ACTION_DIM)
     obs = observations(layout)
     torch.manual_seed(9)
     expected = model.act(obs)
@@ -240,3 +243,38 @@ def test_normalize_obs_statistics_travel_with_the_weights(case):
     plain, _ = build(case)
     with pytest.raises(ValueError, match="obs_norm"):  # a normalising policy's weights need a normalising model
         load_arrays(plain, arrays)
+
+
+def test_the_transformer_backbone_reads_every_patch_and_the_instruction():
+    policy, layout = build("flow-transformer")
+    obs = observations(layout, batch=2)
+    features = policy.encoder(policy.flat(obs))
+    assert features.shape == (2, 16)
+    other = observations(layout, batch=2, instruction="open the drawer")
+    assert not torch.allclose(policy.encoder(policy.flat(other)), features)  # the words reach the features
+    corner = obs.copy()
+    corner[:, :3] += 1.0  # three pixels of the top-left patch (the image comes first in the layout)
+    assert not torch.allclose(policy.encoder(policy.flat(corner)), features)
+
+
+def test_the_w3_config_is_a_paper_scale_policy():
+    """configs/bench_w3.toml: a flow policy with a transformer backbone of at least 300M parameters (counted
+    on the meta device: nothing is allocated)."""
+    from pathlib import Path
+
+    from ebrl import config
+    from ebrl.envs.obs import INSTRUCTION_TOKENS
+
+    cfg = config.load(str(Path(__file__).resolve().parent.parent / "configs" / "bench_w3.toml"))
+    assert cfg.policy.kind == "flow" and cfg.policy.backbone == "transformer" and cfg.policy.denoise_steps >= 8
+    size = cfg.env.kwargs["image_size"]
+    layout = ObsLayout((ObsField("image", "image", (3, size, size)), ObsField("proprio", "vector", (43,)),
+                        ObsField("instruction", "tokens", (INSTRUCTION_TOKENS,))))
+    with torch.device("meta"):
+        model = make_policy(cfg.policy, layout, 7)
+    assert sum(p.numel() for p in model.parameters()) >= 300e6
+
+
+def test_the_transformer_backbone_checks_its_shape():
+    with pytest.raises(ValueError, match="policy.patch = 5 does not divide"):
+        build("flow-transformer", patch=5)

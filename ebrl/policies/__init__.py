@@ -17,6 +17,7 @@ from ebrl.policies.cnn import ChunkGaussianCNN
 from ebrl.policies.flow import FlowPolicy
 from ebrl.policies.mlp import ChunkGaussianMLP
 from ebrl.policies.nets import ObsNormalizer
+from ebrl.policies.transformer import TransformerEncoder
 
 
 def make_policy(policy_cfg: Any, layout: ObsLayout, action_dim: int) -> ChunkPolicy:
@@ -29,8 +30,11 @@ def make_policy(policy_cfg: Any, layout: ObsLayout, action_dim: int) -> ChunkPol
         model = ChunkGaussianCNN(layout, action_dim, cfg.chunk, list(cfg.hidden), list(cfg.channels), cfg.embed_dim,
                                  cfg.init_log_std)
     elif cfg.kind == "flow":
+        encoder = None
+        if getattr(cfg, "backbone", "conv") == "transformer":
+            encoder = TransformerEncoder(layout, cfg.width, cfg.depth, cfg.heads, cfg.patch)
         model = FlowPolicy(layout, action_dim, cfg.chunk, list(cfg.hidden), list(cfg.channels), cfg.embed_dim,
-                           cfg.denoise_steps, cfg.init_log_std)
+                           cfg.denoise_steps, cfg.init_log_std, encoder=encoder)
     else:
         raise ValueError(f"policy.kind = {cfg.kind!r} is not available (mlp, cnn, flow)")
     if cfg.normalize_obs:

@@ -60,7 +60,8 @@ class FlowPolicy(ChunkPolicy):
     kind = "flow"
 
     def __init__(self, layout: ObsLayout, action_dim: int, chunk: int, hidden: list[int], channels: list[int],
-                 embed_dim: int, denoise_steps: int, init_log_std: float = -0.5):
+                 embed_dim: int, denoise_steps: int, init_log_std: float = -0.5, encoder: nn.Module | None = None):
+        """``encoder``: the observation backbone (``out_dim`` wide); default the conv ``ObsEncoder``."""
         super().__init__()
         if denoise_steps < 1:
             raise ValueError(f"policy.denoise_steps = {denoise_steps}: must be >= 1")
@@ -68,7 +69,7 @@ class FlowPolicy(ChunkPolicy):
         self.denoise_steps = denoise_steps  # N: not a parameter, may change between runs
         self.latent_shape = (chunk, action_dim)
         n = chunk * action_dim
-        self.encoder = ObsEncoder(layout, channels, embed_dim)
+        self.encoder = encoder if encoder is not None else ObsEncoder(layout, channels, embed_dim)
         self.velocity = mlp(n + 2 * TIME_FREQUENCIES + self.encoder.out_dim, hidden, n, 0.01)
         self.critic = mlp(self.encoder.out_dim, hidden, 1, 1.0)
         self.log_std = nn.Parameter(torch.full((n,), float(init_log_std)))

@@ -125,6 +125,9 @@ class PolicySection:
     depth: int = doc("transformer backbone: layers (about 12 * width^2 parameters each)", 4)
     heads: int = doc("transformer backbone: attention heads (a divisor of width)", 8)
     patch: int = doc("transformer backbone: image patch side in pixels (a divisor of the image size)", 8)
+    dtype: Literal["float32", "bfloat16"] = doc(
+        "precision of generation's forward passes and training's: float32, or bfloat16 autocast (matrix products "
+        "in bfloat16, reductions and the losses in float32; on GPUs with bfloat16 units)", "float32")
     normalize_obs: bool = doc("standardise the vector fields of the observation by running mean and variance "
                               "(kept in the policy, updated by training from each batch, shipped with the "
                               "weights); images and tokens pass unchanged", False)

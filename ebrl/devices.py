@@ -108,6 +108,17 @@ def launch_memory_cap(device: Any) -> float | None:
     return apply_memory_cap(device, parse_mps_limit(limit, 0)) if limit else None
 
 
+def autocast(device: Any, dtype: str) -> Any:
+    """The context ``policy.dtype`` asks for on ``device``: bfloat16 autocast, or nothing for float32."""
+    import contextlib
+
+    import torch
+
+    if dtype == "bfloat16":
+        return torch.autocast(device.type, dtype=torch.bfloat16)
+    return contextlib.nullcontext()
+
+
 def describe(device: Any) -> str:
     """``cpu``, or ``cuda:0 (NVIDIA H100 80GB HBM3, 79.1 GiB)``: for the log and the run's events."""
     import torch

@@ -73,7 +73,7 @@ class GenService(Service):
         obs = np.concatenate([m.obs for m in batch])
         start = time.time()
         actions, logprobs, values, latents = await asyncio.get_running_loop().run_in_executor(
-            self.pool, lambda: self.policy.act(self.staging(obs)))
+            self.pool, self.forward, obs)
         self.publish_span("gen", "forward", start, time.time())
         row = 0
         for m in batch:
@@ -86,6 +86,11 @@ class GenService(Service):
         self.count("gen/batches")
         self.count("gen/groups_served", len(batch))
         self.count("gen/envs_served", row)
+
+    def forward(self, obs: np.ndarray) -> tuple[np.ndarray, ...]:
+        """One batch on the forward thread: observations in, the policy's chunks back (``policy.dtype``)."""
+        with devices.autocast(self.device, self.cfg.policy.dtype):
+            return self.policy.act(self.staging(obs))
 
     async def initial_weights(self) -> None:
         """Ask train for its newest weights (request-reply; a large version comes in parts), until one is here."""

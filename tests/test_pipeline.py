@@ -7,10 +7,12 @@ only the transport is in memory, so a few iterations take seconds and every mess
 from __future__ import annotations
 
 import asyncio
+import math
 import importlib
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from ebrl import config
@@ -141,3 +143,13 @@ def test_generation_and_training_share_the_gpu(tmp_path, kind):
     assert seen["reports"][-1]["train/cuda_device"] == 0 and gen_reports[-1]["gen/cuda_device"] == 0
     assert seen["reports"][-1]["train/cuda_mem_allocated_mb"] > 0
     assert (tmp_path / "policy.safetensors").is_file()
+
+
+def test_bfloat16_autocast_runs_generation_and_training(tmp_path):
+    """``policy.dtype = "bfloat16"`` (measured on a GPU before it could become a default; CPUs run it too)."""
+    cfg = small_config(tmp_path, policy={"kind": "flow", "denoise_steps": 3, "dtype": "bfloat16"})
+    seen: dict = {"chunks": [], "reports": []}
+    asyncio.run(_run(cfg, tmp_path, lambda watch: watch_chunks_and_updates(watch, seen, 2)))
+    losses = [m["train/policy_loss"] for m in seen["reports"] if "train/policy_loss" in m]
+    assert losses and all(math.isfinite(x) for x in losses)
+    assert all(c.actions.dtype.name == "float32" and np.isfinite(c.logprobs).all() for c in seen["chunks"])

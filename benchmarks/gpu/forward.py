@@ -6,7 +6,8 @@ What the generation service calls per batch: observations staged in (pinned, non
 policy's ``act`` (encoder, N denoising steps of the flow policy, sampling), results back in one transfer.
 Policies: the mlp (the quickstart's) and the flow policy at N = 10 with hidden [256, 256] on a camera
 layout (3x64x64 image + 9 proprio + instruction tokens), batch sizes 8 to 512. Each (policy, batch) pair is
-measured on every device in interleaved rounds; the median over rounds is reported with the GPU/CPU ratio.
+measured on every device (on the GPU in float32 and with bfloat16 autocast, ``policy.dtype``) in interleaved
+rounds; the median over rounds is reported with the GPU/CPU and bfloat16/float32 ratios.
 The CPU side uses every core this process may run on (the GPU machine has 16).
 """
 
@@ -46,13 +47,15 @@ def observations(layout: ObsLayout, batch: int, rng: np.random.Generator) -> np.
     return np.stack([layout.pack({f.name: fill[f.kind](f) for f in layout.fields}) for _ in range(batch)])
 
 
-def chunks_per_s(policy, stage, obs: np.ndarray, seconds: float) -> float:
-    for _ in range(3):  # warm-up (CUDA context, kernels, allocator)
-        policy.act(stage(obs))
-    done, start = 0, time.perf_counter()
-    while time.perf_counter() - start < seconds:
-        policy.act(stage(obs))  # returns numpy: the GPU work is finished when it returns
-        done += len(obs)
+def chunks_per_s(policy, stage, obs: np.ndarray, seconds: float, dtype: str) -> float:
+    device = next(policy.parameters()).device
+    with devices.autocast(device, dtype):
+        for _ in range(3):  # warm-up (CUDA context, kernels, allocator)
+            policy.act(stage(obs))
+        done, start = 0, time.perf_counter()
+        while time.perf_counter() - start < seconds:
+            policy.act(stage(obs))  # returns numpy: the GPU work is finished when it returns
+            done += len(obs)
     return done / (time.perf_counter() - start)
 
 
@@ -64,28 +67,31 @@ def main() -> None:
     parser.add_argument("--out", default="gpu_forward.json")
     args = parser.parse_args()
     torch.set_num_threads(len(os.sched_getaffinity(0)))
-    targets = [torch.device("cpu")] + ([torch.device("cuda", 0)] if torch.cuda.is_available() else [])
+    cuda = torch.cuda.is_available()
+    targets = [("cpu", "float32")] + ([("cuda:0", "float32"), ("cuda:0", "bfloat16")] if cuda else [])
     rng = np.random.default_rng(0)
     rows = []
     for name, (layout_name, kwargs) in POLICIES.items():
         layout = LAYOUTS[layout_name]
         cfg = PolicySection(chunk=CHUNK, **kwargs)
-        models = {str(d): make_policy(cfg, layout, ACTION_DIM).to(d).eval() for d in targets}
+        models = {d: make_policy(cfg, layout, ACTION_DIM).to(d).eval() for d in {d for d, _ in targets}}
         for batch in args.batches:
             obs = observations(layout, batch, rng)
-            rates: dict[str, list[float]] = {str(d): [] for d in targets}
+            rates: dict[str, list[float]] = {f"{d}_{t}": [] for d, t in targets}
             for _ in range(args.rounds):
-                for d in targets:
-                    rates[str(d)].append(chunks_per_s(models[str(d)], devices.Staging(d), obs, args.seconds))
-            row = {"policy": name, "batch": batch, **{f"{d}_chunks_per_s": statistics.median(r) for d, r in rates.items()}}
-            if len(targets) > 1:
-                row["gpu_over_cpu"] = row["cuda:0_chunks_per_s"] / row["cpu_chunks_per_s"]
+                for d, t in targets:
+                    stage = devices.Staging(torch.device(d))
+                    rates[f"{d}_{t}"].append(chunks_per_s(models[d], stage, obs, args.seconds, t))
+            row = {"policy": name, "batch": batch, **{f"{k}_chunks_per_s": statistics.median(r) for k, r in rates.items()}}
+            if cuda:
+                row["gpu_over_cpu"] = row["cuda:0_float32_chunks_per_s"] / row["cpu_float32_chunks_per_s"]
+                row["bf16_over_fp32"] = row["cuda:0_bfloat16_chunks_per_s"] / row["cuda:0_float32_chunks_per_s"]
             rows.append(row)
             print(json.dumps(row), flush=True)
     out = {"command": " ".join(["python", "benchmarks/gpu/forward.py", *sys.argv[1:]]),
            "machine": {"cpu_threads": torch.get_num_threads(), "platform": platform.platform(),
                        "torch": torch.__version__,
-                       "gpu": devices.describe(targets[-1]) if len(targets) > 1 else None},
+                       "gpu": devices.describe(torch.device("cuda", 0)) if cuda else None},
            "rows": rows}
     Path(args.out).write_text(json.dumps(out, indent=1) + "\n")
 

@@ -115,11 +115,13 @@ class Learner:
             sums = self.model.obs_norm.sums(batch.obs if batch is not None else torch.zeros(0, *self.obs_shape))
             self.model.obs_norm.merge(sums if self.dp is None else self.dp.all_sum(sums))
         if batch is None:
-            out = {**self.ppo.update(self.empty_batch(), scale=0.0), "batch_size": 0.0}
+            with devices.autocast(self.device, self.cfg.policy.dtype):
+                out = {**self.ppo.update(self.empty_batch(), scale=0.0), "batch_size": 0.0}
         else:
             staleness = self.version - batch.versions
             self.staleness_hist += np.bincount(staleness, minlength=len(self.staleness_hist))[:len(self.staleness_hist)]
-            out = self.ppo.update(batch, version=self.version)
+            with devices.autocast(self.device, self.cfg.policy.dtype):
+                out = self.ppo.update(batch, version=self.version)
             out.update(staleness_mean=float(staleness.mean()), staleness_max=float(staleness.max()),
                        batch_size=float(len(batch)))
         self.sync(self.version + 1)

@@ -44,7 +44,7 @@ def test_device_settings_are_checked_by_name():
 def test_a_cuda_device_where_there_is_none_stops_ebrl_up_before_anything_starts(tmp_path):
     assert devices.resolve("auto", "train.device") == torch.device("cpu")
     proc = subprocess.run([sys.executable, "-m", "ebrl.cli", "up", str(ROOT / "configs" / "quickstart.toml"),
-                           "--set", "train.device=\"cuda\"", "--set", f'run.output_dir="{tmp_path}"'],
+                           "--set", "train.device=cuda", "--set", f'run.output_dir="{tmp_path}"'],
                           capture_output=True, text=True, timeout=180, cwd=ROOT)
     assert proc.returncode == 2, proc.stderr
     assert "train.device = 'cuda'" in proc.stderr and "no CUDA device" in proc.stderr

@@ -24,6 +24,7 @@ import logging
 import os
 import signal
 import sys
+import threading
 import time
 from typing import Any, Iterator
 
@@ -35,6 +36,7 @@ from ebrl.messages import Affinity, Event, Quota, SpanBatch, StatsReport, Stop, 
 from ebrl.recorder import Recorder
 
 STOP_GRACE_S = 5.0
+EXIT_GRACE_S = 3.0  # after a service stopped, its process exits within this (service_main)
 SPAN_FLUSH_S = 0.2  # spans are published in one batch per lane this often (one message per span costs too much)
 # The reason of a Stop that the launcher follows with a new process of the same service at once (a new GPU
 # share): what the service holds that the next one can use is handed over, not dropped.
@@ -307,4 +309,27 @@ def service_main(cls: type[Service], argv: list[str] | None = None) -> None:
                          listen=["tcp/127.0.0.1:0"], config_file=cfg.bus.config_file,
                          max_message_bytes=cfg.bus.max_message_bytes)
     service = cls(cfg, args.instance, options, run_dir=os.path.dirname(os.path.abspath(args.config)))
-    sys.exit(asyncio.run(service.main()))
+
+    async def run_then_arm() -> int:
+        code = await service.main()
+        _exit_within(EXIT_GRACE_S, code, f"{cls.role}/{args.instance}")
+        return code
+
+    sys.exit(asyncio.run(run_then_arm()))
+
+
+def _exit_within(seconds: float, code: int, name: str) -> None:
+    """Once a service has stopped (its state saved, its bus closed), its process exits within ``seconds``
+    even if a thread would hold interpreter exit; which threads did is written to its log."""
+
+    def force() -> None:
+        held = [t.name for t in threading.enumerate()
+                if t.is_alive() and not t.daemon and t is not threading.main_thread()]
+        print(f"{name}: exit held for {seconds:.0f} s after stopping (threads: {', '.join(held) or '-'}); exiting",
+              file=sys.stderr, flush=True)
+        logging.shutdown()
+        os._exit(code)
+
+    timer = threading.Timer(seconds, force)
+    timer.daemon = True
+    timer.start()

@@ -16,6 +16,7 @@ restart. Shutdown: a ``Stop`` over the bus (the caller sends it), SIGTERM after
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import ctypes
 import dataclasses
 import logging
@@ -33,6 +34,7 @@ log = logging.getLogger("ebrl.supervisor")
 
 STOP_GRACE_S = 5.0  # after the stop message, before SIGTERM
 SHUTDOWN_S = 8.0  # after which anything left is SIGKILLed
+KILL_WAIT_S = 10.0  # for a SIGKILLed child to be gone (a process in uninterruptible I/O takes its time)
 LOG_TAIL = 20
 
 Argv = Callable[[str, int], list[str]]  # (role, instance) -> the command line of that child
@@ -222,11 +224,15 @@ class Supervisor:
                 log.warning("%s did not stop in %.0f s; SIGTERM", child.name, stop_grace_s)
                 child.proc.terminate()
         await self._wait_exit(time.monotonic() + shutdown_s - stop_grace_s)
-        for child in self.children:
-            if child.proc.poll() is None:
-                self.say(f"ebrl: {child.name} ignored SIGTERM; killing it")
+        killed = [c for c in self.children if c.proc.poll() is None]
+        for child in killed:
+            self.say(f"ebrl: {child.name} ignored SIGTERM; killing it")
+            with contextlib.suppress(ProcessLookupError):
                 os.killpg(child.proc.pid, signal.SIGKILL)
-                child.proc.wait(1.0)
+        await self._wait_exit(time.monotonic() + KILL_WAIT_S)  # SIGKILL is not refused, but may take a moment
+        for child in killed:
+            if child.proc.poll() is None:
+                self.say(f"ebrl: {child.name} (pid {child.proc.pid}) still there {KILL_WAIT_S:.0f} s after SIGKILL")
 
     async def _wait_exit(self, deadline: float) -> None:
         while time.monotonic() < deadline and any(c.proc.poll() is None for c in self.children):

@@ -30,12 +30,13 @@ class TrainService(Service):
 
     async def setup(self) -> None:
         cfg, loop = self.cfg, asyncio.get_running_loop()
-        rank, world, cores = self.instance, cfg.train.world_size, resolve(cfg).train_cores
+        rank, world, schedule = self.instance, cfg.train.world_size, resolve(cfg)
+        cores = schedule.train_cores
         if cores:  # ranks share the training cores: each its own slice when there are enough
             os.sched_setaffinity(0, cores[rank::world] if len(cores) >= world else cores)
         torch.set_num_threads(cfg.train.threads)
         info = await loop.run_in_executor(None, describe, EnvSpec.from_config(cfg.env))
-        self.learner = learner = Learner(cfg, info, resolve(cfg).max_staleness, self, self.run_dir, rank, world)
+        self.learner = learner = Learner(cfg, info, schedule.max_staleness, self, self.run_dir, rank, world)
         self.use_device(learner.device)
         if cfg.policy.checkpoint:
             self.log.info("policy initialised from %s", cfg.policy.checkpoint)

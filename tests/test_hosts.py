@@ -216,6 +216,7 @@ def test_two_training_ranks_train_and_stop_cleanly(tmp_path, parallel):
     assert seen["train/1"][-1]["train/batch_size"] > 0  # ... with its own shard
     assert "train/pending_steps" not in seen["train/1"][-1]  # only rank 0 receives trajectories
     (run,) = [p for p in (tmp_path / "runs").iterdir()]
+    # rank 1 followed rank 0 to its stop: in its run loop, or, when the launcher's stop came first, while stopping
     assert "rank 0 said stop" in (run / "logs" / "train-1.log").read_text()
     assert (run / "checkpoints" / "v00000004").is_dir() and (run / "policy.safetensors").is_file()
     import numpy as np

@@ -48,11 +48,14 @@ class Ranks:
 
     async def drain(self) -> None:
         """Ranks > 0, stopping: finish what rank 0 started, up to its stop (rank 0 may be gone: give up)."""
+        if self.stopped:
+            return
         try:
-            while not self.stopped and await self.follow_one(lambda losses, start: None):
+            while await self.follow_one(lambda losses, start: None):
                 pass
-        except RuntimeError:  # rank 0 is gone: the collective failed
-            pass
+            log.info("rank 0 said stop while this rank was stopping")
+        except RuntimeError as exc:  # rank 0 is gone: the collective failed
+            log.info("rank 0 is gone (%s); not waiting for its stop", exc)
 
     async def stop(self) -> None:
         """Rank 0: release the other ranks from their collective (once) and, sharded, gather the final

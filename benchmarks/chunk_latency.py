@@ -33,6 +33,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from ebrl.envs import EnvSpec, EnvWorker  # noqa: E402
 from ebrl.sched.rebind import CoreRebinding  # noqa: E402
+from ebrl.sched.corepool import CorePool  # noqa: E402
 from ebrl.sched.stepping import BatchStepping, RebindingStepping  # noqa: E402
 
 ENV_ID = "HalfCheetah-v5"  # never terminates; 1000-step episodes outlast the benchmark
@@ -92,12 +93,12 @@ def summarize(chunk_latencies: np.ndarray) -> dict[str, float]:
 async def measure(policy: str, args, cores: list[int]) -> np.ndarray:
     spec = EnvSpec(ENV_ID, latency="lognormal", latency_mean_ms=args.mean_ms, latency_sigma=args.sigma)
     pinned = policy == "batch_pinned"
-    workers = [EnvWorker(spec, seed=e, core=cores[e % len(cores)] if pinned else None) for e in range(args.envs)]
+    pool = CorePool(args.envs, cores) if policy == "rebinding" else None
+    workers = [EnvWorker(spec, seed=e, core=cores[e % len(cores)] if pinned else None, pool=pool, slot=e)
+               for e in range(args.envs)]
     try:
-        if policy == "rebinding":
-            stepping = RebindingStepping(cores)
-            for e, w in enumerate(workers):
-                stepping.add(e, w)
+        if pool is not None:
+            stepping = RebindingStepping(pool)
         else:
             stepping = BatchStepping()
             if not pinned:  # the OS spreads the workers over the same cores, no pinning

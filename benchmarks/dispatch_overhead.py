@@ -35,6 +35,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from ebrl.envs import EnvSpec, EnvWorker  # noqa: E402
+from ebrl.sched.corepool import CorePool  # noqa: E402
 from ebrl.sched.stepping import IndependentStepping, RebindingStepping  # noqa: E402
 
 ENV_ID = "InvertedPendulum-v5"  # ~20 µs of physics per step; the busy-wait sets the rest
@@ -48,13 +49,12 @@ def _hog(cores: list[int]) -> None:
 
 async def one_round(policy: str, args, cores: list[int]) -> dict[str, float]:
     spec = EnvSpec(ENV_ID, latency="lognormal", latency_mean_ms=args.step_us / 1e3, latency_sigma=0.0)
-    workers = [EnvWorker(spec, seed=e, core=None if policy == "rebinding" else cores[e % len(cores)])
+    pool = CorePool(args.envs, cores) if policy == "rebinding" else None
+    workers = [EnvWorker(spec, seed=e, pool=pool, slot=e) if pool else EnvWorker(spec, seed=e, core=cores[e % len(cores)])
                for e in range(args.envs)]
     try:
-        if policy == "rebinding":
-            stepping = RebindingStepping(cores)
-            for e, w in enumerate(workers):
-                stepping.add(e, w)
+        if pool is not None:
+            stepping = RebindingStepping(pool)
         else:
             stepping = IndependentStepping()
         await asyncio.gather(*(w.reset() for w in workers))

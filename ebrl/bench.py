@@ -27,7 +27,9 @@ BASELINES = ("colocated", "hybrid", "async")
 RUN_SETS = ("viz.report=false",)  # before the user's overrides: a measured run writes no report
 # The mechanisms ``--ablations`` switches, each by its config key. A variant flips one of them from what the
 # ebrl mode runs with this config: ``ebrl-no_<name>`` switches it off, ``ebrl+<name>`` on where the config
-# leaves it off (the allocator is off by default, so its variant is usually ``ebrl+allocator``).
+# leaves it off (the allocator is off by default, so its variant is usually ``ebrl+allocator``). Core
+# rebinding under "auto" (the ebrl default) has both: ``ebrl-no_core_rebinding`` and ``ebrl+core_rebinding``
+# (rebinding every step, never measured against pinning).
 MECHANISMS = {
     "allocator": "alloc.enabled",
     "group_pipeline": "sim.group_pipeline",
@@ -57,7 +59,7 @@ def ablation_variants(config: str, overrides: list[str]) -> dict[str, list[str]]
     for name, key in MECHANISMS.items():
         if running[name]:
             out[f"ebrl-no_{name}"] = [f"{key}=false"]
-        else:
+        if not running[name] or (name == "core_rebinding" and schedule.rebinding_auto):  # auto: also always on
             out[f"ebrl+{name}"] = [f"{key}=true"]
     return out
 

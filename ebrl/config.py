@@ -11,6 +11,7 @@ import dataclasses
 import difflib
 import os
 import tomllib
+import types
 import typing
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -91,9 +92,10 @@ class SimSection:
     stepping: Literal["async", "batch"] | None = doc(
         "async: each env steps through its chunk on its own; batch: all envs of a group step, then a barrier; "
         "absent: the mode's choice", None)
-    core_rebinding: bool | None = doc(
+    core_rebinding: bool | Literal["auto"] | None = doc(
         "greedy core rebinding of single steps onto free cores (async stepping); false pins each env worker to "
-        "one core; absent: the mode's choice", None)
+        "one core and runs whole chunks; \"auto\" (the ebrl mode's choice) measures both while the run goes and "
+        "keeps the faster, again whenever the step latencies shift; absent: the mode's choice", None)
     group_pipeline: bool | None = doc(
         "pipeline groups through generation; false makes all envs one group; absent: the mode's choice", None)
     segment_length: int = doc("chunk decisions per trajectory segment sent to training", 32)
@@ -494,8 +496,10 @@ def _type_name(tp: Any) -> str:
     if typing.get_origin(tp) is Literal:
         return " | ".join(_toml_value(a) for a in args)
     if type(None) in args:
-        (inner,) = [a for a in args if a is not type(None)]
-        return _type_name(inner) + ", optional"
+        inner = [a for a in args if a is not type(None)]
+        return " | ".join(_type_name(a) for a in inner) + ", optional"
+    if typing.get_origin(tp) in (types.UnionType, typing.Union):
+        return " | ".join(_type_name(a) for a in args)
     if args:
         return f"{tp.__origin__.__name__}[{', '.join(_type_name(a) for a in args)}]"
     return getattr(tp, "__name__", str(tp))

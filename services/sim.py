@@ -16,6 +16,7 @@ from ebrl.resources.nvml import GpuMonitor
 from ebrl.sched.fleet import EnvFleet, RolloutStats
 from ebrl.sched.group import ActionExchange, GroupLoop, SegmentOutbox
 from ebrl.sched.modes import resolve
+from ebrl.sched.stepchoice import NAMES
 from ebrl.service import Service, service_main
 
 
@@ -32,7 +33,9 @@ class SimService(Service):
         # sim/<instance> runs on host <instance> of a multi-host run: its groups follow the other hosts'
         share = cfg.algo.group_size if cfg.algo.name == "grpo" else 1
         self.fleet = EnvFleet(spec, sched, host=self.instance, seed=cfg.run.seed, share=share,
-                              on_core_step=lambda core, s: self.count(f"sim/core{core}_busy_s", s))
+                              on_core_step=lambda core, s: self.count(f"sim/core{core}_busy_s", s),
+                              on_mode=lambda mode, a, b: self.publish_span("sim.stepping", NAMES[mode], a, b, False),
+                              on_decision=self.stepping_decided)
         self.stats = RolloutStats(cfg.sim.step_timeout)
         self.fleet.stepping.timeout = self.stats.step_timeout()  # refreshed with every stats report
         self.peers = LivePeers(self.bus, self.run_name, warn=lambda: not self.stopping.is_set())
@@ -58,12 +61,16 @@ class SimService(Service):
         out = {"sim/envs": float(self.fleet.count()),
                "sim/cores": float(len(self.cores_in_use())),  # what an allocator on another host plans with
                "sim/segments_held": float(len(self.outbox.held)), **self.stats.metrics()}
-        if self.fleet.rebinding is not None:
-            out["sim/rebinds"] = float(self.fleet.rebinding.rebinds)
+        if (rebinding := self.fleet.rebinding) is not None:
+            out.update(rebinding.metrics())
         for core, percent in enumerate(psutil.cpu_percent(percpu=True)):
             out[f"cpu/core{core}_percent"] = percent
         out.update(self.gpus.sample())  # one sim service per host: it reports the host's GPUs
         return out
+
+    def stepping_decided(self, text: str) -> None:
+        self.log.info("stepping: %s", text)
+        self.event("stepping", text)
 
     def cores_in_use(self) -> list[int]:
         return self.fleet.cores() or super().cores_in_use()

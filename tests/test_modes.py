@@ -106,14 +106,16 @@ def test_ebrl_bench_measures_a_run_renamed_with_set(tmp_path):
 def test_ablations_flip_each_mechanism_from_what_ebrl_runs_with_the_config():
     from ebrl.bench import ablation_variants, base_mode
 
-    # The quickstart pins each env to its own core (core_rebinding = false) and leaves the allocator off,
-    # so those two variants switch a mechanism on; the other two switch one off.
+    # The quickstart leaves the allocator off, so its variant switches it on; core rebinding is "auto", so it
+    # is switched off and forced on; the other two are switched off.
     assert ablation_variants("configs/quickstart.toml", []) == {
         "ebrl+allocator": ["alloc.enabled=true"],
         "ebrl-no_group_pipeline": ["sim.group_pipeline=false"],
         "ebrl-no_overlap": ["train.overlap=false"],
+        "ebrl-no_core_rebinding": ["sim.core_rebinding=false"],
         "ebrl+core_rebinding": ["sim.core_rebinding=true"],
     }
+    assert "ebrl+core_rebinding" not in ablation_variants("configs/quickstart.toml", ["sim.core_rebinding=true"])
     lift = ablation_variants("configs/robosuite_lift.toml", ["alloc.enabled=true"])
     assert "ebrl-no_allocator" in lift and "ebrl-no_core_rebinding" in lift
     assert [base_mode(v) for v in ("ebrl", "ebrl-no_overlap", "ebrl+allocator", "colocated")] == [
@@ -137,7 +139,7 @@ def test_ebrl_bench_ablations_measure_a_number_of_trajectories(tmp_path):
     assert proc.returncode == 0, proc.stderr
     data = json.loads(out_json.read_text())
     assert set(data["results"]) == {"ebrl", "ebrl+allocator", "ebrl-no_group_pipeline", "ebrl-no_overlap",
-                                    "ebrl+core_rebinding"}
+                                    "ebrl-no_core_rebinding", "ebrl+core_rebinding"}
     assert data["trajectories"] == 24 and data["variants"]["ebrl+allocator"][-1] == "alloc.enabled=true"
     for variant, (result,) in data["results"].items():
         # the window ends at the first report with 24 more segments; stats come once a second

@@ -42,6 +42,14 @@ def test_ablation_switches_override_the_mode():
     assert not resolve(cfg(sim={"groups": 2, "envs_per_group": 4, "stepping": "batch"}), cores=[0]).core_rebinding
 
 
+@pytest.mark.parametrize("value, pool, auto", [(None, True, True), ("auto", True, True), (True, True, False),
+                                                (False, False, False)])
+def test_core_rebinding_is_measured_by_default(value, pool, auto):
+    sim = {"groups": 2, "envs_per_group": 4} | ({} if value is None else {"core_rebinding": value})
+    s = resolve(cfg(sim=sim), cores=[0, 1])
+    assert (s.core_rebinding, s.rebinding_auto) == (pool, auto)
+
+
 def test_generation_gate_follows_iterations():
     s = resolve(cfg(algo={"max_staleness": 1}), cores=[0])  # 8 decisions per env per iteration
     assert [s.iteration_of(q) for q in (0, 7, 8, 15, 16)] == [0, 0, 1, 1, 2]

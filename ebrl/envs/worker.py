@@ -22,6 +22,7 @@ import numpy as np
 from ebrl.envs.backends import backend, make_env
 from ebrl.envs.render import ensure_gl_for
 from ebrl.envs.spec import EnvSpec
+from ebrl.sched.corepool import CoreClaim, CorePool, ParentGone
 
 _CTX = None
 
@@ -54,16 +55,28 @@ class ChunkResult:
     episode_success: bool | None = None  # set at episode end when the env reports info["success"]
     busy_s: float = 0.0  # CPU seconds spent inside env.step (useful work, excluding IPC and waiting)
     episode: int = 0  # index of the episode these steps belong to (per env, from 0)
+    step_s: tuple[float, ...] = ()  # wall seconds of each env.step of the chunk
+    cores: tuple[int, ...] = ()  # the core each step ran on (rebinding: the core it was granted; else empty)
 
 
 def as_obs(obs: Any) -> np.ndarray:
     return np.asarray(obs, dtype=np.float32)
 
 
-def _worker_main(conn: Connection, spec: EnvSpec, seed: int) -> None:
+def _worker_main(conn: Connection, spec: EnvSpec, seed: int, claim: CoreClaim | None = None) -> None:
     """Episode ``k`` starts from ``env.reset(seed=seed + 7919 * k)``: workers given the same ``seed`` replay
-    the same sequence of initial states (GRPO groups)."""
+    the same sequence of initial states (GRPO groups). With a ``claim`` on the sim service's core pool, every
+    step runs on a core claimed from it (:mod:`ebrl.sched.corepool`)."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # the sim service decides when workers stop
+    if claim is not None:
+        claim.register()
+    try:
+        _serve(conn, spec, seed, claim)
+    except ParentGone:
+        return
+
+
+def _serve(conn: Connection, spec: EnvSpec, seed: int, claim: CoreClaim | None) -> None:
     env = make_env(spec, seed=seed)
     low, high = env.action_space.low, env.action_space.high
     base = env.unwrapped
@@ -85,10 +98,18 @@ def _worker_main(conn: Connection, spec: EnvSpec, seed: int) -> None:
                 total, steps, terminated, truncated = 0.0, 0, False, False
                 started = time.thread_time()  # CPU time: a descheduled worker is not busy
                 actions, observe = arg
+                step_s, cores = [], []
+                core = claim.acquire() if claim is not None else None
                 for k, action in enumerate(actions):
+                    if k and claim is not None:
+                        core = claim.next(core, step_s[-1])  # keep the core, or hand it on and wait
                     if lazy:  # only the chunk's last observation is read: skip rendering the others
                         base.skip_observation = k < len(actions) - 1 or not observe
+                    t0 = time.perf_counter()
                     obs, reward, terminated, truncated, info = env.step(np.clip(action, low, high))
+                    step_s.append(time.perf_counter() - t0)
+                    if core is not None:
+                        cores.append(core)
                     if "success" in info:
                         success = bool(success) or bool(info["success"])
                     total += float(reward)
@@ -108,8 +129,10 @@ def _worker_main(conn: Connection, spec: EnvSpec, seed: int) -> None:
                     episodes += 1
                     obs, _ = env.reset(seed=seed + 7919 * episodes)
                     episode_return, episode_length, success = 0.0, 0, None
+                if claim is not None:
+                    claim.release(core, step_s[-1] if step_s else 0.0)
                 conn.send(ChunkResult(total, steps, bool(terminated), bool(truncated), final_obs, as_obs(obs),
-                                      ep_ret, ep_len, ep_success, busy, episode))
+                                      ep_ret, ep_len, ep_success, busy, episode, tuple(step_s), tuple(cores)))
             elif cmd == "close":
                 return
             else:
@@ -125,10 +148,13 @@ class WorkerFailed(RuntimeError):
 class EnvWorker:
     """Parent-side handle of one env worker process."""
 
-    def __init__(self, spec: EnvSpec, seed: int, core: int | None = None):
+    def __init__(self, spec: EnvSpec, seed: int, core: int | None = None, pool: CorePool | None = None,
+                 slot: int = 0):
+        """``core``: pinned there; ``pool``: every step claims a core of the pool as env ``slot`` of it."""
         ctx = _context(spec)
         self.conn, child = ctx.Pipe()
-        self.proc = ctx.Process(target=_worker_main, args=(child, spec, seed), daemon=True, name="ebrl-env")
+        claim = CoreClaim(pool, slot, child) if pool is not None else None
+        self.proc = ctx.Process(target=_worker_main, args=(child, spec, seed, claim), daemon=True, name="ebrl-env")
         self.proc.start()
         child.close()
         self.core = core

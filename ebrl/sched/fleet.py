@@ -7,11 +7,14 @@ Group and env ids follow the host's place in the run (sim instance ``i`` of a mu
 from __future__ import annotations
 
 import collections
+import time
 from typing import Callable
 
 import numpy as np
 
 from ebrl.envs import EnvSpec, EnvWorker
+from ebrl.sched.corepool import CorePool
+from ebrl.sched.stepchoice import SteppingChoice
 from ebrl.sched.modes import Schedule
 from ebrl.sched.rollout import Episodes
 from ebrl.sched.stepping import BatchStepping, IndependentStepping, RebindingStepping, Stepping
@@ -22,14 +25,22 @@ class EnvFleet:
     episode bookkeeping (GRPO: ``share`` envs start from the same states and finish episodes together)."""
 
     def __init__(self, spec: EnvSpec, schedule: Schedule, host: int, seed: int, share: int = 1,
-                 on_core_step: Callable[[int, float], None] | None = None):
+                 on_core_step: Callable[[int, float], None] | None = None,
+                 on_mode: Callable[[int, float, float], None] | None = None,
+                 on_decision: Callable[[str], None] | None = None):
+        """``on_core_step(core, seconds)`` after each rebound step; under ``sim.core_rebinding = "auto"``,
+        ``on_mode(mode, start, end)`` for each period in a mode and ``on_decision(text)`` for each choice."""
         self.spec, self.schedule, self.seed = spec, schedule, seed
         first = host * schedule.groups
         self.groups = list(range(first, first + schedule.groups))
         per = self.per_group = schedule.envs_per_group
         self.episodes = Episodes(range(first * per, (first + schedule.groups) * per), share)
+        self.pool: CorePool | None = None
         if schedule.core_rebinding:
-            self.stepping: Stepping = RebindingStepping(schedule.sim_cores, on_step=on_core_step)
+            self.pool = CorePool(schedule.groups * per, schedule.sim_cores)
+            choice = SteppingChoice(time.monotonic()) if schedule.rebinding_auto else None
+            self.stepping: Stepping = RebindingStepping(self.pool, on_step=on_core_step, choice=choice,
+                                                        on_mode=on_mode, on_decision=on_decision)
         else:
             self.stepping = IndependentStepping() if schedule.stepping == "async" else BatchStepping()
         self.workers: dict[int, list[EnvWorker]] = {}
@@ -47,23 +58,25 @@ class EnvFleet:
         """GRPO compares rollouts from the same initial states: a group's envs share reset seeds."""
         return self.seed * 100_003 + self.episodes.members(env)[0]
 
-    def _start(self, env: int) -> EnvWorker:
-        cores = self.schedule.sim_cores  # static pinning round-robin over them, unless steps are rebound
-        worker = EnvWorker(self.spec, seed=self.env_seed(env),
-                           core=None if self.rebinding is not None else cores[env % len(cores)])
-        if self.rebinding is not None:
-            self.rebinding.add(env, worker)
-        return worker
+    def slot(self, env: int) -> int:
+        """The env's place in this host's core pool (its envs numbered from 0)."""
+        return env - self.groups[0] * self.per_group
+
+    def _start(self, env: int, core: int | None = None) -> EnvWorker:
+        if self.pool is not None:  # every step claims a core of the pool
+            return EnvWorker(self.spec, seed=self.env_seed(env), pool=self.pool, slot=self.slot(env))
+        cores = self.schedule.sim_cores  # static pinning round-robin over them
+        return EnvWorker(self.spec, seed=self.env_seed(env), core=cores[env % len(cores)] if core is None else core)
 
     def replace(self, g: int, i: int) -> EnvWorker:
-        """Kill env ``i`` of group ``g``'s worker (dead or hung); a new one for the same env, seed and core."""
+        """Kill env ``i`` of group ``g``'s worker (dead or hung); a new one for the same env, seed and core
+        (or place in the core pool, whose cores the old one held go to the others)."""
         old = self.workers[g][i]
         old.kill()
         env = int(self.env_ids(g)[i])
-        worker = EnvWorker(self.spec, seed=self.env_seed(env), core=old.core if self.rebinding is None else None)
-        if self.rebinding is not None:
-            self.rebinding.replace(env, worker)
-        self.workers[g][i] = worker
+        if self.pool is not None:
+            self.pool.reclaim(self.slot(env))
+        worker = self.workers[g][i] = self._start(env, old.core)
         return worker
 
     def count(self) -> int:
@@ -71,14 +84,14 @@ class EnvFleet:
 
     def cores(self) -> list[int]:
         """The cores the envs run on (a rebinding budget, or the statically pinned cores)."""
-        if self.rebinding is not None:
-            return sorted(self.rebinding.sched.budget)
+        if self.pool is not None:
+            return self.pool.cores()
         return sorted({w.core for ws in self.workers.values() for w in ws if w.core is not None})
 
     def pin(self, cores: list[int]) -> None:
         """A new simulation core budget: rebinding uses it from the next step; static pinning re-pins."""
-        if self.rebinding is not None:
-            self.rebinding.set_budget(cores)
+        if self.pool is not None:
+            self.pool.set_budget(cores)
             return
         for i, worker in enumerate(w for g in self.groups for w in self.workers[g]):
             worker.pin(cores[i % len(cores)])

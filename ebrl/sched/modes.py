@@ -4,6 +4,7 @@ switches into the concrete schedule every service follows.
 | mode      | group pipeline | stepping              | rollout/train overlap | cores                      |
 |-----------|----------------|-----------------------|-----------------------|----------------------------|
 | ebrl      | yes            | async + core rebinding| yes (max_staleness)   | shared                     |
+|           |                | (auto: where it pays) |                       |                            |
 | colocated | no (one batch) | batch (barrier/step)  | no                    | shared                     |
 | hybrid    | yes            | batch                 | no                    | shared                     |
 | async     | no (one batch) | batch                 | yes (max_staleness)   | rollout and train disjoint |
@@ -19,7 +20,7 @@ from dataclasses import dataclass
 from typing import Any
 
 PRESETS: dict[str, dict[str, Any]] = {
-    "ebrl": dict(group_pipeline=True, stepping="async", core_rebinding=True, overlap=True, disjoint=False),
+    "ebrl": dict(group_pipeline=True, stepping="async", core_rebinding="auto", overlap=True, disjoint=False),
     "colocated": dict(group_pipeline=False, stepping="batch", core_rebinding=False, overlap=False, disjoint=False),
     "hybrid": dict(group_pipeline=True, stepping="batch", core_rebinding=False, overlap=False, disjoint=False),
     "async": dict(group_pipeline=False, stepping="batch", core_rebinding=False, overlap=True, disjoint=True),
@@ -32,7 +33,7 @@ class Schedule:
     groups: int  # groups as scheduled (1 when group pipelining is off)
     envs_per_group: int
     stepping: str  # "async" | "batch"
-    core_rebinding: bool
+    core_rebinding: bool  # env workers claim cores from a shared pool (rebinding, or pinned chunks under auto)
     overlap: bool
     max_staleness: int  # 0 when overlap is off: every decision of iteration i comes from policy version i
     rollout_length: int  # decisions per env per iteration, with one sim host (see ``length``)
@@ -43,6 +44,8 @@ class Schedule:
     # which a fixed decision budget per iteration cannot promise, so generation is never held back by
     # iteration; the staleness bound is kept by training alone (older decisions are dropped, counted).
     throttle: bool = True
+    # sim.core_rebinding = "auto": rebinding or pinned whole chunks, whichever measures faster (stepchoice)
+    rebinding_auto: bool = False
 
     def length(self, hosts: int = 1) -> int:
         """Decisions per env per iteration while ``hosts`` sim hosts are live: an update's batch comes from all
@@ -76,7 +79,8 @@ def resolve(cfg: Any, cores: list[int] | None = None) -> Schedule:
 
     group_pipeline = pick(cfg.sim.group_pipeline, "group_pipeline")
     stepping = pick(cfg.sim.stepping, "stepping")
-    core_rebinding = pick(cfg.sim.core_rebinding, "core_rebinding") and stepping == "async"
+    rebinding = pick(cfg.sim.core_rebinding, "core_rebinding")
+    core_rebinding = bool(rebinding) and stepping == "async"
     overlap = pick(cfg.train.overlap, "overlap")
     sim_cores, gen_cores, train_cores = list(cfg.sim.cores), list(cfg.gen.cores), list(cfg.train.cores)
     if preset["disjoint"] and not (sim_cores or gen_cores or train_cores):
@@ -98,4 +102,5 @@ def resolve(cfg: Any, cores: list[int] | None = None) -> Schedule:
         gen_cores=gen_cores,
         train_cores=train_cores,
         throttle=cfg.algo.name != "grpo",
+        rebinding_auto=core_rebinding and rebinding == "auto",
     )

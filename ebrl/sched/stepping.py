@@ -5,8 +5,9 @@
 * :class:`BatchStepping` — all envs of the group take step k, then a barrier,
   then step k+1 (vectorised-env stepping, what RLinf and gymnasium vector envs do).
 * :class:`RebindingStepping` — step-level asynchrony with greedy core rebinding
-  across all groups (:mod:`ebrl.sched.rebind`): one step at a time is bound to a
-  free core of the simulation budget, longest-latency ready env first.
+  across all groups (:mod:`ebrl.sched.rebind`, carried out by the workers through
+  :mod:`ebrl.sched.corepool`): one step at a time is bound to a free core of the
+  simulation budget, longest-latency ready env first.
 
 Each returns, per env, the merged :class:`ChunkResult` and the env's chunk
 latency (chunk start to the env's last step). An env whose worker died or did
@@ -24,7 +25,8 @@ from typing import Callable, Protocol, Sequence
 import numpy as np
 
 from ebrl.envs.worker import ChunkResult, EnvWorker, WorkerFailed
-from ebrl.sched.rebind import CoreRebinding
+from ebrl.sched.corepool import CorePool
+from ebrl.sched.stepchoice import SteppingChoice
 
 
 def merge(results: Sequence[ChunkResult]) -> ChunkResult:
@@ -42,6 +44,8 @@ def merge(results: Sequence[ChunkResult]) -> ChunkResult:
         episode_success=last.episode_success,
         busy_s=float(sum(r.busy_s for r in results)),
         episode=results[0].episode,
+        step_s=tuple(t for r in results for t in r.step_s),
+        cores=tuple(c for r in results for c in r.cores),
     )
 
 
@@ -106,89 +110,59 @@ class BatchStepping:
         return [failed[i] if i in failed else merge(s) for i, s in enumerate(steps)], latencies
 
 
-class RebindingStepping:
-    """One instance serves every group of the sim service: the ready set spans all groups."""
+class RebindingStepping(IndependentStepping):
+    """Step-level asynchrony with greedy core rebinding: one instance serves every group of the sim service,
+    whose env workers share one :class:`~ebrl.sched.corepool.CorePool`. Each env gets its whole chunk at once;
+    the workers claim a core per step from the pool and hand cores to each other (the ready set spans all
+    groups), so no single step passes through the event loop."""
 
-    timeout: float | None = None
-
-    def __init__(self, cores: list[int], on_step: Callable[[int, float], None] | None = None):
-        self.sched = CoreRebinding(cores)
+    def __init__(self, pool: CorePool, on_step: Callable[[int, float], None] | None = None,
+                 choice: SteppingChoice | None = None, on_mode: Callable[[int, float, float], None] | None = None,
+                 on_decision: Callable[[str], None] | None = None):
+        self.pool = pool
         self.on_step = on_step  # (core, seconds) after every step: per-core busy time
-        self.workers: dict[int, EnvWorker] = {}
-        self._env_by_worker: dict[int, int] = {}
-        self._actions: dict[int, np.ndarray] = {}
-        self._steps: dict[int, list[ChunkResult]] = {}
-        self._done: dict[int, asyncio.Future] = {}
-        self._tasks: set[asyncio.Task] = set()
-        self.rebinds = 0
-
-    def add(self, env: int, worker: EnvWorker) -> None:
-        self.workers[env] = worker
-        self._env_by_worker[id(worker)] = env
-        self.sched.add_env(env)
-
-    def replace(self, env: int, worker: EnvWorker) -> None:
-        """A new worker for ``env`` (the old one failed); its chunk state was already closed."""
-        del self._env_by_worker[id(self.workers[env])]
-        self.workers[env] = worker
-        self._env_by_worker[id(worker)] = env
+        self.choice = choice  # sim.core_rebinding = "auto": the pool's mode is chosen by measuring
+        self.on_mode, self.on_decision = on_mode, on_decision  # (mode, start, end) of a period; a decision
+        self._mode_since = time.time()
+        if choice is not None:
+            pool.set_mode(choice.mode)
 
     async def run_chunk(self, workers, actions):
-        loop = asyncio.get_running_loop()
-        start = time.perf_counter()
-        envs = [self._env_by_worker[id(w)] for w in workers]
-        futures = []
-        for env, chunk in zip(envs, actions):
-            self._actions[env] = chunk
-            self._steps[env] = []
-            self._done[env] = loop.create_future()
-            futures.append(self._done[env])
-            self.sched.submit_chunk(env, len(chunk))
-        self._pump()
-        finished = await asyncio.gather(*futures, return_exceptions=True)
-        results: list[Result] = []
-        for env, done in zip(envs, finished):
-            steps = self._steps.pop(env)
-            if isinstance(done, WorkerFailed):
-                results.append(done)
-            elif isinstance(done, BaseException):
-                raise done
-            else:
-                results.append(merge(steps))
-        return results, [t - start if isinstance(t, float) else 0.0 for t in finished]
+        results, latencies = await super().run_chunk(workers, actions)
+        now = time.monotonic()
+        for result, latency in zip(results, latencies):
+            if not isinstance(result, ChunkResult):
+                continue
+            if self.on_step is not None:
+                for core, seconds in zip(result.cores, result.step_s):
+                    self.on_step(core, seconds)
+            if self.choice is not None:
+                self.choice.observe(now, result.steps, result.step_s, latency)
+        if self.choice is not None:
+            self._follow(now)
+        return results, latencies
+
+    def _follow(self, now: float) -> None:
+        """Apply the choice's mode; report each period spent in a mode (at most 5 s each) and each decision."""
+        choice, before = self.choice, self.choice.mode
+        decision = choice.tick(now)
+        wall = time.time()
+        if self.on_mode is not None and (choice.mode != before or wall - self._mode_since >= 5.0):
+            self.on_mode(before, self._mode_since, wall)
+            self._mode_since = wall
+        if choice.mode != before:
+            self.pool.set_mode(choice.mode)
+        if decision and self.on_decision is not None:
+            self.on_decision(decision)
 
     def set_budget(self, cores: list[int]) -> None:
-        self.sched.set_budget(cores)
-        self._pump()
+        self.pool.set_budget(cores)
 
-    def _pump(self) -> None:
-        for env, core in self.sched.dispatch():
-            task = asyncio.ensure_future(self._step(env, core))
-            self._tasks.add(task)
-            task.add_done_callback(self._tasks.discard)
-
-    async def _step(self, env: int, core: int) -> None:
-        worker = self.workers[env]
-        s = self.sched.envs[env].s
-        t0 = time.perf_counter()
-        try:
-            if worker.core != core:
-                try:
-                    worker.pin(core)
-                except OSError as exc:  # the process is gone
-                    raise WorkerFailed(f"env worker {worker.proc.pid} cannot be pinned: {exc}") from None
-                self.rebinds += 1
-            chunk = self._actions[env]
-            result = await worker.chunk(chunk[s:s + 1], observe=s == len(chunk) - 1, timeout=self.timeout)
-        except Exception as exc:
-            self.sched.complete(env, time.perf_counter() - t0, chunk_ended=True)
-            self._done[env].set_exception(exc)
-            self._pump()
-            return
-        latency = time.perf_counter() - t0
-        if self.on_step is not None:
-            self.on_step(core, latency)
-        self._steps[env].append(result)
-        if self.sched.complete(env, latency, chunk_ended=result.terminated or result.truncated):
-            self._done[env].set_result(time.perf_counter())
-        self._pump()
+    def metrics(self) -> dict[str, float]:
+        handoffs, rebinds, gap = self.pool.counters()
+        out = {"sim/rebinds": float(rebinds), "sim/core_handoffs": float(handoffs)}
+        if handoffs:
+            out["sim/handoff_gap_us"] = gap * 1e6
+        if self.choice is not None:
+            out.update(self.choice.metrics())
+        return out

@@ -136,6 +136,10 @@ def summarize(window: dict[str, list[StatsReport]], duration: float) -> dict[str
     last = sim[-1].metrics if sim else {}
     for q in ("avg", "p50", "p99"):
         out[f"chunk_latency_{q}_ms"] = last.get(f"sim/chunk_latency_{q}_ms", float("nan"))
+    modes = [r.metrics["sim/core_rebinding"] for r in sim if "sim/core_rebinding" in r.metrics]
+    if modes:  # sim.core_rebinding = "auto": the share of the window spent rebinding, the last trial's gain
+        out["rebinding_share"] = statistics.fmean(modes)
+        out["rebinding_gain"] = last.get("sim/rebinding_gain", float("nan"))
     # Busy fraction of each stage over the window (from spans, via the busy/<lane> metrics).
     def busy(reports: list[StatsReport], prefix: str) -> float:
         fractions = [sum(v for k, v in r.metrics.items() if k.startswith(prefix)) for r in reports[1:]]

@@ -64,8 +64,8 @@ class SteppingChoice:
         return max(self.settle_s, statistics.median(self.chunks) if self.chunks else 0.0)
 
     def window(self) -> float:
-        """A window holds at least 10 chunks' worth of steps after settling."""
-        return max(self.window_s, self.settle() + 10 * (statistics.median(self.chunks) if self.chunks else 0.0))
+        """A window holds at least 4 chunks of every env after settling (slow envs: longer windows)."""
+        return max(self.window_s, self.settle() + 4 * (statistics.median(self.chunks) if self.chunks else 0.0))
 
     def distribution(self) -> tuple[float, float] | None:
         """(median step latency, p90 / median) of the recent steps; None before 200 were seen."""

@@ -99,8 +99,8 @@ class SimSection:
     group_pipeline: bool | None = doc(
         "pipeline groups through generation; false makes all envs one group; absent: the mode's choice", None)
     segment_length: int = doc("chunk decisions per trajectory segment sent to training", 32)
-    step_timeout: float = doc("seconds an env worker may take for one request (a chunk, or a step when steps are "
-                              "dispatched one by one) before it is killed and replaced; 0: automatic, 20x the "
+    step_timeout: float = doc("seconds an env worker may take for one request (a chunk, or one step under batch "
+                              "stepping) before it is killed and replaced; 0: automatic, 20x the "
                               "measured P99 chunk latency and at least 20 s (120 s until 50 chunks were seen)", 0.0)
 
 

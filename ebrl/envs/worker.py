@@ -56,6 +56,7 @@ class ChunkResult:
     busy_s: float = 0.0  # CPU seconds spent inside env.step (useful work, excluding IPC and waiting)
     episode: int = 0  # index of the episode these steps belong to (per env, from 0)
     step_s: tuple[float, ...] = ()  # wall seconds of each env.step of the chunk
+    step_cpu_s: tuple[float, ...] = ()  # CPU seconds of each env.step (the env's own cost, whoever shares the core)
     cores: tuple[int, ...] = ()  # the core each step ran on (rebinding: the core it was granted; else empty)
 
 
@@ -98,16 +99,17 @@ def _serve(conn: Connection, spec: EnvSpec, seed: int, claim: CoreClaim | None) 
                 total, steps, terminated, truncated = 0.0, 0, False, False
                 started = time.thread_time()  # CPU time: a descheduled worker is not busy
                 actions, observe = arg
-                step_s, cores = [], []
+                step_s, step_cpu, cores = [], [], []
                 core = claim.acquire() if claim is not None else None
                 for k, action in enumerate(actions):
                     if k and claim is not None:
                         core = claim.next(core, step_s[-1])  # keep the core, or hand it on and wait
                     if lazy:  # only the chunk's last observation is read: skip rendering the others
                         base.skip_observation = k < len(actions) - 1 or not observe
-                    t0 = time.perf_counter()
+                    t0, c0 = time.perf_counter(), time.thread_time()
                     obs, reward, terminated, truncated, info = env.step(np.clip(action, low, high))
                     step_s.append(time.perf_counter() - t0)
+                    step_cpu.append(time.thread_time() - c0)
                     if core is not None:
                         cores.append(core)
                     if "success" in info:
@@ -132,7 +134,8 @@ def _serve(conn: Connection, spec: EnvSpec, seed: int, claim: CoreClaim | None) 
                 if claim is not None:
                     claim.release(core, step_s[-1] if step_s else 0.0)
                 conn.send(ChunkResult(total, steps, bool(terminated), bool(truncated), final_obs, as_obs(obs),
-                                      ep_ret, ep_len, ep_success, busy, episode, tuple(step_s), tuple(cores)))
+                                      ep_ret, ep_len, ep_success, busy, episode, tuple(step_s), tuple(step_cpu),
+                                      tuple(cores)))
             elif cmd == "close":
                 return
             else:

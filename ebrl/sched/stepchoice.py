@@ -7,9 +7,10 @@ step-latency distribution nor a measured hand-off cost alone says which wins onc
 the machine's other load share the cores, so the choice measures the thing itself: a **trial** runs the
 sim service's envs in both modes, alternating windows (P R R P P R: each mode as often first as second, so
 drift hits both alike), counts env steps per second in each window after a settling time, and keeps
-rebinding only if its median beats pinning's by ``margin`` (ties go to pinning: no hand-offs, no
-migrations). The step latencies of every chunk are watched; a trial runs again when their median or their
-tail (p90 / p50) moved by half since the last decision, and every ``recheck_s`` seconds.
+rebinding only if its median beats pinning's by ``margin`` (5 %; ties go to pinning: no hand-offs, no
+migrations). The step latencies of every chunk are watched (the CPU time of each step: the env's own cost,
+the same whichever mode runs it and whoever shares its core); a trial runs again when their median or
+their tail (p90 / p50) moved by half since the last decision, and every ``recheck_s`` seconds.
 
 Pure logic over a clock passed in: :class:`ebrl.sched.stepping.RebindingStepping` feeds it each chunk's
 results and applies the mode it returns to the core pool.
@@ -52,7 +53,7 @@ class SteppingChoice:
     # --- measurements ---------------------------------------------------------------------------------------
 
     def observe(self, now: float, steps: int, step_s: Iterable[float], chunk_s: float) -> None:
-        """An env finished its chunk at ``now``: ``steps`` steps, each taking ``step_s`` seconds, in
+        """An env finished its chunk at ``now``: ``steps`` steps, each costing ``step_s`` seconds (CPU), in
         ``chunk_s`` seconds from the chunk's start."""
         self.latencies.extend(step_s)
         self.chunks.append(chunk_s)
@@ -68,8 +69,8 @@ class SteppingChoice:
         return max(self.window_s, self.settle() + 4 * (statistics.median(self.chunks) if self.chunks else 0.0))
 
     def distribution(self) -> tuple[float, float] | None:
-        """(median step latency, p90 / median) of the recent steps; None before 200 were seen."""
-        if len(self.latencies) < 200:
+        """(median step latency, p90 / median) of the recent steps; None before 500 were seen."""
+        if len(self.latencies) < 500:
             return None
         p50, p90 = np.percentile(np.fromiter(self.latencies, float), [50, 90])
         return float(p50), float(p90 / max(p50, 1e-9))
@@ -106,9 +107,7 @@ class SteppingChoice:
         self.decided_at, self.decisions = now, self.decisions + 1
         dist = self.distribution()
         dist_text = f"step latency p50 {dist[0] * 1e3:.2f} ms, p90/p50 {dist[1]:.2f}" if dist else "few steps seen"
-        # a step's latency depends on the mode it ran in: the reference is taken from steps of the chosen mode
-        self.latencies.clear()
-        self.reference = None
+        self.reference = None  # taken from the next steps
         return (f"{NAMES[self.mode]} ({self.reason}): rebinding ran {self.gain:.2f}x the env steps/s of pinned "
                 f"whole chunks ({rebind:.0f} vs {pinned:.0f}; {dist_text})")
 

@@ -45,6 +45,7 @@ def merge(results: Sequence[ChunkResult]) -> ChunkResult:
         busy_s=float(sum(r.busy_s for r in results)),
         episode=results[0].episode,
         step_s=tuple(t for r in results for t in r.step_s),
+        step_cpu_s=tuple(t for r in results for t in r.step_cpu_s),
         cores=tuple(c for r in results for c in r.cores),
     )
 
@@ -137,7 +138,7 @@ class RebindingStepping(IndependentStepping):
                 for core, seconds in zip(result.cores, result.step_s):
                     self.on_step(core, seconds)
             if self.choice is not None:
-                self.choice.observe(now, result.steps, result.step_s, latency)
+                self.choice.observe(now, result.steps, result.step_cpu_s, latency)
         if self.choice is not None:
             self._follow(now)
         return results, latencies

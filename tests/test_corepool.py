@@ -1,0 +1,238 @@
+"""Step-level rebinding carried out by the env workers (ebrl.sched.corepool) and its automatic choice
+(ebrl.sched.stepchoice): real worker processes, a real shared-memory pool."""
+
+from __future__ import annotations
+
+import asyncio
+import os
+import signal
+import subprocess
+import time
+
+import numpy as np
+import pytest
+
+from ebrl.envs import EnvSpec, EnvWorker
+from ebrl.sched.corepool import PINNED, REBIND, CorePool
+from ebrl.sched.stepchoice import SteppingChoice
+from ebrl.sched.stepping import RebindingStepping
+
+CORES = sorted(os.sched_getaffinity(0))[:2]
+
+
+def spec(mean_ms: float = 1.0, sigma: float = 0.0) -> EnvSpec:
+    return EnvSpec("Pendulum-v1", latency="lognormal", latency_mean_ms=mean_ms, latency_sigma=sigma)
+
+
+class Fleet:
+    """``n`` env workers sharing one pool, stepped by RebindingStepping."""
+
+    def __init__(self, n: int, cores: list[int], env: EnvSpec, **stepping):
+        self.pool = CorePool(n, cores)
+        self.workers = [EnvWorker(env, seed=e, pool=self.pool, slot=e) for e in range(n)]
+        self.stepping = RebindingStepping(self.pool, **stepping)
+
+    async def chunks(self, count: int, k: int = 4):
+        await asyncio.gather(*(w.reset() for w in self.workers))
+        out = []
+        for _ in range(count):
+            out.append(await self.stepping.run_chunk(self.workers, np.zeros((len(self.workers), k, 1), np.float32)))
+        return out
+
+    def close(self):
+        for w in self.workers:
+            w.close()
+
+
+# --- the paper's order, under the pool's lock --------------------------------------------------------------
+
+
+@pytest.fixture
+def sleeper():
+    """A process the pool may move between cores when it grants it one (stands in for a waiting worker)."""
+    proc = subprocess.Popen(["sleep", "60"])
+    yield proc.pid
+    proc.kill()
+    proc.wait()
+
+
+def test_a_released_core_goes_to_the_never_measured_then_the_longest_waiter(sleeper):
+    pool = CorePool(4, [0])
+    pool.free[0] = 0  # core 0 is busy; slots 1-3 wait
+    for slot, h in ((1, 0.002), (2, 0.005), (3, np.inf)):
+        pool.waiting[slot], pool.H[slot], pool.pid[slot] = 1, h, sleeper
+    order = []
+    for _ in range(3):
+        pool._give(0)
+        (slot,) = [s for s in (1, 2, 3) if pool.grant[s] == 0 and s not in order]
+        order.append(slot)
+        assert pool.sems[slot].acquire(False)  # the grantee was woken
+        pool.owner[0] = -1
+    assert order == [3, 2, 1]  # never measured first, then the longest last step
+    pool._give(0)
+    assert pool.free[0] == 1  # nobody waits: back to the free set
+
+
+def test_reclaim_hands_a_dead_workers_core_on_and_forgets_its_wait(sleeper):
+    pool = CorePool(3, [0])
+    pool.free[0], pool.owner[0] = 0, 0  # slot 0 holds the only core and dies
+    pool.waiting[1], pool.H[1], pool.pid[1] = 1, 0.001, sleeper
+    pool.waiting[2], pool.pid[2] = 1, sleeper
+    pool.reclaim(2)  # a waiter that died: no longer considered
+    pool.reclaim(0)
+    assert pool.grant[1] == 0 and pool.owner[0] == 1 and not pool.waiting[2]
+
+
+# --- real workers -------------------------------------------------------------------------------------------
+
+
+def test_workers_share_the_cores_one_step_at_a_time():
+    fleet = Fleet(6, CORES, spec(1.0, 0.5))
+    try:
+        start = time.perf_counter()
+        rounds = asyncio.run(fleet.chunks(6))
+        elapsed = time.perf_counter() - start
+    finally:
+        fleet.close()
+    results = [r for done, _ in rounds for r in done]
+    assert all(r.steps == 4 and len(r.step_s) == 4 and len(r.cores) == 4 for r in results)
+    assert {c for r in results for c in r.cores} <= set(CORES)
+    # a core runs one step at a time: the steps on it never add up to more than the time that passed
+    for core in CORES:
+        assert sum(s for r in results for c, s in zip(r.cores, r.step_s) if c == core) <= elapsed
+    handoffs, rebinds, gap = fleet.pool.counters()
+    assert handoffs > 0 and gap >= 0
+    if len(CORES) > 1:
+        assert rebinds > 0 and fleet.stepping.metrics()["sim/rebinds"] == rebinds
+
+
+def test_a_smaller_budget_is_used_from_the_next_step():
+    fleet = Fleet(4, CORES, spec(0.5))
+    try:
+        asyncio.run(fleet.chunks(2))
+        fleet.stepping.set_budget(CORES[:1])
+        after = asyncio.run(fleet.chunks(2))
+    finally:
+        fleet.close()
+    assert {c for done, _ in after[1:] for r in done for c in r.cores} == {CORES[0]}
+
+
+def test_pinned_mode_runs_whole_chunks_on_home_cores():
+    fleet = Fleet(4, CORES, spec(0.5))
+    fleet.pool.set_mode(PINNED)
+    try:
+        rounds = asyncio.run(fleet.chunks(2))
+        homes = [fleet.pool.home(e) for e in range(4)]
+        affinity = [os.sched_getaffinity(w.proc.pid) for w in fleet.workers]
+    finally:
+        fleet.close()
+    assert all(r.cores == () and r.steps == 4 for done, _ in rounds for r in done)  # no core claimed
+    assert affinity == [{h} for h in homes]
+
+
+def test_a_worker_killed_holding_the_only_core_does_not_stall_the_others():
+    fleet = Fleet(2, CORES[:1], spec(1.0))
+    slow = EnvWorker(spec(3000.0), seed=9, pool=fleet.pool, slot=1)  # env 1: one step takes 3 s
+    fleet.workers[1].close()
+    fleet.workers[1] = slow
+
+    async def go():
+        await asyncio.gather(*(w.reset() for w in fleet.workers))
+        stuck = asyncio.ensure_future(slow.chunk(np.zeros((1, 1), np.float32), timeout=0.5))
+        await asyncio.sleep(0.3)  # it holds the core now
+        assert fleet.pool.owner[CORES[0]] == 1
+        with pytest.raises(Exception):
+            await stuck  # timed out: the sim service kills and replaces it
+        slow.kill()
+        fleet.pool.reclaim(1)
+        return await asyncio.wait_for(fleet.workers[0].chunk(np.zeros((4, 1), np.float32), timeout=10), 10)
+
+    try:
+        result = asyncio.run(go())
+    finally:
+        fleet.close()
+    assert result.steps == 4 and set(result.cores) == {CORES[0]}
+
+
+def test_a_worker_exits_when_its_parent_goes_while_it_waits_for_a_core():
+    pool = CorePool(1, CORES[:1])
+    pool.free[CORES[0]] = 0  # no core will ever be granted
+    worker = EnvWorker(spec(0.1), seed=0, pool=pool, slot=0)
+    worker.conn.send(("chunk", (np.zeros((2, 1), np.float32), True)))
+    time.sleep(0.5)
+    worker.conn.close()  # the sim service is gone
+    worker.proc.join(10)
+    assert worker.proc.exitcode == 0
+
+
+# --- the automatic choice -----------------------------------------------------------------------------------
+
+
+def feed(choice: SteppingChoice, now: float, rate: dict[int, float], until: float, latency: float = 0.001,
+         until_trial: bool = False):
+    """Chunks of 8 steps arriving every 0.05 s at the given steps/s per mode, until a decision, a new trial
+    (``until_trial``) or ``until``."""
+    decided = None
+    while now < until and decided is None and not (until_trial and choice.trial):
+        now += 0.05
+        choice.observe(now, int(rate[choice.mode] * 0.05), [latency] * 8, 0.05)
+        decided = choice.tick(now)
+    return now, decided
+
+
+@pytest.mark.parametrize("rebind_rate, expected", [(1300, REBIND), (1020, PINNED), (800, PINNED)])
+def test_the_trial_keeps_rebinding_only_when_it_measures_faster(rebind_rate, expected):
+    choice = SteppingChoice(now=0.0, warmup_s=0.0)
+    windows = []
+    now, decided = 0.0, None
+    while decided is None:
+        windows.append(choice.mode)
+        now, decided = feed(choice, now, {PINNED: 1000, REBIND: rebind_rate}, now + 0.06)
+    assert choice.mode == expected and choice.decisions == 1 and not choice.trial
+    assert "rebinding ran" in decided and choice.gain == pytest.approx(rebind_rate / 1000, abs=0.04)
+    assert windows.count(REBIND) > 0 and windows.count(PINNED) > 0  # both measured
+    assert choice.metrics()["sim/core_rebinding"] == float(expected == REBIND)
+
+
+def test_a_shifted_step_latency_starts_a_new_trial():
+    choice = SteppingChoice(now=0.0, warmup_s=0.0)
+    now, _ = feed(choice, 0.0, {PINNED: 1000, REBIND: 1000}, 60.0)
+    assert not choice.trial
+    now, _ = feed(choice, now, {PINNED: 1000, REBIND: 1000}, now + 5.0)  # the reference: 1 ms steps
+    now, _ = feed(choice, now, {PINNED: 1000, REBIND: 1000}, now + 5.0, latency=0.00102)  # jitter: nothing
+    assert not choice.trial
+    feed(choice, now, {PINNED: 1000, REBIND: 1000}, now + 30.0, latency=0.004, until_trial=True)
+    assert choice.trial and "moved" in choice.reason  # the tail moves first (a mix of old and new), then p50
+
+
+def test_the_choice_is_rechecked_after_a_while():
+    choice = SteppingChoice(now=0.0, warmup_s=0.0, recheck_s=20.0)
+    now, _ = feed(choice, 0.0, {PINNED: 1000, REBIND: 1000}, 60.0)
+    end, _ = feed(choice, now, {PINNED: 1000, REBIND: 1000}, now + 60.0, until_trial=True)
+    assert choice.trial and "re-check" in choice.reason and end - now == pytest.approx(20.0, abs=0.1)
+
+
+def test_auto_switches_the_pool_and_reports_periods_and_the_decision():
+    decisions, periods = [], []
+    choice = SteppingChoice(now=time.monotonic(), warmup_s=0.0, window_s=0.2, settle_s=0.02)
+    fleet = Fleet(4, CORES, spec(0.2), choice=choice, on_decision=decisions.append,
+                  on_mode=lambda mode, a, b: periods.append(mode))
+
+    async def until_decided():
+        await asyncio.gather(*(w.reset() for w in fleet.workers))
+        seen = set()
+        for _ in range(2000):
+            await fleet.stepping.run_chunk(fleet.workers, np.zeros((4, 4, 1), np.float32))
+            seen.add(fleet.pool.mode)
+            if decisions:
+                return seen
+        raise AssertionError("no decision")
+
+    try:
+        seen = asyncio.run(until_decided())
+    finally:
+        fleet.close()
+    assert seen == {PINNED, REBIND}  # the trial ran both
+    assert fleet.pool.mode == choice.mode and set(periods) == {PINNED, REBIND}
+    assert "rebinding ran" in decisions[0]
+    assert {"sim/core_rebinding", "sim/rebinding_gain", "sim/core_handoffs"} <= set(fleet.stepping.metrics())

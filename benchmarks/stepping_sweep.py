@@ -24,6 +24,7 @@ import json
 import os
 import platform
 import statistics
+import subprocess
 import sys
 import time
 from pathlib import Path
@@ -121,7 +122,11 @@ def main() -> None:
         result["command"] = (f"python benchmarks/stepping_sweep.py --points {point} --duration {args.duration:g}"
                              f" --repeat {args.repeat}" + "".join(f" --set {o}" for o in args.overrides))
         result["machine"] = machine
+        result["commit"] = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
+                                          cwd=ROOT).stdout.strip()
         data["points"][point] = result
+        data["command"] = (f"python benchmarks/stepping_sweep.py --force --duration {args.duration:g} --repeat {args.repeat}"
+                           f" --points {','.join(p for p in all_points() if p in data['points'])}")
         path.parent.mkdir(parents=True, exist_ok=True)
         path.write_text(json.dumps(data, indent=2) + "\n")
         med = result["traj_per_s"]

@@ -125,6 +125,9 @@ def main() -> None:
         result["commit"] = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
                                           cwd=ROOT).stdout.strip()
         data["points"][point] = result
+        order = all_points()
+        data["points"] = dict(sorted(data["points"].items(),
+                                     key=lambda kv: order.index(kv[0]) if kv[0] in order else len(order)))
         data["command"] = (f"python benchmarks/stepping_sweep.py --force --duration {args.duration:g} --repeat {args.repeat}"
                            f" --points {','.join(p for p in all_points() if p in data['points'])}")
         path.parent.mkdir(parents=True, exist_ok=True)

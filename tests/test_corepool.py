@@ -236,3 +236,30 @@ def test_auto_switches_the_pool_and_reports_periods_and_the_decision():
     assert fleet.pool.mode == choice.mode and set(periods) == {PINNED, REBIND}
     assert "rebinding ran" in decisions[0]
     assert {"sim/core_rebinding", "sim/rebinding_gain", "sim/core_handoffs"} <= set(fleet.stepping.metrics())
+
+
+def test_a_worker_that_dies_holding_the_only_core_is_reclaimed_within_the_chunk():
+    pool = CorePool(3, CORES[:1])
+    workers = [EnvWorker(spec(3000.0 if e == 0 else 1.0), seed=e, pool=pool, slot=e) for e in range(3)]
+    stepping = RebindingStepping(pool)
+    stepping.timeout = 60.0  # far longer than the test: the others must not wait for it
+
+    async def go():
+        await asyncio.gather(*(w.reset() for w in workers))
+        chunk = asyncio.ensure_future(stepping.run_chunk(workers, np.zeros((3, 3, 1), np.float32)))
+        for _ in range(100):  # env 0 never measured goes first, and takes the only core for 3 s
+            await asyncio.sleep(0.05)
+            if pool.owner[CORES[0]] == 0:
+                break
+        os.kill(workers[0].proc.pid, signal.SIGKILL)
+        return await asyncio.wait_for(chunk, 30)
+
+    try:
+        started = time.monotonic()
+        results, _ = asyncio.run(go())
+        took = time.monotonic() - started
+    finally:
+        for w in workers:
+            w.close()
+    assert isinstance(results[0], Exception) and "died" in str(results[0])
+    assert [r.steps for r in results[1:]] == [3, 3] and took < 30

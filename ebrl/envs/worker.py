@@ -157,6 +157,7 @@ class EnvWorker:
         ctx = _context(spec)
         self.conn, child = ctx.Pipe()
         claim = CoreClaim(pool, slot, child) if pool is not None else None
+        self.slot = slot  # its place in the core pool
         self.proc = ctx.Process(target=_worker_main, args=(child, spec, seed, claim), daemon=True, name="ebrl-env")
         self.proc.start()
         child.close()

@@ -71,12 +71,16 @@ class IndependentStepping:
             try:
                 result = await workers[i].chunk(actions[i], timeout=self.timeout)
             except WorkerFailed as exc:
+                self.failed(workers[i])
                 return exc
             latencies[i] = time.perf_counter() - start
             return result
 
         results = await asyncio.gather(*(one(i) for i in range(len(workers))))
         return list(results), latencies
+
+    def failed(self, worker: EnvWorker) -> None:
+        """A worker died or hung: the caller replaces it once the chunk is done."""
 
 
 class BatchStepping:
@@ -155,6 +159,12 @@ class RebindingStepping(IndependentStepping):
             self.pool.set_mode(choice.mode)
         if decision and self.on_decision is not None:
             self.on_decision(decision)
+
+    def failed(self, worker: EnvWorker) -> None:
+        """At once, not when the chunk is done: a dead or hung worker may hold a core the other envs of the
+        chunk wait for. It is killed (it is replaced anyway) and what it held goes to them."""
+        worker.kill()
+        self.pool.reclaim(worker.slot)
 
     def set_budget(self, cores: list[int]) -> None:
         self.pool.set_budget(cores)

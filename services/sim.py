@@ -34,7 +34,7 @@ class SimService(Service):
         share = cfg.algo.group_size if cfg.algo.name == "grpo" else 1
         self.fleet = EnvFleet(spec, sched, host=self.instance, seed=cfg.run.seed, share=share,
                               on_core_step=lambda core, s: self.count(f"sim/core{core}_busy_s", s),
-                              on_mode=lambda mode, a, b: self.publish_span("sim.stepping", NAMES[mode], a, b, False),
+                              on_mode=lambda mode, a, b: self.publish_span("stepping", NAMES[mode], a, b, False),
                               on_decision=self.stepping_decided)
         self.stats = RolloutStats(cfg.sim.step_timeout)
         self.fleet.stepping.timeout = self.stats.step_timeout()  # refreshed with every stats report

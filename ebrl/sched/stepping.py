@@ -128,7 +128,7 @@ class RebindingStepping(IndependentStepping):
         self.on_step = on_step  # (core, seconds) after every step: per-core busy time
         self.choice = choice  # sim.core_rebinding = "auto": the pool's mode is chosen by measuring
         self.on_mode, self.on_decision = on_mode, on_decision  # (mode, start, end) of a period; a decision
-        self._mode_since = time.time()
+        self._mode_since: float | None = None  # from the first chunk on
         if choice is not None:
             pool.set_mode(choice.mode)
 
@@ -152,6 +152,8 @@ class RebindingStepping(IndependentStepping):
         choice, before = self.choice, self.choice.mode
         decision = choice.tick(now)
         wall = time.time()
+        if self._mode_since is None:
+            self._mode_since = wall
         if self.on_mode is not None and (choice.mode != before or wall - self._mode_since >= 5.0):
             self.on_mode(before, self._mode_since, wall)
             self._mode_since = wall

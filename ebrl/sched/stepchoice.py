@@ -65,8 +65,9 @@ class SteppingChoice:
         return max(self.settle_s, statistics.median(self.chunks) if self.chunks else 0.0)
 
     def window(self) -> float:
-        """A window holds at least 4 chunks of every env after settling (slow envs: longer windows)."""
-        return max(self.window_s, self.settle() + 4 * (statistics.median(self.chunks) if self.chunks else 0.0))
+        """A window holds at least 8 chunks of every env after settling (slow envs: longer windows; with 4, a
+        trial on 16 ms steps measured noise)."""
+        return max(self.window_s, self.settle() + 8 * (statistics.median(self.chunks) if self.chunks else 0.0))
 
     def distribution(self) -> tuple[float, float] | None:
         """(median step latency, p90 / median) of the recent steps; None before 500 were seen."""

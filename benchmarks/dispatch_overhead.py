@@ -50,7 +50,7 @@ def _hog(cores: list[int]) -> None:
 async def one_round(policy: str, args, cores: list[int]) -> dict[str, float]:
     spec = EnvSpec(ENV_ID, latency="lognormal", latency_mean_ms=args.step_us / 1e3, latency_sigma=0.0)
     pool = CorePool(args.envs, cores) if policy == "rebinding" else None
-    workers = [EnvWorker(spec, seed=e, pool=pool, slot=e) if pool else EnvWorker(spec, seed=e, core=cores[e % len(cores)])
+    workers = [EnvWorker(spec, seed=e, core=None if pool else cores[e % len(cores)], pool=pool, slot=e)
                for e in range(args.envs)]
     try:
         if pool is not None:

@@ -81,7 +81,8 @@ def plot(data: dict, path: Path) -> None:
     for sigma in SIGMAS:
         xs = [(m, p) for m in MEANS if (p := data["points"].get(f"lat:{m:g}:{sigma:g}"))]
         if xs:
-            ax.plot([m for m, _ in xs], [p["ebrl_vs_best"] for _, p in xs], marker="o", label=f"latency sigma {sigma:g}")
+            ax.plot([m for m, _ in xs], [p["ebrl_vs_best"] for _, p in xs], marker="o",
+                    label=f"latency sigma {sigma:g}")
     for i, name in enumerate(NAMED):
         if p := data["points"].get(name):
             ax.scatter([0.075 if name == "halfcheetah" else 16.0], [p["ebrl_vs_best"]], marker="s^"[i], s=60,
@@ -128,7 +129,8 @@ def main() -> None:
         order = all_points()
         data["points"] = dict(sorted(data["points"].items(),
                                      key=lambda kv: order.index(kv[0]) if kv[0] in order else len(order)))
-        data["command"] = (f"python benchmarks/stepping_sweep.py --force --duration {args.duration:g} --repeat {args.repeat}"
+        data["command"] = (f"python benchmarks/stepping_sweep.py --force --duration {args.duration:g}"
+                           f" --repeat {args.repeat}"
                            f" --points {','.join(p for p in all_points() if p in data['points'])}")
         path.parent.mkdir(parents=True, exist_ok=True)
         path.write_text(json.dumps(data, indent=2) + "\n")

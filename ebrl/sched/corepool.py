@@ -77,9 +77,6 @@ class CorePool:
 
     # --- under the lock ---------------------------------------------------------------------------------
 
-    def _locked(self, timeout: float | None = None) -> bool:
-        return self.lock.acquire(timeout=timeout) if timeout is not None else self.lock.acquire()
-
     def _best_waiter(self) -> int:
         """The waiting slot the paper's order picks (never measured, then longest H; ties: lowest slot), -1."""
         if not self.waiting.any():
@@ -148,7 +145,7 @@ class CorePool:
             self.lock.release()
 
     def _hold(self) -> None:
-        if not self._locked(5.0):
+        if not self.lock.acquire(timeout=5.0):
             raise PoolBroken("the env workers' core pool stayed locked for 5 s (a worker died holding it)")
 
     def counters(self) -> tuple[int, int, float]:

@@ -14,9 +14,9 @@ import numpy as np
 
 from ebrl.envs import EnvSpec, EnvWorker
 from ebrl.sched.corepool import CorePool
-from ebrl.sched.stepchoice import SteppingChoice
 from ebrl.sched.modes import Schedule
 from ebrl.sched.rollout import Episodes
+from ebrl.sched.stepchoice import SteppingChoice
 from ebrl.sched.stepping import BatchStepping, IndependentStepping, RebindingStepping, Stepping
 
 
@@ -28,8 +28,9 @@ class EnvFleet:
                  on_core_step: Callable[[int, float], None] | None = None,
                  on_mode: Callable[[int, float, float], None] | None = None,
                  on_decision: Callable[[str], None] | None = None):
-        """``on_core_step(core, seconds)`` after each rebound step; under ``sim.core_rebinding = "auto"``,
-        ``on_mode(mode, start, end)`` for each period in a mode and ``on_decision(text)`` for each choice."""
+        """With rebinding, ``on_core_step(core, seconds)`` after each chunk for each core its envs stepped on;
+        under ``sim.core_rebinding = "auto"``, ``on_mode(mode, start, end)`` for each period in a mode and
+        ``on_decision(text)`` for each choice."""
         self.spec, self.schedule, self.seed = spec, schedule, seed
         first = host * schedule.groups
         self.groups = list(range(first, first + schedule.groups))

@@ -19,6 +19,7 @@ worker (``replace``).
 from __future__ import annotations
 
 import asyncio
+import collections
 import time
 from typing import Callable, Protocol, Sequence
 
@@ -125,7 +126,7 @@ class RebindingStepping(IndependentStepping):
                  choice: SteppingChoice | None = None, on_mode: Callable[[int, float, float], None] | None = None,
                  on_decision: Callable[[str], None] | None = None):
         self.pool = pool
-        self.on_step = on_step  # (core, seconds) after every step: per-core busy time
+        self.on_step = on_step  # (core, seconds) after every chunk: per-core busy time
         self.choice = choice  # sim.core_rebinding = "auto": the pool's mode is chosen by measuring
         self.on_mode, self.on_decision = on_mode, on_decision  # (mode, start, end) of a period; a decision
         self._mode_since: float | None = None  # from the first chunk on
@@ -135,14 +136,17 @@ class RebindingStepping(IndependentStepping):
     async def run_chunk(self, workers, actions):
         results, latencies = await super().run_chunk(workers, actions)
         now = time.monotonic()
+        busy: dict[int, float] = collections.defaultdict(float)
         for result, latency in zip(results, latencies):
             if not isinstance(result, ChunkResult):
                 continue
-            if self.on_step is not None:
-                for core, seconds in zip(result.cores, result.step_s):
-                    self.on_step(core, seconds)
+            for core, seconds in zip(result.cores, result.step_s):
+                busy[core] += seconds
             if self.choice is not None:
                 self.choice.observe(now, result.steps, result.step_cpu_s, latency)
+        if self.on_step is not None:  # once per core and chunk, not per step
+            for core, seconds in busy.items():
+                self.on_step(core, seconds)
         if self.choice is not None:
             self._follow(now)
         return results, latencies

@@ -57,7 +57,9 @@ def point_config(point: str) -> tuple[str, list[str]]:
 def summarize_point(results: dict[str, list[dict]]) -> dict:
     med = {m: statistics.median(r["traj_per_s"] for r in runs) for m, runs in results.items()}
     best = max(bench.BASELINES, key=lambda m: med.get(m, 0.0))
+    steps = {m: statistics.median(r["env_steps_per_s"] for r in runs) for m, runs in results.items()}
     return {"traj_per_s": med, "best_baseline": best, "ebrl_vs_best": med["ebrl"] / med[best],
+            "ebrl_vs_best_env_steps": steps["ebrl"] / max(steps[m] for m in bench.BASELINES),
             "ebrl_rebinding_share": [r.get("rebinding_share") for r in results["ebrl"]],
             "ebrl_rebinding_gain": [r.get("rebinding_gain") for r in results["ebrl"]]}
 

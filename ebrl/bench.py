@@ -90,10 +90,16 @@ def measure(config: str, mode: str, extra: list[str], duration: float, startup_t
     return summarize(stats.between(t0, t1), t1 - t0)
 
 
+# The last update's learning diagnostics, kept with each point of a learning curve (README: stats schema).
+TRAIN_DIAGNOSTICS = ("staleness_mean", "behave_kl", "behave_weight_mean", "behave_weight_capped", "approx_kl",
+                     "clipfrac", "value_drift", "explained_variance", "adv_std", "entropy", "value_loss")
+
+
 def learning_curve(config: str, overrides: list[str], name: str, timeout: float = 1800.0,
                    out_dir: str = "runs/bench") -> list[dict[str, float]]:
     """Run ``config`` to its end and return the learning curve: one point per sim stats report with
-    wall seconds since launch, env steps, policy version and mean return of the last 20 episodes."""
+    wall seconds since launch, env steps, policy version and mean return of the last 20 episodes, and the
+    latest update's ``TRAIN_DIAGNOSTICS`` then."""
     started = time.time()
     with Run(config, *RUN_SETS, *overrides, name=name, out_dir=out_dir, stats_interval=1.0) as run, \
             StatsWatcher(run) as stats:
@@ -103,14 +109,15 @@ def learning_curve(config: str, overrides: list[str], name: str, timeout: float 
             code = run.stop(60)
     if code not in (0, 130):
         raise RuntimeError(f"{run.name}: ebrl up failed ({code}):\n{run.output}")
-    curve, version = [], 0.0
+    curve, version, train = [], 0.0, {}
     for report in sorted(stats.reports(), key=lambda r: r.time):
         m = report.metrics
         if source(report) == "train/0":
             version = m.get("train/policy_version", version)
+            train = {k: m[f"train/{k}"] for k in TRAIN_DIAGNOSTICS if f"train/{k}" in m}
         elif source(report) == "sim/0" and "sim/episode_return_mean" in m:
             curve.append({"wall_s": report.time - started, "env_steps": m["sim/env_steps"],
-                          "policy_version": version, "return": m["sim/episode_return_mean"]})
+                          "policy_version": version, "return": m["sim/episode_return_mean"], **train})
     return curve
 
 

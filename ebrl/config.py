@@ -161,6 +161,9 @@ class AlgoSection:
         "decoupled: log pi_prox recomputed by a forward pass over the batch at the start of each update, or "
         "interpolated by version between the behaviour and the current log-prob (no extra pass; AReaL's "
         "log-linear approximation)", "recompute")
+    gae_values: Literal["current", "behaviour"] = doc(
+        "values in GAE: from the critic the update starts from, one pass over the batch (current; as AReaL), "
+        "or those the acting version's critic gave (behaviour; on stale data they mix two critics)", "current")
     gamma: float = doc("discount per env step (a chunk of k steps is discounted by gamma**k)", 0.99)
     gae_lambda: float = doc("GAE lambda", 0.95)
     clip: float = doc("PPO ratio clip", 0.2)

@@ -1,6 +1,7 @@
 """PPO pieces: GAE by hand, bootstrapping rules, log-prob consistency between gen and train, learning signal."""
 
 import numpy as np
+import pytest
 import torch
 from types import SimpleNamespace
 
@@ -105,3 +106,107 @@ def test_ppo_update_moves_probability_towards_advantaged_actions():
     PPO(model, ALGO, lr=1e-2).update(batch)
     after = model.dist(torch.zeros(1, 4)).mean.mean().item()
     assert after > before
+
+
+# --- the formulas of the off-policy path, pinned (issue: learning parity) ---
+
+
+def test_decoupled_policy_loss_matches_hand_computation():
+    from ebrl.algos.ppo import policy_loss
+
+    logp = torch.log(torch.tensor([1.1, 0.7, 1.5, 1.0]))  # pi_theta, relative to pi_prox = 1 below
+    prox = torch.zeros(4)
+    behave = torch.log(torch.tensor([0.5, 2.0, 1.0, 1 / 8]))  # w = pi_prox / pi_behave = 2, 0.5, 1, 8 -> cap 5
+    adv = torch.tensor([1.0, -1.0, 2.0, -0.5])
+    loss, w, r = policy_loss(logp, prox, behave, adv, clip=0.2, cap=5.0)
+    torch.testing.assert_close(w, torch.tensor([2.0, 0.5, 1.0, 5.0]))
+    torch.testing.assert_close(r, torch.tensor([1.1, 0.7, 1.5, 1.0]))
+    # per decision: w * max(-A r, -A clip(r, 0.8, 1.2))
+    terms = [2.0 * max(-1.1, -1.1), 0.5 * max(0.7, 0.8), 1.0 * max(-3.0, -2.4), 5.0 * max(0.5, 0.5)]
+    assert loss.item() == pytest.approx(sum(terms) / 4, rel=1e-6)
+
+
+def test_decoupled_weight_carries_no_gradient_and_is_one_on_policy():
+    from ebrl.algos.ppo import policy_loss
+
+    logp = torch.tensor([-0.3, -1.2], requires_grad=True)
+    prox = logp.detach() + torch.tensor([0.2, -0.4])  # interpolation makes pi_prox from pi_theta, detached
+    loss, w, _ = policy_loss(logp, prox, logp.detach(), torch.tensor([1.0, 1.0]), 0.2, 5.0)
+    assert not w.requires_grad
+    loss.backward()
+    assert logp.grad is not None
+    _, w_on, r_on = policy_loss(logp.detach(), logp.detach(), logp.detach(), torch.ones(2), 0.2, 5.0)
+    torch.testing.assert_close(w_on, torch.ones(2))
+    torch.testing.assert_close(r_on, torch.ones(2))
+
+
+def stale_segment(model, T=6, end="cut"):
+    """A segment acted by an older critic: its stored values are not what ``model`` says now."""
+    rng = np.random.default_rng(3)
+    obs = rng.normal(size=(T, 4)).astype(np.float32)
+    from ebrl.messages import TrajectorySegment
+
+    return TrajectorySegment(
+        group=0, env_id=0, episode=0, obs=obs, actions=np.zeros((T, 3, 1), np.float32),
+        latents=np.zeros((T, 0), np.float32), logprobs=np.zeros(T, np.float32),
+        values=rng.normal(size=T).astype(np.float32), rewards=rng.normal(size=T).astype(np.float32),
+        steps=np.full(T, 3, np.int32), versions=np.zeros(T, np.int64), end=end,
+        last_obs=rng.normal(size=4).astype(np.float32), episode_returns=[], episode_lengths=[])
+
+
+def test_gae_on_a_stale_segment_takes_every_value_from_the_current_critic():
+    torch.manual_seed(4)
+    model = make_policy(POLICY, ObsLayout.vector(4), 1)
+    seg = stale_segment(model)
+    gamma, lam = 0.9, 0.8
+    with torch.no_grad():
+        v_now = model.value(torch.as_tensor(seg.obs)).numpy()
+        v_last = model.value(torch.as_tensor(seg.last_obs[None])).item()
+    disc = gamma ** seg.steps.astype(np.float64)
+    batch = build_batch([seg], model, gamma, lam)  # values = "current", the default
+    adv, ret = gae(seg.rewards, v_now, disc, v_last, lam)
+    np.testing.assert_allclose(batch.advantages.numpy(), adv, rtol=1e-5, atol=1e-6)
+    np.testing.assert_allclose(batch.returns.numpy(), ret, rtol=1e-5, atol=1e-6)
+    np.testing.assert_allclose(batch.values.numpy(), v_now, rtol=1e-5, atol=1e-6)
+    assert batch.diagnostics["value_drift"] == pytest.approx(float(np.sqrt(np.mean((v_now - seg.values) ** 2))),
+                                                            rel=1e-5)
+    # "behaviour": the acting critic's values inside the segment, the bootstrap from the current critic
+    old = build_batch([seg], model, gamma, lam, values="behaviour")
+    adv_b, _ = gae(seg.rewards, seg.values, disc, v_last, lam)
+    np.testing.assert_allclose(old.advantages.numpy(), adv_b, rtol=1e-5, atol=1e-6)
+    assert not np.allclose(old.advantages.numpy(), batch.advantages.numpy())
+    # a terminated segment bootstraps from nothing, whichever critic
+    term = stale_segment(model, end="terminated")
+    adv_t, _ = gae(term.rewards, v_now, disc, 0.0, lam)
+    np.testing.assert_allclose(build_batch([term], model, gamma, lam).advantages.numpy(), adv_t, rtol=1e-5,
+                               atol=1e-6)
+
+
+def test_gae_values_are_the_same_either_way_on_policy():
+    torch.manual_seed(5)
+    model = make_policy(POLICY, ObsLayout.vector(4), 1)
+    seg = stale_segment(model)
+    with torch.no_grad():
+        seg.values[:] = model.value(torch.as_tensor(seg.obs)).numpy()  # acted by this very critic
+    a = build_batch([seg], model, 0.99, 0.95)
+    b = build_batch([seg], model, 0.99, 0.95, values="behaviour")
+    torch.testing.assert_close(a.advantages, b.advantages)
+    assert a.diagnostics["value_drift"] == pytest.approx(0.0, abs=1e-6)
+
+
+def test_update_reports_how_far_the_behaviour_policy_is():
+    torch.manual_seed(6)
+    model = make_policy(POLICY, ObsLayout.vector(4), 1)
+    seg = stale_segment(model, end="terminated")
+    actions = torch.randn(len(seg.obs), 3, 1)
+    with torch.no_grad():
+        logp = model.evaluate(torch.as_tensor(seg.obs), actions, torch.zeros(len(seg.obs), 0))[0].numpy()
+    algo = SimpleNamespace(**vars(ALGO), decoupled=True, prox_logp="recompute", behave_weight_cap=5.0)
+    for shift, kl, capped in ((0.0, 0.0, 0.0), (-2.0, np.exp(2.0) - 1 - 2.0, 1.0)):  # w = 1, then e^2 > cap
+        behaved = seg.__class__(**{**seg.__dict__, "actions": actions.numpy(),
+                                   "logprobs": (logp + shift).astype(np.float32)})
+        stats = PPO(model, algo, lr=0.0).update(build_batch([behaved], model, 0.9, 0.9))
+        assert stats["behave_kl"] == pytest.approx(kl, rel=1e-4, abs=1e-5)
+        assert stats["behave_weight_capped"] == capped
+        assert stats["behave_weight_mean"] == pytest.approx(min(np.exp(-shift), 5.0), rel=1e-4)
+        assert {"value_drift", "explained_variance", "adv_mean", "adv_std"} <= set(stats)

@@ -26,6 +26,7 @@ policy counted as version v + 1, it takes log pi_prox on the line between behavi
 from __future__ import annotations
 
 import collections
+import math
 import dataclasses
 from dataclasses import dataclass
 from typing import Any, Callable, Sequence
@@ -69,6 +70,7 @@ class Batch:
     values: torch.Tensor
     versions: np.ndarray
     normalize_advantages: bool = True  # per minibatch (PPO); GRPO's are normalised per group already
+    diagnostics: dict[str, float] = dataclasses.field(default_factory=dict)  # reported with the update's stats
 
     def __len__(self) -> int:
         return self.obs.shape[0]
@@ -88,26 +90,69 @@ class Batch:
                                             if isinstance(getattr(self, f.name), torch.Tensor)})
 
 
-def build_batch(segments: Sequence[TrajectorySegment], model: nn.Module, gamma: float, lam: float) -> Batch:
-    """Advantages for every segment (bootstrap values from the current critic), concatenated."""
+def _device(model: nn.Module) -> torch.device:
+    return next(model.parameters()).device
+
+
+def build_batch(segments: Sequence[TrajectorySegment], model: nn.Module, gamma: float, lam: float,
+                values: str = "current") -> Batch:
+    """Advantages for every segment, concatenated.
+
+    Every value in a segment's GAE comes from one critic. ``values = "current"`` (the default): the critic the
+    update starts from (``model``), for every V(s_t) and the bootstrap V(s_T) alike, one forward pass over the
+    batch -- as AReaL computes values on the trainer, at training time. ``"behaviour"``: the values the acting
+    version's critic gave when the data was collected (``segment.values``), with the bootstrap still from
+    ``model``; on stale data each segment's last delta then mixes two critics (EBRL's earlier behaviour,
+    kept to measure the difference). On-policy both are the same critic.
+
+    ``batch.diagnostics["value_drift"]`` is the root mean square of (current - behaviour) values: how far
+    the critic moved since the data was acted (0 on-policy).
+    """
+    device = _device(model)
     needs_bootstrap = [i for i, s in enumerate(segments) if s.end != "terminated"]
     last_values = np.zeros(len(segments), dtype=np.float32)
-    if needs_bootstrap:
-        with torch.no_grad():
-            last_obs = torch.as_tensor(np.stack([segments[i].last_obs for i in needs_bootstrap]))
-            last_values[needs_bootstrap] = model.value(last_obs).cpu().numpy()
+    behave_values = [s.values for s in segments]
+    with torch.no_grad():
+        if needs_bootstrap:
+            last_obs = torch.as_tensor(np.stack([segments[i].last_obs for i in needs_bootstrap])).to(device)
+            last_values[needs_bootstrap] = model.value(last_obs).float().cpu().numpy()
+        if values == "current":
+            obs = torch.as_tensor(np.concatenate([s.obs for s in segments])).to(device)
+            flat = model.value(obs).float().cpu().numpy().astype(np.float32)
+            current = np.split(flat, np.cumsum([len(s.obs) for s in segments])[:-1])
+        elif values == "behaviour":
+            current = behave_values
+        else:
+            raise ValueError(f"values = {values!r}: 'current' or 'behaviour'")
     advs, rets = [], []
-    for seg, last_value in zip(segments, last_values):
-        a, r = gae(seg.rewards, seg.values, gamma ** seg.steps.astype(np.float64), float(last_value), lam)
+    for seg, seg_values, last_value in zip(segments, current, last_values):
+        a, r = gae(seg.rewards, seg_values, gamma ** seg.steps.astype(np.float64), float(last_value), lam)
         advs.append(a)
         rets.append(r)
 
     def cat(name: str) -> torch.Tensor:
         return torch.as_tensor(np.concatenate([getattr(s, name) for s in segments]))
 
+    used = np.concatenate(current)
+    drift = float(np.sqrt(np.mean((used - np.concatenate(behave_values)) ** 2)))
     return Batch(obs=cat("obs"), actions=cat("actions"), latents=cat("latents"), logprobs=cat("logprobs"),
                  advantages=torch.as_tensor(np.concatenate(advs)), returns=torch.as_tensor(np.concatenate(rets)),
-                 values=cat("values"), versions=np.concatenate([s.versions for s in segments]))
+                 values=torch.as_tensor(used), versions=np.concatenate([s.versions for s in segments]),
+                 diagnostics={"value_drift": drift})
+
+
+def policy_loss(logp: torch.Tensor, prox_logp: torch.Tensor, behave_logp: torch.Tensor, adv: torch.Tensor,
+                clip: float, cap: float) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """The decoupled clipped surrogate over decisions (module docstring), as (loss, w, r):
+
+        r = pi_theta / pi_prox,   w = min(pi_prox / pi_behave, cap)  (no gradient through w)
+        L = mean( w * max(-A * r, -A * clip(r, 1 - clip, 1 + clip)) )
+
+    With pi_prox = pi_behave (on-policy, or ``algo.decoupled = false``) w = 1: CleanRL's PPO loss."""
+    weight = (prox_logp - behave_logp).detach().exp().clamp(max=cap)
+    ratio = (logp - prox_logp).exp()
+    loss = (weight * torch.max(-adv * ratio, -adv * ratio.clamp(1 - clip, 1 + clip))).mean()
+    return loss, weight, ratio
 
 
 class PPO:
@@ -129,6 +174,7 @@ class PPO:
         stats: dict[str, list[float]] = {k: [] for k in ("policy_loss", "value_loss", "entropy", "approx_kl", "clipfrac")}
         decoupled = getattr(cfg, "decoupled", False)
         interpolate = decoupled and getattr(cfg, "prox_logp", "recompute") == "interpolate"
+        cap = getattr(cfg, "behave_weight_cap", math.inf)
         if interpolate:
             lag = torch.as_tensor((version if version is not None else batch.versions.max()) - batch.versions,
                                   dtype=torch.float32, device=batch.obs.device).clamp(min=0)
@@ -136,10 +182,11 @@ class PPO:
         elif decoupled:
             with torch.no_grad():
                 prox = self.net("evaluate", batch.obs, batch.actions, batch.latents)[0]  # log pi_prox, once per update
-            weight = (prox - batch.logprobs).exp().clamp(max=cfg.behave_weight_cap)
+            self._behaviour_stats(stats, prox - batch.logprobs, cap)
         else:
-            prox, weight = batch.logprobs, torch.ones(n, device=batch.obs.device)
-        weights: list[float] = [] if interpolate else [weight.mean().item()]
+            prox = batch.logprobs  # pi_prox = pi_behave: weight 1, plain PPO
+        weights: list[float] = [] if interpolate else [
+            (prox - batch.logprobs).exp().clamp(max=cap).mean().item()]
         for _ in range(cfg.epochs):
             order = torch.randperm(n, generator=self.generator)
             for idx in torch.tensor_split(order, cfg.minibatches):
@@ -147,19 +194,20 @@ class PPO:
                 idx = idx if len(idx) else order[:1]
                 newlogprob, entropy, newvalue = self.net("evaluate", batch.obs[idx], batch.actions[idx],
                                                          batch.latents[idx])
+                behave = batch.logprobs[idx]
                 if interpolate:
-                    behave = batch.logprobs[idx]
                     prox_mb = behave + alpha[idx] * (newlogprob.detach() - behave)
-                    weight_mb = (prox_mb - behave).exp().clamp(max=cfg.behave_weight_cap)
-                    weights.append(weight_mb.mean().item())
+                    self._behaviour_stats(stats, prox_mb - behave, cap)
                 else:
-                    prox_mb, weight_mb = prox[idx], weight[idx]
-                logratio = newlogprob - prox_mb
-                ratio = logratio.exp()
+                    prox_mb = prox[idx]
                 adv = batch.advantages[idx]
                 if batch.normalize_advantages and len(idx) > 1:
                     adv = (adv - adv.mean()) / (adv.std() + 1e-8)
-                pg_loss = (weight_mb * torch.max(-adv * ratio, -adv * ratio.clamp(1 - cfg.clip, 1 + cfg.clip))).mean()
+                pg_loss, weight_mb, ratio = policy_loss(newlogprob, prox_mb, behave, adv, cfg.clip,
+                                                        cap)
+                logratio = newlogprob - prox_mb
+                if interpolate:
+                    weights.append(weight_mb.mean().item())
                 if batch.returns is None:
                     v_loss = torch.zeros((), device=batch.obs.device)
                 else:
@@ -177,7 +225,36 @@ class PPO:
                     stats["approx_kl"].append(((ratio - 1) - logratio).mean().item())
                     stats["clipfrac"].append(((ratio - 1.0).abs() > cfg.clip).float().mean().item())
         stats["behave_weight_mean"] = weights
-        return {k: float(np.mean(v)) for k, v in stats.items()}
+        out = {k: float(np.mean(v)) for k, v in stats.items() if v}
+        return {**out, **self.batch_stats(batch)}
+
+    @staticmethod
+    def _behaviour_stats(stats: dict[str, list[float]], log_w: torch.Tensor, cap: float) -> None:
+        """How far the behaviour policy is from pi_prox, over decisions: KL(pi_behave || pi_prox) by the k3
+        estimator (mean of w - 1 - log w, w = pi_prox / pi_behave, >= 0, 0 on-policy), the share of weights
+        above the cap, the largest weight."""
+        log_w = log_w.float()
+        w = log_w.exp()
+        stats.setdefault("behave_kl", []).append((w - 1 - log_w).mean().item())
+        stats.setdefault("behave_weight_capped", []).append((w > cap).float().mean().item())
+        stats.setdefault("behave_weight_max", []).append(w.max().item())
+
+    @staticmethod
+    def batch_stats(batch: Batch) -> dict[str, float]:
+        """What the update learned from: raw advantages (before per-minibatch normalisation), how well the
+        values used in GAE explain the returns (1 - Var(returns - values) / Var(returns)), and the batch's
+        diagnostics (``value_drift``)."""
+        out = dict(batch.diagnostics)
+        if len(batch) < 2:
+            return out
+        adv = batch.advantages.float()
+        out.update(adv_mean=adv.mean().item(), adv_std=adv.std().item())
+        if batch.returns is not None:
+            ret = batch.returns.float()
+            var = ret.var().item()
+            if var > 0:
+                out["explained_variance"] = 1.0 - (ret - batch.values.float()).var().item() / var
+        return out
 
 
 class SegmentCollector:
@@ -228,4 +305,4 @@ class SegmentCollector:
         return len(seg.obs)
 
     def build(self, segments: list[TrajectorySegment], model: nn.Module) -> Batch:
-        return build_batch(segments, model, self.cfg.gamma, self.cfg.gae_lambda)
+        return build_batch(segments, model, self.cfg.gamma, self.cfg.gae_lambda, self.cfg.gae_values)

@@ -2,6 +2,8 @@
 
     python benchmarks/learning_parity.py --config configs/quickstart.toml --iterations 150 --seeds 0,1,2,3,4
     python benchmarks/learning_parity.py --config configs/quickstart.toml --set env.id=Hopper-v5 --name parity_hopper
+    python benchmarks/learning_parity.py --config configs/bench_halfcheetah.toml --seeds 0,1,2 --name staleness_hc \
+        --variant s0=ebrl:algo.max_staleness=0 --variant s1=ebrl:algo.max_staleness=1 ...
 
 Every run is a real ``ebrl up`` (``ebrl.bench.learning_curve``) of the same config for the same number of
 updates; one update consumes ``train.batch_size`` decisions of ``policy.chunk`` env steps in every mode, so
@@ -146,6 +148,9 @@ def main() -> None:
                         help="a config override for every run")
     parser.add_argument("--mode-set", action="append", default=[], metavar="MODE:SECTION.KEY=VALUE",
                         help="an override for one mode's runs only (e.g. ebrl:train.overlap=false)")
+    parser.add_argument("--variant", action="append", default=[], metavar="LABEL=MODE[:KEY=VALUE,...]",
+                        help="compare labelled variants instead of --modes, e.g. s0=ebrl:algo.max_staleness=0 "
+                        "(the staleness sweep); the first is compared with the second")
     parser.add_argument("--name", default="", help="results file name (default: parity_<config stem>)")
     parser.add_argument("--out", default=str(RESULTS))
     parser.add_argument("--force", action="store_true", help="run again the runs already in the file")
@@ -156,7 +161,17 @@ def main() -> None:
     out.mkdir(parents=True, exist_ok=True)
     path = out / f"{name}.json"
     modes = [m.strip() for m in args.modes.split(",") if m.strip()]
+    mode_of = {m: m for m in modes}  # label -> run.mode
     mode_sets: dict[str, list[str]] = {m: [] for m in modes}
+    if args.variant:
+        modes, mode_of, mode_sets = [], {}, {}
+        for item in args.variant:
+            label, _, rest = item.partition("=")
+            mode, _, sets = rest.partition(":")
+            if not label or not mode or label in mode_of:
+                raise SystemExit(f"--variant {item!r}: LABEL=MODE[:KEY=VALUE,...] with a new LABEL")
+            modes.append(label)
+            mode_of[label], mode_sets[label] = mode, [x for x in sets.split(",") if x]
     for item in args.mode_set:
         mode, _, override = item.partition(":")
         if mode not in mode_sets or not override:
@@ -165,7 +180,7 @@ def main() -> None:
     seeds = [int(s) for s in args.seeds.split(",") if s.strip()]
     target = args.target if args.target is not None else cfg.run.target_return
     budget = args.iterations * cfg.train.batch_size * cfg.policy.chunk
-    setup = {"config": args.config, "overrides": args.overrides, "mode_overrides": mode_sets,
+    setup = {"config": args.config, "overrides": args.overrides, "mode_overrides": mode_sets, "run_modes": mode_of,
              "iterations": args.iterations, "env_step_budget": budget}
     data: dict[str, Any] = json.loads(path.read_text()) if path.exists() else {}
     if any(data.get(k) != v for k, v in setup.items()):
@@ -181,10 +196,11 @@ def main() -> None:
                 continue
             print(f"{mode}, seed {seed}: {args.iterations} updates ({budget:,} env steps) ...", file=sys.stderr,
                   flush=True)
-            curve = bench.learning_curve(args.config, [*args.overrides, *mode_sets[mode], f"run.mode={mode}",
+            curve = bench.learning_curve(args.config, [*args.overrides, *mode_sets[mode],
+                                                       f"run.mode={mode_of[mode]}",
                                                        f"run.iterations={args.iterations}",
                                                        "run.target_return=1e9", f"run.seed={seed}"],
-                                         name=f"parity-{mode}")
+                                         name=f"parity-{mode_of[mode]}")
             data["runs"].setdefault(mode, {})[str(seed)] = run_summary(curve, target)
             data["curves"].setdefault(mode, {})[str(seed)] = curve
             data["summary"] = summarize(data["runs"], modes)

@@ -108,6 +108,23 @@ def test_a_killed_train_resumes_from_its_checkpoint_with_versions_never_reused(t
     assert "resumed from" in log and "checkpoints/v" in log
 
 
+@pytest.mark.slow
+def test_a_train_killed_in_its_first_update_without_overlap_does_not_stall_the_run(tmp_path):
+    # colocated: no overlap, so generation waits for v1 before iteration 1; the killed train took iteration 0's
+    # data with it. Slow steps (~5 ms) make iteration 0 last seconds, so the kill lands inside it.
+    with quick(tmp_path, "kill-first-train", "run.mode=colocated", "env.latency=lognormal",
+               "env.latency_mean_ms=5", "run.iterations=3") as run, StatsWatcher(run) as stats:
+        stats.wait_for(lambda: (stats.latest("sim/0", "sim/env_steps") or 0) > 0, 120, "the first env steps")
+        assert (stats.latest("train/0", "train/policy_version") or 0) == 0
+        service(run, "train").send_signal(signal.SIGKILL)
+        code = run.wait(FINISH_S)
+    assert code == 0, run.output
+    assert stats.latest("train/0", "train/policy_version") >= 3
+    assert monotonic(stats.values("train/0", "train/policy_version"))
+    log = (run.run_dir / "logs" / "train-0.log").read_text()
+    assert "versions up to v0 were published before the restart; the initial weights continue as v1" in log
+
+
 def test_random_bytes_on_data_keys_are_counted_and_dropped(tmp_path):
     with quick(tmp_path, "flood") as run, StatsWatcher(run) as stats:
         wait_version(stats, 1)

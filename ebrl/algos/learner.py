@@ -156,12 +156,14 @@ class Learner:
             restored = checkpoint.restore(found, self.model, self.ppo.optimizer, {"ppo": self.ppo.generator})
             self.version = self.saved_version = restored.version
             log.info("resumed from %s (policy v%d)", found, restored.version)
-        if floor >= self.version and floor > 0:
+        if floor >= self.version and floor >= 0:
+            # also past v0: a train that died in its first update lost that batch, and in a mode without
+            # overlap generation waits for v1 before it acts again; the same weights as v1 let the run go on
             log.warning("versions up to v%d were published before the restart; the %s weights continue as v%d",
                         floor, f"v{self.version}" if found else "initial", floor + 1)
             self.version = floor + 1
         self.arrays = state_arrays(self.model)
-        if found is None and floor <= 0:
+        if found is None and floor < 0:
             return None
         return f"train resumed at policy v{self.version}" + (f" from {found.name}" if found is not None
                                                               else " with fresh weights")

@@ -26,8 +26,8 @@ policy counted as version v + 1, it takes log pi_prox on the line between behavi
 from __future__ import annotations
 
 import collections
-import math
 import dataclasses
+import math
 from dataclasses import dataclass
 from typing import Any, Callable, Sequence
 
@@ -203,8 +203,7 @@ class PPO:
                 adv = batch.advantages[idx]
                 if batch.normalize_advantages and len(idx) > 1:
                     adv = (adv - adv.mean()) / (adv.std() + 1e-8)
-                pg_loss, weight_mb, ratio = policy_loss(newlogprob, prox_mb, behave, adv, cfg.clip,
-                                                        cap)
+                pg_loss, weight_mb, ratio = policy_loss(newlogprob, prox_mb, behave, adv, cfg.clip, cap)
                 logratio = newlogprob - prox_mb
                 if interpolate:
                     weights.append(weight_mb.mean().item())

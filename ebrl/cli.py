@@ -1,4 +1,4 @@
-"""``ebrl`` command line: up, stats, profile, report, bench, router, schemas, config."""
+"""``ebrl`` command line: up, stats, profile, report, bench, router, secret, schemas, config."""
 
 from __future__ import annotations
 
@@ -29,8 +29,13 @@ def main(argv: list[str] | None = None) -> int:
                         "version); run.iterations counts from the run's start")
 
     p = sub.add_parser("stats", help="print decoded ebrl/stats/** messages live")
+    p.add_argument("run_dir", nargs="?", default="",
+                   help="the run's directory (or its bus.secret file): signs in with the run's secret and connects "
+                        "to its launcher; omit for a run with bus.auth = false")
     p.add_argument("--run", default=None, help="only this run (default: every run)")
-    p.add_argument("--connect", default="tcp/127.0.0.1:7447", help="bus endpoint of the run (its launcher)")
+    p.add_argument("--connect", default=None,
+                   help="bus endpoint of the run (its launcher; default: from RUN_DIR/bus.json, else "
+                        "tcp/127.0.0.1:7447)")
     p.add_argument("--spans", action="store_true", help="also print timeline spans")
     p.add_argument("--count", type=int, default=0, help="exit after this many messages (0: until Ctrl-C)")
 
@@ -65,10 +70,18 @@ def main(argv: list[str] | None = None) -> int:
 
     p = sub.add_parser("router", help="run a Zenoh router that the hosts of a multi-host run connect to")
     p.add_argument("--listen", action="append", default=[], metavar="ENDPOINT",
-                   help="endpoint to listen on (repeatable; default tcp/0.0.0.0:7447)")
+                   help="endpoint to listen on (repeatable; default tcp/127.0.0.1:7447; one other hosts can "
+                        "reach must be tls/... unless --insecure)")
     p.add_argument("--connect", action="append", default=[], metavar="ENDPOINT", help="another router to join")
-    p.add_argument("--config", default="", help="native Zenoh JSON5 config (TLS, access control)")
+    p.add_argument("--config", default="", help="native Zenoh JSON5 config (TLS certificates); its listen "
+                                                "endpoints are kept")
+    p.add_argument("--secret", default="", metavar="FILE",
+                   help="the run's shared secret (bus.secret_file of its hosts): only its holders may join")
+    p.add_argument("--insecure", action="store_true", help="allow plain tcp endpoints beyond this host (warns)")
     p.add_argument("--quiet", action="store_true", help="do not print services joining and leaving")
+
+    p = sub.add_parser("secret", help="create a secret file for a run over several hosts (bus.secret_file)")
+    p.add_argument("path", help="where to write it (mode 0600; an existing file is never replaced)")
 
     p = sub.add_parser("schemas", help="write schemas/*.json from ebrl/messages.py")
     p.add_argument("--dir", default="schemas")
@@ -86,7 +99,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.command == "stats":
         from ebrl.stats import watch
 
-        return watch(args.connect, args.run, spans=args.spans, count=args.count)
+        return watch(args.connect, args.run, spans=args.spans, count=args.count, secret=args.run_dir)
     if args.command == "bench":
         from ebrl import bench
 
@@ -110,7 +123,17 @@ def main(argv: list[str] | None = None) -> int:
     if args.command == "router":
         from ebrl.bus.router import serve
 
-        return serve(args.listen or ["tcp/0.0.0.0:7447"], args.connect, args.config, args.quiet)
+        return serve(args.listen or ["tcp/127.0.0.1:7447"], args.connect, args.config, args.quiet,
+                     secret=args.secret, insecure=args.insecure)
+    if args.command == "secret":
+        from ebrl.bus import auth
+
+        try:
+            print(auth.create(args.path))
+        except OSError as exc:
+            print(f"ebrl secret: {args.path}: {exc.strerror or exc}", file=sys.stderr)
+            return 2
+        return 0
     if args.command == "schemas":
         from ebrl.messages import write_schemas
 

@@ -30,8 +30,8 @@ import time
 from pathlib import Path
 
 from ebrl import config as config_mod, devices, procenv
-from ebrl.bus import Bus, BusOptions, keys
-from ebrl.bus.endpoints import listen_endpoint
+from ebrl.bus import Bus, BusOptions, auth, keys
+from ebrl.bus.endpoints import config_file_listen, listen_endpoint
 from ebrl.hosts import PRIMARY_LOST_S, HostPlan, Membership, enabled_roles, plan as plan_host
 from ebrl.messages import Event, GpuShare, StatsReport, Stop
 from ebrl.runview import Console, RunView, write_report, write_summary
@@ -82,7 +82,8 @@ class LauncherBus:
         self.run = cfg.run.name
         listen = [endpoint, *cfg.bus.listen[1:]] if endpoint else []
         self.bus = Bus(BusOptions(mode="router" if plan.multi else "peer", listen=listen,
-                                  connect=list(cfg.bus.connect), config_file=cfg.bus.config_file))
+                                  connect=list(cfg.bus.connect), config_file=cfg.bus.config_file,
+                                  secret_file=auth.secret_path(cfg.bus, run_dir), file_listen_wins=True))
         (run_dir / "bus.json").write_text(json.dumps({"listen": listen, "run": self.run}) + "\n")
         self.recorder = record.Recorder(run_dir / record.FILENAME) if cfg.viz.record else None
         if self.recorder is not None:
@@ -135,7 +136,7 @@ class Launcher:
         for sig in (signal.SIGINT, signal.SIGTERM):
             asyncio.get_running_loop().add_signal_handler(sig, self._on_signal, sig)
         try:
-            listen = self.cfg.bus.listen
+            listen = config_file_listen(self.cfg.bus.config_file) or self.cfg.bus.listen  # the file's are kept
             endpoint = listen_endpoint(listen[0], strict=self.plan.multi) if listen else ""
         except OSError as exc:
             self.console.say(f"ebrl: {exc}")
@@ -312,11 +313,24 @@ class Launcher:
         self.link.event("host", what)
 
 
-def preflight(cfg: config_mod.Config, roles: tuple[str, ...] = ("gen", "train")) -> str | None:
+def preflight(cfg: config_mod.Config, roles: tuple[str, ...] = ("gen", "train"), multi: bool = False) -> str | None:
     """What would make the run fail at start, found before any process starts (None: nothing); ``roles``: the
-    services this host runs."""
+    services this host runs; ``multi``: one host of several."""
     from ebrl.envs import EnvError, EnvSpec, preflight as env_preflight
 
+    try:
+        listen = config_file_listen(cfg.bus.config_file) or list(cfg.bus.listen)
+    except Exception as exc:  # zenoh.ZError: the file does not parse
+        return f"bus.config_file = {cfg.bus.config_file!r}: {exc}"
+    refused = auth.check_endpoints(listen + list(cfg.bus.connect), cfg.bus.insecure, "bus")
+    if refused:
+        return refused
+    if cfg.bus.insecure and auth.insecure_endpoints(listen + list(cfg.bus.connect)):
+        print(f"ebrl: warning: bus.insecure = true: {', '.join(auth.insecure_endpoints(listen + list(cfg.bus.connect)))} "
+              "carry the run's data unencrypted beyond this host", file=sys.stderr)
+    if multi and cfg.bus.auth and not cfg.bus.secret_file:
+        return ("a run over several hosts needs one secret on every host: create it with `ebrl secret PATH`, copy it "
+                "to each host (mode 0600) and set bus.secret_file = PATH (or bus.auth = false on a trusted network)")
     if cfg.policy.checkpoint and not os.path.isfile(cfg.policy.checkpoint):
         return f"policy.checkpoint = {cfg.policy.checkpoint!r}: no such file"
     device_error = devices.preflight(cfg, roles)  # e.g. train.device = "cuda" on a machine without one
@@ -342,7 +356,7 @@ def up(config_path: str, overrides: list[str], viz: str | None = None, resume: s
     except config_mod.ConfigError as exc:
         print(f"ebrl: config error: {exc}", file=sys.stderr)
         return 2
-    problem = preflight(cfg, tuple(plan.roles))
+    problem = preflight(cfg, tuple(plan.roles), plan.multi)
     if problem:
         print(f"ebrl: {problem}", file=sys.stderr)
         return 2
@@ -374,6 +388,13 @@ def up(config_path: str, overrides: list[str], viz: str | None = None, resume: s
         print(f"resuming {run_dir} from {found.name}", flush=True)
     else:
         run_dir = make_run_dir(cfg)
+    secret = auth.secret_path(cfg.bus, run_dir)
+    try:
+        if secret:
+            auth.ensure(secret)  # before the first line: a script that read RUN_DIR from it finds the secret
+    except (OSError, auth.AuthError) as exc:
+        print(f"ebrl: {exc}", file=sys.stderr)
+        return 2
     (run_dir / "config.toml").write_text(config_mod.dump_toml(cfg))
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
     try:

@@ -31,7 +31,7 @@ from typing import Any, Iterator
 import psutil
 
 from ebrl import config as config_mod, devices
-from ebrl.bus import Bus, BusOptions, keys
+from ebrl.bus import Bus, BusOptions, auth, keys
 from ebrl.messages import Affinity, Event, Quota, SpanBatch, StatsReport, Stop, encode_message
 from ebrl.recorder import Recorder
 
@@ -54,7 +54,8 @@ class Service:
         self.instance = instance
         self.bus_options = bus_options or BusOptions(mode=cfg.bus.mode, connect=list(cfg.bus.connect),
                                                      config_file=cfg.bus.config_file,
-                                                     max_message_bytes=cfg.bus.max_message_bytes)
+                                                     max_message_bytes=cfg.bus.max_message_bytes,
+                                                     secret_file=auth.secret_path(cfg.bus, self.run_dir))
         self.log = logging.getLogger(f"ebrl.{self.role}")
         self.bus: Bus = None  # type: ignore[assignment]  # opened in main()
         self.stopping: asyncio.Event = None  # type: ignore[assignment]
@@ -305,10 +306,11 @@ def service_main(cls: type[Service], argv: list[str] | None = None) -> None:
                         format=f"%(asctime)s {cls.role}/{args.instance} %(levelname)s %(name)s: %(message)s")
     # Started by a launcher: join through it alone. Between hosts the launchers route; a service that also
     # linked to another host's launcher would make a loop that Zenoh does not propagate declarations over.
+    run_dir = os.path.dirname(os.path.abspath(args.config))
     options = BusOptions(mode=cfg.bus.mode, connect=args.connect or list(cfg.bus.connect),
                          listen=["tcp/127.0.0.1:0"], config_file=cfg.bus.config_file,
-                         max_message_bytes=cfg.bus.max_message_bytes)
-    service = cls(cfg, args.instance, options, run_dir=os.path.dirname(os.path.abspath(args.config)))
+                         max_message_bytes=cfg.bus.max_message_bytes, secret_file=auth.secret_path(cfg.bus, run_dir))
+    service = cls(cfg, args.instance, options, run_dir=run_dir)
 
     async def run_then_arm() -> int:
         code = await service.main()

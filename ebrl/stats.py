@@ -5,10 +5,13 @@ from __future__ import annotations
 import json
 import queue
 import signal
+import sys
 
 import zenoh
 
-from ebrl.bus import BusOptions, codec, keys, zenoh_config
+from ebrl.bus import BusOptions, auth, codec, keys, zenoh_config
+
+DEFAULT_ENDPOINT = "tcp/127.0.0.1:7447"
 
 
 def format_message(key: str, msg: dict) -> str:
@@ -18,13 +21,29 @@ def format_message(key: str, msg: dict) -> str:
     return f"{key} {json.dumps(msg, default=str)}"
 
 
-def watch(connect: str, run: str | None, spans: bool = False, count: int = 0) -> int:
-    """Print stats (and spans) until Ctrl-C or ``count`` messages."""
+def watch(connect: str | None, run: str | None, spans: bool = False, count: int = 0, secret: str = "") -> int:
+    """Print stats (and spans) until Ctrl-C or ``count`` messages. ``secret``: the run's secret file (or its
+    directory), signing in as an observer; empty for a run with ``bus.auth = false``. ``connect`` None: the
+    endpoint in the run directory's ``bus.json``, else the default port."""
     selector = keys.stats() if run is None else keys.stats_all(run)
     inbox: queue.Queue = queue.Queue(maxsize=10_000)
     signal.signal(signal.SIGINT, lambda *_: inbox.put(None))
-    conf = zenoh_config(BusOptions(mode="peer", connect=[connect], listen=[]))
-    with zenoh.open(conf) as session:
+    try:
+        if secret:
+            conf = auth.observer_config(secret, connect)
+        else:
+            conf = zenoh_config(BusOptions(mode="client", connect=[connect or DEFAULT_ENDPOINT], listen=[]))
+    except auth.AuthError as exc:
+        print(f"ebrl stats: {exc}", file=sys.stderr)
+        return 2
+    try:
+        session = zenoh.open(conf)
+    except zenoh.ZError as exc:
+        where = json.loads(conf.get_json("connect/endpoints"))
+        print(f"ebrl stats: cannot join a run at {', '.join(where)}: is it running, and (bus.auth, the default) "
+              f"did you give its directory, `ebrl stats RUN_DIR`? ({exc})", file=sys.stderr)
+        return 1
+    with session:
 
         def on_sample(sample: zenoh.Sample) -> None:
             key = str(sample.key_expr)

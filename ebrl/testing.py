@@ -19,12 +19,12 @@ import sys
 import threading
 import time
 from pathlib import Path
-from typing import Callable, Sequence
+from typing import Callable, Literal, Sequence
 
 import zenoh
 
 from ebrl import config as config_mod
-from ebrl.bus import keys
+from ebrl.bus import BusOptions, auth, keys, zenoh_config
 from ebrl.bus.endpoints import free_port
 from ebrl.messages import MessageError, StatsReport, decode_stats_sample
 
@@ -243,16 +243,23 @@ class Run:
         return self.proc.returncode
 
 
+def run_session_config(run: Run, endpoint: str | None = None,
+                       role: Literal["observer", "service"] = "observer") -> zenoh.Config:
+    """A Zenoh config that joins ``run``'s bus: signed in with the run's secret when it has one (``role``:
+    ``observer`` watches stats; ``service`` may publish anything, as an insider would), else open."""
+    secret = auth.secret_path(config_mod.load(run.run_dir / "config.toml").bus, run.run_dir)
+    return zenoh_config(BusOptions(mode="client" if role == "observer" else "peer", connect=[endpoint or run.endpoint],
+                                   listen=[], secret_file=secret, role=role))
+
+
 class StatsWatcher:
     """Every StatsReport of one run, as its bus delivers them: a Zenoh subscriber of
     ``keys.stats_all(run.name)`` connected to the run's endpoint (thread-safe; filled by Zenoh's callback).
     ``session`` is that Zenoh session, for a test that also publishes on the run's bus."""
 
-    def __init__(self, run: Run, endpoint: str | None = None):
+    def __init__(self, run: Run, endpoint: str | None = None, role: Literal["observer", "service"] = "observer"):
         self.run = run
-        conf = zenoh.Config()
-        conf.insert_json5("scouting/multicast/enabled", "false")
-        conf.insert_json5("connect/endpoints", json.dumps([endpoint or run.endpoint]))
+        conf = run_session_config(run, endpoint, role)
         self._lock = threading.Lock()
         self._reports: list[StatsReport] = []
         self.malformed = 0

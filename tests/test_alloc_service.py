@@ -128,7 +128,7 @@ def test_a_new_gpu_share_restarts_training_at_a_safe_point_and_loses_nothing(tmp
     import psutil
     import zenoh
 
-    from ebrl.bus import keys
+    from ebrl.bus import BusOptions, keys, zenoh_config
     from ebrl.messages import GpuShare, encode_message
     from ebrl.viz import record
 
@@ -137,9 +137,13 @@ def test_a_new_gpu_share_restarts_training_at_a_safe_point_and_loses_nothing(tmp
            "run.iterations=14", "run.name=requota", f"run.output_dir={json.dumps(str(tmp_path))}",
            f'bus.listen=["tcp/127.0.0.1:{port}"]', "run.stats_interval=0.5", 'viz.rerun="off"']
     proc = subprocess.Popen(cmd, cwd=helpers.ROOT, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
-    conf = zenoh.Config()
-    conf.insert_json5("scouting/multicast/enabled", "false")
-    conf.insert_json5("connect/endpoints", f'["tcp/127.0.0.1:{port}"]')
+    deadline = time.monotonic() + 600  # a bound for a hang, not a timing window
+    while not list(tmp_path.glob("requota-*/config.toml")):  # written after the run's secret
+        assert proc.poll() is None and time.monotonic() < deadline, "the launcher wrote no config.toml"
+        time.sleep(0.1)
+    (secret,) = tmp_path.glob("requota-*/bus.secret")
+    # as one of the run's own processes (a service may publish a GPU share; an observer may not)
+    conf = zenoh_config(BusOptions(connect=[f"tcp/127.0.0.1:{port}"], listen=[], secret_file=str(secret)))
     versions: list[float] = []
 
     def on_stats(sample) -> None:

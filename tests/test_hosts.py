@@ -127,8 +127,17 @@ def host(out_dir, *args: str, name: str, sets=(), joins: helpers.Run | None = No
          port: int | None = None) -> helpers.Run:
     """One host's `ebrl up` of the quickstart on its own loopback port (``args``: --only, --instance), joining
     the bus of ``joins`` if given."""
-    overrides = ['viz.rerun="off"', *sets] + ([f'bus.connect=["{joins.endpoint}"]'] if joins is not None else [])
+    overrides = ['viz.rerun="off"', f"bus.secret_file={json.dumps(str(shared_secret(out_dir.parent)))}", *sets]
+    overrides += [f'bus.connect=["{joins.endpoint}"]'] if joins is not None else []
     return helpers.up(out_dir, "configs/quickstart.toml", *overrides, name=name, args=args, port=port)
+
+
+def shared_secret(where):
+    """The one secret file the hosts of a test's run share (bus.secret_file), created on first use."""
+    from ebrl.bus import auth
+
+    where.mkdir(parents=True, exist_ok=True)
+    return auth.ensure(where / "shared.secret")
 
 
 def summary(out_dir) -> dict:
@@ -450,7 +459,8 @@ def namespaced_run(tmp_path, sims: int, iterations: int, extra: list[str] = ()) 
         cfg = tmp_path / "hosts.toml"
         cfg.write_text((ROOT / "configs" / "quickstart.toml").read_text() + "\n" + "\n".join(table))
         common = ["--set", f"run.iterations={iterations}", "--set", 'viz.rerun="off"', "--set", "run.stats_interval=0.5",
-                  "--set", "run.name=netns", *extra]
+                  "--set", "run.name=netns", "--set", f"bus.secret_file={json.dumps(str(shared_secret(tmp_path)))}",
+                  *extra]
         procs = {"learner": hosts.popen("learner", [sys.executable, "-m", "ebrl.cli", "up", str(cfg), "--host", "learner",
                                                     "--set", f'run.output_dir="{tmp_path / "learner"}"', *common])}
         for i in range(sims):

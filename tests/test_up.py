@@ -1,6 +1,7 @@
 """End to end: real `ebrl up` runs on loopback (services are separate processes talking over Zenoh)."""
 
 import json
+import os
 import subprocess
 import sys
 import time
@@ -21,10 +22,10 @@ def quickstart(tmp_path, *overrides, name: str) -> helpers.Run:
 
 def test_two_iterations_train_and_the_readme_subscriber_sees_stats(tmp_path):
     with quickstart(tmp_path / "runs", "run.iterations=2", name="e2e") as run:
-        watcher = subprocess.Popen([sys.executable, str(ROOT / "examples" / "subscribe_stats.py"), run.endpoint, "60"],
-                                   stdout=subprocess.PIPE, text=True)
-        cli = subprocess.Popen([sys.executable, "-m", "ebrl.cli", "stats", "--run", "e2e", "--count", "3",
-                                "--connect", run.endpoint], stdout=subprocess.PIPE, text=True)
+        watcher = subprocess.Popen([sys.executable, str(ROOT / "examples" / "subscribe_stats.py"), str(run.run_dir),
+                                    "60"], stdout=subprocess.PIPE, text=True, env={**os.environ, "PYTHONPATH": str(ROOT)})
+        cli = subprocess.Popen([sys.executable, "-m", "ebrl.cli", "stats", str(run.run_dir), "--run", "e2e", "--count",
+                                "3"], stdout=subprocess.PIPE, text=True)
         try:
             code = run.wait(300)
             printed, _ = cli.communicate(timeout=60)

@@ -31,3 +31,14 @@ def listen_endpoint(wanted: str, strict: bool = False) -> str:
             free = f"tcp/{host}:{sock.getsockname()[1]}"
     print(f"ebrl: {wanted} is busy (another run?); listening on {free} instead", file=sys.stderr)
     return free
+
+
+def config_file_listen(config_file: str) -> list[str]:
+    """The listen endpoints a native Zenoh config file sets (they are never replaced by EBRL's)."""
+    if not config_file:
+        return []
+    import json
+
+    import zenoh
+
+    return json.loads(zenoh.Config.from_file(config_file).get_json("listen/endpoints"))

@@ -17,13 +17,31 @@ import time
 
 import zenoh
 
-from ebrl.bus import BusOptions, keys
+from ebrl.bus import BusOptions, auth, keys
+from ebrl.bus.endpoints import config_file_listen
 from ebrl.bus.session import zenoh_config
 
 
-def serve(listen: list[str], connect: list[str], config_file: str = "", quiet: bool = False, out=sys.stdout) -> int:
-    """Run until SIGINT/SIGTERM; exit status 2 when an endpoint cannot be opened."""
-    conf = zenoh_config(BusOptions(mode="router", listen=listen, connect=connect, config_file=config_file))
+def serve(listen: list[str], connect: list[str], config_file: str = "", quiet: bool = False, out=sys.stdout,
+          secret: str = "", insecure: bool = False) -> int:
+    """Run until SIGINT/SIGTERM; exit status 2 when an endpoint cannot be opened or would be plain beyond this
+    host (``insecure`` allows it, with a warning). ``secret``: the run's secret file; only its holders join."""
+    try:
+        listen = config_file_listen(config_file) or listen  # the file's endpoints are never replaced
+        conf = zenoh_config(BusOptions(mode="router", listen=listen, connect=connect, config_file=config_file,
+                                       secret_file=secret, file_listen_wins=True))
+    except (auth.AuthError, zenoh.ZError) as exc:
+        print(f"ebrl router: {exc}", file=sys.stderr)
+        return 2
+    refused = auth.check_endpoints(listen + connect, insecure, "ebrl router")
+    if refused:
+        print(refused, file=sys.stderr)
+        return 2
+    if auth.insecure_endpoints(listen + connect):
+        print(f"ebrl router: warning: --insecure: {', '.join(auth.insecure_endpoints(listen + connect))} carry "
+              "the run's data unencrypted", file=sys.stderr)
+    if not secret:
+        print("ebrl router: no --secret: any process that reaches these endpoints can join", file=sys.stderr)
     try:
         session = zenoh.open(conf)
     except zenoh.ZError as exc:

@@ -68,21 +68,32 @@ class BusOptions:
     listen: list[str] = field(default_factory=lambda: ["tcp/127.0.0.1:0"])
     config_file: str = ""
     max_message_bytes: int = 1 << 30  # larger payloads are dropped (counted) before decoding
+    secret_file: str = ""  # the run's secret (ebrl.bus.auth); empty: an open bus that anyone on the host can join
+    role: Literal["service", "observer"] = "service"  # who signs in: a service of the run, or a script watching it
+    file_listen_wins: bool = False  # the listen endpoints of config_file, when it has some, replace ``listen``
 
 
 def zenoh_config(options: BusOptions) -> zenoh.Config:
-    """A Zenoh config: loopback-only peer unless told otherwise, multicast scouting off.
+    """A Zenoh config: loopback-only peer unless told otherwise, multicast scouting off; with a
+    ``secret_file``, signed in and access-controlled (:mod:`ebrl.bus.auth`).
 
     Peers learn each other's loopback locators by gossip through the endpoint they
     connect to (the launcher's), so services talk directly, without a relay.
     """
+    from ebrl.bus import auth
+
     conf = zenoh.Config.from_file(options.config_file) if options.config_file else zenoh.Config()
     conf.insert_json5("mode", json.dumps(options.mode))
     conf.insert_json5("scouting/multicast/enabled", "false")
-    if options.listen and options.mode != "client":
+    file_listen = json.loads(conf.get_json("listen/endpoints")) if options.config_file else []
+    if options.listen and options.mode != "client" and not (options.file_listen_wins and file_listen):
         conf.insert_json5("listen/endpoints", json.dumps(options.listen))
     if options.connect:
         conf.insert_json5("connect/endpoints", json.dumps(options.connect))
+    if options.secret_file:
+        credentials = auth.load(options.secret_file, options.role)
+        for path, value in auth.zenoh_settings(credentials, options.role).items():
+            conf.insert_json5(path, json.dumps(value))
     return conf
 
 

@@ -1,0 +1,164 @@
+"""Who may join a run's bus: the run's secret, and the endpoints that need TLS.
+
+Each run has a secret file, ``RUN_DIR/bus.secret`` (mode 0600, created by the launcher; ``bus.secret_file``
+names a shared one for a run over several hosts). It is a Zenoh user-password dictionary of two users::
+
+    ebrl:<64 hex digits>
+    observer:<64 hex digits>
+
+* Every service of the run, and its launcher, signs in as ``ebrl`` and checks whoever connects against the
+  file (Zenoh's ``transport/auth/usrpwd``). A process that does not hold the file cannot open a session with
+  any of them: nothing it sends arrives, and it receives nothing.
+* A script that watches the run (``ebrl stats``, ``ebrl bench``, the README's subscriber) signs in as
+  ``observer``, as a Zenoh client of the launcher. Holding the file, it could do anything the run's services
+  do: the file is the owner's (0600), like the processes it could as well signal. (Zenoh's access-control
+  rules could narrow an observer to ``ebrl/stats/**``; with zenoh 1.10.2 any rules at all made 2 of 8 runs
+  with an observer attached stall at start, their services never seeing each other's liveliness, so there
+  are none.)
+
+Signing in does not encrypt the session: on loopback that is enough; between hosts the endpoints must be TLS
+(:func:`check_endpoints`).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import secrets
+import stat
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Literal
+
+FILENAME = "bus.secret"
+SERVICE_USER = "ebrl"
+OBSERVER_USER = "observer"
+Role = Literal["service", "observer"]
+
+
+class AuthError(ValueError):
+    """A secret file that is missing, unreadable, malformed or readable by others."""
+
+
+@dataclass(frozen=True)
+class Credentials:
+    user: str
+    password: str
+    path: Path  # the dictionary file every service checks peers against
+
+
+def create(path: str | os.PathLike) -> Path:
+    """Write a new secret file at ``path`` (0600, fsynced); an existing file is an error, never replaced."""
+    path = Path(path)
+    lines = "".join(f"{user}:{secrets.token_hex(32)}\n" for user in (SERVICE_USER, OBSERVER_USER))
+    fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
+    try:
+        os.write(fd, lines.encode())
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+    return path
+
+
+def ensure(path: str | os.PathLike) -> Path:
+    """The secret file at ``path``, created when there is none (a new run, or a run resumed from before
+    secrets existed); an existing one is checked (:func:`load`)."""
+    path = Path(path)
+    if not path.exists():
+        try:
+            return create(path)
+        except FileExistsError:  # created meanwhile by another launcher of this run
+            pass
+    load(path, "service")
+    return path
+
+
+def load(path: str | os.PathLike, role: Role) -> Credentials:
+    """The credentials ``role`` signs in with, from the secret file at ``path``."""
+    path = Path(path)
+    try:
+        info = path.stat()
+        text = path.read_text()
+    except OSError as exc:
+        raise AuthError(f"bus secret {path}: {exc.strerror or exc} (the run's launcher creates it; "
+                        "a script watching a run needs read access to it)") from None
+    if info.st_mode & (stat.S_IRWXG | stat.S_IRWXO):
+        raise AuthError(f"bus secret {path} is open to other users (mode {stat.S_IMODE(info.st_mode):04o}): "
+                        f"chmod 600 {path}")
+    users: dict[str, str] = {}
+    for number, line in enumerate(text.splitlines(), 1):
+        user, sep, password = line.strip().partition(":")
+        if line.strip() and (not sep or not user or len(password) < 16):
+            raise AuthError(f"bus secret {path}, line {number}: expected USER:PASSWORD (16 characters or more)")
+        if sep:
+            users[user] = password
+    user = SERVICE_USER if role == "service" else OBSERVER_USER
+    if user not in users:
+        raise AuthError(f"bus secret {path} has no {user!r} line")
+    return Credentials(user=user, password=users[user], path=path.resolve())
+
+
+def zenoh_settings(credentials: Credentials, role: Role) -> dict[str, object]:
+    """Zenoh config entries (path -> value) for a session of ``role``: sign in with ``credentials``; a service
+    also checks whoever connects against the file."""
+    usrpwd: dict[str, str] = {"user": credentials.user, "password": credentials.password}
+    if role == "service":
+        usrpwd["dictionary_file"] = str(credentials.path)
+    return {"transport/auth/usrpwd": usrpwd}
+
+
+def observer_config(run: str | os.PathLike, connect: str | None = None):
+    """A ``zenoh.Config`` that watches the run in directory ``run`` (or whose secret file ``run`` is): signs in
+    as observer and connects to the run's launcher (from ``RUN_DIR/bus.json`` unless ``connect`` is given).
+    ``zenoh.open(observer_config("runs/quickstart-..."))`` then subscribe to ``ebrl/stats/**``."""
+    from ebrl.bus.session import BusOptions, zenoh_config
+
+    run = Path(run)
+    secret = run if run.is_file() else run / FILENAME
+    signed = secret.exists() or run.is_file()  # a run with bus.auth = false has no secret: an open bus
+    if connect is None:
+        try:
+            connect = json.loads((secret.parent / "bus.json").read_text())["listen"][0]
+        except (OSError, ValueError, KeyError, IndexError):
+            connect = "tcp/127.0.0.1:7447"
+    return zenoh_config(BusOptions(mode="client", connect=[connect], listen=[],
+                                   secret_file=str(secret) if signed else "", role="observer"))
+
+
+# --- endpoints ---------------------------------------------------------------------------------------------
+
+_ENCRYPTED = ("tls", "quic")
+_LOCAL_ONLY = ("unixsock-stream", "unixpipe", "vsock")
+
+
+def is_loopback(endpoint: str) -> bool:
+    """Whether a Zenoh endpoint (``proto/address[?params][#config]``) stays on this host."""
+    proto, _, address = endpoint.partition("/")
+    if proto in _LOCAL_ONLY:
+        return True
+    host = address.split("#", 1)[0].split("?", 1)[0].rsplit(":", 1)[0].strip("[]").lower()
+    return host == "localhost" or host == "::1" or host.startswith("127.")
+
+
+def insecure_endpoints(endpoints: list[str]) -> list[str]:
+    """The endpoints that reach beyond this host without encryption."""
+    return [e for e in endpoints if not is_loopback(e) and e.partition("/")[0] not in _ENCRYPTED]
+
+
+def check_endpoints(endpoints: list[str], insecure: bool, where: str) -> str | None:
+    """A message refusing plain endpoints that leave this host, or None. ``insecure``: allowed, with a warning
+    (the caller prints it) — returns None then too."""
+    plain = insecure_endpoints(endpoints)
+    if not plain or insecure:
+        return None
+    return (f"{where}: {', '.join(plain)} would carry the run's data unencrypted beyond this host; use tls/... "
+            "endpoints with certificates in bus.config_file (README: Several hosts), or set bus.insecure = true "
+            "on a network you trust")
+
+
+def secret_path(bus, run_dir: str | os.PathLike) -> str:
+    """The secret file of a run from its ``[bus]`` section (``auth``, ``secret_file``) and directory; empty
+    when ``bus.auth`` is off."""
+    if not bus.auth:
+        return ""
+    return str(Path(bus.secret_file).expanduser() if bus.secret_file else Path(run_dir) / FILENAME)

@@ -1,0 +1,222 @@
+"""A run only its own processes can steer (issue 20): the run's secret, observers, endpoints that need TLS, and
+hostile peers against a live `ebrl up`."""
+
+import json
+import os
+import pwd
+import re
+import stat
+import subprocess
+import sys
+import time
+
+import pytest
+import zenoh
+
+from ebrl import config
+from ebrl.bus import BusOptions, auth, keys, zenoh_config
+from ebrl.testing import StatsWatcher
+from helpers import ROOT, free_port, up
+
+
+# --- the secret file -------------------------------------------------------------------------------------------
+
+
+def test_a_secret_is_private_random_and_never_replaced(tmp_path):
+    path = auth.create(tmp_path / "bus.secret")
+    assert stat.S_IMODE(path.stat().st_mode) == 0o600
+    service, observer = auth.load(path, "service"), auth.load(path, "observer")
+    assert (service.user, observer.user) == ("ebrl", "observer")
+    assert len(service.password) == 64 and service.password != observer.password
+    assert auth.load(auth.create(tmp_path / "other"), "service").password != service.password
+    with pytest.raises(FileExistsError):
+        auth.create(path)
+    assert auth.ensure(path) == path and auth.load(path, "service") == service  # kept, not replaced
+
+
+def test_a_secret_others_can_read_or_a_broken_one_is_refused_with_the_fix(tmp_path):
+    path = auth.create(tmp_path / "bus.secret")
+    path.chmod(0o644)
+    with pytest.raises(auth.AuthError, match="chmod 600"):
+        auth.load(path, "observer")
+    path.chmod(0o600)
+    path.write_text("ebrl:short\n")
+    with pytest.raises(auth.AuthError, match="line 1"):
+        auth.load(path, "service")
+    path.write_text("ebrl:" + "a" * 32 + "\n")
+    with pytest.raises(auth.AuthError, match="no 'observer' line"):
+        auth.load(path, "observer")
+    with pytest.raises(auth.AuthError, match="no such file|No such file"):
+        auth.load(tmp_path / "missing", "service")
+
+
+def test_a_service_checks_whoever_connects_an_observer_only_signs_in(tmp_path):
+    path = auth.create(tmp_path / "bus.secret")
+    service = zenoh_config(BusOptions(secret_file=str(path)))
+    assert json.loads(service.get_json("transport/auth/usrpwd/dictionary_file")) == str(path.resolve())
+    assert json.loads(service.get_json("transport/auth/usrpwd/user")) == "ebrl"
+    observer = zenoh_config(BusOptions(secret_file=str(path), role="observer"))
+    assert json.loads(observer.get_json("transport/auth/usrpwd/user")) == "observer"
+    assert json.loads(observer.get_json("transport/auth/usrpwd/dictionary_file")) is None
+    assert json.loads(zenoh_config(BusOptions()).get_json("transport/auth/usrpwd/user")) is None  # bus.auth = false
+
+
+# --- endpoints ---------------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("endpoint, local", [
+    ("tcp/127.0.0.1:7447", True), ("tcp/127.77.1.1:7447", True), ("tcp/localhost:1", True), ("tcp/[::1]:7447", True),
+    ("unixsock-stream//tmp/x.sock", True), ("tcp/0.0.0.0:7447", False), ("tcp/10.0.0.5:7447", False),
+    ("tls/10.0.0.5:7447", False), ("tcp/[::]:7447", False)])
+def test_loopback_endpoints(endpoint, local):
+    assert auth.is_loopback(endpoint) is local
+
+
+def test_a_plain_endpoint_beyond_this_host_is_refused_unless_insecure():
+    assert auth.check_endpoints(["tcp/127.0.0.1:7447", "tls/10.0.0.5:7447", "quic/10.0.0.5:7447"], False, "bus") is None
+    refused = auth.check_endpoints(["tcp/0.0.0.0:7447"], False, "bus")
+    assert "tcp/0.0.0.0:7447" in refused and "bus.insecure" in refused and "tls/" in refused
+    assert auth.check_endpoints(["tcp/0.0.0.0:7447"], True, "bus") is None
+
+
+def test_ebrl_up_refuses_a_plain_listen_endpoint_on_every_interface(tmp_path):
+    proc = subprocess.run([sys.executable, "-m", "ebrl.cli", "up", "configs/quickstart.toml",
+                           "--set", 'bus.listen=["tcp/0.0.0.0:7447"]', "--set", f'run.output_dir="{tmp_path}"'],
+                          cwd=ROOT, capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 2 and "bus.insecure" in proc.stderr, proc.stderr
+    assert not any(tmp_path.iterdir())  # nothing started
+
+
+def test_a_run_over_several_hosts_needs_a_shared_secret():
+    from ebrl.launch import preflight
+
+    cfg = config.load(ROOT / "configs/quickstart.toml", ["bus.auth=true"])
+    assert "ebrl secret PATH" in preflight(cfg, ("sim",), multi=True)
+    assert "ebrl secret PATH" not in (preflight(cfg, ("sim",), multi=False) or "")
+
+
+def test_listen_endpoints_of_a_zenoh_config_file_are_kept(tmp_path):
+    native = tmp_path / "zenoh.json5"
+    native.write_text('{ listen: { endpoints: ["tls/127.0.0.1:7448"] } }')
+    launcher = zenoh_config(BusOptions(listen=["tcp/127.0.0.1:7447"], config_file=str(native), file_listen_wins=True))
+    assert json.loads(launcher.get_json("listen/endpoints")) == ["tls/127.0.0.1:7448"]
+    service = zenoh_config(BusOptions(listen=["tcp/127.0.0.1:0"], config_file=str(native)))
+    assert json.loads(service.get_json("listen/endpoints")) == ["tcp/127.0.0.1:0"]  # services stay on loopback
+
+
+def test_ebrl_secret_writes_a_private_file_and_never_overwrites(tmp_path):
+    target = tmp_path / "shared.secret"
+    cmd = [sys.executable, "-m", "ebrl.cli", "secret", str(target)]
+    assert subprocess.run(cmd, cwd=ROOT, capture_output=True, timeout=60).returncode == 0
+    before = target.read_text()
+    again = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=60)
+    assert again.returncode == 2 and "exists" in again.stderr and target.read_text() == before
+    assert stat.S_IMODE(target.stat().st_mode) == 0o600
+
+
+# --- sessions on a live bus ----------------------------------------------------------------------------------
+
+
+def _open(port: int, secret="", role="service", listen=True) -> zenoh.Session:
+    return zenoh.open(zenoh_config(BusOptions(
+        connect=[f"tcp/127.0.0.1:{port}"], listen=["tcp/127.0.0.1:0"] if listen else [], secret_file=str(secret),
+        role=role)))
+
+
+def _wait(predicate, what: str, timeout: float = 60.0) -> None:
+    deadline = time.monotonic() + timeout  # a bound for a hang, not a timing window
+    while not predicate():
+        assert time.monotonic() < deadline, f"no {what} in {timeout:.0f} s"
+        time.sleep(0.05)
+
+
+def test_without_the_secret_a_peer_gets_nothing_in_or_out_and_an_observer_reads_stats(tmp_path):
+    secret = auth.create(tmp_path / "bus.secret")
+    port = free_port()
+    launcher = zenoh.open(zenoh_config(BusOptions(listen=[f"tcp/127.0.0.1:{port}"], secret_file=str(secret))))
+    service = _open(port, secret)
+    outsider = _open(port)
+    impostor = _open(port, auth.create(tmp_path / "other.secret"))  # a valid-looking secret of another run
+    observer = zenoh.open(auth.observer_config(secret, f"tcp/127.0.0.1:{port}"))
+    sessions = [launcher, service, outsider, impostor, observer]
+    forged = [keys.ctl("r", "train", 0, "stop"), keys.traj("r", 0), keys.stats("r", "train", 9)]
+    try:
+        got: dict[str, list[str]] = {name: [] for name in ("launcher", "outsider", "impostor", "observer")}
+        for name, session in (("launcher", launcher), ("outsider", outsider), ("impostor", impostor),
+                              ("observer", observer)):
+            session.declare_subscriber("ebrl/**", lambda s, n=name: got[n].append(str(s.key_expr)))
+        _wait(lambda: len(list(launcher.info.peers_zid())) >= 1 and list(service.info.peers_zid()),
+              "the service joining")
+        for session in (outsider, impostor):
+            for key in forged:
+                session.put(key, b"forged")
+        # the forged puts first, then the service's own on other keys as the positive control
+        while "ebrl/stats/r/sim/0" not in got["observer"] or keys.traj("r", 1) not in got["launcher"]:
+            service.put(keys.stats("r", "sim", 0), b"ok")
+            service.put(keys.traj("r", 1), b"ok")
+            time.sleep(0.05)
+        assert not set(forged) & set(got["launcher"]) and not set(forged) & set(got["observer"])
+        assert not list(outsider.info.peers_zid()) and not list(impostor.info.peers_zid())
+        assert got["outsider"] == forged and got["impostor"] == forged  # only what each sent itself
+    finally:
+        for session in sessions:
+            session.close()
+
+
+# --- hostile peers against a live run ------------------------------------------------------------------------
+
+
+def _other_user():
+    """(uid, gid) of an unprivileged user when the test may switch to one, else None."""
+    if os.geteuid() != 0:
+        return None
+    try:
+        entry = pwd.getpwnam("nobody")
+    except KeyError:
+        return None
+    try:  # can it run this interpreter and import what the peer needs (a venv under /root: no)?
+        probe = subprocess.run([sys.executable, "-c", "import zenoh, ebrl.bus.auth"], user=entry.pw_uid,
+                               group=entry.pw_gid, extra_groups=[], cwd="/", capture_output=True, timeout=60,
+                               env={**os.environ, "PYTHONPATH": str(ROOT)})
+    except OSError:
+        return None
+    return (entry.pw_uid, entry.pw_gid) if probe.returncode == 0 else None
+
+
+def test_a_hostile_process_can_neither_read_nor_stop_nor_poison_a_run(tmp_path):
+    """An outsider (another user id where the test can switch to one) attacks a live run without pause, with
+    well-formed messages: stops for every service, a far-ahead weights version, a made-up training report of a
+    late version, a forged liveliness token, 8 MB garbage. The run finishes every iteration as if it were not
+    there, and the outsider got nothing; the run's owner watches it all with the run's secret (an observer)."""
+    user = _other_user()
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    with up(tmp_path, "configs/quickstart.toml", "run.iterations=30", "train.batch_size=256", 'viz.rerun="off"',
+            "bus.auth=true", name="hostile") as run:
+        # Attached once the run's processes are linked: a script that joins while they are still meeting can
+        # stall the start (issue 20, open), which is why bus.auth is not yet the default.
+        run.wait_for_line(lambda line: re.search(r"policy v([1-9]|\d\d)", line) is not None, 300, what="policy v1")
+        secret = run.run_dir / auth.FILENAME
+        assert stat.S_IMODE(secret.stat().st_mode) == 0o600
+        with StatsWatcher(run) as stats:
+            script = [sys.executable, str(ROOT / "tests" / "hostile_peer.py"), run.endpoint, run.name,
+                      str(run.run_dir)]
+            outsider = subprocess.Popen(script, stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True, env=env,
+                                        cwd="/", user=user[0] if user else None, group=user[1] if user else None,
+                                        extra_groups=[] if user else None)
+            code = run.wait(300)
+            out = json.loads(outsider.communicate("", timeout=60)[0])
+    assert code == 0, run.output
+    assert stats.latest("train/0", "train/policy_version") == 30  # every iteration, none skipped by a forged report
+    versions = stats.values("train/0", "train/policy_version")
+    assert all(b >= a for a, b in zip(versions, versions[1:]))
+    assert (stats.latest("gen/0", "gen/policy_version") or 0) <= 30  # the forged 10**9 never became current
+    assert all(r.metrics.get("bus/malformed", 0) == 0 for r in stats.reports())  # no garbage arrived anywhere
+    assert not stats.reports("train/9")
+    assert "train/7" not in run.output and "restart" not in run.output
+    assert out["sent"] > 0
+    if user:
+        assert out["uid"] == user[0] and not out["secret_readable"]
+    assert out["peers"] == 0
+    assert set(out["received"]) <= set(out["own"]), out["received"]  # only what it published itself
+    assert out["liveliness"] == [keys.live(run.name, "train", 7)]  # its own token, nobody else's
+    assert stats.reports("sim/0") and stats.reports("gen/0")  # the owner's observer saw the run

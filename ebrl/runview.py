@@ -136,7 +136,8 @@ def write_report(run_dir: Path) -> str:
         paths = report.write(run_dir)
     except Exception as exc:
         return f"ebrl: no report: {exc}"
-    return f"report: {paths['markdown']} (Gantt: {paths['gantt']})"
+    curves = f", learning curves: {paths['learning']}" if "learning" in paths else ""
+    return f"report: {paths['markdown']} (Gantt: {paths['gantt']}{curves})"
 
 
 def clock(seconds: float) -> str:

@@ -380,6 +380,33 @@ class Tracker:
                 "log/sinks": float(len(self.sinks)), "log/env_steps": float(self.env_steps)}
 
 
+class MemorySink:
+    """Points kept in memory, per key (``ebrl report`` draws its learning curves from them)."""
+
+    name = "memory"
+
+    def __init__(self):
+        self.series: dict[str, list[Point]] = {}
+
+    def scalars(self, points: list[Point]) -> None:
+        for p in points:
+            self.series.setdefault(p.key, []).append(p)
+
+    def flush(self) -> None:
+        pass
+
+    def close(self) -> None:
+        pass
+
+
+def curves(messages: Iterable[Any], env_steps_before: int = 0) -> dict[str, list[Point]]:
+    """Every point the sinks would get from ``messages`` (in the order they arrived), per key."""
+    sink = MemorySink()
+    tracker = Tracker([sink], env_steps_before=env_steps_before, flush_s=math.inf)
+    tracker.on_messages(messages)
+    return sink.series
+
+
 def _finite(value: Any) -> bool:
     return isinstance(value, (int, float)) and math.isfinite(value)
 

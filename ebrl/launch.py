@@ -248,7 +248,7 @@ class Launcher:
     def show_progress(self, force: bool = False) -> None:
         hosts = len(self.members.hosts_up) + 1 if self.plan.multi else None
         restarts = sum(self.supervisor.restarts().values())
-        self.console.progress(self.view.progress_line(self.elapsed(), restarts, hosts), force)
+        self.console.progress(self.view.progress(self.elapsed(), restarts, hosts), force)
 
     def publish_stats(self) -> None:
         """The launcher's own stats report: restarts per service, services up."""

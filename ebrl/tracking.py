@@ -168,7 +168,7 @@ class WandbSink:
         self.run = wandb.init(
             project=section.wandb_project, entity=section.wandb_entity or None, group=section.wandb_group or None,
             tags=list(section.wandb_tags) or None, name=run_id, id=run_id, resume="allow", mode=section.wandb_mode,
-            dir=str(info.run_dir), config={**info.config.to_dict(), "meta": info.meta}, reinit=True)
+            dir=str(info.run_dir), config={**info.config.to_dict(), "meta": info.meta})
         self.run.define_metric("env_steps")
         self.run.define_metric("*", step_metric="env_steps")
 

@@ -11,6 +11,8 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import os
+import shutil
 import time
 from pathlib import Path
 from typing import Any, TextIO
@@ -224,13 +226,23 @@ class Console:
                    if progress.total else "{desc} {n_fmt} | {elapsed}, {rate_fmt}{postfix}")
             done = min(progress.n, progress.total or progress.n)  # a resumed run: iterations done before
             self._bar = tqdm(total=progress.total, initial=done, desc="iter", unit="it", file=self.out,
-                             dynamic_ncols=True, bar_format=fmt, mininterval=0, leave=True)
+                             ncols=self.width(), nrows=24, bar_format=fmt, mininterval=0, leave=True)
             self._bar.start_t = self._bar._time() - progress.wall_s  # the run's clock, not the bar's
         done = min(progress.n, progress.total or progress.n)
+        self._bar.ncols = self.width()  # the terminal may have been resized
         if done > self._bar.n:
             self._bar.update(done - self._bar.n)
         self._bar.set_postfix_str(progress.fields, refresh=False)
         self._bar.refresh()
+
+    def width(self) -> int:
+        """The terminal's columns now (a terminal that says 0, e.g. under `script`, counts as 120 wide; tqdm would
+        draw nothing there, as it does on a terminal 0 rows high: hence nrows=24 too)."""
+        try:
+            columns = os.get_terminal_size(self.out.fileno()).columns
+        except (AttributeError, OSError, ValueError):
+            columns = 0
+        return columns or shutil.get_terminal_size((120, 24)).columns or 120
 
     def end_progress(self) -> None:
         """Leave the line the progress was drawing (before the shutdown's lines)."""

@@ -170,7 +170,7 @@ def run_messages(t0: float) -> list[tuple[str, object]]:
                                                                     "sim/episode_return_mean": 10.0 * i}, t0 + i)))
         out.append((keys.stats(RUN, "train", 0), report("train", 0, i, {
             "train/policy_version": float(i + 1), "train/policy_loss": -0.1 * i, "train/value_loss": 1.0 / (i + 1),
-            "train/approx_kl": math.nan if i == 2 else 0.01 * i, "train/entropy": 1.5, "train/clip_fraction": 0.1,
+            "train/approx_kl": math.nan if i == 2 else 0.01 * i, "train/entropy": 1.5, "train/clipfrac": 0.1,
             "train/staleness_mean": 0.5}, t0 + i)))
         out.append((keys.episodes(RUN, "sim"), episodes(0, [float(i), float(i) + 0.5], [1000 * i + 10, 1000 * i + 20],
                                                         [i % 2 == 0, True])))
@@ -194,7 +194,7 @@ def test_the_log_service_writes_tensorboard_and_csv_from_reports_on_the_bus(tmp_
     acc.Reload()
     scalars = set(acc.Tags()["scalars"])
     assert {"episode/return", "episode/success", "episode/length", "eval/success_rate", "eval/return",
-            "train/policy_loss", "train/value_loss", "train/approx_kl", "train/entropy", "train/clip_fraction",
+            "train/policy_loss", "train/value_loss", "train/approx_kl", "train/entropy", "train/clipfrac",
             "train/staleness_mean", "sim/episode_return_mean", "run/env_steps"} <= scalars
     returns = [(e.step, e.value) for e in acc.Scalars("episode/return")]
     assert returns == [(1000 * i + 10 * k, float(i) + 0.5 * (k - 1)) for i in range(4) for k in (1, 2)]

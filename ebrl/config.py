@@ -245,8 +245,8 @@ class LogSection:
     wandb_mode: Literal["online", "offline"] = doc(
         "online (needs `wandb login` or WANDB_API_KEY, checked before the run starts) or offline (no account "
         "needed)", "online")
-    exclude: list[str] = doc("metrics not written by any sink: shell patterns of metric names, e.g. [\"cpu/*\", "
-                             "\"proc/*\"]", factory=list)
+    exclude: list[str] = doc("metrics not written by any sink: shell patterns of metric names or of the keys "
+                             "written, e.g. [\"cpu/*\", \"proc/*\", \"sim/busy/*\"]", factory=list)
     flush_s: float = doc("seconds between flushes of the sinks to disk", 5.0)
 
 

@@ -14,8 +14,9 @@ counted, and a sink that keeps failing is closed while the others go on.
 
 The step of every point is the run's **env steps**: the sum over simulator instances of their
 ``sim/env_steps`` counters (a simulator that restarted counts on from where it was; a resumed run from
-``meta.json``'s ``env_steps_before``). Tags are the metric names (``train/policy_loss``; an instance other
-than 0 adds ``/<instance>``), plus ``episode/return``, ``episode/length`` and ``episode/success`` once per
+``meta.json``'s ``env_steps_before``). Tags are the metric names (``train/policy_loss``; a metric outside its
+service's namespace gets the service in front, ``gen/proc/rss_mb``; an instance other than 0 adds
+``/<instance>``), plus ``episode/return``, ``episode/length`` and ``episode/success`` once per
 episode (from ``EpisodeBatch``), and ``run/env_steps``. An eval report (``eval/*``) is placed at the env
 steps at which its ``eval/version`` was published, so its curve lines up with the training curves.
 """
@@ -301,7 +302,8 @@ class Tracker:
         if report.service == "eval" and _finite(m.get("eval/version", math.nan)):
             step = self.version_steps.get(int(m["eval/version"]), step)  # where that policy was made
         suffix = f"/{report.instance}" if report.instance else ""
-        points = [Point(name + suffix, value, step, report.time) for name, value in m.items()]
+        points = [Point(tag(report.service, name) + suffix, value, step, report.time) for name, value in m.items()
+                  if not self.excluded(name)]  # a pattern may name the metric or its key (write())
         if report.service == "sim" and report.instance == 0:
             points.append(Point("run/env_steps", float(step), step, report.time))
         return points
@@ -405,6 +407,12 @@ def curves(messages: Iterable[Any], env_steps_before: int = 0) -> dict[str, list
     tracker = Tracker([sink], env_steps_before=env_steps_before, flush_s=math.inf)
     tracker.on_messages(messages)
     return sink.series
+
+
+def tag(service: str, name: str) -> str:
+    """The key of metric ``name`` of ``service``: its own name in the service's namespace (``train/policy_loss``),
+    else under the service (every service reports ``proc/rss_mb``: ``gen/proc/rss_mb``, ``sim/proc/rss_mb``)."""
+    return name if name.partition("/")[0] == service else f"{service}/{name}"
 
 
 def _finite(value: Any) -> bool:

@@ -70,8 +70,11 @@ def test_steps_are_the_runs_env_steps_over_every_simulator_and_survive_a_restart
     tracker = Tracker([sink])
     tracker.on_messages([report("sim", 0, 0, {"sim/env_steps": 100.0}), report("sim", 1, 0, {"sim/env_steps": 50.0})])
     assert tracker.env_steps == 150
-    tracker.on_messages([report("train", 0, 0, {"train/policy_loss": 0.5, "train/policy_version": 3.0})])
+    tracker.on_messages([report("train", 0, 0, {"train/policy_loss": 0.5, "train/policy_version": 3.0,
+                                                "proc/rss_mb": 300.0}), report("gen", 0, 0, {"proc/rss_mb": 200.0})])
     assert sink.series("train/policy_loss") == [(150, 0.5)]
+    # what every service reports goes under the service: no two services share a tag
+    assert sink.series("train/proc/rss_mb") == [(150, 300.0)] and sink.series("gen/proc/rss_mb") == [(150, 200.0)]
     tracker.on_messages([report("sim", 1, 1, {"sim/env_steps": 10.0})])  # sim/1 restarted: its counter began again
     assert tracker.env_steps == 100 + 50 + 10
     assert sink.series("sim/env_steps/1") == [(150, 50.0), (160, 10.0)]  # instance 1 has its own tag

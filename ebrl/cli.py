@@ -7,7 +7,10 @@ import sys
 
 
 def main(argv: list[str] | None = None) -> int:
+    from ebrl import __version__
+
     parser = argparse.ArgumentParser(prog="ebrl", description="Asynchronous embodied RL over a Zenoh bus.")
+    parser.add_argument("--version", action="version", version=f"ebrl {__version__}")
     sub = parser.add_subparsers(dest="command", required=True)
 
     p = sub.add_parser("up", help="start a training run from a TOML config")

@@ -17,6 +17,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal
 
+import tomli_w
+
 from ebrl import devices, typecheck
 from ebrl.bus import keys
 
@@ -236,7 +238,28 @@ class VizSection:
     report: bool = doc("write RUN_DIR/report/ (Gantt PNG, throughput PNG, report.md) when the run ends", True)
 
 
-ROLES = ("viz", "train", "gen", "sim", "alloc")  # every service a host can run, in start order
+@dataclass
+class LogSection:
+    tensorboard: bool = doc("write RUN_DIR/tb/: TensorBoard event files of every metric, every episode's return and "
+                            "success, eval results, the config (hparams) and the run's metadata, keyed by env steps "
+                            "(open with `tensorboard --logdir runs/`)", True)
+    csv: bool = doc("write RUN_DIR/metrics.csv: one row per value (step, wall_time, key, value), the same values "
+                    "as TensorBoard", True)
+    wandb: bool = doc("log to Weights & Biases (the optional extra: pip install 'ebrl[wandb]'); offline runs go to "
+                      "RUN_DIR/wandb/ (upload later with `wandb sync`)", False)
+    wandb_project: str = doc("W&B project", "ebrl")
+    wandb_entity: str = doc("W&B entity (user or team); empty: your default", "")
+    wandb_group: str = doc("W&B group of this run (e.g. a sweep or a seed set); empty: none", "")
+    wandb_tags: list[str] = doc("W&B tags of this run", factory=list)
+    wandb_mode: Literal["online", "offline"] = doc(
+        "online (needs `wandb login` or WANDB_API_KEY, checked before the run starts) or offline (no account "
+        "needed)", "online")
+    exclude: list[str] = doc("metrics not written by any sink: shell patterns of metric names or of the keys "
+                             "written, e.g. [\"cpu/*\", \"proc/*\", \"sim/busy/*\"]", factory=list)
+    flush_s: float = doc("seconds between flushes of the sinks to disk", 5.0)
+
+
+ROLES = ("viz", "log", "train", "gen", "sim", "alloc")  # every service a host can run, in start order
 
 
 @dataclass
@@ -262,6 +285,7 @@ SECTIONS: dict[str, type] = {
     "train": TrainSection,
     "alloc": AllocSection,
     "viz": VizSection,
+    "log": LogSection,
 }
 
 
@@ -277,6 +301,7 @@ class Config:
     train: TrainSection = field(default_factory=TrainSection)
     alloc: AllocSection = field(default_factory=AllocSection)
     viz: VizSection = field(default_factory=VizSection)
+    log: LogSection = field(default_factory=LogSection)
     hosts: dict[str, HostEntry] = field(default_factory=dict)  # [hosts.<name>]: which services run where
 
     @property
@@ -334,19 +359,38 @@ def read(path: str | os.PathLike, _chain: tuple[Path, ...] = ()) -> dict[str, An
 
 
 def apply_override(raw: dict[str, Any], item: str) -> None:
-    """Apply one ``section.key=value`` (value parsed as TOML, else taken as a string)."""
-    name, sep, text = item.partition("=")
-    section, dot, key = name.strip().partition(".")
-    if not sep or not dot or not key:
-        raise ConfigError(f"--set {item!r}: expected section.key=value")
+    """Apply one ``section.key=value``; the key may go deeper (``env.kwargs.obs=rgb``) and is a TOML dotted key
+    (``env.kwargs."a.b"=1``); the value is parsed as TOML, else taken as a string."""
+    path, text = [], ""
+    for at in (i for i, c in enumerate(item) if c == "="):  # the first "=" outside a quoted key
+        try:
+            path, text = _key_path(tomllib.loads(f"{item[:at].strip()} = 0")), item[at + 1:]
+            break
+        except tomllib.TOMLDecodeError:
+            continue
+    if len(path) < 2:
+        raise ConfigError(f"--set {item!r}: expected section.key=value (or section.key.subkey=value)")
     try:
         value = tomllib.loads(f"v = {text}")["v"]
     except tomllib.TOMLDecodeError:
         value = text
-    raw.setdefault(section, {})
-    if not isinstance(raw[section], dict):
-        raise ConfigError(f"--set {item!r}: [{section}] is not a section")
-    raw[section][key] = value
+    table = raw
+    for depth, key in enumerate(path[:-1]):
+        table = table.setdefault(key, {})
+        if not isinstance(table, dict):
+            where = ".".join(path[:depth + 1])
+            raise ConfigError(f"--set {item!r}: {where} is not a table" if depth else
+                              f"--set {item!r}: [{where}] is not a section")
+    table[path[-1]] = value
+
+
+def _key_path(parsed: dict[str, Any]) -> list[str]:
+    """``{"a": {"b": 0}}`` (one dotted key, parsed) -> ``["a", "b"]``."""
+    path = []
+    while isinstance(parsed, dict) and len(parsed) == 1:
+        key, parsed = next(iter(parsed.items()))
+        path.append(key)
+    return path
 
 
 def from_dict(raw: dict[str, Any]) -> Config:
@@ -418,7 +462,7 @@ def _check_semantics(cfg: Config) -> None:
         raise ConfigError(f"policy.width = {cfg.policy.width}: must be a multiple of policy.heads = {cfg.policy.heads}")
     if cfg.hosts and not any("sim" in entry.services for entry in cfg.hosts.values()):
         raise ConfigError("[hosts]: no host runs sim")
-    for path in ("sim.groups", "sim.envs_per_group", "sim.segment_length", "policy.chunk", "algo.epochs",
+    for path in ("log.flush_s", "sim.groups", "sim.envs_per_group", "sim.segment_length", "policy.chunk", "algo.epochs",
                  "algo.minibatches", "train.batch_size", "train.lr", "train.threads", "train.world_size", "gen.threads",
                  "run.stats_interval", "train.max_pending", "viz.window_s", "viz.port", "policy.embed_dim",
                  "policy.denoise_steps", "policy.width", "policy.depth", "policy.heads", "policy.patch"):
@@ -474,32 +518,28 @@ def parse_slowdown(text: str) -> tuple[str, float, float]:
 
 
 def dump_toml(cfg: Config) -> str:
-    """The resolved config as TOML (what services read and what the run directory keeps)."""
-    lines = []
-    tables = cfg.to_dict()
-    hosts = tables.pop("hosts")
-    tables.update({f"hosts.{name}": entry for name, entry in hosts.items()})
-    for section, values in tables.items():
-        lines.append(f"[{section}]")
-        for key, value in values.items():
-            if value is not None:
-                lines.append(f"{key} = {_toml_value(value)}")
-        lines.append("")
-    return "\n".join(lines)
+    """The resolved config as TOML (what services read and what the run directory keeps), written by tomli-w:
+    any key (a dot or a space in ``env.kwargs``) and any value reads back the same. Absent values (None) are
+    left out; reading the file gives them back as defaults."""
+    return tomli_w.dumps(_drop_none(cfg.to_dict()))
+
+
+def _drop_none(value: Any) -> Any:
+    if isinstance(value, dict):
+        return {k: _drop_none(v) for k, v in value.items() if v is not None}
+    if isinstance(value, list):
+        return [_drop_none(v) for v in value]
+    return value
 
 
 def _toml_value(value: Any) -> str:
-    if isinstance(value, bool):
-        return "true" if value else "false"
-    if isinstance(value, (int, float)):
-        return repr(value)
-    if isinstance(value, str):
-        return '"' + value.replace("\\", "\\\\").replace('"', '\\"') + '"'
+    """One value as inline TOML (for ``ebrl config``'s listing)."""
+    if isinstance(value, dict):  # tomli-w writes tables as [sections]: inline them here
+        return "{" + ", ".join(f"{tomli_w.dumps({k: 0})[:-len(' = 0')].strip()} = {_toml_value(v)}"
+                               for k, v in value.items()) + "}"
     if isinstance(value, list):
         return "[" + ", ".join(_toml_value(v) for v in value) + "]"
-    if isinstance(value, dict):
-        return "{" + ", ".join(f"{k} = {_toml_value(v)}" for k, v in value.items()) + "}"
-    raise TypeError(f"cannot write {value!r} as TOML")
+    return tomli_w.dumps({"v": value})[len("v = "):].strip()
 
 
 def _type_name(tp: Any) -> str:

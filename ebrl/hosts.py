@@ -51,9 +51,15 @@ class HostPlan:
 
 
 def enabled_roles(cfg: Config) -> tuple[str, ...]:
-    """Every service the run has, in start order: viz first (it sees the run from its start), the allocator
-    last (it only reads the others' stats)."""
-    return tuple(r for r in ROLES if (r != "viz" or cfg.viz.rerun != "off") and (r != "alloc" or cfg.alloc.enabled))
+    """Every service the run has, in start order: viz and log first (they see the run from its start), the
+    allocator last (it only reads the others' stats)."""
+    on = {"viz": cfg.viz.rerun != "off", "alloc": cfg.alloc.enabled, "log": sinks_on(cfg)}
+    return tuple(r for r in ROLES if on.get(r, True))
+
+
+def sinks_on(cfg: Config) -> bool:
+    """Whether the run has a log service: any tracking sink on."""
+    return cfg.log.tensorboard or cfg.log.csv or cfg.log.wandb
 
 
 def plan(cfg: Config, only: str | None = None, host: str | None = None, instance: int | None = None
@@ -68,8 +74,8 @@ def plan(cfg: Config, only: str | None = None, host: str | None = None, instance
             raise ConfigError(f"--host {host}: no [hosts.{host}] in the config (hosts: {known})")
         entry = cfg.hosts[host]
         named = {r for e in cfg.hosts.values() for r in e.services}
-        # viz goes with train unless some host names it; the allocator always does (it plans that host's cores)
-        wanted = set(entry.services) | ({"viz", "alloc"} - named if "train" in entry.services else set())
+        # viz and log go with train unless some host names them; the allocator always does (it plans that host)
+        wanted = set(entry.services) | ({"viz", "log", "alloc"} - named if "train" in entry.services else set())
         _allocator_with_train(wanted, f"[hosts.{host}]")
         bus = dataclasses.replace(cfg.bus, listen=list(entry.listen or cfg.bus.listen),
                                   connect=list(entry.connect or cfg.bus.connect))
@@ -88,11 +94,13 @@ def plan(cfg: Config, only: str | None = None, host: str | None = None, instance
             raise ConfigError(f"--only {only}: unknown service {role!r}; services are {', '.join(ROLES)}")
     missing = [r for r in asked if r not in every]
     if missing:
-        raise ConfigError(f"--only {only}: {', '.join(missing)} is off in this config (viz.rerun / alloc.enabled)")
+        raise ConfigError(f"--only {only}: {', '.join(missing)} is off in this config (viz.rerun / alloc.enabled / "
+                          "[log])")
     number = 0 if instance is None else instance
     if number < 0:
         raise ConfigError(f"--instance {number}: must be >= 0")
-    wanted = set(asked) | ({"alloc"} if "train" in asked else set())  # the allocator goes with training
+    # the allocator and the tracking sinks go with training
+    wanted = set(asked) | ({"alloc", "log"} if "train" in asked else set())
     _allocator_with_train(wanted, f"--only {only}")
     return cfg, HostPlan(tuple(r for r in every if r in wanted), number, True)
 

@@ -29,7 +29,7 @@ import sys
 import time
 from pathlib import Path
 
-from ebrl import config as config_mod, devices, procenv
+from ebrl import config as config_mod, devices, meta, procenv, tracking
 from ebrl.bus import Bus, BusOptions, auth, keys
 from ebrl.bus.endpoints import config_file_listen, listen_endpoint
 from ebrl.hosts import PRIMARY_LOST_S, HostPlan, Membership, enabled_roles, plan as plan_host
@@ -43,6 +43,7 @@ log = logging.getLogger("ebrl.launch")
 
 EVERY_HOST = "all"  # the instance chunk of the run-wide stop: ctl/<run>/launcher/all/stop
 PRIMARY_ENDED = "the primary host ended the run"
+OPTIONAL_ROLES = ("log",)  # services no other one needs: a death that restarts do not mend never ends the run
 
 
 def make_run_dir(cfg: config_mod.Config) -> Path:
@@ -147,7 +148,7 @@ class Launcher:
             RestartPolicy(self.cfg.run.restart == "on-failure", self.cfg.run.max_restarts),
             say=self.console.say, event=self.link.event, gpu_env=self.gpu_env, train_ranks=self.cfg.train.world_size,
             role_env={"alloc": procenv.service_env(local_sim="sim" in self.plan.roles)},  # it plans this host
-            version_floor=self.view.version_floor)
+            version_floor=self.view.version_floor, optional=OPTIONAL_ROLES)
         self.link.bus.watch_liveliness(keys.live_all(self.run_name), self._on_liveliness)
         self.link.bus.subscribe_raw(keys.ctl(self.run_name, "*", "*", "*"), self._on_control)
         self.console.say(banner(self.cfg, self.plan, self.run_dir, endpoint))
@@ -194,7 +195,7 @@ class Launcher:
     async def wait_live(self) -> bool:
         children = self.supervisor.children
         deadline = time.monotonic() + self.cfg.run.startup_timeout
-        while missing := [c for c in children if not self.members.is_live(c.role, c.instance)]:
+        while missing := [c for c in children if not self.members.is_live(c.role, c.instance) and not c.given_up]:
             if self.stopping.is_set():
                 return False
             self.failure = self.supervisor.check(restart=False)
@@ -248,7 +249,7 @@ class Launcher:
     def show_progress(self, force: bool = False) -> None:
         hosts = len(self.members.hosts_up) + 1 if self.plan.multi else None
         restarts = sum(self.supervisor.restarts().values())
-        self.console.progress(self.view.progress_line(self.elapsed(), restarts, hosts), force)
+        self.console.progress(self.view.progress(self.elapsed(), restarts, hosts), force)
 
     def publish_stats(self) -> None:
         """The launcher's own stats report: restarts per service, services up."""
@@ -336,6 +337,8 @@ def preflight(cfg: config_mod.Config, roles: tuple[str, ...] = ("gen", "train"),
     device_error = devices.preflight(cfg, roles)  # e.g. train.device = "cuda" on a machine without one
     if device_error:
         return device_error
+    if "log" in roles and (wandb_error := tracking.wandb_problem(cfg.log)):  # not installed, not logged in
+        return wandb_error
     try:
         env_preflight(EnvSpec.from_config(cfg.env))  # e.g. ManiSkill without a GPU; picks the GL backend for cameras
     except EnvError as exc:
@@ -396,6 +399,8 @@ def up(config_path: str, overrides: list[str], viz: str | None = None, resume: s
         print(f"ebrl: {exc}", file=sys.stderr)
         return 2
     (run_dir / "config.toml").write_text(config_mod.dump_toml(cfg))
+    # a resumed run's env steps go on from where its tracking stopped
+    meta.write(cfg, run_dir, extra={"env_steps_before": tracking.steps_so_far(run_dir)} if resume else None)
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
     try:
         return asyncio.run(Launcher(cfg, run_dir, plan=plan, gpu_env=gpu_env).main())

@@ -187,6 +187,37 @@ class Event:
     text: str = doc("one human-readable line")
 
 
+EPISODES_MAX = 1024  # most records in one EpisodeBatch; a simulator finishing more per interval counts the rest
+
+
+@dataclass
+class EpisodeBatch:
+    """Every episode one simulator instance finished since its previous batch, one record each (sim -> anyone):
+    the per-episode returns and successes behind ``sim/episode_return_mean`` and ``sim/success_rate``. Published
+    with the instance's stats report, at most ``EPISODES_MAX`` records (the oldest beyond are dropped and
+    counted as ``sim/episode_records_dropped``); the lists are parallel, one entry per episode."""
+
+    KEY = "ebrl/stats/<run>/episodes/<service>"
+    service: str = doc("service role that ran the episodes (sim)")
+    instance: int = doc("instance index of that service (the host's number)")
+    env_id: list[int] = doc("global env id")
+    episode: list[int] = doc("index of the episode among that env's, from 0")
+    returns: list[float] = doc("undiscounted return of the episode")
+    length: list[int] = doc("env steps of the episode")
+    success: list[bool | None] = doc("the task's success check at the episode's end; null where the task has none")
+    policy_version: list[int] = doc("policy version of the chunk that ended the episode")
+    env_steps: list[int] = doc("env steps this instance had run when the episode ended (its sim/env_steps)")
+    end_time: list[float] = doc("epoch seconds when the episode ended")
+
+    def __post_init__(self) -> None:
+        lengths = {len(getattr(self, f)) for f in ("env_id", "episode", "returns", "length", "success",
+                                                    "policy_version", "env_steps", "end_time")}
+        if len(lengths) != 1:
+            raise MessageError("EpisodeBatch: the per-episode lists differ in length")
+        if lengths.pop() > EPISODES_MAX:
+            raise MessageError(f"EpisodeBatch: more than {EPISODES_MAX} episodes")
+
+
 # --- control -----------------------------------------------------------------------
 
 
@@ -245,6 +276,7 @@ MESSAGES: tuple[type, ...] = (
     StatsReport,
     SpanBatch,
     Event,
+    EpisodeBatch,
     Stop,
     Affinity,
     Quota,
@@ -302,14 +334,18 @@ def _hints(cls: type) -> dict[str, Any]:
     return _HINTS[cls]
 
 
-def decode_stats_sample(key: str, payload: bytes | memoryview) -> "StatsReport | SpanBatch | Event":
+STATS_FAMILIES: dict[str, type] = {"spans": SpanBatch, "events": Event, "episodes": EpisodeBatch}
+
+
+def decode_stats_sample(key: str, payload: bytes | memoryview) -> "StatsReport | SpanBatch | Event | EpisodeBatch":
     """Decode a sample from ``ebrl/stats/<run>/**``: a ``SpanBatch`` on ``spans/<lane>``, an ``Event``
-    on ``events/<service>``, else a ``StatsReport``; raise :class:`MessageError` if it is none."""
+    on ``events/<service>``, an ``EpisodeBatch`` on ``episodes/<service>``, else a ``StatsReport``; raise
+    :class:`MessageError` if it is none."""
     try:
         family = keys.parse(key).family
     except ValueError:
         family = "report"
-    cls = SpanBatch if family == "spans" else Event if family == "events" else StatsReport
+    cls = STATS_FAMILIES.get(family, StatsReport)
     return decode_message(cls, payload)  # type: ignore[return-value]
 
 

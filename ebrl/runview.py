@@ -11,6 +11,8 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import os
+import shutil
 import time
 from pathlib import Path
 from typing import Any, TextIO
@@ -75,20 +77,39 @@ class RunView:
         return (f"reached run.target_return = {self.target_return:g}: mean return {ret:.1f} at iteration "
                 f"{self.reached.iteration} after {wall_s:.0f} s")
 
-    def progress_line(self, wall_s: float, restarts: int = 0, hosts: int | None = None) -> str:
-        ret = self.mean_return()
-        fields = [
-            f"iter {self.version()}" + (f"/{self.iterations}" if self.iterations else ""),
+    def progress(self, wall_s: float, restarts: int = 0, hosts: int | None = None) -> "Progress":
+        """Where the run is: iterations done of ``run.iterations``, and the fields after them."""
+        ret, success = self.mean_return(), self.metric("sim/success_rate", "mean")
+        fields = [  # what matters most first: a narrow terminal cuts the end
+            f"return {ret:.1f}" if ret is not None else "return -",
+            *([f"success {success:.0%}"] if success is not None else []),
+            *([self.last_eval()] if self.last_eval() else []),
             f"{self.metric('sim/env_steps_per_s') or 0:,.0f} env steps/s",
             f"{self.metric('sim/segments_per_s') or 0:,.1f} traj/s",
             f"policy v{max(int(self.metric('gen/policy_version', 'max') or 0), 0)}",
             f"staleness {self.metric('train/staleness_mean', 'mean') or 0:.2f}",
-            f"return {ret:.1f}" if ret is not None else "return -",
             *([f"restarts {restarts}"] if restarts else []),
             *([f"hosts {hosts}"] if hosts is not None else []),
-            clock(wall_s),
         ]
-        return " | ".join(fields)
+        return Progress(self.version(), self.iterations or None, wall_s, " | ".join(fields))
+
+    def last_eval(self) -> str | None:
+        """``eval v40: success 80% [62-91%], return 512.3`` from the eval service's latest report; None before."""
+        m = next((r.metrics for r in self.stats.values() if r.service == "eval" and "eval/version" in r.metrics), None)
+        if m is None:
+            return None
+        parts = []
+        if "eval/success_rate" in m:
+            interval = (f" [{m['eval/success_rate_lo']:.0%}-{m['eval/success_rate_hi']:.0%}]"
+                        if "eval/success_rate_lo" in m and "eval/success_rate_hi" in m else "")
+            parts.append(f"success {m['eval/success_rate']:.0%}{interval}")
+        if "eval/return" in m:
+            parts.append(f"return {m['eval/return']:.1f}")
+        return f"eval v{int(m['eval/version'])}: " + ", ".join(parts or ["-"])
+
+    def progress_line(self, wall_s: float, restarts: int = 0, hosts: int | None = None) -> str:
+        """The progress as one plain line (what a log file gets)."""
+        return self.progress(wall_s, restarts, hosts).line()
 
     def summary(self, code: int, wall_s: float, *, run_dir: Path, failure: str | None, restarts: dict[str, int],
                 host: int, hosts: list[int]) -> dict[str, Any]:
@@ -136,7 +157,8 @@ def write_report(run_dir: Path) -> str:
         paths = report.write(run_dir)
     except Exception as exc:
         return f"ebrl: no report: {exc}"
-    return f"report: {paths['markdown']} (Gantt: {paths['gantt']})"
+    curves = f", learning curves: {paths['learning']}" if "learning" in paths else ""
+    return f"report: {paths['markdown']} (Gantt: {paths['gantt']}{curves})"
 
 
 def clock(seconds: float) -> str:
@@ -144,28 +166,88 @@ def clock(seconds: float) -> str:
     return f"{s // 3600}:{s // 60 % 60:02d}:{s % 60:02d}"
 
 
+@dataclasses.dataclass(frozen=True)
+class Progress:
+    """Training iterations done (``n`` of ``total``; None: until Ctrl-C) after ``wall_s`` seconds, and the run's
+    other numbers (``fields``)."""
+
+    n: int
+    total: int | None
+    wall_s: float
+    fields: str
+
+    def line(self) -> str:
+        """``iter 4/10 (40%) | 0:01:02<0:01:33, 15.6 s/it | 1,500 env steps/s | ...``: tqdm's percentage, ETA and
+        rate, without the bar."""
+        from tqdm import tqdm
+
+        head = "{desc} {n_fmt}/{total_fmt} ({percentage:.0f}%) | {elapsed}<{remaining}, {rate_fmt}" if self.total \
+            else "{desc} {n_fmt} | {elapsed}, {rate_fmt}"
+        meter = tqdm.format_meter(min(self.n, self.total or self.n), self.total, self.wall_s, prefix="iter",
+                                  unit="it", bar_format=head)
+        return f"{meter} | {self.fields}"
+
+
 class Console:
-    """The launcher's output: whole lines, and the progress line (in place on a terminal)."""
+    """The launcher's output: whole lines, and the progress: a tqdm bar on a terminal (percentage, ETA, rate, the
+    run's numbers; redrawn in place, cut to the terminal's width), a plain line every ``PROGRESS_EVERY_S``
+    seconds otherwise (a log stays readable)."""
 
     def __init__(self, out: TextIO):
         self.out = out
         self.tty = hasattr(out, "isatty") and out.isatty()
         self._last_progress = 0.0
+        self._bar: Any = None
 
     def say(self, text: str) -> None:
+        if self._bar is not None:
+            self._bar.clear()
+            print(text.lstrip("\n"), file=self.out, flush=True)
+            self._bar.refresh()
+            return
         if self.tty:
             text = "\r\033[K" + text.lstrip("\n")
         print(text, file=self.out, flush=True)
 
-    def progress(self, line: str, force: bool = False) -> None:
+    def progress(self, progress: Progress, force: bool = False) -> None:
         if self.tty:
-            self.out.write("\r\033[K" + line)
-            self.out.flush()
+            self._draw(progress)
         elif force or time.monotonic() - self._last_progress >= PROGRESS_EVERY_S:
-            self.say(line)
+            self.say(progress.line())
             self._last_progress = time.monotonic()
 
+    def _draw(self, progress: Progress) -> None:
+        from tqdm import tqdm
+
+        if self._bar is None or self._bar.total != progress.total:
+            if self._bar is not None:
+                self._bar.close()
+            fmt = ("{desc} {n_fmt}/{total_fmt} {percentage:3.0f}%|{bar}| {elapsed}<{remaining}, {rate_fmt}{postfix}"
+                   if progress.total else "{desc} {n_fmt} | {elapsed}, {rate_fmt}{postfix}")
+            done = min(progress.n, progress.total or progress.n)  # a resumed run: iterations done before
+            self._bar = tqdm(total=progress.total, initial=done, desc="iter", unit="it", file=self.out,
+                             ncols=self.width(), nrows=24, bar_format=fmt, mininterval=0, leave=True)
+            self._bar.start_t = self._bar._time() - progress.wall_s  # the run's clock, not the bar's
+        done = min(progress.n, progress.total or progress.n)
+        self._bar.ncols = self.width()  # the terminal may have been resized
+        if done > self._bar.n:
+            self._bar.update(done - self._bar.n)
+        self._bar.set_postfix_str(progress.fields, refresh=False)
+        self._bar.refresh()
+
+    def width(self) -> int:
+        """The terminal's columns now (a terminal that says 0, e.g. under `script`, counts as 120 wide; tqdm would
+        draw nothing there, as it does on a terminal 0 rows high: hence nrows=24 too)."""
+        try:
+            columns = os.get_terminal_size(self.out.fileno()).columns
+        except (AttributeError, OSError, ValueError):
+            columns = 0
+        return columns or shutil.get_terminal_size((120, 24)).columns or 120
+
     def end_progress(self) -> None:
-        """Leave the line the progress was rewriting (before the shutdown's lines)."""
-        if self.tty:
+        """Leave the line the progress was drawing (before the shutdown's lines)."""
+        if self._bar is not None:
+            self._bar.close()
+            self._bar = None
+        elif self.tty:
             self.out.write("\n")

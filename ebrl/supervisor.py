@@ -7,7 +7,8 @@ launcher, which stops the children in order; it dies with the launcher
 
 A child that exits on its own is started again after a backoff (1, 2, 4 ... s)
 at most ``run.max_restarts`` times when ``run.restart = "on-failure"``, then
-reported as the run's failure. A child asked to stop for a new GPU share is
+reported as the run's failure; an *optional* child (the tracking sinks: no other
+service needs it) is then given up and the run goes on without it. A child asked to stop for a new GPU share is
 started again with it as soon as it has exited: a *requota*, not counted as a
 restart. Shutdown: a ``Stop`` over the bus (the caller sends it), SIGTERM after
 ``STOP_GRACE_S``, SIGKILL to the process group at ``SHUTDOWN_S``.
@@ -49,6 +50,7 @@ class Child:
     restarts: int = 0
     restart_at: float | None = None  # monotonic time of a scheduled restart
     requota: bool = False  # asked to stop for a new GPU share: started again with it once it has exited
+    given_up: bool = False  # an optional child that exited for good: the run goes on without it
 
     @property
     def name(self) -> str:
@@ -93,13 +95,14 @@ class Supervisor:
     def __init__(self, argv: Argv, log_dir: Path, policy: RestartPolicy, *,
                  say: Callable[[str], None], event: Callable[[str, str], None],
                  gpu_env: dict[str, dict[str, str]] | None = None, role_env: dict[str, dict[str, str]] | None = None,
-                 train_ranks: int = 1, version_floor: Callable[[], int] = lambda: -1):
+                 train_ranks: int = 1, version_floor: Callable[[], int] = lambda: -1, optional: tuple[str, ...] = ()):
         self.argv, self.log_dir, self.policy = argv, log_dir, policy
         self.say, self.event, self.version_floor = say, event, version_floor
         self.gpu_env = dict(gpu_env or {})  # stage -> the CUDA variables its processes start with (its GPU share)
         self.share_versions: dict[str, int] = {}  # stage -> version of its last GPU share
         self.role_env = dict(role_env or {})  # role -> EBRL variables of its processes (ebrl.procenv)
         self.train_ranks = train_ranks
+        self.optional = optional  # roles whose death never ends the run
         # training rank 0's rendezvous, new for each start of the group
         self.dist_addr = f"127.0.0.1:{free_port()}" if train_ranks > 1 else ""
         self.children: list[Child] = []
@@ -127,6 +130,8 @@ class Supervisor:
         or return the run's failure; start what is due (a scheduled restart, a requota). None: the run goes on."""
         now = time.monotonic()
         for child in self.children:
+            if child.given_up:
+                continue
             if child.restart_at is not None:
                 if now >= child.restart_at:
                     self.restart(child)
@@ -142,6 +147,12 @@ class Supervisor:
                 self._schedule_restart(child, what, now)
                 continue
             failure = what + (f" (after {child.restarts} restarts)" if child.restarts else "")
+            if child.role in self.optional:
+                child.given_up = True
+                self.event("exited", f"{failure}; the run goes on without it")
+                self.say(f"\nebrl: {failure}; the run goes on without it; last lines of {child.log_path}:\n"
+                         f"{child.tail(8)}")
+                continue
             self.event("exited", failure)
             self.say(f"\nebrl: {failure}; last lines of {child.log_path}:\n{child.tail()}")
             return failure

@@ -13,7 +13,7 @@ import time
 import numpy as np
 import torch
 
-from ebrl import devices
+from ebrl import devices, meta
 from ebrl.bus import keys
 from ebrl.bus.peers import LivePeers
 from ebrl.envs import EnvSpec, describe
@@ -38,6 +38,7 @@ class GenService(Service):
         self.use_device(devices.resolve(cfg.gen.device, "gen.device"))
         self.policy = make_policy(cfg.policy, info.layout, info.action_dim).to(self.device)
         self.policy.eval()
+        torch.manual_seed(meta.gen_seed(cfg.run.seed, self.instance))  # the actions' sampling (every device)
         self.staging = devices.Staging(self.device)  # observations in through a pinned buffer on a GPU
         self.version = -1
         self.batch_groups = cfg.gen.max_batch_groups  # 0: every group of every live sim host

@@ -10,6 +10,7 @@ import os
 
 import psutil
 
+from ebrl.bus import keys
 from ebrl.bus.peers import LivePeers
 from ebrl.envs import EnvSpec, describe
 from ebrl.resources.nvml import GpuMonitor
@@ -54,7 +55,18 @@ class SimService(Service):
     async def run(self) -> None:
         while not (self.peers.has("gen") and self.peers.has("train")):  # nobody would hear us yet
             await asyncio.sleep(0.05)
-        await asyncio.gather(*(loop.run_forever() for loop in self.loops))
+        await asyncio.gather(self.publish_episodes_forever(), *(loop.run_forever() for loop in self.loops))
+
+    async def publish_episodes_forever(self) -> None:
+        while True:
+            await asyncio.sleep(self.cfg.run.stats_interval)
+            await self.publish_episodes()
+
+    async def publish_episodes(self) -> None:
+        """The episodes that ended since the last batch, one record each (``EpisodeBatch``), beside the stats."""
+        batch = self.stats.take_episodes(self.role, self.instance)
+        if batch is not None:
+            await self.bus.put(keys.episodes(self.run_name, self.role), batch)
 
     def metrics(self) -> dict[str, float]:
         self.fleet.stepping.timeout = self.stats.step_timeout()  # once per stats report, not per chunk
@@ -80,6 +92,7 @@ class SimService(Service):
 
     async def teardown(self) -> None:
         self.fleet.close()
+        await self.publish_episodes()
 
 
 def main() -> None:

@@ -11,7 +11,7 @@ import os
 import threading
 
 from ebrl.bus import keys
-from ebrl.messages import Event, SpanBatch, decode_stats_sample
+from ebrl.messages import EpisodeBatch, Event, SpanBatch, decode_stats_sample
 from ebrl.service import Service, service_main
 from ebrl.viz.rerun_bridge import RerunBridge, make_blueprint, open_recording
 
@@ -49,6 +49,8 @@ class VizService(Service):
                     self.bridge.on_spans(msg)
                 elif isinstance(msg, Event):
                     self.bridge.on_event(msg)
+                elif isinstance(msg, EpisodeBatch):
+                    continue  # the windowed means are in the sim's stats report
                 else:
                     self.bridge.on_stats(msg)
             self.bridge.flush()

@@ -28,7 +28,8 @@ HOSTS = {
 
 
 def load(**sections) -> config.Config:
-    return config.from_dict({"viz": {"rerun": "off"}, **sections})
+    """A config without the optional services (viz, the log service's sinks) unless ``sections`` turn them on."""
+    return config.from_dict({"viz": {"rerun": "off"}, "log": {"tensorboard": False, "csv": False}, **sections})
 
 
 # --- planning -------------------------------------------------------------------------------------------
@@ -62,6 +63,21 @@ def test_viz_goes_with_train_unless_a_host_names_it():
     cfg = load(hosts=hosts, viz={"rerun": "save"})
     assert plan(cfg, host="learner")[1].roles == ("train", "gen")
     assert plan(cfg, host="sim-b")[1].roles == ("viz", "sim")
+
+
+def test_the_log_service_goes_with_train_unless_a_host_names_it_and_is_off_without_sinks():
+    tracked = {"tensorboard": True}
+    cfg = load(hosts=HOSTS, log=tracked)
+    assert plan(cfg, host="learner")[1].roles == ("log", "train", "gen")
+    assert plan(cfg, host="sim-a")[1].roles == ("sim",)
+    hosts = {**HOSTS, "sim-b": {**HOSTS["sim-b"], "services": ["sim", "log"]}}
+    assert plan(load(hosts=hosts, log=tracked), host="learner")[1].roles == ("train", "gen")
+    assert plan(load(hosts=hosts, log=tracked), host="sim-b")[1].roles == ("log", "sim")
+    assert plan(load(log=tracked))[1].roles == ("log", "train", "gen", "sim")
+    assert plan(load(log=tracked), only="gen,train")[1].roles == ("log", "train", "gen")
+    assert plan(load(log=tracked), only="sim", instance=1)[1].roles == ("sim",)
+    assert plan(config.from_dict({}))[1].roles == ("log", "train", "gen", "sim")  # tensorboard and csv by default
+    assert "log" not in plan(load(log={"tensorboard": False, "csv": False, "wandb": False}))[1].roles
 
 
 @pytest.mark.parametrize("hosts, message", [

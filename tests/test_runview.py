@@ -1,14 +1,24 @@
-"""What the launcher shows of a run, from stats reports and liveliness tokens alone (no processes, no bus)."""
+"""What the launcher shows of a run, from stats reports and liveliness tokens alone (no bus); the progress bar also
+on a real pseudo-terminal."""
 
 from __future__ import annotations
 
+import fcntl
 import io
 import json
+import os
+import pty
+import struct
+import sys
+import termios
+from pathlib import Path
 
 from ebrl.bus import keys
 from ebrl.hosts import HostChange, Membership
 from ebrl.messages import StatsReport
-from ebrl.runview import Console, RunView, write_summary
+from ebrl.runview import Console, Progress, RunView, write_summary
+
+ROOT = Path(__file__).resolve().parent.parent
 
 
 def report(service: str, instance: int = 0, **metrics: float) -> tuple[str, StatsReport]:
@@ -32,10 +42,23 @@ def test_metrics_add_up_over_instances_and_the_progress_line_says_them():
     assert view.metric("sim/env_steps_per_s") == 1500.0 and view.mean_return() == 15.0
     assert view.version() == 4 and view.version_floor() == 4 and not view.iterations_done()
     line = view.progress_line(3725.0, restarts=2, hosts=3)
-    assert line == ("iter 4/10 | 1,500 env steps/s | 0.0 traj/s | policy v3 | staleness 0.50 | return 15.0 | "
-                    "restarts 2 | hosts 3 | 1:02:05")
-    assert RunView("r").progress_line(0.0) == ("iter 0 | 0 env steps/s | 0.0 traj/s | policy v0 | staleness 0.00 | "
-                                               "return - | 0:00:00")
+    assert line == ("iter 4/10 (40%) | 1:02:05<1:33:07, 931.25s/it | return 15.0 | 1,500 env steps/s | 0.0 traj/s | "
+                    "policy v3 | staleness 0.50 | restarts 2 | hosts 3")
+    assert RunView("r").progress_line(0.0) == ("iter 0 | 00:00, ?it/s | return - | 0 env steps/s | 0.0 traj/s | "
+                                               "policy v0 | staleness 0.00")
+
+
+def test_the_progress_says_training_success_and_the_last_evaluation():
+    view = fed(report("sim", sim__episode_return_mean=10.0, sim__success_rate=0.35),
+               report("train", train__policy_version=40.0), iterations=50)
+    assert "| return 10.0 | success 35% | " in view.progress_line(10.0) and "eval" not in view.progress_line(10.0)
+    view.on_report(*report("eval", eval__version=40.0, eval__success_rate=0.8, eval__success_rate_lo=0.62,
+                           eval__success_rate_hi=0.91, eval__return=512.34))
+    assert "| success 35% | eval v40: success 80% [62%-91%], return 512.3 | " in view.progress_line(10.0)
+    view.on_report(*report("eval", eval__version=45.0, eval__return=600.0))  # a task without a success check
+    assert "| eval v45: return 600.0 | " in view.progress_line(10.0)
+    progress = view.progress(20.0)
+    assert (progress.n, progress.total) == (40, 50) and progress.line().startswith("iter 40/50 (80%) | 00:20<00:05")
 
 
 def test_a_newer_report_replaces_the_instance_s_last_and_the_best_return_is_kept():
@@ -71,11 +94,52 @@ def test_a_stopped_run_says_so_and_has_no_return_yet(tmp_path):
 def test_the_console_prints_progress_every_few_seconds_off_a_terminal():
     out = io.StringIO()
     console = Console(out)
-    console.progress("first")
-    console.progress("too soon")
-    console.progress("forced", force=True)
+    console.progress(Progress(1, 4, 2.0, "first"))
+    console.progress(Progress(2, 4, 3.0, "too soon"))
+    console.progress(Progress(3, 4, 4.0, "forced"), force=True)
     console.say("\nebrl: something happened")
-    assert out.getvalue() == "first\nforced\n\nebrl: something happened\n"
+    assert out.getvalue() == ("iter 1/4 (25%) | 00:02<00:06,  2.00s/it | first\n"
+                              "iter 3/4 (75%) | 00:04<00:01,  1.33s/it | forced\n\nebrl: something happened\n")
+    assert "\r" not in out.getvalue() and "\033" not in out.getvalue()  # plain lines: a log stays readable
+
+
+def test_on_a_terminal_the_progress_is_a_tqdm_bar_that_fits_the_width(tmp_path):
+    """A real pseudo-terminal 80 columns wide: every redraw of the bar fits it, shows the percentage, the ETA and
+    the rate, and the run's numbers start with the return; a line said meanwhile is printed whole."""
+    script = tmp_path / "bar.py"
+    script.write_text(
+        "import sys, time\n"
+        "from ebrl.runview import Console, Progress\n"
+        "c = Console(sys.stdout)\n"
+        "fields = 'return 15.0 | success 35% | eval v4: success 80% [62%-91%], return 512.3 | 1,500 env steps/s'\n"
+        "for i in range(4):\n"
+        "    c.progress(Progress(i, 10, 60.0 + 10 * i, fields))\n"
+        "    time.sleep(0.05)\n"
+        "c.say('ebrl: a line said while the bar is drawn')\n"
+        "c.end_progress()\n"
+        "c.say('after the bar')\n")
+    pid, fd = pty.fork()
+    if pid == 0:  # the child: its stdout is the terminal
+        os.execve(sys.executable, [sys.executable, str(script)],
+                  {**os.environ, "PYTHONPATH": str(ROOT), "COLUMNS": "", "LINES": ""})
+    fcntl.ioctl(fd, termios.TIOCSWINSZ, struct.pack("HHHH", 24, 80, 0, 0))
+    out = b""
+    while True:
+        try:
+            data = os.read(fd, 4096)
+        except OSError:
+            break
+        if not data:
+            break
+        out += data
+    _, status = os.waitpid(pid, 0)
+    assert status == 0, out
+    text = out.decode()
+    redraws = [part for line in text.split("\n") for part in line.split("\r") if part.startswith("iter ")]
+    assert redraws and all(len(part.rstrip()) <= 80 for part in redraws), redraws
+    last = redraws[-1]
+    assert last.startswith("iter 3/10  30%|") and "<" in last and "/it" in last and "return 15.0" in last, last
+    assert "ebrl: a line said while the bar is drawn\r\n" in text and text.rstrip().endswith("after the bar")
 
 
 def test_membership_reports_hosts_joining_and_leaving_and_a_lost_primary():

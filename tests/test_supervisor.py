@@ -92,6 +92,24 @@ def test_a_crashing_child_is_restarted_up_to_the_limit_then_reported(made):
     assert log.count("up") == 3 and "--- restart 2 by the launcher ---" in log
 
 
+def test_an_optional_child_is_restarted_then_given_up_and_the_run_goes_on(made):
+    """The tracking sinks (``log``) are optional: a log service that keeps dying is restarted like any child, then
+    left dead; the supervisor never reports it as the run's failure, and the other children keep running."""
+    sup, said = made({"log": (CRASH,), "sim": (SLEEPER,)}, optional=("log",))
+    log_child, sim_child = sup.start("log", 0), sup.start("sim", 0)
+    until(lambda: running(sup, lambda: log_child.given_up), "the log service given up")
+    assert log_child.restarts == 2 and sim_child.proc.poll() is None
+    assert said.events[-1] == ("exited", "log/0 exited with status 3 (after 2 restarts); the run goes on without it")
+    for _ in range(20):  # given up for good: no failure, no further restart
+        assert sup.check() is None
+        time.sleep(0.01)
+    assert log_child.restarts == 2 and log_child.log_path.read_text().count("up") == 3
+    sup_never, said_never = made({"log": (CRASH,)}, policy=RestartPolicy(False, 5), optional=("log",))
+    child = sup_never.start("log", 0)
+    until(lambda: running(sup_never, lambda: child.given_up), "given up at its first exit (run.restart = never)")
+    assert "the run goes on without it" in said_never.lines[-1]
+
+
 def test_without_a_restart_policy_the_first_exit_is_the_failure(made):
     sup, said = made({"crash": (CRASH,)}, policy=RestartPolicy(False, 5))
     sup.start("crash", 0)

@@ -41,6 +41,27 @@ def test_two_iterations_train_and_the_readme_subscriber_sees_stats(tmp_path):
     assert summary["iterations"] == 2 and summary["segments"] > 0 and summary["env_steps"] > 0
     assert "e2e:" in lines and "env steps/s" in lines  # decoded stats reached a plain zenoh script
     assert len((ROOT / "examples" / "subscribe_stats.py").read_text().splitlines()) < 15  # README's promise
+    check_tracking_outputs(run.run_dir, summary)
+
+
+def check_tracking_outputs(run_dir, summary) -> None:
+    """What the log service, the launcher and the report leave: TensorBoard curves keyed by env steps, metrics.csv,
+    meta.json, report/learning.png."""
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    acc = EventAccumulator(str(run_dir / "tb"))
+    acc.Reload()
+    returns = acc.Scalars("episode/return")
+    assert len(returns) >= summary["episodes"] > 0  # every episode (sim's last batch may land after the summary)
+    assert all(0 < e.step <= summary["env_steps"] for e in returns)
+    assert [e.step for e in returns] == sorted(e.step for e in returns)
+    assert {"sim/episode_return_mean", "train/policy_loss", "train/value_loss", "train/approx_kl",
+            "train/staleness_mean", "run/env_steps"} <= set(acc.Tags()["scalars"])
+    rows = (run_dir / "metrics.csv").read_text().splitlines()
+    assert rows[0] == "step,wall_time,key,value" and sum(",episode/return," in r for r in rows) == len(returns)
+    meta = json.loads((run_dir / "meta.json").read_text())
+    assert meta["command"][:2] == ["ebrl", "up"] and meta["packages"]["torch"] and meta["seeds"]["run"] == 1
+    assert (run_dir / "report" / "learning.png").stat().st_size > 20_000
 
 
 def test_weights_versions_advance_and_trajectories_flow(tmp_path):
@@ -61,13 +82,13 @@ def test_services_are_separate_processes_and_sigint_leaves_none(tmp_path):
         launcher = psutil.Process(run.proc.pid)
         run.wait_for_line("all services live", 300)
         deadline = time.monotonic() + 120
-        while len(launcher.children(recursive=True)) < 3 + 8:  # three services plus one worker per environment
+        while len(launcher.children(recursive=True)) < 4 + 8:  # four services plus one worker per environment
             assert time.monotonic() < deadline, f"processes: {launcher.children(recursive=True)}"
             time.sleep(0.2)
         time.sleep(2)  # let it train a little
         tree = launcher.children(recursive=True)
         roles = {p.cmdline()[2] for p in launcher.children() if len(p.cmdline()) > 2}
-        assert roles == {"services.sim", "services.gen", "services.train"}
+        assert roles == {"services.sim", "services.gen", "services.train", "services.log"}
         run.interrupt()
         start = time.monotonic()
         code = run.wait(SHUTDOWN_S + LOADED_S)

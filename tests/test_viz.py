@@ -12,7 +12,7 @@ import pyarrow as pa
 import pytest
 
 import helpers
-from ebrl.messages import Event, Span, SpanBatch, StatsReport, encode_message
+from ebrl.messages import EpisodeBatch, Event, Span, SpanBatch, StatsReport, encode_message
 from ebrl.bus import keys
 from ebrl.viz import record, report, timeline
 
@@ -173,6 +173,71 @@ def test_report_numbers_and_files(tmp_path):
     text = paths["markdown"].read_text()
     assert "| sim.g0 | 20 | 50.0% | 50.0% | 0.0% |" in text
     assert "75% of training ran while rollout went on" in text and "launcher/0 live: all live" in text
+
+
+def learning_recording(path, with_eval: bool) -> None:
+    """A recording of a short run: sim reports (env steps, windowed return and success), one EpisodeBatch per
+    second, training losses, and (``with_eval``) two eval results with their intervals."""
+    rec = record.Recorder(path)
+    for i in range(10):
+        t = T0 + i
+        sim = StatsReport(run="r", service="sim", instance=0, time=t, seq=i, metrics={
+            "sim/env_steps": 500.0 * (i + 1), "sim/episode_return_mean": 10.0 * i, "sim/success_rate": i / 10})
+        train = StatsReport(run="r", service="train", instance=0, time=t, seq=i, metrics={
+            "train/policy_version": float(i), "train/policy_loss": -0.01 * i, "train/value_loss": 5.0 / (i + 1),
+            "train/approx_kl": 0.001 * i})
+        batch = EpisodeBatch(service="sim", instance=0, env_id=[0, 1], episode=[i, i], returns=[10.0 * i, 10.0 * i + 5],
+                             length=[50, 60], success=[i > 4, False], policy_version=[i, i],
+                             env_steps=[500 * i + 100, 500 * i + 400], end_time=[t - 0.5, t - 0.1])
+        rec.write(keys.stats("r", "sim", 0), encode_message(sim))
+        rec.write(keys.stats("r", "train", 0), encode_message(train))
+        rec.write(keys.episodes("r", "sim"), encode_message(batch))
+    for version, success in ((3, 0.2), (8, 0.9)) if with_eval else ():
+        rec.write(keys.stats("r", "eval", 0), encode_message(StatsReport(
+            run="r", service="eval", instance=0, time=T0 + version + 0.5, seq=version, metrics={
+                "eval/version": float(version), "eval/return": 100.0 * success, "eval/success_rate": success,
+                "eval/success_rate_lo": success - 0.15, "eval/success_rate_hi": min(1.0, success + 0.1),
+                "eval/episode_length": 77.0})))
+    rec.close()
+
+
+def red_pixels(png) -> int:
+    """Pixels in the colour of the eval curves (tab:red, and its interval band blended over white)."""
+    import matplotlib.image
+
+    img = (matplotlib.image.imread(png)[..., :3] * 255).astype(int)
+    r, g, b = img[..., 0], img[..., 1], img[..., 2]
+    return int(((r > 200) & (g < 215) & (b < 215) & (r - g > 30) & (abs(g - b) < 25)).sum())
+
+
+@pytest.mark.parametrize("with_eval", [True, False])
+def test_learning_curves_from_a_recording(tmp_path, with_eval):
+    learning_recording(tmp_path / record.FILENAME, with_eval)
+    rec = record.read(tmp_path)
+    assert len(rec.episodes) == 10 and rec.malformed == 0
+    series = report.learning_curves(rec)
+    # every episode at the run's env steps when it ended, each eval at the steps its version was published
+    assert [(p.step, p.value) for p in series["episode/return"][:4]] == [(100, 0.0), (400, 5.0), (600, 10.0), (900, 15.0)]
+    assert [p.value for p in series["episode/success"]][9:12] == [0.0, 1.0, 0.0]  # env 0 succeeds from i = 5
+    if with_eval:
+        assert [(p.step, p.value) for p in series["eval/success_rate"]] == [(2000, 0.2), (4500, 0.9)]
+    proc = subprocess.run([sys.executable, "-m", "ebrl.cli", "report", str(tmp_path)], capture_output=True, text=True,
+                          timeout=120)
+    assert proc.returncode == 0, proc.stderr
+    png = tmp_path / "report" / "learning.png"
+    assert str(png) in proc.stdout.split() and png.stat().st_size > 20_000
+    import matplotlib.image
+
+    height, width = matplotlib.image.imread(png).shape[:2]
+    assert width > 1000 and height > 1000  # two columns (env steps, wall-clock), four panels each
+    if with_eval:
+        assert red_pixels(png) > 2000  # the eval success with its interval band, and the eval return
+    else:
+        assert red_pixels(png) < 50
+    text = (tmp_path / "report" / "report.md").read_text()
+    assert "![learning curves](learning.png)" in text and "20 episodes recorded over 4,900 env steps" in text
+    if with_eval:
+        assert "| 8 | 4,500 | 0.9 | 0.75 - 1 | 90 | 77 |" in text
 
 
 def test_report_command_errors_clearly(tmp_path):

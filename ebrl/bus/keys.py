@@ -111,8 +111,14 @@ def events(run: str, service: str = "*") -> str:
     return f"{ROOT}/stats/{run}/events/{service}"
 
 
+def episodes(run: str, service: str = "*") -> str:
+    """``ebrl/stats/<run>/episodes/<service>``: per-episode records of the simulators (``episodes`` is reserved
+    too); under ``stats/`` so every recorder and sink of ``ebrl/stats/<run>/**`` has them."""
+    return f"{ROOT}/stats/{run}/episodes/{service}"
+
+
 def stats_all(run: str) -> str:
-    """Everything under ``ebrl/stats/<run>/``: stats reports, spans and events of one run."""
+    """Everything under ``ebrl/stats/<run>/``: stats reports, spans, events and episode records of one run."""
     return f"{ROOT}/stats/{run}/**"
 
 
@@ -138,6 +144,7 @@ class Key:
     ``stats``     ``ebrl/stats/<run>/<service>/<instance>``    service, instance
     ``stats``     ``ebrl/stats/<run>/spans/<lane>``            service = "spans", lane
     ``stats``     ``ebrl/stats/<run>/events/<service>``        service = "events", lane = the publisher
+    ``stats``     ``ebrl/stats/<run>/episodes/<service>``      service = "episodes", lane = the publisher
     ``live``      ``ebrl/live/<run>/<service>/<instance>``     service, instance
     ============  ==========================================  =========================================
     """
@@ -152,11 +159,11 @@ class Key:
 
     @property
     def family(self) -> str:
-        """What a ``stats`` key carries: ``spans``, ``events`` or ``report`` (a service's stats)."""
+        """What a ``stats`` key carries: ``spans``, ``events``, ``episodes`` or ``report`` (a service's stats)."""
         return self.service if self.service in RESERVED_STATS else "report"
 
 
-RESERVED_STATS = ("spans", "events")  # stats chunks that are not service names
+RESERVED_STATS = ("spans", "events", "episodes")  # stats chunks that are not service names
 CATEGORIES = ("data", "ctl", "stats", "live")
 
 

@@ -25,6 +25,7 @@ from ebrl.envs.spec import EnvSpec
 from ebrl.sched.corepool import CoreClaim, CorePool, ParentGone
 
 _CTX = None
+EPISODE_SEED_STRIDE = 7919  # episode k of a worker seeded s starts from reset(seed=s + EPISODE_SEED_STRIDE * k)
 
 
 def _context(spec: EnvSpec) -> mp.context.BaseContext:
@@ -92,7 +93,7 @@ def _serve(conn: Connection, spec: EnvSpec, seed: int, claim: CoreClaim | None) 
                 return
             if cmd == "reset":  # arg: the index of the episode to start (a replaced worker carries on)
                 episodes = int(arg or 0)
-                obs, _ = env.reset(seed=seed + 7919 * episodes)
+                obs, _ = env.reset(seed=seed + EPISODE_SEED_STRIDE * episodes)
                 episode_return, episode_length, success = 0.0, 0, None
                 conn.send(as_obs(obs))
             elif cmd == "chunk":
@@ -129,7 +130,7 @@ def _serve(conn: Connection, spec: EnvSpec, seed: int, claim: CoreClaim | None) 
                 if terminated or truncated:
                     ep_ret, ep_len, ep_success = episode_return, episode_length, success
                     episodes += 1
-                    obs, _ = env.reset(seed=seed + 7919 * episodes)
+                    obs, _ = env.reset(seed=seed + EPISODE_SEED_STRIDE * episodes)
                     episode_return, episode_length, success = 0.0, 0, None
                 if claim is not None:
                     claim.release(core, step_s[-1] if step_s else 0.0)

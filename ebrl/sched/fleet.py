@@ -13,11 +13,14 @@ from typing import Callable
 import numpy as np
 
 from ebrl.envs import EnvSpec, EnvWorker
+from ebrl.messages import EPISODES_MAX, EpisodeBatch
 from ebrl.sched.corepool import CorePool
 from ebrl.sched.modes import Schedule
 from ebrl.sched.rollout import Episodes
 from ebrl.sched.stepchoice import SteppingChoice
 from ebrl.sched.stepping import BatchStepping, IndependentStepping, RebindingStepping, Stepping
+
+ENV_SEED_STRIDE = 100_003  # env i's worker seed: run.seed * ENV_SEED_STRIDE + i
 
 
 class EnvFleet:
@@ -57,7 +60,7 @@ class EnvFleet:
 
     def env_seed(self, env: int) -> int:
         """GRPO compares rollouts from the same initial states: a group's envs share reset seeds."""
-        return self.seed * 100_003 + self.episodes.members(env)[0]
+        return self.seed * ENV_SEED_STRIDE + self.episodes.members(env)[0]
 
     def slot(self, env: int) -> int:
         """The env's place in this host's core pool (its envs numbered from 0)."""
@@ -113,6 +116,29 @@ class RolloutStats:
         self.returns: collections.deque[float] = collections.deque(maxlen=20)
         self.successes: collections.deque[bool] = collections.deque(maxlen=20)
         self.chunk_latency: collections.deque[float] = collections.deque(maxlen=1000)
+        self.env_steps = 0  # this instance's env steps (what sim/env_steps counts)
+        # every episode that ended since the last EpisodeBatch, the newest EPISODES_MAX of them
+        self.episodes: collections.deque[tuple] = collections.deque(maxlen=EPISODES_MAX)
+        self.episode_records_dropped = 0
+
+    def episode_ended(self, env: int, episode: int, ret: float, length: int, success: bool | None,
+                      version: int) -> None:
+        """One finished episode: into the windowed means and the next episode batch."""
+        self.returns.append(ret)
+        if success is not None:
+            self.successes.append(success)
+        if len(self.episodes) == self.episodes.maxlen:
+            self.episode_records_dropped += 1
+        self.episodes.append((env, episode, ret, length, success, version, self.env_steps, time.time()))
+
+    def take_episodes(self, service: str, instance: int) -> EpisodeBatch | None:
+        """The episodes that ended since the last call, as one message (None: none did)."""
+        if not self.episodes:
+            return None
+        rows, self.episodes = list(self.episodes), collections.deque(maxlen=EPISODES_MAX)
+        env, episode, ret, length, success, version, steps, end = (list(c) for c in zip(*rows))
+        return EpisodeBatch(service=service, instance=instance, env_id=env, episode=episode, returns=ret,
+                            length=length, success=success, policy_version=version, env_steps=steps, end_time=end)
 
     def step_timeout(self) -> float:
         if self.configured_timeout > 0:
@@ -122,7 +148,7 @@ class RolloutStats:
         return max(20.0, 20 * float(np.percentile(self.chunk_latency, 99)))
 
     def metrics(self) -> dict[str, float]:
-        out: dict[str, float] = {}
+        out: dict[str, float] = {"sim/episode_records_dropped": float(self.episode_records_dropped)}
         if self.returns:
             out["sim/episode_return_mean"] = float(np.mean(self.returns))
         if self.successes:

@@ -156,12 +156,12 @@ class GroupLoop:
         self.stats.chunk_latency.append(latency)
         episodes.set(env, res.episode + int(res.terminated or res.truncated))
         count("sim/env_steps", res.steps)
+        self.stats.env_steps += res.steps
         count("sim/step_busy_s", res.busy_s)
         if res.episode_return is not None:
-            self.stats.returns.append(res.episode_return)
+            self.stats.episode_ended(env, res.episode, res.episode_return, res.episode_length or 0,
+                                     res.episode_success, chunk.policy_version)
             count("sim/episodes")
-        if res.episode_success is not None:
-            self.stats.successes.append(res.episode_success)
         segment = self.builders[i].add(obs, chunk.actions[i], chunk.latents[i], float(chunk.logprobs[i]),
                                        float(chunk.values[i]), chunk.policy_version, res, boundary)
         if segment is not None:

@@ -17,7 +17,7 @@ from pathlib import Path
 
 import msgpack
 
-from ebrl.messages import Event, MessageError, Span, SpanBatch, StatsReport, decode_stats_sample
+from ebrl.messages import EpisodeBatch, Event, MessageError, Span, SpanBatch, StatsReport, decode_stats_sample
 from ebrl.viz.timeline import lane_order
 
 FILENAME = "stats.msgpack"
@@ -54,11 +54,12 @@ class Recorder:
 
 @dataclasses.dataclass
 class Recording:
-    """A run's recording, decoded: spans sorted by start, stats and events in arrival order."""
+    """A run's recording, decoded: spans sorted by start; stats, events and episode batches in arrival order."""
 
     spans: list[Span] = dataclasses.field(default_factory=list)
     stats: list[StatsReport] = dataclasses.field(default_factory=list)
     events: list[Event] = dataclasses.field(default_factory=list)
+    episodes: list[EpisodeBatch] = dataclasses.field(default_factory=list)
     malformed: int = 0
 
     @property
@@ -98,6 +99,8 @@ def read(path: str | Path) -> Recording:
                 out.spans.extend(msg.spans())
             elif isinstance(msg, Event):
                 out.events.append(msg)
+            elif isinstance(msg, EpisodeBatch):
+                out.episodes.append(msg)
             else:
                 out.stats.append(msg)
     out.spans.sort(key=lambda s: s.start)

@@ -7,6 +7,10 @@ the launcher), so a report can be made at any time after (or during) a run:
   ``wait`` in grey, gaps idle); ``gantt_zoom.png`` — the last ``ZOOM_S``
   seconds of the window, where single spans are visible;
 * ``throughput.png`` — env steps/s and trajectories/s over time (sim stats);
+* ``learning.png`` — learning curves against env steps and against wall-clock time: every episode's return
+  with the 20-episode mean, training success, evaluated success with its 95 % interval and evaluated return
+  (when the run had an eval service), and the losses (the same points the tracking sinks write,
+  ``ebrl.tracking.curves``);
 * ``report.md`` — per lane busy, waiting and idle fractions, how much of
   training overlapped rollout, throughput per time bin, and the event log.
 """
@@ -19,6 +23,7 @@ import time
 from pathlib import Path
 from typing import Any
 
+from ebrl.messages import StatsReport
 from ebrl.viz import record
 from ebrl.viz.timeline import STATE_COLORS, intersect, is_busy, lane_order, state_of, total, union
 
@@ -144,6 +149,85 @@ def throughput_plot(points: list[tuple[float, float, float]], lo: float, path: P
     plt.close(fig)
 
 
+def learning_curves(rec: record.Recording) -> dict[str, list]:
+    """The tracked points of the recording, per key (env steps as the log service counts them)."""
+    from ebrl import tracking
+
+    messages = sorted([*rec.stats, *rec.episodes],
+                      key=lambda m: m.time if isinstance(m, StatsReport) else max(m.end_time, default=0.0))
+    return tracking.curves(messages)
+
+
+# (panel title, [(key, label, colour)]) of learning.png, top to bottom
+LEARNING_PANELS = (
+    ("return", [("sim/episode_return_mean", "mean of the last 20 episodes", "tab:blue"),
+                ("eval/return", "evaluated (deterministic)", "tab:red")]),
+    ("success rate", [("sim/success_rate", "training (last 20 episodes)", "tab:blue"),
+                      ("eval/success_rate", "evaluated, 95 % interval", "tab:red")]),
+    ("value loss", [("train/value_loss", "value loss", "tab:green")]),
+    ("policy loss and KL", [("train/policy_loss", "policy loss", "tab:purple"),
+                            ("train/approx_kl", "approx. KL (right axis)", "tab:orange")]),
+)
+RIGHT_AXIS = ("train/approx_kl",)  # drawn on a second y axis of its panel (another scale)
+
+
+def learning_plot(series: dict[str, list], t0: float, path: Path, title: str) -> bool:
+    """Draw ``learning.png``: the panels against env steps (left) and wall-clock seconds (right); False when the
+    recording has no learning curve at all (nothing drawn)."""
+    wanted = {key for _, lines in LEARNING_PANELS for key, _, _ in lines} | {"episode/return"}
+    if not any(series.get(key) for key in wanted):
+        return False
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(len(LEARNING_PANELS), 2, figsize=(14, 3.3 * len(LEARNING_PANELS)), dpi=100,
+                             squeeze=False)
+    for column, (axis_name, x_of) in enumerate((("env steps", lambda p: p.step),
+                                                ("wall-clock seconds", lambda p: p.wall_time - t0))):
+        for row, (panel, lines) in enumerate(LEARNING_PANELS):
+            ax = axes[row][column]
+            if panel == "return" and series.get("episode/return"):
+                eps = series["episode/return"]
+                ax.scatter([x_of(p) for p in eps], [p.value for p in eps], s=4, alpha=0.25, color="tab:blue",
+                           linewidths=0, label="each episode")
+            if panel == "success rate" and series.get("episode/success"):
+                ax.set_ylim(-0.05, 1.05)
+            handles = []
+            for key, label, colour in lines:
+                points = series.get(key, [])
+                if not points:
+                    continue
+                xs, ys = [x_of(p) for p in points], [p.value for p in points]
+                if key.startswith("eval/"):
+                    handles += ax.plot(xs, ys, "o-", color=colour, label=label, markersize=4)
+                    lo, hi = series.get(f"{key}_lo", []), series.get(f"{key}_hi", [])
+                    if lo and hi and len(lo) == len(hi) == len(points):
+                        ax.fill_between(xs, [p.value for p in lo], [p.value for p in hi], color=colour, alpha=0.2)
+                elif key in RIGHT_AXIS:
+                    right = ax.twinx()
+                    handles += right.plot(xs, ys, color=colour, label=label, linewidth=1)
+                    right.tick_params(axis="y", colors=colour)
+                else:
+                    handles += ax.plot(xs, ys, color=colour, label=label, linewidth=1.3)
+            if panel == "value loss" and all(p.value > 0 for p in series.get("train/value_loss", [])):
+                ax.set_yscale("log")
+            ax.set_title(f"{panel} vs {axis_name}", fontsize=10)
+            ax.set_xlabel(axis_name)
+            ax.grid(alpha=0.3)
+            if ax.has_data():
+                scatter = [h for h in ax.collections if h.get_label() == "each episode"]
+                ax.legend(handles=scatter + handles, fontsize=8, loc="best")
+            else:
+                ax.text(0.5, 0.5, "not recorded", ha="center", va="center", transform=ax.transAxes, color="gray")
+    fig.suptitle(title)
+    fig.tight_layout()
+    fig.savefig(path)
+    plt.close(fig)
+    return True
+
+
 def write(run_dir: str | Path, start: float | None = None, end: float | None = None, last: float | None = None,
           out: str | Path | None = None) -> dict[str, Path]:
     """Write the report files of ``run_dir`` (window relative to the first record); return their paths."""
@@ -166,12 +250,52 @@ def write(run_dir: str | Path, start: float | None = None, end: float | None = N
     gantt(rec, zlo, hi, paths["gantt_zoom"], f"{run_name}: last {hi - zlo:.0f} s of the window")
     points = throughput(rec, lo, hi)
     throughput_plot(points, lo, paths["throughput"])
-    paths["markdown"].write_text(markdown(rec, run_name, lo, hi, t0, lanes, points, paths))
+    series = learning_curves(rec)  # the whole run: a learning curve is not cut to the window
+    paths["learning"] = out_dir / "learning.png"
+    if not learning_plot(series, t0, paths["learning"], f"{run_name}: learning curves"):
+        del paths["learning"]
+    paths["markdown"].write_text(markdown(rec, run_name, lo, hi, t0, lanes, points, paths, series))
     return paths
 
 
+def learning_markdown(series: dict[str, list], paths: dict[str, Path]) -> list[str]:
+    """The "Learning" section: the curves, the episodes' returns and every evaluation."""
+    lines = ["## Learning", ""]
+    if "learning" in paths:
+        lines += [f"![learning curves]({paths['learning'].name})", ""]
+    episodes = series.get("episode/return", [])
+    if episodes:
+        last = episodes[-20:]
+        lines.append(f"{len(episodes)} episodes recorded over {episodes[-1].step:,} env steps; the last "
+                     f"{len(last)} returned {statistics.fmean(p.value for p in last):.1f} on average "
+                     f"(best episode {max(p.value for p in episodes):.1f}).")
+        success = series.get("episode/success", [])
+        if success:
+            tail = success[-20:]
+            lines.append(f"Training success over the last {len(tail)} episodes: "
+                         f"{statistics.fmean(p.value for p in tail):.0%}.")
+        lines.append("")
+    evals = series.get("eval/success_rate", []) or series.get("eval/return", [])
+    if evals:
+        def at(key: str, step: int) -> str:
+            found = [p.value for p in series.get(key, []) if p.step == step]
+            return f"{found[-1]:.3g}" if found else "-"
+
+        lines += ["| policy version | env steps | success | 95 % interval | return | episode length |",
+                  "|---|---|---|---|---|---|"]
+        for p in evals:
+            lines.append(f"| {at('eval/version', p.step)} | {p.step:,} | {at('eval/success_rate', p.step)} "
+                         f"| {at('eval/success_rate_lo', p.step)} - {at('eval/success_rate_hi', p.step)} "
+                         f"| {at('eval/return', p.step)} | {at('eval/episode_length', p.step)} |")
+        lines.append("")
+    if len(lines) == 2:
+        lines += ["No learning curve recorded (no episode ended and no training or eval stats).", ""]
+    return lines
+
+
 def markdown(rec: record.Recording, run_name: str, lo: float, hi: float, t0: float, lanes: list[str],
-             points: list[tuple[float, float, float]], paths: dict[str, Path]) -> str:
+             points: list[tuple[float, float, float]], paths: dict[str, Path],
+             series: dict[str, list] | None = None) -> str:
     lines = [f"# Run {run_name}", "",
              f"Window: {lo - t0:.1f}-{hi - t0:.1f} s after the first record ({hi - lo:.1f} s); "
              f"{len(rec.spans)} spans, {len(rec.stats)} stats reports, {len(rec.events)} events recorded"
@@ -195,6 +319,7 @@ def markdown(rec: record.Recording, run_name: str, lo: float, hi: float, t0: flo
             if inside:
                 lines.append(f"| {a - t0:.0f} | {b - t0:.0f} | {statistics.fmean(p[1] for p in inside):,.0f} "
                              f"| {statistics.fmean(p[2] for p in inside):.2f} |")
+    lines += [""] + learning_markdown(series or {}, paths)
     if rec.events:
         lines += ["", "## Events", ""]
         lines += [f"- {e.time - t0:7.1f} s  {e.service}/{e.instance} {e.kind}: {e.text}" for e in rec.events[:200]]

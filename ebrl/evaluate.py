@@ -134,7 +134,8 @@ class EvalResult:
         return {"policy": self.policy, "version": self.version, "env": self.env_id,
                 "episodes": len(self.episodes), "seeds": [e.seed for e in self.episodes],
                 "deterministic": self.deterministic, "confidence": CONFIDENCE, **self.summary(),
-                "per_episode": [dataclasses.asdict(e) for e in self.episodes],
+                "per_episode": [{"seed": e.seed, "return": e.ret, "length": e.length, "success": e.success,
+                                 "video": e.video} for e in self.episodes],
                 "videos": [e.video for e in self.episodes if e.video], "seconds": self.seconds,
                 "ebrl_version": __version__, "time": time.time()}
 
@@ -275,6 +276,118 @@ def _episode(policy: Any, env: Any, seed: int, deterministic: bool, recorder: Vi
         if recorder is not None:
             recorder.close()
     return Episode(seed, total, length, success, str(recorder.path) if recorder is not None else None)
+
+
+# --- ebrl eval ---------------------------------------------------------------------------------------------
+
+
+def command(path: str, *, episodes: int = 10, seed: int | None = None, video: str | None = None,
+            video_episodes: int = 3, stochastic: bool = False, best: bool = False, config: str | None = None,
+            out: str | None = None) -> int:
+    """``ebrl eval PATH``: evaluate, print the table, write ``eval.json``; 0, or 2 when nothing could be run."""
+    import sys
+
+    from ebrl.config import ConfigError
+    from ebrl.envs import EnvError
+    from ebrl.envs.render import RenderingUnavailable, choose_gl
+    from ebrl.policies.portable import load_policy
+
+    if episodes < 1 or video_episodes < 0:
+        print("ebrl eval: --episodes must be >= 1 and --video-episodes >= 0", file=sys.stderr)
+        return 2
+    try:
+        if video:
+            choose_gl()  # MuJoCo renders offscreen: its GL backend is fixed when mujoco is first imported
+        policy = load_policy(path, which="best" if best else "latest", config=config)
+        result = run_episodes(policy, episodes, EVAL_SEED if seed is None else seed, not stochastic,
+                              video_dir=video, video_episodes=video_episodes if video else 0)
+    except (OSError, ValueError, ConfigError, EnvError, RenderingUnavailable) as exc:
+        print(f"ebrl eval: {exc}", file=sys.stderr)
+        return 2
+    print(result.table())
+    target = Path(out) if out else (Path(path) / EVAL_FILE if Path(path).is_dir() else Path.cwd() / EVAL_FILE)
+    print(f"policy: {policy.path}")
+    for episode in result.episodes:
+        if episode.video:
+            print(f"video: {episode.video}")
+    print(f"wrote {write_json(result, target)}")
+    return 0
+
+
+# --- the eval service: which versions, the best one, the workers ---------------------------------------------
+
+
+class EvalSchedule:
+    """Which weights versions the eval service evaluates: ``every``-th ones (v > 0) and ``final`` (run.iterations,
+    0: none). One due version waits while an evaluation runs; a newer due one replaces it (``skipped``), so a
+    slow evaluation falls behind by dropping versions, never by queueing them, and always takes the newest."""
+
+    def __init__(self, every: int, final: int = 0):
+        self.every, self.final = every, final
+        self.pending: Any = None  # the weights waiting (anything with a .version)
+        self.last = -1  # the newest version taken for evaluation
+        self.skipped = 0
+
+    def due(self, version: int) -> bool:
+        return version > max(self.last, 0) and (version % self.every == 0 or version == self.final)
+
+    def offer(self, weights: Any) -> bool:
+        """A new version arrived; True if it is now the one waiting."""
+        if not self.due(weights.version) or (self.pending is not None and weights.version <= self.pending.version):
+            return False
+        if self.pending is not None:
+            self.skipped += 1
+        self.pending = weights
+        return True
+
+    def take(self) -> Any:
+        """The weights to evaluate next (None: none waiting)."""
+        weights, self.pending = self.pending, None
+        if weights is not None:
+            self.last = weights.version
+        return weights
+
+
+def score(result: EvalResult) -> tuple[float, float]:
+    """How evaluations rank: success rate (an env without one: all equal), then mean return."""
+    summary = result.summary()
+    rate = summary["success_rate"]["rate"] if summary["success_rate"] is not None else -1.0
+    return rate, summary["return"]["mean"]
+
+
+class BestPolicy:
+    """``RUN_DIR/best.safetensors``: the evaluated version with the best :func:`score`, a portable policy whose
+    metadata also holds its evaluation (``eval_success_rate``, ``eval_return``, ...). A restarted eval service
+    (or a resumed run) reads the score of the file already there and only replaces it with a better one."""
+
+    def __init__(self, path: str | os.PathLike):
+        self.path = Path(path)
+        self.score: tuple[float, float] | None = None
+        self.version: int | None = None
+        if self.path.is_file():
+            from ebrl.policies.checkpoint import read_metadata
+
+            try:
+                meta = read_metadata(str(self.path))
+                self.score = (float(meta["eval_success_rate"]), float(meta["eval_return"]))
+                self.version = int(meta["version"])
+            except (KeyError, ValueError, OSError):
+                self.score = None  # unreadable: the next evaluation replaces it
+
+    def better(self, result: EvalResult) -> bool:
+        return self.score is None or score(result) > self.score
+
+    def save(self, model: Any, metadata: dict[str, str], result: EvalResult) -> Path:
+        """Write ``model`` (holding ``result``'s weights) atomically (fsynced) as the best policy."""
+        from ebrl.policies import save_checkpoint
+
+        rate, ret = score(result)
+        save_checkpoint(model, str(self.path), {
+            **metadata, "version": str(result.version), "eval_success_rate": repr(rate), "eval_return": repr(ret),
+            "eval_episodes": str(len(result.episodes)), "eval_first_seed": str(result.episodes[0].seed),
+            "eval_deterministic": str(result.deterministic).lower()})
+        self.score, self.version = (rate, ret), result.version
+        return self.path
 
 
 # --- the eval service's workers -----------------------------------------------------------------------------

@@ -43,7 +43,7 @@ log = logging.getLogger("ebrl.launch")
 
 EVERY_HOST = "all"  # the instance chunk of the run-wide stop: ctl/<run>/launcher/all/stop
 PRIMARY_ENDED = "the primary host ended the run"
-OPTIONAL_ROLES = ("log",)  # services no other one needs: a death that restarts do not mend never ends the run
+OPTIONAL_ROLES = ("log", "eval")  # services no other one needs: a death that restarts do not mend never ends the run
 
 
 def make_run_dir(cfg: config_mod.Config) -> Path:
@@ -131,6 +131,7 @@ class Launcher:
         self.stop_reason = ""
         self.ctl_unknown = 0
         self.started = time.monotonic()
+        self.final_eval_deadline: float | None = None  # monotonic: how long the final evaluation is waited for
 
     async def main(self) -> int:
         self.stopping = asyncio.Event()
@@ -232,8 +233,11 @@ class Launcher:
                     self.console.say(f"\nebrl: {self.failure}")
                     return 1
             elif self.view.iterations_done():
-                self.show_progress(force=True)
-                return 0
+                if self.final_evaluation_pending():
+                    pass  # the other services idle (no new version), the eval service takes the cores
+                else:
+                    self.show_progress(force=True)
+                    return 0
             elif (reached := self.view.target_reached(self.elapsed())) is not None:
                 self.show_progress(force=True)
                 self.console.say(reached)
@@ -245,6 +249,23 @@ class Launcher:
         if self.stop_reason == PRIMARY_ENDED:
             return 0
         return 130 if self.stop_reason.startswith("signal SIGINT") else 143
+
+    def final_evaluation_pending(self) -> bool:
+        """Once run.iterations are done: whether to wait on for the eval service's result of the final version
+        (``eval.final_timeout``; not for a dead eval service, and only this host's)."""
+        timeout, final = self.cfg.eval.final_timeout, self.cfg.run.iterations
+        evaluating = [c for c in self.supervisor.children if c.role == "eval" and not c.given_up]
+        if not evaluating or timeout <= 0 or (self.view.evaluated_version() or 0) >= final:
+            return False
+        now = time.monotonic()
+        if self.final_eval_deadline is None:
+            self.final_eval_deadline = now + timeout
+            self.console.say(f"\nrun.iterations done: waiting for the evaluation of the final policy v{final} (at "
+                             f"most eval.final_timeout = {timeout:g} s; Ctrl-C skips it)")
+        if now > self.final_eval_deadline:
+            self.console.say(f"\nebrl: no evaluation of v{final} after {timeout:g} s; stopping without it")
+            return False
+        return True
 
     def show_progress(self, force: bool = False) -> None:
         hosts = len(self.members.hosts_up) + 1 if self.plan.multi else None

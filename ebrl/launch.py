@@ -28,6 +28,7 @@ import signal
 import sys
 import time
 from pathlib import Path
+from typing import Callable
 
 from ebrl import config as config_mod, devices, meta, procenv, tracking
 from ebrl.bus import Bus, BusOptions, auth, keys
@@ -117,6 +118,30 @@ class LauncherBus:
             self.recorder.close()
 
 
+class FinalEvaluation:
+    """Once run.iterations are done, the launcher waits for the eval service's result of the final version, at
+    most ``timeout`` seconds (the other services idle meanwhile: no new version comes); not for a dead eval
+    service, nor one on another host."""
+
+    def __init__(self, timeout: float, final: int, say: Callable[[str], None]):
+        self.timeout, self.final, self.say = timeout, final, say
+        self.deadline: float | None = None  # monotonic
+
+    def pending(self, view: RunView, children: list) -> bool:
+        if (not any(c.role == "eval" and not c.given_up for c in children) or self.timeout <= 0
+                or (view.evaluated_version() or 0) >= self.final):
+            return False
+        now = time.monotonic()
+        if self.deadline is None:
+            self.deadline = now + self.timeout
+            self.say(f"\nrun.iterations done: waiting for the evaluation of the final policy v{self.final} (at most "
+                     f"eval.final_timeout = {self.timeout:g} s; Ctrl-C skips it)")
+        if now > self.deadline:
+            self.say(f"\nebrl: no evaluation of v{self.final} after {self.timeout:g} s; stopping without it")
+            return False
+        return True
+
+
 class Launcher:
     def __init__(self, cfg: config_mod.Config, run_dir: Path, out=sys.stdout, plan: HostPlan | None = None,
                  gpu_env: dict[str, dict[str, str]] | None = None):
@@ -131,7 +156,7 @@ class Launcher:
         self.stop_reason = ""
         self.ctl_unknown = 0
         self.started = time.monotonic()
-        self.final_eval_deadline: float | None = None  # monotonic: how long the final evaluation is waited for
+        self.final_eval = FinalEvaluation(cfg.eval.final_timeout, cfg.run.iterations, self.console.say)
 
     async def main(self) -> int:
         self.stopping = asyncio.Event()
@@ -233,9 +258,7 @@ class Launcher:
                     self.console.say(f"\nebrl: {self.failure}")
                     return 1
             elif self.view.iterations_done():
-                if self.final_evaluation_pending():
-                    pass  # the other services idle (no new version), the eval service takes the cores
-                else:
+                if not self.final_eval.pending(self.view, self.supervisor.children):
                     self.show_progress(force=True)
                     return 0
             elif (reached := self.view.target_reached(self.elapsed())) is not None:
@@ -249,23 +272,6 @@ class Launcher:
         if self.stop_reason == PRIMARY_ENDED:
             return 0
         return 130 if self.stop_reason.startswith("signal SIGINT") else 143
-
-    def final_evaluation_pending(self) -> bool:
-        """Once run.iterations are done: whether to wait on for the eval service's result of the final version
-        (``eval.final_timeout``; not for a dead eval service, and only this host's)."""
-        timeout, final = self.cfg.eval.final_timeout, self.cfg.run.iterations
-        evaluating = [c for c in self.supervisor.children if c.role == "eval" and not c.given_up]
-        if not evaluating or timeout <= 0 or (self.view.evaluated_version() or 0) >= final:
-            return False
-        now = time.monotonic()
-        if self.final_eval_deadline is None:
-            self.final_eval_deadline = now + timeout
-            self.console.say(f"\nrun.iterations done: waiting for the evaluation of the final policy v{final} (at "
-                             f"most eval.final_timeout = {timeout:g} s; Ctrl-C skips it)")
-        if now > self.final_eval_deadline:
-            self.console.say(f"\nebrl: no evaluation of v{final} after {timeout:g} s; stopping without it")
-            return False
-        return True
 
     def show_progress(self, force: bool = False) -> None:
         hosts = len(self.members.hosts_up) + 1 if self.plan.multi else None

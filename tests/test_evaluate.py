@@ -193,3 +193,52 @@ def test_worker_processes_evaluate_like_the_library_loop(tmp_path):
     assert result.version == 7 and result.episodes[0].video.endswith("episode-0.mp4") and result.episodes[1].video is None
     assert len([f for f in imageio.get_reader(result.episodes[0].video)]) == result.episodes[0].length + 1
     assert [e.ret for e in other.episodes] != [e.ret for e in result.episodes]
+
+
+def test_the_launcher_waits_for_the_final_evaluation_only_while_it_can_come(monkeypatch):
+    from ebrl import launch
+    from ebrl.messages import StatsReport
+    from ebrl.runview import RunView
+
+    def result(version: float) -> tuple:
+        return "ebrl/stats/r/eval/0", StatsReport(run="r", service="eval", instance=0, time=0.0, seq=0,
+                                                  metrics={"eval/version": version, "eval/return": 1.0})
+
+    said, now = [], [100.0]
+    monkeypatch.setattr(launch.time, "monotonic", lambda: now[0])
+    view, evaluator = RunView("r", iterations=4), SimpleNamespace(role="eval", given_up=False)
+    wait = launch.FinalEvaluation(60.0, 4, said.append)
+    assert wait.pending(view, [evaluator]) and "waiting for the evaluation of the final policy v4" in said[0]
+    view.on_report(*result(2.0))
+    view.on_report("ebrl/stats/r/eval/0", StatsReport(run="r", service="eval", instance=0, time=0.0, seq=1,
+                                                      metrics={"eval/busy": 1.0}))  # a periodic report
+    assert wait.pending(view, [evaluator]) and view.evaluated_version() == 2 and "eval v2" in view.progress_line(1.0)
+    view.on_report(*result(4.0))
+    assert not wait.pending(view, [evaluator])
+    assert not launch.FinalEvaluation(60.0, 5, said.append).pending(view, [])  # no eval service on this host
+    assert not launch.FinalEvaluation(60.0, 5, said.append).pending(view, [SimpleNamespace(role="eval",
+                                                                                             given_up=True)])
+    assert not launch.FinalEvaluation(0.0, 5, said.append).pending(view, [evaluator])
+    late = launch.FinalEvaluation(60.0, 5, said.append)
+    assert late.pending(view, [evaluator])
+    now[0] += 61
+    assert not late.pending(view, [evaluator]) and "no evaluation of v5 after 60 s" in said[-1]
+
+
+def test_the_eval_section_is_checked_and_turns_the_service_on():
+    from ebrl.config import ConfigError, describe as describe_keys, from_dict
+    from ebrl.hosts import enabled_roles, plan
+
+    cfg = from_dict({"eval": {"every": 5}})
+    assert (cfg.eval.seeds, cfg.eval.deterministic, cfg.eval.episodes) == (2_000_000_000, True, 10)
+    assert "eval" in enabled_roles(cfg) and "eval" not in enabled_roles(from_dict({}))
+    assert "eval" in plan(cfg, only="train")[1].roles and "eval" not in plan(cfg, only="sim", instance=1)[1].roles
+    with pytest.raises(ConfigError, match="did you mean eval.episodes"):
+        from_dict({"eval": {"episode": 3}})
+    with pytest.raises(ConfigError, match="eval.seeds"):
+        from_dict({"eval": {"seeds": 2**32}})
+    with pytest.raises(ConfigError, match=r"\[eval\]"):
+        from_dict({"eval": {"every": -1}})
+    listing = describe_keys()
+    assert all(f"  {key} (" in listing.split("[eval]")[1] for key in ("every", "episodes", "seeds", "deterministic",
+                                                                      "video_episodes", "cores", "final_timeout"))

@@ -192,19 +192,22 @@ def video_format() -> str:
 
 
 class VideoWriter:
-    """Frames to ``<stem>.mp4`` (or ``.gif`` where no encoder is installed) at ``fps``, as they come."""
+    """Frames to ``<stem>.mp4`` (or ``.gif`` where no encoder is installed) at ``fps``, as they come. The file is
+    written as ``<stem>.tmp.<format>`` and renamed when it is complete: an episode cut short (the run ended, the
+    service was stopped) leaves no truncated video under the final name."""
 
     def __init__(self, stem: str | os.PathLike, fps: float, fmt: str | None = None):
         import imageio
 
         self.format = fmt or video_format()
         self.path = Path(f"{stem}.{self.format}")
+        self._tmp = Path(f"{stem}.tmp.{self.format}")
         self.path.parent.mkdir(parents=True, exist_ok=True)
         if self.format == "mp4":  # yuv420p plays everywhere; frame sides are rounded up to a multiple of 16
-            self._writer = imageio.get_writer(self.path, fps=fps, codec="libx264", quality=7,
+            self._writer = imageio.get_writer(self._tmp, fps=fps, codec="libx264", quality=7,
                                               pixelformat="yuv420p", ffmpeg_log_level="error")
         else:
-            self._writer = imageio.get_writer(self.path, duration=1000.0 / fps, loop=0)
+            self._writer = imageio.get_writer(self._tmp, duration=1000.0 / fps, loop=0)
         self.frames = 0
 
     def add(self, frame: np.ndarray | None) -> None:
@@ -213,7 +216,16 @@ class VideoWriter:
             self.frames += 1
 
     def close(self) -> None:
+        """Finish the file and give it its name."""
         self._writer.close()
+        os.replace(self._tmp, self.path)
+
+    def abort(self) -> None:
+        """Drop the unfinished file."""
+        try:
+            self._writer.close()
+        finally:
+            self._tmp.unlink(missing_ok=True)
 
 
 def env_fps(env: Any) -> float:
@@ -274,9 +286,12 @@ def _episode(policy: Any, env: Any, seed: int, deterministic: bool, recorder: Vi
                 recorder.add(env.render())
             if terminated or truncated:
                 break
-    finally:
+    except BaseException:
         if recorder is not None:
-            recorder.close()
+            recorder.abort()
+        raise
+    if recorder is not None:
+        recorder.close()
     return Episode(seed, total, length, success, str(recorder.path) if recorder is not None else None)
 
 
@@ -401,7 +416,9 @@ class EvalPool:
     with one torch thread. The episodes of an evaluation are dealt out round-robin; each worker builds the
     policy from ``metadata`` once and loads each version's weights into it, and keeps its env."""
 
-    def __init__(self, metadata: dict[str, str], cores: list[int] | None = None):
+    def __init__(self, metadata: dict[str, str], cores: list[int] | None = None, render: bool = False):
+        """``render``: some evaluations record videos (a MuJoCo env's GL backend is then chosen as each worker
+        starts, before anything imports mujoco there)."""
         self.metadata, self.cores = metadata, list(cores or [])
         self.workers = max(1, len(self.cores))
         ctx = multiprocessing.get_context("spawn")  # a fresh interpreter: no forked threads, its own GL choice
@@ -409,7 +426,7 @@ class EvalPool:
         for core in self.cores:
             queue.put(core)
         self._pool = concurrent.futures.ProcessPoolExecutor(self.workers, mp_context=ctx, initializer=_init_worker,
-                                                            initargs=(queue, bool(self.cores)))
+                                                            initargs=(queue, bool(self.cores), render))
 
     def evaluate(self, params: dict[str, np.ndarray], version: int, episodes: int, seed: int, deterministic: bool,
                  video_dir: str | None = None, video_episodes: int = 0) -> EvalResult:
@@ -423,18 +440,26 @@ class EvalPool:
             self.metadata["env"]).get("id", ""), seconds=time.perf_counter() - start)
 
     def close(self) -> None:
+        """Stop at once: the workers are killed (an evaluation in progress is dropped, its video never named)."""
+        processes = list((getattr(self._pool, "_processes", None) or {}).values())  # CPython's; no public API
         self._pool.shutdown(wait=False, cancel_futures=True)
+        for process in processes:
+            process.kill()
 
 
 _worker: dict[str, Any] = {}  # in a worker process: its policy, env and the metadata they were built from
 
 
-def _init_worker(cores: Any, pinned: bool) -> None:
+def _init_worker(cores: Any, pinned: bool, render: bool) -> None:
     import ctypes
     import signal
 
     import torch
 
+    if render:
+        from ebrl.envs.render import choose_gl
+
+        choose_gl()
     ctypes.CDLL("libc.so.6", use_errno=True).prctl(1, signal.SIGKILL)  # PR_SET_PDEATHSIG: dies with the service
     lower_priority()
     if pinned:

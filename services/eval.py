@@ -36,12 +36,13 @@ class EvalService(Service):
         self.model = make_policy(dataclasses.replace(cfg.policy, checkpoint=""), info.layout, info.action_dim)
         self.metadata = {**policy_metadata(self.model), **portable_metadata(cfg.policy, cfg.env, info),
                          "run": self.run_name}
-        self.workers = EvalPool(self.metadata, cfg.eval.cores)
+        self.workers = EvalPool(self.metadata, cfg.eval.cores, render=cfg.eval.video_episodes > 0)
         self.thread = concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix="eval")  # waits on the workers
         self.schedule = EvalSchedule(cfg.eval.every, cfg.run.iterations)
         self.best = BestPolicy(os.path.join(self.run_dir, "best.safetensors"))
         self.newest = -1
         self.evaluations = 0
+        self.video_dir: str | None = None  # of the evaluation in progress
         self.busy = False
         self.wake, self.due = asyncio.Event(), asyncio.Event()
         self.weights = WeightsReceiver(self.bus, self.run_name, notify=self.wake)
@@ -77,7 +78,7 @@ class EvalService(Service):
     async def evaluate(self, weights) -> None:
         e, loop, version = self.cfg.eval, asyncio.get_running_loop(), weights.version
         video_dir = os.path.join(self.run_dir, "videos", f"v{version}") if e.video_episodes else None
-        start, self.busy = time.time(), True
+        start, self.busy, self.video_dir = time.time(), True, video_dir
         try:
             result = await loop.run_in_executor(self.thread, self.workers.evaluate, weights.params, version,
                                                 e.episodes, e.seeds, e.deterministic, video_dir, e.video_episodes)
@@ -90,6 +91,7 @@ class EvalService(Service):
             return
         finally:
             self.busy = False
+        self.video_dir = None  # complete
         self.publish_span("eval", f"v{version}", start, time.time())
         self.evaluations += 1
         await self.publish_report(result.metrics())
@@ -111,8 +113,14 @@ class EvalService(Service):
         return out
 
     async def teardown(self) -> None:
-        self.workers.close()
+        self.workers.close()  # an evaluation in progress is dropped with its unfinished videos
         self.thread.shutdown(wait=False, cancel_futures=True)
+        if self.video_dir and os.path.isdir(self.video_dir):
+            for name in os.listdir(self.video_dir):
+                if ".tmp." in name:
+                    os.remove(os.path.join(self.video_dir, name))
+            if not os.listdir(self.video_dir):
+                os.rmdir(self.video_dir)
 
 
 def describe_result(result: EvalResult) -> str:

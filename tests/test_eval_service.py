@@ -1,15 +1,20 @@
 """The eval service in real runs: `ebrl up` with eval.every > 0 (real processes, real Zenoh, the quickstart env)."""
 
 import json
+import os
+import subprocess
+import sys
 import time
 
 import imageio
 import psutil
+import pytest
 
 import ebrl
 import helpers
 from ebrl.policies.checkpoint import read_metadata
 from ebrl.viz import record
+from test_portable import SCRIPT
 
 EVAL_NAMES = {"eval/return", "eval/return_lo", "eval/return_hi", "eval/episode_length", "eval/version"}
 
@@ -69,3 +74,26 @@ def test_an_eval_service_that_dies_never_stops_the_run(tmp_path):
     assert "waiting for the evaluation" not in run.output  # nothing waits for a dead eval service
     _, alive = psutil.wait_procs(workers, timeout=10)
     assert not alive, f"eval workers left behind: {alive}"
+
+
+@pytest.mark.slow
+def test_the_trained_quickstart_policy_reaches_the_reported_return_in_a_ten_line_script(tmp_path):
+    """The issue's acceptance: a 10-line script with ebrl.load_policy plays the trained quickstart policy in a plain
+    gymnasium loop and reaches the return the run reported (deterministic, within 5 %)."""
+    with helpers.up(tmp_path / "runs", "configs/quickstart.toml", "eval.every=50", name="evallearn") as run:
+        assert run.wait(900) == 0, run.output
+    summary = json.loads((run.run_dir / "summary.json").read_text())
+    assert summary["target_reached"] is not None, run.output
+    script = tmp_path / "play.py"
+    script.write_text(SCRIPT)
+    env = dict(os.environ, PYTHONPATH=str(helpers.ROOT))
+    played = subprocess.run([sys.executable, str(script), str(run.run_dir)], capture_output=True, text=True,
+                            timeout=300, env=env)
+    assert played.returncode == 0, played.stderr
+    assert float(played.stdout.split()[-1]) >= 0.95 * summary["final_return"]
+    evaluated = subprocess.run([sys.executable, "-m", "ebrl.cli", "eval", str(run.run_dir), "--episodes", "10"],
+                               capture_output=True, text=True, timeout=600, env=env)
+    assert evaluated.returncode == 0, evaluated.stderr
+    print(evaluated.stdout)
+    report = json.loads((run.run_dir / "eval.json").read_text())
+    assert report["return"]["mean"] >= 0.95 * summary["final_return"]

@@ -178,7 +178,7 @@ def test_worker_processes_evaluate_like_the_library_loop(tmp_path):
     model = save(tmp_path / "p.safetensors", env=PENDULUM, seed=5)
     info = describe(EnvSpec.from_config(PENDULUM))
     metadata = {**policy_metadata(model), **portable_metadata(POLICY, PENDULUM, info)}
-    pool = EvalPool(metadata, cores=[0])
+    pool = EvalPool(metadata, cores=[0], render=True)
     try:
         result = pool.evaluate(state_arrays(model), 7, 3, 100, True, str(tmp_path / "videos"), 1)
         torch.manual_seed(1)
@@ -242,3 +242,20 @@ def test_the_eval_section_is_checked_and_turns_the_service_on():
     listing = describe_keys()
     assert all(f"  {key} (" in listing.split("[eval]")[1] for key in ("every", "episodes", "seeds", "deterministic",
                                                                       "video_episodes", "cores", "final_timeout"))
+
+
+def test_an_episode_cut_short_leaves_no_video(tmp_path):
+    save(tmp_path / "p.safetensors")
+    policy = ebrl.load_policy(tmp_path / "p.safetensors")
+    calls = []
+
+    def failing(obs, deterministic=True):
+        calls.append(1)
+        if len(calls) == 3:
+            raise RuntimeError("the simulator broke")
+        return np.zeros(1, np.float32)
+
+    policy.predict = failing
+    with pytest.raises(RuntimeError, match="simulator broke"):
+        run_episodes(policy, 2, video_dir=tmp_path / "v", video_episodes=2)
+    assert os.listdir(tmp_path / "v") == []

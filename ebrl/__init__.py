@@ -1,8 +1,8 @@
 """EBRL: asynchronous embodied reinforcement learning over a Zenoh bus.
 
-The programming API of the allocator is importable from here
-(``from ebrl import ResourcePool, EmbodiPlacement, profile``); it is loaded on
-first use, so ``import ebrl`` stays light for services that do not need it.
+A trained policy loads from here (``ebrl.load_policy(path)``, see ``ebrl.policies.portable``), and the
+programming API of the allocator is importable from here (``from ebrl import ResourcePool, EmbodiPlacement,
+profile``); each is loaded on first use, so ``import ebrl`` stays light for services that do not need it.
 """
 
 __version__ = "0.1.0"
@@ -12,6 +12,8 @@ _LAZY = {
     "EmbodiPlacement": "ebrl.alloc.placement",
     "StageRates": "ebrl.alloc.placement",
     "profile": "ebrl.alloc.profile",
+    "load_policy": "ebrl.policies.portable",
+    "PortablePolicy": "ebrl.policies.portable",
 }
 
 

@@ -1,4 +1,4 @@
-"""``ebrl`` command line: up, stats, profile, report, bench, router, secret, schemas, config."""
+"""``ebrl`` command line: up, eval, stats, profile, report, bench, router, secret, schemas, config."""
 
 from __future__ import annotations
 
@@ -30,6 +30,25 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--resume", default=None, metavar="RUN_DIR",
                    help="continue a stopped run in its directory, from its latest checkpoint (policy, optimizer, "
                         "version); run.iterations counts from the run's start")
+
+    p = sub.add_parser("eval", help="evaluate a trained policy on held-out seeds: a table, eval.json, videos")
+    p.add_argument("path", help="a run directory (its latest policy, or --best) or a .safetensors policy file")
+    p.add_argument("--episodes", type=int, default=10, help="episodes to run (default 10)")
+    p.add_argument("--seed", type=int, default=None,
+                   help="reset seed of the first episode; episode i uses seed + i (default 2000000000: held out "
+                        "from training's seeds, the same as the eval service's eval.seeds)")
+    p.add_argument("--video", default=None, metavar="DIR",
+                   help="record the first --video-episodes episodes to DIR (MP4, or GIF without an ffmpeg encoder)")
+    p.add_argument("--video-episodes", type=int, default=3, metavar="N", help="episodes recorded with --video (3)")
+    p.add_argument("--stochastic", action="store_true",
+                   help="sample actions (default: deterministic, the Gaussian mean; flow: x0 = 0, no final noise)")
+    p.add_argument("--best", action="store_true",
+                   help="a run directory's best.safetensors (the eval service's best) instead of its latest policy")
+    p.add_argument("--config", default=None, metavar="TOML",
+                   help="the run's config.toml, for a policy file written before policies carried their config")
+    p.add_argument("--out", default=None, metavar="FILE",
+                   help="where to write eval.json (default: RUN_DIR/eval.json for a run directory, ./eval.json "
+                        "for a file)")
 
     p = sub.add_parser("stats", help="print decoded ebrl/stats/** messages live")
     p.add_argument("run_dir", nargs="?", default="",
@@ -99,6 +118,12 @@ def main(argv: list[str] | None = None) -> int:
 
         return up(args.config, args.overrides, viz=args.viz, resume=args.resume, only=args.only, host=args.host,
                   instance=args.instance)
+    if args.command == "eval":
+        from ebrl.evaluate import command
+
+        return command(args.path, episodes=args.episodes, seed=args.seed, video=args.video,
+                       video_episodes=args.video_episodes, stochastic=args.stochastic, best=args.best,
+                       config=args.config, out=args.out)
     if args.command == "stats":
         from ebrl.stats import watch
 

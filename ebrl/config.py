@@ -259,7 +259,27 @@ class LogSection:
     flush_s: float = doc("seconds between flushes of the sinks to disk", 5.0)
 
 
-ROLES = ("viz", "log", "train", "gen", "sim", "alloc")  # every service a host can run, in start order
+@dataclass
+class EvalSection:
+    every: int = doc("evaluate every this many policy versions (v = every, 2 x every, ..., and the final version "
+                     "of run.iterations) in the eval service; 0: no eval service. A version published while an "
+                     "evaluation runs waits; a newer one replaces it (eval/versions_skipped)", 0)
+    episodes: int = doc("episodes per evaluation", 10)
+    seeds: int = doc("reset seed of the first evaluation episode; episode i resets with seeds + i, the same for "
+                     "every version. The default is far from training's reset seeds (run.seed * 100003 + env + "
+                     "7919 x episode), so evaluation runs on held-out initial states", 2_000_000_000)
+    deterministic: bool = doc("deterministic actions (the Gaussian mean; flow: initial noise x0 = 0 and no noise at "
+                              "the final step); false samples them", True)
+    video_episodes: int = doc("episodes of each evaluation recorded to RUN_DIR/videos/v<version>/ (MP4, or GIF "
+                              "without an ffmpeg encoder); 0: none", 1)
+    cores: list[int] = doc("the eval service's cores: one env worker process pinned to each; empty: one worker on "
+                           "any core. Always at idle priority (SCHED_IDLE), so it only takes CPU time training "
+                           "leaves", factory=list)
+    final_timeout: float = doc("seconds the launcher waits, once run.iterations are done, for the evaluation of "
+                               "the final version (the other services idle meanwhile); 0: it does not wait", 300.0)
+
+
+ROLES = ("viz", "log", "train", "gen", "sim", "eval", "alloc")  # every service a host can run, in start order
 
 
 @dataclass
@@ -286,6 +306,7 @@ SECTIONS: dict[str, type] = {
     "alloc": AllocSection,
     "viz": VizSection,
     "log": LogSection,
+    "eval": EvalSection,
 }
 
 
@@ -302,6 +323,7 @@ class Config:
     alloc: AllocSection = field(default_factory=AllocSection)
     viz: VizSection = field(default_factory=VizSection)
     log: LogSection = field(default_factory=LogSection)
+    eval: EvalSection = field(default_factory=EvalSection)
     hosts: dict[str, HostEntry] = field(default_factory=dict)  # [hosts.<name>]: which services run where
 
     @property
@@ -487,6 +509,13 @@ def _check_semantics(cfg: Config) -> None:
             raise ConfigError(f"algo.name = \"grpo\" with run.mode = {cfg.run.mode!r}: grpo learns from whole "
                               "episodes, which a rollout -> train barrier of fixed length cannot wait for; use "
                               "run.mode = \"ebrl\" or \"async\" (or train.overlap = true)")
+    if cfg.eval.every < 0 or cfg.eval.episodes < 1 or cfg.eval.video_episodes < 0 or cfg.eval.final_timeout < 0:
+        raise ConfigError(f"[eval]: every ({cfg.eval.every}), video_episodes ({cfg.eval.video_episodes}) and "
+                          f"final_timeout ({cfg.eval.final_timeout}) must be >= 0 and episodes "
+                          f"({cfg.eval.episodes}) >= 1")
+    if not 0 <= cfg.eval.seeds <= 2**32 - 1 - cfg.eval.episodes:
+        raise ConfigError(f"eval.seeds = {cfg.eval.seeds}: must be in [0, 2^32 - 1 - eval.episodes] (simulators "
+                          "take 32-bit seeds)")
     if cfg.algo.max_staleness < 0:
         raise ConfigError(f"algo.max_staleness = {cfg.algo.max_staleness}: must be >= 0")
     if cfg.run.slowdown:

@@ -53,7 +53,7 @@ class HostPlan:
 def enabled_roles(cfg: Config) -> tuple[str, ...]:
     """Every service the run has, in start order: viz and log first (they see the run from its start), the
     allocator last (it only reads the others' stats)."""
-    on = {"viz": cfg.viz.rerun != "off", "alloc": cfg.alloc.enabled, "log": sinks_on(cfg)}
+    on = {"viz": cfg.viz.rerun != "off", "alloc": cfg.alloc.enabled, "log": sinks_on(cfg), "eval": cfg.eval.every > 0}
     return tuple(r for r in ROLES if on.get(r, True))
 
 
@@ -74,8 +74,8 @@ def plan(cfg: Config, only: str | None = None, host: str | None = None, instance
             raise ConfigError(f"--host {host}: no [hosts.{host}] in the config (hosts: {known})")
         entry = cfg.hosts[host]
         named = {r for e in cfg.hosts.values() for r in e.services}
-        # viz and log go with train unless some host names them; the allocator always does (it plans that host)
-        wanted = set(entry.services) | ({"viz", "log", "alloc"} - named if "train" in entry.services else set())
+        # viz, log and eval go with train unless some host names them; the allocator always does (it plans that host)
+        wanted = set(entry.services) | ({"viz", "log", "eval", "alloc"} - named if "train" in entry.services else set())
         _allocator_with_train(wanted, f"[hosts.{host}]")
         bus = dataclasses.replace(cfg.bus, listen=list(entry.listen or cfg.bus.listen),
                                   connect=list(entry.connect or cfg.bus.connect))
@@ -95,12 +95,12 @@ def plan(cfg: Config, only: str | None = None, host: str | None = None, instance
     missing = [r for r in asked if r not in every]
     if missing:
         raise ConfigError(f"--only {only}: {', '.join(missing)} is off in this config (viz.rerun / alloc.enabled / "
-                          "[log])")
+                          "[log] / eval.every)")
     number = 0 if instance is None else instance
     if number < 0:
         raise ConfigError(f"--instance {number}: must be >= 0")
-    # the allocator and the tracking sinks go with training
-    wanted = set(asked) | ({"alloc", "log"} if "train" in asked else set())
+    # the allocator, the tracking sinks and the evaluation go with training
+    wanted = set(asked) | ({"alloc", "log", "eval"} if "train" in asked else set())
     _allocator_with_train(wanted, f"--only {only}")
     return cfg, HostPlan(tuple(r for r in every if r in wanted), number, True)
 

@@ -28,6 +28,7 @@ import signal
 import sys
 import time
 from pathlib import Path
+from typing import Callable
 
 from ebrl import config as config_mod, devices, meta, procenv, tracking
 from ebrl.bus import Bus, BusOptions, auth, keys
@@ -43,7 +44,7 @@ log = logging.getLogger("ebrl.launch")
 
 EVERY_HOST = "all"  # the instance chunk of the run-wide stop: ctl/<run>/launcher/all/stop
 PRIMARY_ENDED = "the primary host ended the run"
-OPTIONAL_ROLES = ("log",)  # services no other one needs: a death that restarts do not mend never ends the run
+OPTIONAL_ROLES = ("log", "eval")  # services no other one needs: a death that restarts do not mend never ends the run
 
 
 def make_run_dir(cfg: config_mod.Config) -> Path:
@@ -117,6 +118,30 @@ class LauncherBus:
             self.recorder.close()
 
 
+class FinalEvaluation:
+    """Once run.iterations are done, the launcher waits for the eval service's result of the final version, at
+    most ``timeout`` seconds (the other services idle meanwhile: no new version comes); not for a dead eval
+    service, nor one on another host."""
+
+    def __init__(self, timeout: float, final: int, say: Callable[[str], None]):
+        self.timeout, self.final, self.say = timeout, final, say
+        self.deadline: float | None = None  # monotonic
+
+    def pending(self, view: RunView, children: list) -> bool:
+        if (not any(c.role == "eval" and not c.given_up for c in children) or self.timeout <= 0
+                or (view.evaluated_version() or 0) >= self.final):
+            return False
+        now = time.monotonic()
+        if self.deadline is None:
+            self.deadline = now + self.timeout
+            self.say(f"\nrun.iterations done: waiting for the evaluation of the final policy v{self.final} (at most "
+                     f"eval.final_timeout = {self.timeout:g} s; Ctrl-C skips it)")
+        if now > self.deadline:
+            self.say(f"\nebrl: no evaluation of v{self.final} after {self.timeout:g} s; stopping without it")
+            return False
+        return True
+
+
 class Launcher:
     def __init__(self, cfg: config_mod.Config, run_dir: Path, out=sys.stdout, plan: HostPlan | None = None,
                  gpu_env: dict[str, dict[str, str]] | None = None):
@@ -131,6 +156,7 @@ class Launcher:
         self.stop_reason = ""
         self.ctl_unknown = 0
         self.started = time.monotonic()
+        self.final_eval = FinalEvaluation(cfg.eval.final_timeout, cfg.run.iterations, self.console.say)
 
     async def main(self) -> int:
         self.stopping = asyncio.Event()
@@ -232,8 +258,9 @@ class Launcher:
                     self.console.say(f"\nebrl: {self.failure}")
                     return 1
             elif self.view.iterations_done():
-                self.show_progress(force=True)
-                return 0
+                if not self.final_eval.pending(self.view, self.supervisor.children):
+                    self.show_progress(force=True)
+                    return 0
             elif (reached := self.view.target_reached(self.elapsed())) is not None:
                 self.show_progress(force=True)
                 self.console.say(reached)

@@ -38,11 +38,15 @@ class RunView:
     def __init__(self, run: str, iterations: int = 0, target_return: float | None = None):
         self.run, self.iterations, self.target_return = run, iterations, target_return
         self.stats: dict[str, StatsReport] = {}  # key -> latest report
+        # the eval service's latest result: its periodic reports (eval/busy, ...) do not repeat it
+        self.last_eval_metrics: dict[str, float] | None = None
         self.best_return: float | None = None
         self.reached: TargetReached | None = None
 
     def on_report(self, key: str, report: StatsReport) -> None:
         self.stats[key] = report
+        if report.service == "eval" and "eval/version" in report.metrics:
+            self.last_eval_metrics = report.metrics
         ret = self.metric(RETURN, "mean")
         if ret is not None:
             self.best_return = ret if self.best_return is None else max(self.best_return, ret)
@@ -95,7 +99,7 @@ class RunView:
 
     def last_eval(self) -> str | None:
         """``eval v40: success 80% [62-91%], return 512.3`` from the eval service's latest report; None before."""
-        m = next((r.metrics for r in self.stats.values() if r.service == "eval" and "eval/version" in r.metrics), None)
+        m = self.last_eval_metrics
         if m is None:
             return None
         parts = []
@@ -106,6 +110,10 @@ class RunView:
         if "eval/return" in m:
             parts.append(f"return {m['eval/return']:.1f}")
         return f"eval v{int(m['eval/version'])}: " + ", ".join(parts or ["-"])
+
+    def evaluated_version(self) -> int | None:
+        """The policy version of the eval service's latest result; None before one."""
+        return None if self.last_eval_metrics is None else int(self.last_eval_metrics["eval/version"])
 
     def progress_line(self, wall_s: float, restarts: int = 0, hosts: int | None = None) -> str:
         """The progress as one plain line (what a log file gets)."""
@@ -129,6 +137,7 @@ class RunView:
             "final_return": self.mean_return(),
             "best_return": self.best_return,
             "target_return": self.target_return,
+            "last_eval": self.last_eval_metrics,  # the eval service's latest result (eval/*), if it ran
             "restarts": restarts,
             "host": host,
             "hosts": hosts,  # every host that took part

@@ -207,6 +207,14 @@ class Service:
             await asyncio.sleep(self.cfg.run.stats_interval)
             await self._publish_stats()
 
+    async def publish_report(self, metrics: dict[str, float]) -> None:
+        """Publish a stats report of just ``metrics`` now, on this service's stats key and numbered with the
+        periodic ones: for a result that happens once (an evaluation), not every interval."""
+        report = StatsReport(run=self.run_name, service=self.role, instance=self.instance, time=time.time(),
+                             seq=self._stats_seq, metrics=dict(metrics))
+        self._stats_seq += 1
+        await self.bus.put(keys.stats(self.run_name, self.role, self.instance), report)
+
     async def _publish_stats(self) -> None:
         try:
             report = self._report()

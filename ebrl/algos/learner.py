@@ -33,6 +33,7 @@ from ebrl.algos.parallel import Command, DataParallel, shards
 from ebrl.algos.ppo import PPO, Batch, SegmentCollector
 from ebrl.messages import TrajectorySegment, decode_message, encode_message
 from ebrl.policies import make_policy, save_checkpoint, state_arrays
+from ebrl.policies.checkpoint import portable_metadata
 from ebrl.recorder import Telemetry
 
 log = logging.getLogger(__name__)
@@ -52,6 +53,7 @@ class Learner:
         self.obs_shape = info.obs_shape
         self.action_shape = (cfg.policy.chunk, info.action_dim)
         self.model = make_policy(cfg.policy, info.layout, info.action_dim).to(self.device)  # before the optimizer
+        self.portable = portable_metadata(cfg.policy, cfg.env, info)  # every policy file: loadable on its own
         self.latent_shape = tuple(self.model.latent_shape)
         self.ppo = PPO(self.model, cfg.algo, cfg.train.lr, seed=cfg.run.seed)
         self.version = self.saved_version = 0
@@ -179,7 +181,7 @@ class Learner:
                 return False
             _, model_state, optimizer = self.train_state
         checkpoint.save(self.run_dir, self.model, optimizer, self.version, {"ppo": self.ppo.generator},
-                        {"run": run_name}, model_state=model_state)
+                        {"run": run_name, **self.portable}, model_state=model_state)
         self.saved_version = self.version
         self.telemetry.publish_span("train", "checkpoint", start, time.time())
         self.telemetry.count("train/checkpoints")
@@ -188,7 +190,8 @@ class Learner:
     def save_policy(self, run_name: str) -> str:
         path = os.path.join(self.run_dir, POLICY_FILE)
         weights = {name: torch.from_numpy(a) for name, a in self.arrays.items()}  # full, also when sharded
-        save_checkpoint(self.model, path, {"run": run_name, "version": str(self.version)}, state=weights)
+        save_checkpoint(self.model, path, {"run": run_name, "version": str(self.version), **self.portable},
+                        state=weights)
         return path
 
     def hand_over(self) -> int:

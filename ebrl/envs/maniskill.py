@@ -148,6 +148,11 @@ class ManiSkillEnv(gym.Env):
         raw, reward, terminated, truncated, info = self.env.step(np.asarray(action, dtype=np.float32))
         return self._obs(raw), float(_numpy(reward).reshape(-1)[0]), _bool(terminated), _bool(truncated), _info(info)
 
+    def render(self) -> np.ndarray:
+        """One RGB frame (H, W, 3) uint8, when built with ``render_mode="rgb_array"`` (evaluation videos)."""
+        frame = _numpy(self.env.render())
+        return frame[0] if frame.ndim == 4 else frame
+
     def close(self) -> None:
         self.env.close()
 

@@ -68,6 +68,17 @@ def ensure_gl_for(spec: Any) -> str | None:
     return None
 
 
+def with_rendering(spec: Any) -> Any:
+    """``spec`` (an EnvSpec) built so that ``env.render()`` returns RGB frames (evaluation videos): every backend
+    takes ``render_mode="rgb_array"``. MuJoCo-based backends render offscreen, so the GL backend is chosen now:
+    call it before mujoco is imported in this process."""
+    import dataclasses
+
+    if spec.backend in ("gymnasium", "robosuite"):
+        choose_gl()
+    return dataclasses.replace(spec, kwargs={**spec.kwargs, "render_mode": "rgb_array"})
+
+
 def default_candidates() -> list[str]:
     return ["egl", "osmesa"] if _has_nvidia_gpu() else ["osmesa", "egl"]
 

@@ -47,11 +47,13 @@ INSTRUCTIONS = {
 class RobosuiteEnv(gym.Env):
     """One robosuite task with a Panda arm. ``kwargs`` not named here go to ``robosuite.make``."""
 
-    metadata = {"render_modes": []}
+    metadata = {"render_modes": ["rgb_array"]}
 
     def __init__(self, task: str, horizon: int = DEFAULT_HORIZON, *, obs: str = "state", camera: str = "agentview",
                  image_size: int = 64, instruction: str | None = None, instruction_tokens: bool | None = None,
-                 **kwargs: Any):
+                 render_mode: str | None = None, render_size: int = 256, **kwargs: Any):
+        """``render_mode="rgb_array"``: ``render()`` returns a ``render_size`` square frame of ``camera`` (for
+        evaluation videos; renders offscreen, so the GL backend is chosen first, as for camera observations)."""
         if obs not in OBS_MODES:
             raise ValueError(f"robosuite obs = {obs!r}: expected one of {', '.join(map(repr, OBS_MODES))}")
         if isinstance(image_size, bool) or not isinstance(image_size, int) or image_size <= 0:
@@ -63,7 +65,11 @@ class RobosuiteEnv(gym.Env):
         self.instruction = INSTRUCTIONS.get(task, "") if instruction is None else str(instruction)
         # tokens by default only with camera observations: a state policy learns one task, the instruction is constant
         with_tokens = obs == "rgb" if instruction_tokens is None else instruction_tokens
-        if obs == "rgb":
+        if render_mode not in (None, "rgb_array"):
+            raise ValueError(f"robosuite render_mode = {render_mode!r}: only \"rgb_array\" is supported")
+        self.render_mode, self.render_size = render_mode, int(render_size)
+        renders = obs == "rgb" or render_mode == "rgb_array"
+        if renders:
             from ebrl.envs.render import choose_gl
 
             gl = choose_gl()  # before robosuite imports mujoco, whose GL backend is fixed on import
@@ -82,8 +88,10 @@ class RobosuiteEnv(gym.Env):
         options = dict(robots="Panda", has_renderer=False, has_offscreen_renderer=False, use_camera_obs=False,
                        reward_shaping=True, control_freq=20, horizon=horizon, ignore_done=True,
                        hard_reset=False)  # a hard reset rebuilds the MuJoCo model: ~10x a step, every episode
-        if obs == "rgb":
+        if renders:
             _use_gl(gl)
+            options.update(has_offscreen_renderer=True)
+        if obs == "rgb":
             options.update(has_offscreen_renderer=True, use_camera_obs=True, use_object_obs=False,
                            camera_names=camera, camera_heights=image_size, camera_widths=image_size,
                            camera_depths=False)
@@ -155,6 +163,13 @@ class RobosuiteEnv(gym.Env):
             return self._obs(self.env._get_observations(force_update=True))
         finally:
             self.env.modify_observable(name, "enabled", False)
+
+    def render(self) -> np.ndarray | None:
+        """With ``render_mode="rgb_array"``: the current state seen by ``camera``, (H, W, 3) uint8, right side up."""
+        if self.render_mode != "rgb_array":
+            return None
+        frame = self.env.sim.render(camera_name=self.camera, width=self.render_size, height=self.render_size)
+        return np.ascontiguousarray(frame[::-1] if self._upside_down else frame)
 
     def close(self) -> None:
         self.env.close()

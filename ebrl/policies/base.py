@@ -47,6 +47,13 @@ class ChunkPolicy(nn.Module):
         """V(o_t), [B]."""
         raise NotImplementedError
 
+    def predict_chunk(self, obs: np.ndarray, deterministic: bool = True,
+                      generator: torch.Generator | None = None) -> np.ndarray:
+        """Chunks for acting outside training (evaluation, a deployed policy): actions [B, K, A], float32.
+        ``deterministic``: the same observation always gives the same chunk (each kind says which); else a
+        sample, drawn from ``generator`` (a CPU generator; default torch's global one)."""
+        raise NotImplementedError
+
     @property
     def device(self) -> torch.device:
         return next(self.parameters()).device
@@ -93,3 +100,19 @@ class GaussianChunkPolicy(ChunkPolicy):
         d, v = self.heads(self.flat(obs))
         flat = actions.reshape(actions.shape[0], -1)
         return d.log_prob(flat).sum(-1), d.entropy().sum(-1), v
+
+    @torch.no_grad()
+    def predict_chunk(self, obs: np.ndarray, deterministic: bool = True,
+                      generator: torch.Generator | None = None) -> np.ndarray:
+        """Deterministic: the Gaussian's mean; else mean + std * noise."""
+        d, _ = self.heads(self.flat(obs))
+        a = d.mean
+        if not deterministic:
+            a = a + d.stddev * noise(a.shape, generator, a.device)
+        return a.reshape(a.shape[0], self.chunk, self.action_dim).float().cpu().numpy()
+
+
+def noise(shape: torch.Size | tuple[int, ...], generator: torch.Generator | None, device: torch.device) -> torch.Tensor:
+    """Standard normal noise drawn on the CPU from ``generator`` (reproducible whatever the device), moved to
+    ``device``."""
+    return torch.randn(tuple(shape), generator=generator).to(device)

@@ -5,13 +5,26 @@ metadata, which always holds the policy's ``kind``, ``chunk``, ``action_dim``
 and ``layout`` (``ObsLayout.to_dict`` as JSON); loading checks them against the
 model before any tensor, so a checkpoint of another task or policy is refused
 with a message that says which of them differs.
+
+Checkpoints written by training (and the eval service's ``best.safetensors``) are
+also *portable*: :func:`portable_metadata` adds everything needed to rebuild and
+run the policy without the run's config (``ebrl.load_policy``): the whole
+``[policy]`` section, the ``[env]`` section as resolved, the observation shape,
+the action bounds and the format version. The observation normaliser's running
+statistics (``policy.normalize_obs``) are tensors of the state dict
+(``obs_norm.mean``, ``obs_norm.var``, ``obs_norm.count``), so they travel too.
+
+Files are written atomically (a temporary file, fsynced, renamed) and readable
+as the umask allows (0644 under the usual 022), never only by their owner.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 import tempfile
+from typing import Any
 
 import numpy as np
 import torch
@@ -21,6 +34,8 @@ from safetensors.torch import save_file
 from ebrl.policies.base import ChunkPolicy
 
 CHECKED = ("kind", "chunk", "action_dim", "layout")  # reserved metadata keys, written from the model
+FORMAT = "ebrl.policy/1"  # metadata["format"] of a portable checkpoint (portable_metadata)
+PORTABLE = ("format", "policy", "env", "obs_shape", "action_low", "action_high")  # what portable_metadata adds
 
 
 def state_arrays(model: torch.nn.Module) -> dict[str, np.ndarray]:
@@ -49,6 +64,31 @@ def policy_metadata(model: ChunkPolicy) -> dict[str, str]:
             "layout": json.dumps(model.layout.to_dict())}
 
 
+def portable_metadata(policy_cfg: Any, env_cfg: Any, info: Any) -> dict[str, str]:
+    """What makes a checkpoint loadable without the run's config: ``policy_cfg`` (the ``[policy]`` section;
+    its ``checkpoint``, where training started from, is left out), ``env_cfg`` (``[env]`` as resolved) and
+    ``info`` (the env's :class:`~ebrl.envs.EnvInfo`: observation shape and action bounds), as JSON strings."""
+    from ebrl import __version__
+
+    policy = dataclasses.asdict(policy_cfg)
+    policy["checkpoint"] = ""
+    return {"format": FORMAT, "ebrl_version": __version__, "policy": json.dumps(policy),
+            "env": json.dumps(dataclasses.asdict(env_cfg)), "obs_shape": json.dumps(list(info.obs_shape)),
+            "action_low": json.dumps([float(x) for x in info.action_space.low]),
+            "action_high": json.dumps([float(x) for x in info.action_space.high])}
+
+
+def read_metadata(path: str) -> dict[str, str]:
+    """The string metadata of the safetensors file at ``path`` (no tensor is read)."""
+    if not os.path.isfile(path):
+        raise FileNotFoundError(f"policy checkpoint {path}: no such file")
+    try:
+        with safe_open(path, framework="pt") as fh:
+            return dict(fh.metadata() or {})
+    except SafetensorError as exc:
+        raise ValueError(f"policy checkpoint {path}: not a readable safetensors file ({exc})") from None
+
+
 def save_checkpoint(model: ChunkPolicy, path: str, metadata: dict[str, str],
                     state: dict[str, torch.Tensor] | None = None) -> None:
     """Write the weights (``state``, default the model's own) and ``metadata`` (plus the reserved keys
@@ -60,10 +100,30 @@ def save_checkpoint(model: ChunkPolicy, path: str, metadata: dict[str, str],
     os.close(fd)
     try:
         save_file(tensors, tmp, metadata={**metadata, **policy_metadata(model)})
+        os.chmod(tmp, 0o666 & ~_umask())  # mkstemp makes it 0600: the group (a collaborator, a server) may read it
+        with open(tmp, "rb") as fh:
+            os.fsync(fh.fileno())
         os.replace(tmp, path)
     except BaseException:
         os.unlink(tmp)
         raise
+    dir_fd = os.open(directory, os.O_RDONLY)
+    try:
+        os.fsync(dir_fd)  # the rename itself survives a crash
+    finally:
+        os.close(dir_fd)
+
+
+def _umask() -> int:
+    """This process's umask, read without changing it (os.umask would, for every thread, for a moment)."""
+    try:
+        with open("/proc/self/status") as fh:
+            for line in fh:
+                if line.startswith("Umask:"):
+                    return int(line.split()[1], 8)
+    except (OSError, ValueError):
+        pass
+    return 0o022
 
 
 def load_checkpoint(model: ChunkPolicy, path: str) -> dict[str, str]:

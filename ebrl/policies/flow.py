@@ -42,7 +42,7 @@ from torch import nn
 from torch.distributions import Normal
 
 from ebrl.envs.obs import ObsLayout
-from ebrl.policies.base import ChunkPolicy, Tensors3, to_host
+from ebrl.policies.base import ChunkPolicy, Tensors3, noise, to_host
 from ebrl.policies.nets import ObsEncoder, mlp
 
 TIME_FREQUENCIES = 8  # the time embedding is [sin(2^k pi t), cos(2^k pi t)] for k < 8
@@ -94,6 +94,20 @@ class FlowPolicy(ChunkPolicy):
         a = d.sample()
         shape = (batch, self.chunk, self.action_dim)
         return to_host(a.reshape(shape), d.log_prob(a).sum(-1), self.critic(features).squeeze(-1), x0.reshape(shape))
+
+    @torch.no_grad()
+    def predict_chunk(self, obs: np.ndarray, deterministic: bool = True,
+                      generator: torch.Generator | None = None) -> np.ndarray:
+        """Deterministic: mu(o, x_0) from the fixed initial noise x_0 = 0 (the mode of the noise prior) and no
+        noise at the final step; else x_0 ~ N(0, I) and a ~ N(mu, sigma^2), as in ``act``."""
+        features = self.encoder(self.flat(obs))
+        batch, n = features.shape[0], self.chunk * self.action_dim
+        if deterministic:
+            a = self.mean(features, torch.zeros(batch, n, device=features.device))
+        else:
+            mu = self.mean(features, noise((batch, n), generator, features.device))
+            a = mu + self.log_std.exp() * noise(mu.shape, generator, mu.device)
+        return a.reshape(batch, self.chunk, self.action_dim).float().cpu().numpy()
 
     def evaluate(self, obs: torch.Tensor, actions: torch.Tensor, latents: torch.Tensor) -> Tensors3:
         features = self.encoder(self.flat(obs))

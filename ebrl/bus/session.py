@@ -73,18 +73,29 @@ class BusOptions:
     file_listen_wins: bool = False  # the listen endpoints of config_file, when it has some, replace ``listen``
 
 
+# Zenoh's default has both peers of a pair connect to each other as soon as gossip tells them of the other.
+# The two sessions race; with usrpwd (bus.auth) zenoh 1.10 rejects the second one as a duplicate of a
+# different configuration (eclipse-zenoh/zenoh#2577), and in 8 of 20 starts of 6 peers some pair ended with
+# no session at all, never hearing each other (a run stalled at start). One side connecting ends the race:
+# 0 of 20 (tests/test_bus.py holds the check).
+AUTOCONNECT_STRATEGY = {"peer": {"to_router": "always", "to_peer": "greater-zid"}}
+
+
 def zenoh_config(options: BusOptions) -> zenoh.Config:
     """A Zenoh config: loopback-only peer unless told otherwise, multicast scouting off; with a
     ``secret_file``, signed in and access-controlled (:mod:`ebrl.bus.auth`).
 
     Peers learn each other's loopback locators by gossip through the endpoint they
-    connect to (the launcher's), so services talk directly, without a relay.
+    connect to (the launcher's), so services talk directly, without a relay. Of two peers that learn of each
+    other, only the one with the greater Zenoh id connects (:data:`AUTOCONNECT_STRATEGY`).
     """
     from ebrl.bus import auth
 
     conf = zenoh.Config.from_file(options.config_file) if options.config_file else zenoh.Config()
     conf.insert_json5("mode", json.dumps(options.mode))
     conf.insert_json5("scouting/multicast/enabled", "false")
+    if json.loads(conf.get_json("scouting/gossip/autoconnect_strategy")) is None:  # unless config_file says
+        conf.insert_json5("scouting/gossip/autoconnect_strategy", json.dumps(AUTOCONNECT_STRATEGY))
     file_listen = json.loads(conf.get_json("listen/endpoints")) if options.config_file else []
     if options.listen and options.mode != "client" and not (options.file_listen_wins and file_listen):
         conf.insert_json5("listen/endpoints", json.dumps(options.listen))

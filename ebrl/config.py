@@ -69,9 +69,8 @@ class BusSection:
     max_message_bytes: int = doc("a received message larger than this is dropped and counted (bus/oversized) "
                                  "before it is decoded", 1 << 30)
     auth: bool = doc("every process of the run signs in with the run's secret (RUN_DIR/bus.secret, 0600): a process "
-                     "without it can neither join nor read the bus. Off by default for now: with it, a run that a "
-                     "script joined while its services were still meeting stalled at start in about 1 of 6 tests "
-                     "here (being fixed). false: an open bus that any process on the host can join", False)
+                     "without it can neither join nor read the bus. false: an open bus that any process on the host "
+                     "can join", True)
     secret_file: str = doc("the run's secret file; empty: RUN_DIR/bus.secret, created by the launcher. A run over "
                            "several hosts needs one shared file (create it with `ebrl secret PATH`, copy it to each "
                            "host)", "")

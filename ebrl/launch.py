@@ -35,6 +35,7 @@ from ebrl.bus import Bus, BusOptions, auth, keys
 from ebrl.bus.endpoints import config_file_listen, listen_endpoint
 from ebrl.hosts import PRIMARY_LOST_S, HostPlan, Membership, enabled_roles, plan as plan_host
 from ebrl.messages import Event, GpuShare, StatsReport, Stop
+from ebrl.weights import known_version
 from ebrl.runview import Console, RunView, write_report, write_summary
 from ebrl.service import STOP_TO_RESTART
 from ebrl.supervisor import Argv, RestartPolicy, Supervisor
@@ -149,8 +150,9 @@ class Launcher:
         self.plan = plan or HostPlan(enabled_roles(cfg))
         self.roles = enabled_roles(cfg)  # every service of the run, on any host
         self.console = Console(out)
-        self.view = RunView(cfg.run.name, cfg.run.iterations, cfg.run.target_return)
         self.members = Membership(cfg.run.name, self.plan.instance, self.plan.multi)
+        self.view = RunView(cfg.run.name, cfg.run.iterations, cfg.run.target_return, instances=self.has_instance,
+                            floor=known_version(str(run_dir)))  # a resumed run's checkpoint
         self.gpu_env = gpu_env or {}  # stage -> the CUDA variables it starts with (the allocator's first GPU share)
         self.failure: str | None = None
         self.stop_reason = ""
@@ -205,6 +207,15 @@ class Launcher:
             await self.link.close()
         self.finish(code)
         return code
+
+    def has_instance(self, role: str, instance: int) -> bool:
+        """Whether the run has service instance ``role/instance``: a train rank, the one instance of the others,
+        or a simulator or allocator of a host that is live (this one's, or another host's)."""
+        if role == "train":
+            return 0 <= instance < self.cfg.train.world_size
+        if role in ("sim", "alloc"):
+            return instance == self.plan.instance or self.members.is_live(role, instance)
+        return instance == 0
 
     async def host_number_free(self) -> bool:
         """The other hosts' tokens arrive once the routers met: is this host's number taken?"""
@@ -281,7 +292,8 @@ class Launcher:
     def publish_stats(self) -> None:
         """The launcher's own stats report: restarts per service, services up."""
         metrics = {**self.supervisor.metrics(), "launcher/ctl_unknown_service": float(self.ctl_unknown),
-                   "launcher/services_live": float(self.members.services_live())}
+                   "launcher/services_live": float(self.members.services_live()),
+                   "launcher/stats_refused": float(self.view.refused)}
         self.link.publish_stats(metrics)
 
     async def stop_services(self) -> None:

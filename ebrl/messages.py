@@ -1,16 +1,25 @@
 """Every message on the EBRL bus, defined once; ``schemas/`` is generated from here.
 
-A message is a dataclass whose fields carry a docstring (``doc``) and whose
-types are checked on receipt by :func:`decode_message`: a payload that does
-not match raises :class:`MessageError`, which services count and drop.
-On the wire a message is a msgpack map of its fields plus ``"v"`` (the schema
-version); arrays travel through :mod:`ebrl.bus.codec`.
+A message is a dataclass whose fields carry a docstring (``doc``). On receipt :func:`decode_message`
+checks, in this order, and raises :class:`MessageError` (services count it and drop the message):
+
+1. the payload's size against the type's ``MAX_BYTES``, before anything is decoded
+   (:class:`OversizedError`; a weights part, a segment and a stats report have different limits);
+2. the msgpack and array headers (:mod:`ebrl.bus.codec`: bounded lengths, exact byte counts);
+3. every field's type (:mod:`ebrl.typecheck`);
+4. the message's meaning (its ``check`` method): per-decision fields of one length, finite values, counts
+   and versions in range.
+
+What only the receiver knows (the policy's shapes, the weights' layout, which instances exist) it checks
+itself. On the wire a message is a msgpack map of its fields plus ``"v"`` (the schema version); arrays
+travel through :mod:`ebrl.bus.codec`.
 """
 
 from __future__ import annotations
 
 import dataclasses
 import json
+import math
 import types
 import typing
 from dataclasses import dataclass, field
@@ -29,6 +38,29 @@ T = TypeVar("T")
 
 class MessageError(ValueError):
     """A payload that is not a valid message of the expected type."""
+
+
+class OversizedError(MessageError):
+    """A payload over its message type's ``MAX_BYTES`` (counted as ``bus/oversized`` too)."""
+
+
+KIB, MIB = 1 << 10, 1 << 20
+CONTROL_MAX_BYTES = 64 * KIB  # stop, affinity, quota, GPU share: a few fields
+DATA_MAX_BYTES = 256 * MIB  # a group's observations or one segment: camera images of many envs or steps
+MAX_VERSION = 1 << 53  # policy and control versions beyond this are not counters (float64 loses them)
+MAX_METRICS = 4096  # names in one stats report
+MAX_TEXT = 4096  # characters of a free-text field (a reason, an event line)
+
+
+def _finite(name: str, *arrays: np.ndarray) -> None:
+    for array in arrays:
+        if array.dtype.kind == "f" and array.size and not np.isfinite(array).all():
+            raise MessageError(f"{name}: a value is not finite (NaN or inf)")
+
+
+def _count(name: str, value: int, low: int = 0, high: int = MAX_VERSION) -> None:
+    if not low <= value <= high:
+        raise MessageError(f"{name} = {value}: outside [{low}, {high}]")
 
 
 def doc(text: str, **kw: Any) -> Any:
@@ -53,6 +85,16 @@ class Observation:
     obs: Annotated[np.ndarray, Array("float32")] = doc("observations, shape [E, *obs_shape]")
     sent_at: float = doc("epoch seconds when sim published it")
 
+    MAX_BYTES = DATA_MAX_BYTES
+
+    def check(self) -> None:
+        _count("Observation.group", self.group, 0, 1 << 20)
+        _count("Observation.seq", self.seq)
+        if self.obs.ndim < 1 or not 0 < len(self.env_ids) == len(self.obs):
+            raise MessageError(f"Observation: {len(self.env_ids)} env ids for observations of shape {self.obs.shape}")
+        if len(self.env_ids) and int(self.env_ids.min()) < 0:
+            raise MessageError("Observation.env_ids: a negative env id")
+
 
 @dataclass
 class ActionChunk:
@@ -68,6 +110,18 @@ class ActionChunk:
     latents: Annotated[np.ndarray, Array("float32")] = doc(
         "the policy's sampling state that training needs to recompute the exact log-prob (flow policies: the "
         "initial noise), shape [E, *latent_shape]; [E, 0] for Gaussian policies")
+
+    MAX_BYTES = DATA_MAX_BYTES
+
+    def check(self) -> None:
+        _count("ActionChunk.group", self.group, 0, 1 << 20)
+        _count("ActionChunk.seq", self.seq)
+        _count("ActionChunk.policy_version", self.policy_version)
+        n = len(self.actions)
+        if not 0 < n == len(self.logprobs) == len(self.values) == len(self.latents):
+            raise MessageError(f"ActionChunk: actions, logprobs, values and latents differ in length ({n}, "
+                               f"{len(self.logprobs)}, {len(self.values)}, {len(self.latents)})")
+        _finite("ActionChunk", self.actions, self.logprobs, self.values, self.latents)
 
 
 @dataclass
@@ -93,6 +147,34 @@ class TrajectorySegment:
     episode_returns: list[float] = doc("returns of episodes that finished inside this segment")
     episode_lengths: list[int] = doc("lengths (env steps) of episodes that finished inside this segment")
 
+    MAX_BYTES = DATA_MAX_BYTES
+
+    def check(self) -> None:
+        """Every per-decision field is T long and every value finite; counts and versions in range."""
+        name = "TrajectorySegment"
+        _count(f"{name}.group", self.group, 0, 1 << 20)
+        _count(f"{name}.env_id", self.env_id, 0, 1 << 30)
+        _count(f"{name}.episode", self.episode)
+        t = len(self.obs)
+        lengths = [len(getattr(self, f)) for f in ("actions", "latents", "logprobs", "values", "rewards", "steps",
+                                                   "versions")]
+        if self.obs.ndim < 1 or t == 0 or any(n != t for n in lengths):
+            raise MessageError(f"{name}: per-decision fields differ in length (obs {t}; actions, latents, "
+                               f"logprobs, values, rewards, steps, versions {lengths})")
+        if self.last_obs.shape != self.obs.shape[1:]:
+            raise MessageError(f"{name}.last_obs has shape {self.last_obs.shape}, observations {self.obs.shape[1:]}")
+        _finite(name, self.obs, self.actions, self.latents, self.logprobs, self.values, self.rewards, self.last_obs)
+        if int(self.steps.min()) < 0 or int(self.steps.max()) > self.actions.shape[1]:
+            raise MessageError(f"{name}.steps: outside 0..{self.actions.shape[1]} (the chunk length)")
+        if int(self.versions.min()) < 0 or int(self.versions.max()) > MAX_VERSION:
+            raise MessageError(f"{name}.versions: a version outside [0, {MAX_VERSION}]")
+        if len(self.episode_returns) != len(self.episode_lengths) or len(self.episode_returns) > t * (
+                self.actions.shape[1] + 1):
+            raise MessageError(f"{name}: {len(self.episode_returns)} episode returns, {len(self.episode_lengths)} "
+                               "lengths")
+        if not all(math.isfinite(r) for r in self.episode_returns) or any(n < 0 for n in self.episode_lengths):
+            raise MessageError(f"{name}: an episode return that is not finite or a negative length")
+
 
 @dataclass
 class Weights:
@@ -102,6 +184,12 @@ class Weights:
     version: int = doc("policy version; increases by one per update")
     params: dict[str, Annotated[np.ndarray, Array()]] = doc("state dict: parameter name -> array")
     created_at: float = doc("epoch seconds when train produced them")
+
+    MAX_BYTES = 8 * MIB  # ebrl.weights sends a version of 4 MiB or more in parts
+
+    def check(self) -> None:
+        _count("Weights.version", self.version)
+        _finite("Weights.params", *self.params.values())
 
 
 @dataclass
@@ -123,6 +211,15 @@ class WeightsPart:
     shapes: list[list[int]] = doc("part 0: shape of each parameter", default_factory=list)
     offsets: list[int] = doc("part 0: byte offset of each parameter in the buffer", default_factory=list)
 
+    MAX_BYTES = 8 * MIB  # ebrl.weights.PART_BYTES of data and part 0's manifest
+
+    def check(self) -> None:
+        _count("WeightsPart.version", self.version)
+        _count("WeightsPart.count", self.count, 1, 1 << 20)
+        _count("WeightsPart.index", self.index, 0, self.count - 1)
+        _count("WeightsPart.part_bytes", self.part_bytes, 1, 64 * MIB)
+        _count("WeightsPart.total_bytes", self.total_bytes, 1, 1 << 40)
+
 
 # --- observability -----------------------------------------------------------------
 
@@ -139,6 +236,13 @@ class StatsReport:
     seq: int = doc("report counter of this instance, from 0")
     metrics: dict[str, float] = doc("namespaced metrics, e.g. sim/env_steps_per_s (see README)")
 
+    MAX_BYTES = 1 * MIB
+
+    def check(self) -> None:
+        _count("StatsReport.instance", self.instance, 0, 1 << 20)
+        if len(self.metrics) > MAX_METRICS:
+            raise MessageError(f"StatsReport: {len(self.metrics)} metrics, more than {MAX_METRICS}")
+
 
 @dataclass
 class SpanBatch:
@@ -152,6 +256,8 @@ class SpanBatch:
     start: list[float] = doc("epoch seconds, one per span")
     end: list[float] = doc("epoch seconds, one per span")
     label: list[str] = doc("what ran, one per span: chunk, wait, forward, update, v<version>")
+
+    MAX_BYTES = 4 * MIB
 
     def __post_init__(self) -> None:
         if not len(self.start) == len(self.end) == len(self.label):
@@ -186,6 +292,8 @@ class Event:
     kind: str = doc("short machine-readable kind, e.g. live, exited, quota, affinity, realloc")
     text: str = doc("one human-readable line")
 
+    MAX_BYTES = 256 * KIB
+
 
 EPISODES_MAX = 1024  # most records in one EpisodeBatch; a simulator finishing more per interval counts the rest
 
@@ -209,6 +317,8 @@ class EpisodeBatch:
     env_steps: list[int] = doc("env steps this instance had run when the episode ended (its sim/env_steps)")
     end_time: list[float] = doc("epoch seconds when the episode ended")
 
+    MAX_BYTES = 1 * MIB
+
     def __post_init__(self) -> None:
         lengths = {len(getattr(self, f)) for f in ("env_id", "episode", "returns", "length", "success",
                                                     "policy_version", "env_steps", "end_time")}
@@ -228,6 +338,12 @@ class Stop:
     KEY = "ebrl/ctl/<run>/<service>/<instance>/stop"
     reason: str = doc("why, for the log")
 
+    MAX_BYTES = CONTROL_MAX_BYTES
+
+    def check(self) -> None:
+        if len(self.reason) > MAX_TEXT:
+            raise MessageError(f"Stop.reason: {len(self.reason)} characters, more than {MAX_TEXT}")
+
 
 @dataclass
 class Affinity:
@@ -236,6 +352,13 @@ class Affinity:
     KEY = "ebrl/ctl/<run>/<service>/<instance>/affinity"
     version: int = doc("monotonic; an update with a version already applied is ignored")
     cores: list[int] = doc("CPU core ids")
+
+    MAX_BYTES = CONTROL_MAX_BYTES
+
+    def check(self) -> None:
+        _count("Affinity.version", self.version)
+        if not self.cores or len(set(self.cores)) != len(self.cores) or not all(0 <= c < 1 << 16 for c in self.cores):
+            raise MessageError(f"Affinity.cores = {self.cores[:8]}: expected distinct core ids, at least one")
 
 
 @dataclass
@@ -249,6 +372,19 @@ class Quota:
     mem_bytes: int | None = doc("GPU memory budget in bytes", default=None)
     batch: int | None = doc("batch size the stage should use (gen: most envs per forward pass)", default=None)
 
+    MAX_BYTES = CONTROL_MAX_BYTES
+
+    def check(self) -> None:
+        _count("Quota.version", self.version)
+        if self.threads is not None:
+            _count("Quota.threads", self.threads, 1, 4096)
+        if self.sm_percent is not None and not 0 < self.sm_percent <= 100:
+            raise MessageError(f"Quota.sm_percent = {self.sm_percent}: outside (0, 100]")
+        if self.mem_bytes is not None:
+            _count("Quota.mem_bytes", self.mem_bytes, 0, 1 << 50)
+        if self.batch is not None:
+            _count("Quota.batch", self.batch, 1, 1 << 24)
+
 
 @dataclass
 class GpuShare:
@@ -260,6 +396,11 @@ class GpuShare:
     version: int = doc("plan version; a share whose version the stage already has is ignored")
     stage: Literal["gen", "train"] = doc("the stage whose processes take the share")
     env: dict[str, str] = doc("the CUDA variables its processes start with: CUDA_VISIBLE_DEVICES, CUDA_MPS_*")
+
+    MAX_BYTES = CONTROL_MAX_BYTES
+
+    def check(self) -> None:
+        _count("GpuShare.version", self.version)
 
     def __post_init__(self) -> None:
         other = sorted(k for k in self.env if not k.startswith("CUDA_"))
@@ -298,7 +439,11 @@ def encode_message(msg: Any) -> bytes:
 
 
 def decode_message(cls: type[T], payload: bytes | memoryview) -> T:
-    """Decode and validate ``payload`` as ``cls``; raise :class:`MessageError` if it is not one."""
+    """Decode and validate ``payload`` as ``cls``; raise :class:`MessageError` if it is not one (an
+    :class:`OversizedError` before decoding anything when it is over ``cls.MAX_BYTES``)."""
+    limit = getattr(cls, "MAX_BYTES", None)
+    if limit is not None and len(payload) > limit:
+        raise OversizedError(f"{cls.__name__}: {len(payload)} bytes, over its limit of {limit}")
     try:
         raw = codec.decode(payload)
     except codec.DecodeError as exc:
@@ -322,7 +467,16 @@ def from_wire(cls: type[T], raw: Any) -> T:
     unknown = set(raw) - set(hints) - {"v"}
     if unknown:
         raise MessageError(f"{cls.__name__}: unknown fields {sorted(unknown)}")
-    return cls(**values)
+    msg = cls(**values)
+    check = getattr(msg, "check", None)
+    if check is not None:
+        try:
+            check()
+        except MessageError:
+            raise
+        except Exception as exc:  # a check that trips over a value it did not expect: still a bad message
+            raise MessageError(f"{cls.__name__}: {type(exc).__name__}: {exc}") from None
+    return msg
 
 
 _HINTS: dict[type, dict[str, Any]] = {}
@@ -369,6 +523,7 @@ def json_schema(cls: type) -> dict[str, Any]:
         "title": cls.__name__,
         "description": (cls.__doc__ or "").strip(),
         "x-ebrl-key": cls.KEY,
+        "x-ebrl-max-bytes": cls.MAX_BYTES,
         "type": "object",
         "properties": props,
         "required": required,

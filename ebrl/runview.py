@@ -11,13 +11,16 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import math
 import os
 import shutil
 import time
 from pathlib import Path
-from typing import Any, TextIO
+from typing import Any, Callable, TextIO
 
+from ebrl.bus import keys
 from ebrl.messages import StatsReport
+from ebrl.weights import plausible
 
 PROGRESS_EVERY_S = 5.0  # a progress line this often when the output is not a terminal
 RETURN = "sim/episode_return_mean"
@@ -33,17 +36,44 @@ class TargetReached:
 
 
 class RunView:
-    """The latest stats report of every service instance, and what the launcher reads from them."""
+    """The latest stats report of every service instance, and what the launcher reads from them.
 
-    def __init__(self, run: str, iterations: int = 0, target_return: float | None = None):
+    Only reports of the run's own instances count: ``instances(role, instance)`` says whether the run has that
+    instance (the launcher: the ones started, or live on another host); a report on another key than its
+    own, from an instance the run does not have, or of a value that is not finite (that value) is dropped and
+    counted in ``refused``; so is a training report whose policy version runs implausibly far ahead of the
+    last one (:func:`ebrl.weights.plausible`), so a forged report can neither end the run nor move its
+    progress."""
+
+    def __init__(self, run: str, iterations: int = 0, target_return: float | None = None,
+                 instances: Callable[[str, int], bool] | None = None, floor: int = 0):
         self.run, self.iterations, self.target_return = run, iterations, target_return
+        self.instances, self.floor = instances, max(0, floor)  # floor: the newest version known at the start
+        self.refused = 0  # reports (or values) not taken
+        self._train_version: dict[str, tuple[float, float]] = {}  # train key -> (version, monotonic time)
         self.stats: dict[str, StatsReport] = {}  # key -> latest report
         # the eval service's latest result: its periodic reports (eval/busy, ...) do not repeat it
         self.last_eval_metrics: dict[str, float] | None = None
         self.best_return: float | None = None
+        self.started = time.monotonic()
         self.reached: TargetReached | None = None
 
     def on_report(self, key: str, report: StatsReport) -> None:
+        if key != keys.stats(self.run, report.service, report.instance) or (
+                self.instances is not None and not self.instances(report.service, report.instance)):
+            self.refused += 1
+            return
+        finite = {name: value for name, value in report.metrics.items() if math.isfinite(value)}
+        if len(finite) < len(report.metrics):
+            self.refused += 1
+            report = dataclasses.replace(report, metrics=finite)
+        if report.service == "train" and "train/policy_version" in finite:
+            version, now = finite["train/policy_version"], time.monotonic()
+            last, since = self._train_version.get(key, (float(self.floor), self.started))
+            if not plausible(int(version), int(last), now - since):
+                self.refused += 1
+                return
+            self._train_version[key] = (version, now)
         self.stats[key] = report
         if report.service == "eval" and "eval/version" in report.metrics:
             self.last_eval_metrics = report.metrics

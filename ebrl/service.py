@@ -71,6 +71,7 @@ class Service:
         self.device: Any = None  # the torch device of gen and train (``use_device``)
         self.memory_cap: float | None = None  # the fraction of the GPU's memory this process may allocate
         self.started_at = self.recorder.started_at
+        self._loop_lag = 0.0  # seconds: the event loop's longest lateness since the last stats report
 
     # --- to override ---------------------------------------------------------------
 
@@ -197,7 +198,10 @@ class Service:
 
     async def _spans_loop(self) -> None:
         while True:
+            asleep = time.monotonic()
             await asyncio.sleep(SPAN_FLUSH_S)
+            # how late the event loop woke: the longest it was held since the last report (proc/loop_lag_max_ms)
+            self._loop_lag = max(self._loop_lag, time.monotonic() - asleep - SPAN_FLUSH_S)
             self.flush_spans()
 
     async def _stats_loop(self) -> None:
@@ -231,6 +235,7 @@ class Service:
         metrics["proc/cpu_percent"] = self._proc.cpu_percent()
         metrics["proc/rss_mb"] = self._proc.memory_info().rss / 2**20
         metrics["proc/uptime_s"] = time.time() - self.started_at
+        metrics["proc/loop_lag_max_ms"], self._loop_lag = 1000 * self._loop_lag, 0.0
         metrics["quota/cores"] = float(len(self.cores_in_use()))
         if "torch" in sys.modules:
             metrics["quota/threads"] = float(sys.modules["torch"].get_num_threads())

@@ -15,6 +15,14 @@ the bus's callback thread into one buffer per version; a newer version discards 
 and only a complete version is ever handed out. The receiver assembles the next version into the last
 one's buffer once nothing refers to that any more: first-touch page faults on a fresh buffer cost about
 as much as the whole transfer (measured: filling 500 MB took 1.5 s fresh, 0.1 s reused).
+
+Nothing that arrives is trusted (:class:`WeightsLayout`, :func:`plausible`): a receiver that knows its
+policy takes only versions of exactly its tensors (names, dtypes, shapes; a part's ``total_bytes`` must be
+the policy's size, so a crafted part never allocates more) with finite values, and only versions that are
+plausible counters: a version may run ahead of the newest one it has by at most ``MAX_JUMP`` plus
+``MAX_RATE`` per second since then, so a forged version far in the future cannot make it ignore the
+real updates after it. A version that fails any check is dropped and counted (``bus/malformed``,
+``weights_refused``) and changes nothing.
 """
 
 from __future__ import annotations
@@ -22,6 +30,7 @@ from __future__ import annotations
 import asyncio
 import logging
 import math
+import os
 import queue
 import sys
 import threading
@@ -37,6 +46,8 @@ from ebrl.messages import MessageError, Weights, WeightsPart, decode_message, en
 log = logging.getLogger("ebrl.weights")
 
 SINGLE_MAX_BYTES = 4 << 20  # a version this large or larger goes in parts
+MAX_JUMP = 64  # a version may be this far past the receiver's newest, plus MAX_RATE per second since it came
+MAX_RATE = 200.0  # versions per second: no update of a real policy is this fast (the quickstart's: ~3 per second)
 PART_BYTES = 4 << 20  # four fit the default 16 MiB shared-memory pool; a 256 MiB pool measured no better
 ALIGN = 64  # each array starts at a multiple of this in a version's buffer
 
@@ -208,6 +219,64 @@ def _settle(future: asyncio.Future, result: PublishStats | None, error: BaseExce
         future.set_result(result)
 
 
+@dataclass(frozen=True)
+class WeightsLayout:
+    """The tensors a receiver's policy has: name -> (numpy dtype string, shape). A version is taken only if it
+    carries exactly these."""
+
+    tensors: dict[str, tuple[str, tuple[int, ...]]]
+
+    @classmethod
+    def of(cls, arrays: dict[str, np.ndarray]) -> "WeightsLayout":
+        return cls({name: (a.dtype.str, tuple(a.shape)) for name, a in arrays.items()})
+
+    @classmethod
+    def of_model(cls, model) -> "WeightsLayout":
+        """From a torch module's state dict, without copying it."""
+        return cls({name: (np.dtype(str(t.dtype).removeprefix("torch.")).str, tuple(t.shape))
+                    for name, t in model.state_dict().items()})
+
+    @property
+    def total_bytes(self) -> int:
+        """The buffer a version in parts takes (each array at an ``ALIGN``-byte boundary, as published)."""
+        return sum(-(-math.prod(shape) * np.dtype(dtype).itemsize // ALIGN) * ALIGN
+                   for dtype, shape in self.tensors.values())
+
+    def check(self, version: int, params: dict[str, np.ndarray]) -> None:
+        """MessageError unless ``params`` are exactly this layout's tensors, every value finite."""
+        if set(params) != set(self.tensors):
+            missing, extra = sorted(set(self.tensors) - set(params)), sorted(set(params) - set(self.tensors))
+            raise MessageError(f"weights v{version}: tensors differ from the policy's (missing {missing[:5]}, "
+                               f"unexpected {extra[:5]})")
+        for name, array in params.items():
+            dtype, shape = self.tensors[name]
+            if array.dtype.str != dtype or tuple(array.shape) != shape:
+                raise MessageError(f"weights v{version}: {name} is {array.dtype.str}{list(array.shape)}, the "
+                                   f"policy's {dtype}{list(shape)}")
+            if array.dtype.kind == "f" and not np.isfinite(array).all():
+                raise MessageError(f"weights v{version}: {name} holds a value that is not finite")
+
+
+def known_version(run_dir: str) -> int:
+    """The newest policy version a process starting in ``run_dir`` knows exists: the one the launcher saw
+    before a restart (``procenv.version_floor``) or the run's newest checkpoint directory (a resumed run;
+    ``RUN_DIR/checkpoints/v<version>``, read without torch); -1: none."""
+    from ebrl import procenv
+
+    floor = procenv.version_floor()
+    try:
+        names = os.listdir(os.path.join(run_dir, "checkpoints"))  # ebrl.algos.checkpoint.DIRNAME
+    except OSError:
+        return floor
+    return max([floor, *(int(name[1:]) for name in names if name[:1] == "v" and name[1:].isdigit())])
+
+
+def plausible(version: int, newest: int, since_s: float) -> bool:
+    """Whether ``version`` can follow ``newest`` (the newest version taken, or the floor a receiver started
+    from) ``since_s`` seconds after it came: at most ``MAX_JUMP`` plus ``MAX_RATE`` per second ahead."""
+    return version <= newest + MAX_JUMP + MAX_RATE * max(0.0, since_s)
+
+
 @dataclass
 class _Assembly:
     """One version being put together from its parts."""
@@ -226,14 +295,21 @@ class WeightsReceiver:
     """The newest complete weights version (gen's side), assembled on the bus's thread.
 
     ``notify`` is set on the event loop whenever a newer version is complete; the event loop then only
-    takes it (:meth:`take_newer`). Malformed messages are counted on the bus and dropped."""
+    takes it (:meth:`take_newer`). Malformed messages are counted on the bus and dropped.
 
-    def __init__(self, bus: BusBase, run: str, *, notify: asyncio.Event | None = None):
-        self.bus, self.run, self._notify = bus, run, notify
+    ``layout`` (the receiver's policy) makes it take only versions of exactly those tensors, finite;
+    ``floor`` is the newest version known to exist when it starts (a resumed run's checkpoint, the newest
+    seen before a restart), from which the first version must be :func:`plausible`."""
+
+    def __init__(self, bus: BusBase, run: str, *, notify: asyncio.Event | None = None,
+                 layout: WeightsLayout | None = None, floor: int = -1):
+        self.bus, self.run, self._notify, self.layout = bus, run, notify, layout
         self.version = -1  # newest complete version so far
         self.completed = 0  # versions assembled or received whole
         self.discarded = 0  # incomplete versions given up for a newer one
         self.stale = 0  # messages of a version older than one already here
+        self.refused = 0  # versions too far ahead to be real (plausible), or that failed the layout
+        self._anchor = (floor, time.monotonic())  # (newest version taken or the floor, when): plausible() from it
         self._parts_key = keys.weights_parts(run)
         self._lock = threading.Lock()  # assembly state; held while a part is copied in
         self._handoff = threading.Lock()  # only _latest, so taking it never waits for a copy
@@ -241,6 +317,15 @@ class WeightsReceiver:
         self._latest: Weights | None = None
         self._spare: np.ndarray | None = None  # the previous version's buffer, reused once it is free
         bus.subscribe_raw(keys.weights_all(run), self._on_payload)
+
+    def reject(self, weights: Weights, current: int) -> None:
+        """The taker could not load ``weights`` (it stays at version ``current``): the version never counted,
+        so the next real version is taken again."""
+        with self._lock:
+            if self.version == weights.version:
+                self.version = current
+                self._anchor = (current, time.monotonic())
+            self.refused += 1
 
     def take_newer(self, version: int) -> Weights | None:
         """The newest complete version if it is newer than ``version``; the receiver forgets it then, so its
@@ -269,11 +354,21 @@ class WeightsReceiver:
         except Exception as exc:  # MessageError, or a part that contradicts its version (MemoryError...)
             self.bus.count_malformed(key, exc)
 
+    def _admit(self, version: int) -> None:  # under self._lock
+        newest, since = self._anchor
+        if not plausible(version, newest, time.monotonic() - since):
+            self.refused += 1
+            raise MessageError(f"weights v{version}: implausibly far past v{newest} (at most {MAX_JUMP} + "
+                               f"{MAX_RATE:g}/s ahead)")
+
     def _on_whole(self, weights: Weights) -> None:
         with self._lock:
             if weights.version <= self.version:
                 self.stale += 1
                 return
+            self._admit(weights.version)
+            if self.layout is not None:
+                self.layout.check(weights.version, weights.params)
             self._complete(weights)
 
     def _on_part(self, part: WeightsPart) -> None:
@@ -285,12 +380,16 @@ class WeightsReceiver:
         # A version is told apart by its creation time too: a restarted train may send again a version number
         # its predecessor died sending, and parts of the two must never mix.
         ident = (part.version, part.created_at)
+        if self.layout is not None and part.total_bytes != self.layout.total_bytes:  # before any buffer exists
+            raise MessageError(f"WeightsPart v{part.version}: {part.total_bytes} bytes, the policy's weights are "
+                               f"{self.layout.total_bytes}")
         with self._lock:
             building = self._assembly
             newest = None if building is None else (building.version, building.created_at)
             if part.version <= self.version or (newest is not None and ident < newest):
                 self.stale += 1
                 return
+            self._admit(part.version)
             if newest is None or ident > newest:
                 if building is not None:
                     self.discarded += 1
@@ -307,6 +406,8 @@ class WeightsReceiver:
             building.have.add(part.index)
             if building.params is not None and len(building.have) == building.count:
                 self._assembly, self._spare = None, building.buffer
+                if self.layout is not None:  # a version that fails it is dropped whole (counted by the caller)
+                    self.layout.check(building.version, building.params)
                 self._complete(Weights(version=building.version, params=building.params,
                                        created_at=building.created_at))
 
@@ -325,6 +426,7 @@ class WeightsReceiver:
         with self._handoff:
             self._latest = weights
         self.version = weights.version
+        self._anchor = (weights.version, time.monotonic())
         self.completed += 1
         if self._notify is not None:
             try:

@@ -22,7 +22,7 @@ from ebrl.evaluate import BestPolicy, EvalPool, EvalResult, EvalSchedule, lower_
 from ebrl.policies import load_arrays, make_policy
 from ebrl.policies.checkpoint import policy_metadata, portable_metadata
 from ebrl.service import Service, service_main
-from ebrl.weights import WeightsReceiver
+from ebrl.weights import WeightsLayout, WeightsReceiver, known_version
 
 
 class EvalService(Service):
@@ -45,7 +45,8 @@ class EvalService(Service):
         self.video_dir: str | None = None  # of the evaluation in progress
         self.busy = False
         self.wake, self.due = asyncio.Event(), asyncio.Event()
-        self.weights = WeightsReceiver(self.bus, self.run_name, notify=self.wake)
+        self.weights = WeightsReceiver(self.bus, self.run_name, notify=self.wake,
+                                       layout=WeightsLayout.of_model(self.model), floor=known_version(self.run_dir))
         self.log.info("evaluating every %d versions, %d episodes from seed %d, %d worker(s) at %s", cfg.eval.every,
                       cfg.eval.episodes, cfg.eval.seeds, self.workers.workers, priority)
 

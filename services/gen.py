@@ -22,7 +22,7 @@ from ebrl.policies import load_arrays, make_policy
 from ebrl.sched.batching import ObservationQueue
 from ebrl.sched.modes import resolve
 from ebrl.service import Service, service_main
-from ebrl.weights import WeightsReceiver
+from ebrl.weights import WeightsLayout, WeightsReceiver, known_version
 
 
 class GenService(Service):
@@ -50,7 +50,9 @@ class GenService(Service):
         # A group has at most one observation in flight; room for the groups of many sim hosts.
         self.obs = self.bus.subscribe(keys.obs(self.run_name), Observation, capacity=4 * self.schedule.groups * 16,
                                       notify=self.wake)
-        self.weights = WeightsReceiver(self.bus, self.run_name, notify=self.wake)  # assembles off the event loop
+        # assembles off the event loop; takes only versions of this policy's tensors, finite, plausibly numbered
+        self.weights = WeightsReceiver(self.bus, self.run_name, notify=self.wake,
+                                       layout=WeightsLayout.of_model(self.policy), floor=known_version(self.run_dir))
 
     @property
     def max_groups(self) -> int:
@@ -111,6 +113,7 @@ class GenService(Service):
             await asyncio.get_running_loop().run_in_executor(self.pool, load_arrays, self.policy, weights.params)
         except ValueError as exc:  # weights of another policy
             self.bus.count_malformed(keys.weights(self.run_name), exc)
+            self.weights.reject(weights, self.version)
             return
         self.version = weights.version
         self.count("gen/weights_applied")
@@ -124,7 +127,9 @@ class GenService(Service):
     def metrics(self) -> dict[str, float]:
         return {"gen/policy_version": float(self.version), "gen/obs_queue": float(len(self.obs)),
                 "gen/obs_waiting_for_policy": float(len(self.waiting)),
-                "gen/weights_discarded": float(self.weights.discarded)}
+                "gen/obs_waiting_dropped": float(self.waiting.dropped),
+                "gen/weights_discarded": float(self.weights.discarded),
+                "gen/weights_refused": float(self.weights.refused)}
 
     async def teardown(self) -> None:
         self.pool.shutdown(wait=False, cancel_futures=True)

@@ -28,7 +28,7 @@ class SimService(Service):
         cfg = self.cfg
         self.schedule = sched = resolve(cfg)
         spec = EnvSpec.from_config(cfg.env)
-        await asyncio.get_running_loop().run_in_executor(None, describe, spec)  # clear error before spawning
+        info = await asyncio.get_running_loop().run_in_executor(None, describe, spec)  # clear error before spawning
         if sched.mode == "async":
             os.sched_setaffinity(0, sched.sim_cores)  # rollout's share of the machine
         # sim/<instance> runs on host <instance> of a multi-host run: its groups follow the other hosts'
@@ -40,7 +40,8 @@ class SimService(Service):
         self.stats = RolloutStats(cfg.sim.step_timeout)
         self.fleet.stepping.timeout = self.stats.step_timeout()  # refreshed with every stats report
         self.peers = LivePeers(self.bus, self.run_name, warn=lambda: not self.stopping.is_set())
-        self.exchange = ActionExchange(self.bus, self.run_name, self.fleet.groups, self)
+        self.exchange = ActionExchange(self.bus, self.run_name, self.fleet.groups, self,
+                                       action_shape=(cfg.policy.chunk, info.action_dim))
         self.outbox = SegmentOutbox(self.bus, self, cfg.train.max_pending, lambda: self.peers.has("train"))
         # a (re)started gen has none of the observations in flight: publish them again
         self.peers.on_join("gen", self.exchange.generation_restarted)

@@ -5,6 +5,12 @@ launcher is gone, tries to read its data and to stop, poison and end it. Prints 
 
 It has no credentials: it tries to read RUN_DIR/bus.secret, as an outsider would, and joins without. It stops
 when its standard input closes.
+
+    python tests/hostile_peer.py --crafted ENDPOINT RUN SECONDS
+
+On a run whose bus is open (bus.auth = false), what validation alone must stop: for SECONDS, messages made
+from the run's own traffic with poisoned meaning (NaN rewards and weights, far-future versions, ragged
+fields, forged reports), payloads crafted against the decoder, and 8 MB of garbage.
 """
 
 from __future__ import annotations
@@ -37,7 +43,60 @@ def attacks(run: str) -> list[tuple[str, bytes]]:
     return out
 
 
+def crafted(run: str, seen: dict[str, bytes]) -> list[tuple[str, bytes]]:
+    """Messages that decode and type-check but whose meaning is poison, made from the run's own traffic that
+    ``seen`` holds (the open bus lets anyone read it), plus payloads crafted against the decoder."""
+    import dataclasses
+
+    import numpy as np
+
+    from ebrl.messages import (ActionChunk, Affinity, Observation, Quota, TrajectorySegment, Weights, WeightsPart,
+                               decode_message)
+
+    now = time.time()
+    out: list[tuple[str, bytes]] = []
+    if keys.traj(run, 0) in seen:
+        seg = decode_message(TrajectorySegment, seen[keys.traj(run, 0)])
+        out.append((keys.traj(run, 0), encode_message(dataclasses.replace(seg, rewards=np.full_like(seg.rewards, np.nan)))))
+        out.append((keys.traj(run, 0), encode_message(dataclasses.replace(seg, logprobs=seg.logprobs[:-1]))))
+        out.append((keys.traj(run, 0), encode_message(dataclasses.replace(seg, versions=seg.versions + 10**9))))
+    if keys.weights(run) in seen:
+        real = decode_message(Weights, seen[keys.weights(run)])
+        nan = {name: np.full_like(a, np.nan) if a.dtype.kind == "f" else a for name, a in real.params.items()}
+        out.append((keys.weights(run), encode_message(dataclasses.replace(real, version=10**9, created_at=now))))
+        out.append((keys.weights(run), encode_message(Weights(version=real.version + 1, params=nan, created_at=now))))
+    out.append((keys.weights_parts(run), encode_message(WeightsPart(
+        version=1, index=0, count=1 << 18, part_bytes=4 << 20, total_bytes=1 << 40, created_at=now,
+        data=np.zeros(4 << 20, np.uint8)))))
+    if keys.obs(run, 0) in seen:
+        obs = decode_message(Observation, seen[keys.obs(run, 0)])
+        out.append((keys.obs(run, 0), encode_message(dataclasses.replace(obs, env_ids=obs.env_ids[:-1]))))
+        for group in range(1000, 1064):  # observations of groups the run does not have
+            out.append((keys.obs(run, group), encode_message(dataclasses.replace(obs, group=group, seq=10**6))))
+    act = ActionChunk(group=0, seq=0, policy_version=0, actions=np.full((4, 8, 1), np.nan, np.float32),
+                      logprobs=np.zeros(4, np.float32), values=np.zeros(4, np.float32), latents=np.zeros((4, 0), np.float32))
+    out.append((keys.act(run, 0), encode_message(act)))
+    out.append((keys.act(run, 0), encode_message(dataclasses.replace(act, actions=np.zeros((4, 3, 7), np.float32)))))
+    for role in ("sim", "gen", "train"):
+        out.append((keys.ctl(run, role, 0, "quota"), encode_message(Quota(version=1, threads=0))))
+        out.append((keys.ctl(run, role, 0, "affinity"), encode_message(Affinity(version=10**9, cores=[]))))
+        out.append((keys.ctl(run, role, 0, "stop"), b"\x81\xa6reason\xc0"))  # a stop that is not one
+    # a forged report of the one real trainer: a version no training reaches this fast would end the run
+    out.append((keys.stats(run, "train", 0), encode_message(StatsReport(
+        run=run, service="train", instance=0, time=now, seq=0,
+        metrics={"train/policy_version": 10.0**6, "train/iteration": 10.0**6}))))
+    out.append((keys.stats(run, "train", 0), encode_message(StatsReport(
+        run=run, service="train", instance=0, time=now, seq=0, metrics={"train/policy_version": float("nan")}))))
+    # against the decoder: a msgpack array header claiming 2**32 - 1 items, a map claiming as many, deep nesting
+    for key in (keys.traj(run, 0), keys.obs(run, 0), keys.act(run, 0), keys.weights(run), keys.stats(run, "sim", 0)):
+        out.extend([(key, b"\xdd\xff\xff\xff\xff" + b"\x00" * 64), (key, b"\xdf\xff\xff\xff\xff"),
+                    (key, b"\x91" * 100_000)])
+    return out
+
+
 def main() -> int:
+    if sys.argv[1] == "--crafted":
+        return main_crafted(*sys.argv[2:5])
     endpoint, run, run_dir = sys.argv[1:4]
     secret = os.path.join(run_dir, auth.FILENAME)
     try:
@@ -74,6 +133,40 @@ def main() -> int:
     print(json.dumps({"secret_readable": readable, "peers": peers, "received": received, "own": own, "sent": sent,
                       "liveliness": sorted(set(live)), "uid": os.getuid()}), flush=True)
     os._exit(0)  # zenoh's threads would hold interpreter exit
+
+
+def main_crafted(endpoint: str, run: str, seconds: str) -> int:
+    """On an open bus (bus.auth = false): read the run's traffic, then send crafted payloads on every key for
+    ``seconds`` seconds (a batch every 0.1 s) and 8 MB of garbage on the data keys (every second); print what
+    it sent."""
+    session = zenoh.open(zenoh_config(BusOptions(mode="peer", connect=[endpoint], listen=["tcp/127.0.0.1:0"])))
+    seen: dict[str, bytes] = {}
+
+    def on_sample(sample: zenoh.Sample) -> None:
+        key = str(sample.key_expr)
+        if key not in seen and len(seen) < 64:
+            seen[key] = sample.payload.to_bytes()
+
+    session.declare_subscriber("ebrl/data/**", on_sample)
+    deadline = time.monotonic() + 60
+    while time.monotonic() < deadline and not all(
+            k in seen for k in (keys.traj(run, 0), keys.weights(run), keys.obs(run, 0))):
+        time.sleep(0.05)
+    batch = crafted(run, seen)
+    big = os.urandom(8 << 20)
+    sent, rounds, end = 0, 0, time.monotonic() + float(seconds)
+    while time.monotonic() < end:
+        for key, payload in batch:
+            session.put(key, payload)
+            sent += 1
+        if rounds % 10 == 0:  # 8 MB of garbage on each data key once a second
+            for key in (keys.traj(run, 1), keys.obs(run, 1), keys.weights(run)):
+                session.put(key, big)
+                sent += 1
+        rounds += 1
+        time.sleep(0.1)
+    print(json.dumps({"sent": sent, "kinds": len(batch), "seen": sorted(seen)}), flush=True)
+    os._exit(0)
 
 
 if __name__ == "__main__":

@@ -2,9 +2,9 @@
 hostile peers against a live `ebrl up`."""
 
 import json
+import math
 import os
 import pwd
-import re
 import stat
 import subprocess
 import sys
@@ -233,10 +233,10 @@ def test_a_hostile_process_can_neither_read_nor_stop_nor_poison_a_run(tmp_path):
     user = _other_user()
     env = {**os.environ, "PYTHONPATH": str(ROOT)}
     with up(tmp_path, "configs/quickstart.toml", "run.iterations=30", "train.batch_size=256", 'viz.rerun="off"',
-            "bus.auth=true", name="hostile") as run:
-        # Attached once the run's processes are linked: a script that joins while they are still meeting can
-        # stall the start (issue 20, open), which is why bus.auth is not yet the default.
-        run.wait_for_line(lambda line: re.search(r"policy v([1-9]|\d\d)", line) is not None, 300, what="policy v1")
+            name="hostile") as run:  # bus.auth is the default
+        # The outsider and the owner's observer join while the services are still meeting: with zenoh's default
+        # autoconnect that stalled about 1 start in 6 (see test_signed_in_peers_starting_together_...)
+        run.wait_for_line(lambda line: line.startswith(f"run {run.name}: "), 120, what="the launcher's banner")
         secret = run.run_dir / auth.FILENAME
         assert stat.S_IMODE(secret.stat().st_mode) == 0o600
         with StatsWatcher(run) as stats:
@@ -262,3 +262,48 @@ def test_a_hostile_process_can_neither_read_nor_stop_nor_poison_a_run(tmp_path):
     assert set(out["received"]) <= set(out["own"]), out["received"]  # only what it published itself
     assert out["liveliness"] == [keys.live(run.name, "train", 7)]  # its own token, nobody else's
     assert stats.reports("sim/0") and stats.reports("gen/0")  # the owner's observer saw the run
+
+
+@pytest.mark.slow
+def test_on_an_open_bus_crafted_payloads_on_every_key_are_refused_and_the_run_finishes(tmp_path):
+    """Validation alone (bus.auth = false: any process may publish): for 40 s a peer sends, on every key of a
+    live run, messages made from the run's own traffic with poisoned meaning and payloads crafted against the
+    decoder. The run finishes every iteration with finite, monotonic versions; each receiver counted what it
+    refused; no service's memory grew by 100 MB."""
+    ITERATIONS = 150  # about a minute and a half here: the run outlasts the attack
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    with up(tmp_path, "configs/quickstart.toml", f"run.iterations={ITERATIONS}", "train.batch_size=256",
+            'viz.rerun="off"', "bus.auth=false", "train.checkpoint_every=0", name="crafted") as run:
+        run.wait_for_line("all services live", 300)
+        with StatsWatcher(run) as stats:
+            stats.wait_for(lambda: (stats.latest("train/0", "train/policy_version") or 0) >= 2
+                           and stats.reports("gen/0"), 120, "policy v2")
+            before = {s: stats.latest(s, "proc/rss_mb") for s in ("sim/0", "gen/0", "train/0", "launcher/0")}
+            attacker = subprocess.run([sys.executable, str(ROOT / "tests" / "hostile_peer.py"), "--crafted",
+                                       run.endpoint, run.name, "40"], capture_output=True, text=True, env=env,
+                                      cwd="/", timeout=240)
+            code = run.wait(600)
+    assert attacker.returncode == 0, attacker.stderr[-3000:]
+    out = json.loads(attacker.stdout)
+    assert out["sent"] > 100 and out["kinds"] > 30, out  # it saw the run's traffic and made its poison from it
+    assert code == 0, run.output
+
+    def real(service: str, name: str) -> list[float]:  # the watcher hears the forged reports too: they lack proc/
+        return [r.metrics[name] for r in stats.reports(service) if name in r.metrics and "proc/rss_mb" in r.metrics]
+
+    def last(service: str, name: str) -> float:
+        return (real(service, name) or [0.0])[-1]
+
+    versions = real("train/0", "train/policy_version")
+    assert versions[-1] == ITERATIONS and all(b >= a for a, b in zip(versions, versions[1:]))
+    assert max(real("gen/0", "gen/policy_version")) <= ITERATIONS  # the forged 10**9 never became current
+    assert all(math.isfinite(v) for r in stats.reports("train/0") if "proc/rss_mb" in r.metrics
+               for k, v in r.metrics.items() if "loss" in k)  # no NaN reached an update
+    assert last("train/0", "bus/malformed") > 0 and last("gen/0", "bus/malformed") > 0
+    assert last("gen/0", "gen/weights_refused") > 0 and last("sim/0", "bus/malformed") > 0
+    assert stats.latest("launcher/0", "launcher/stats_refused") > 0  # the forged train/0 reports
+    for service, rss in before.items():
+        if rss is not None:  # the launcher reports no memory
+            assert max(real(service, "proc/rss_mb")) < rss + 100, service
+    lag = {s: max(real(s, "proc/loop_lag_max_ms") or [0.0]) for s in before}
+    print(f"event loop lag (max, ms) under attack: {lag}")

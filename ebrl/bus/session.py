@@ -283,6 +283,8 @@ class BusBase(abc.ABC):
         return False
 
     def count_malformed(self, key: str, error: Exception) -> None:
+        if isinstance(error, messages.OversizedError):
+            self.oversized[key] += 1
         self.malformed[key] += 1
         if key not in self._logged_keys:
             self._logged_keys.add(key)

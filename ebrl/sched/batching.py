@@ -13,21 +13,33 @@ from ebrl.sched.modes import Schedule
 
 
 class ObservationQueue:
-    """Observations received and not yet served, in arrival order."""
+    """Observations received and not yet served, in arrival order: one per group (a group has one in flight;
+    a newer one of the same group, e.g. sent again after a timeout, replaces it) and at most ``capacity``
+    (beyond it the oldest is dropped, counted in ``dropped``): bounded whatever arrives."""
 
-    def __init__(self, schedule: Schedule):
+    def __init__(self, schedule: Schedule, capacity: int = 0):
         self.schedule = schedule
-        self.waiting: list[Observation] = []
+        self.capacity = capacity or 64 * schedule.groups  # room for the groups of many sim hosts
+        self.waiting: dict[int, Observation] = {}  # group -> its observation, oldest first
+        self.replaced = 0
+        self.dropped = 0
 
     def __len__(self) -> int:
         return len(self.waiting)
 
     def extend(self, observations: list[Observation]) -> None:
-        self.waiting.extend(observations)
+        for m in observations:
+            if self.waiting.pop(m.group, None) is not None:
+                self.replaced += 1
+            self.waiting[m.group] = m
+            if len(self.waiting) > self.capacity:
+                del self.waiting[next(iter(self.waiting))]
+                self.dropped += 1
 
     def take(self, version: int, sim_hosts: int, max_groups: int) -> list[Observation]:
         """The next batch that policy ``version`` may answer: at most ``max_groups`` groups, oldest first."""
-        batch = [m for m in self.waiting if version >= self.schedule.min_version(m.seq, sim_hosts)][:max_groups]
-        served = {id(m) for m in batch}
-        self.waiting = [m for m in self.waiting if id(m) not in served]
+        batch = [m for m in self.waiting.values() if version >= self.schedule.min_version(m.seq, sim_hosts)]
+        batch = batch[:max_groups]
+        for m in batch:
+            del self.waiting[m.group]
         return batch

@@ -40,8 +40,9 @@ class ActionExchange:
     publish its observations again at once."""
 
     def __init__(self, bus: Any, run: str, groups: list[int], telemetry: Telemetry,
-                 timeout_s: float = ACTION_TIMEOUT_S):
+                 timeout_s: float = ACTION_TIMEOUT_S, action_shape: tuple[int, int] | None = None):
         self.bus, self.run, self.telemetry, self.timeout_s = bus, run, telemetry, timeout_s
+        self.action_shape = action_shape  # (chunk, action dim): a chunk of another shape is dropped, counted
         self.actions = {g: bus.subscribe(keys.act(run, g), ActionChunk, capacity=4) for g in groups}
         self.gen_epoch = 0
 
@@ -59,6 +60,10 @@ class ActionExchange:
                 try:
                     _, chunk = await asyncio.wait_for(self.actions[g].next(), min(1.0, deadline - time.monotonic()))
                 except asyncio.TimeoutError:
+                    continue
+                if self.action_shape is not None and chunk.actions.shape[1:] != self.action_shape:
+                    self.bus.count_malformed(keys.act(self.run, g), ValueError(
+                        f"action chunk of shape {chunk.actions.shape[1:]}, expected {self.action_shape}"))
                     continue
                 if chunk.seq == seq and chunk.actions.shape[0] == len(env_ids) == chunk.latents.shape[0]:
                     self.telemetry.publish_span(f"sim.g{g}", "wait", start, time.time(), busy=False)

@@ -66,8 +66,9 @@ class BusSection:
     )
     connect: list[str] = doc("extra endpoints to connect to (a Zenoh router or another host)", factory=list)
     config_file: str = doc("path to a native Zenoh JSON5 config (TLS, access control); empty for none", "")
-    max_message_bytes: int = doc("a received message larger than this is dropped and counted (bus/oversized) "
-                                 "before it is decoded", 1 << 30)
+    max_message_bytes: int = doc("a received message larger than this is dropped before it is decoded: by Zenoh "
+                                 "(its receive limit) or counted as bus/oversized; each message type has its own "
+                                 "lower limit too (schemas/: x-ebrl-max-bytes)", 256 << 20)
     auth: bool = doc("every process of the run signs in with the run's secret (RUN_DIR/bus.secret, 0600): a process "
                      "without it can neither join nor read the bus. false: an open bus that any process on the host "
                      "can join", True)

@@ -67,7 +67,7 @@ class BusOptions:
     connect: list[str] = field(default_factory=list)
     listen: list[str] = field(default_factory=lambda: ["tcp/127.0.0.1:0"])
     config_file: str = ""
-    max_message_bytes: int = 1 << 30  # larger payloads are dropped (counted) before decoding
+    max_message_bytes: int = 256 << 20  # larger payloads are dropped before decoding (Zenoh's own rx limit too)
     secret_file: str = ""  # the run's secret (ebrl.bus.auth); empty: an open bus that anyone on the host can join
     role: Literal["service", "observer"] = "service"  # who signs in: a service of the run, or a script watching it
     file_listen_wins: bool = False  # the listen endpoints of config_file, when it has some, replace ``listen``
@@ -101,6 +101,8 @@ def zenoh_config(options: BusOptions) -> zenoh.Config:
         conf.insert_json5("listen/endpoints", json.dumps(options.listen))
     if options.connect:
         conf.insert_json5("connect/endpoints", json.dumps(options.connect))
+    # Zenoh reassembles no message larger than this (it drops it, the link stays): the same bound as ours
+    conf.insert_json5("transport/link/rx/max_message_size", json.dumps(options.max_message_bytes))
     if options.secret_file:
         credentials = auth.load(options.secret_file, options.role)
         for path, value in auth.zenoh_settings(credentials, options.role).items():

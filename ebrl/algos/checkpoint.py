@@ -9,63 +9,133 @@ A checkpoint is a directory ``RUN_DIR/checkpoints/v<version>/`` holding
 - ``state.json``: the policy version, the optimizer's hyper-parameters (param groups) and when it was
   written.
 
-It is written into ``v<version>.tmp/`` and renamed into place, then ``latest`` (a one-line file naming the
-directory) is replaced atomically, so a crash at any moment leaves the previous checkpoint intact and
-``latest`` always names a complete one. The newest ``KEEP`` checkpoints are kept.
+Durability: every file is written into ``v<version>.tmp/`` and fsynced, then the directory is fsynced and
+renamed into place, the parent fsynced; only then is ``latest`` (a one-line file naming the directory) replaced
+the same way (written to ``latest.tmp``, fsynced, renamed, directory fsynced). A checkpoint counts once
+``latest`` names it, so a crash (kill -9, power loss) at any moment leaves the previous one intact. The new
+checkpoint and the newest ``KEEP - 1`` whole ones before it are kept; an older one (or one that is not whole)
+is renamed to ``*.tmp`` before it is deleted, so a crash while deleting never leaves half a checkpoint under a
+``v*`` name. What a crash left (``*.tmp``) is removed at the next save and when training starts
+(:func:`remove_stale`).
+
+Restoring (:func:`restore_latest`) tries the checkpoint ``latest`` names, then every other ``v*`` directory,
+newest first: one that cannot be read (a missing or truncated file, a bad ``state.json``) is skipped, logged
+with the reason; a dangling or garbage ``latest`` is ignored the same way. One that reads but does not fit the
+model (another policy or optimizer) is an error, not skipped: every checkpoint of the run would be the same.
 """
 
 from __future__ import annotations
 
 import json
+import logging
 import os
+import re
 import shutil
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, BinaryIO, Callable
 
 import torch
+from safetensors import SafetensorError, safe_open
 from safetensors.torch import load_file, save_file
 
-from ebrl.policies import load_checkpoint, save_checkpoint
+from ebrl.policies import save_checkpoint
+from ebrl.policies.checkpoint import UnreadableCheckpoint, load_arrays, read_checkpoint
+
+log = logging.getLogger(__name__)
 
 DIRNAME = "checkpoints"
 KEEP = 2
+POINTER = "latest"
+_NAME = re.compile(r"v(\d+)")  # a checkpoint directory's name: v<version>, 8 digits
 
 
 @dataclass
 class Restored:
     version: int
     path: Path
+    skipped: list[tuple[Path, str]] = field(default_factory=list)  # newer checkpoints that could not be read, why
+    newest: int = -1  # the highest version any checkpoint directory names, read or not (versions never repeat)
+
+
+class Unreadable(Exception):
+    """A checkpoint directory that cannot be read (the message says why); restore falls back past it."""
 
 
 def checkpoint_dir(run_dir: str | Path) -> Path:
     return Path(run_dir) / DIRNAME
 
 
-def latest(run_dir: str | Path) -> Path | None:
-    """The newest complete checkpoint of a run, or None."""
+def version_of(path: Path) -> int | None:
+    """The version a checkpoint directory's name says (``v00000012`` -> 12), None for any other name."""
+    match = _NAME.fullmatch(path.name)
+    return int(match.group(1)) if match else None
+
+
+def candidates(run_dir: str | Path) -> list[Path]:
+    """The checkpoint directories of a run in the order a restore tries them: the one ``latest`` names, then
+    every other ``v*`` directory, newest first (a dangling or garbage ``latest`` names none)."""
     root = checkpoint_dir(run_dir)
+    found = sorted((p for p in _listdir(root) if p.is_dir() and version_of(p) is not None),
+                   key=lambda p: version_of(p), reverse=True)  # type: ignore[arg-type, return-value]
     try:
-        name = (root / "latest").read_text().strip()
-    except FileNotFoundError:
-        return None
-    path = root / name
-    return path if (path / "state.json").is_file() else None
+        named = root / (root / POINTER).read_text().strip()
+    except (OSError, UnicodeDecodeError):
+        return found
+    if named not in found:
+        return found
+    return [named] + [p for p in found if p != named]
+
+
+def latest(run_dir: str | Path) -> Path | None:
+    """The newest complete checkpoint of a run (``latest``, or if that names none that looks complete, the newest
+    ``v*`` directory that does), or None. Complete: ``state.json`` reads and both safetensors files open (their
+    headers; :func:`restore_latest` reads every tensor and falls back further if one cannot be read)."""
+    return next((path for path in candidates(run_dir) if looks_complete(path)), None)
+
+
+def looks_complete(path: Path) -> bool:
+    """Whether a checkpoint directory's ``state.json`` reads and its safetensors files are whole (their headers
+    read and the file sizes they imply match; no tensor is read)."""
+    try:
+        _read_state(path)
+        for name in ("policy.safetensors", "train.safetensors"):
+            with safe_open(str(path / name), framework="pt"):
+                pass
+    except (Unreadable, SafetensorError, OSError):
+        return False
+    return True
+
+
+def remove_stale(run_dir: str | Path) -> list[Path]:
+    """Remove what an interrupted save left in the run's checkpoint directory (``*.tmp``); returns it.
+    Only the process that writes checkpoints may call this (it would remove a save in progress)."""
+    removed = []
+    for stale in _listdir(checkpoint_dir(run_dir)):
+        if stale.name.endswith(".tmp"):
+            if stale.is_dir() and not stale.is_symlink():
+                shutil.rmtree(stale, ignore_errors=True)
+            else:
+                stale.unlink(missing_ok=True)
+            removed.append(stale)
+    return removed
 
 
 def save(run_dir: str | Path, model: torch.nn.Module, optimizer: torch.optim.Optimizer | dict, version: int,
          generators: dict[str, torch.Generator], metadata: dict[str, str] | None = None,
          model_state: dict[str, torch.Tensor] | None = None) -> Path:
-    """Write a checkpoint of ``version`` atomically; return its directory. ``optimizer`` may be its state dict
-    and ``model_state`` the model's, gathered elsewhere (sharded training: ``ebrl.algos.parallel``)."""
+    """Write a checkpoint of ``version`` durably and atomically; return its directory. ``optimizer`` may be its
+    state dict and ``model_state`` the model's, gathered elsewhere (sharded training: ``ebrl.algos.parallel``)."""
     root = checkpoint_dir(run_dir)
+    root.mkdir(parents=True, exist_ok=True)
+    for stale in remove_stale(run_dir):
+        log.warning("removed %s, left by an interrupted checkpoint write", stale)
     name = f"v{version:08d}"
     tmp, final = root / f"{name}.tmp", root / name
-    shutil.rmtree(tmp, ignore_errors=True)
-    tmp.mkdir(parents=True)
+    tmp.mkdir(exist_ok=True)  # a leftover remove_stale could not delete is written over
     save_checkpoint(model, str(tmp / "policy.safetensors"), {**(metadata or {}), "version": str(version)},
-                    state=model_state)
+                    state=model_state)  # fsynced, renamed, its directory fsynced
     state = optimizer if isinstance(optimizer, dict) else optimizer.state_dict()
     tensors = {f"opt.{index}.{key}": value.detach().cpu().contiguous()
                for index, slots in state["state"].items() for key, value in slots.items()
@@ -73,46 +143,143 @@ def save(run_dir: str | Path, model: torch.nn.Module, optimizer: torch.optim.Opt
     tensors.update({f"rng.{key}": gen.get_state() for key, gen in generators.items()})
     tensors["rng.torch"] = torch.get_rng_state()
     save_file(tensors, str(tmp / "train.safetensors"))
-    (tmp / "state.json").write_text(json.dumps({"version": version, "time": time.time(),
-                                                "param_groups": state["param_groups"]}, indent=1) + "\n")
-    _fsync_dir(tmp)
-    shutil.rmtree(final, ignore_errors=True)
+    fsync_file(tmp / "train.safetensors")
+    text = json.dumps({"version": version, "time": time.time(), "param_groups": state["param_groups"]}, indent=1)
+    with open(tmp / "state.json", "w") as fh:
+        fh.write(text + "\n")
+        fh.flush()
+        os.fsync(fh.fileno())
+    fsync_dir(tmp)
+    if final.exists():  # the same version again: the old one goes first (a crash here falls back past it)
+        shutil.rmtree(final)
     os.replace(tmp, final)
-    pointer = root / "latest.tmp"
-    pointer.write_text(name + "\n")
-    os.replace(pointer, root / "latest")
-    _fsync_dir(root)
-    for old in sorted(p for p in root.glob("v*") if p.is_dir() and not p.name.endswith(".tmp"))[:-KEEP]:
-        shutil.rmtree(old, ignore_errors=True)
+    fsync_dir(root)  # the directory is there before latest names it
+    write_durably(root / POINTER, lambda fh: fh.write(f"{name}\n".encode()))
+    others = [p for p in candidates(run_dir) if p != final]
+    kept = [p for p in others if looks_complete(p)][:KEEP - 1]  # an unreadable one is not worth keeping
+    for old in others:
+        if old in kept or version_of(old) > version:  # type: ignore[operator]
+            continue
+        doomed = old.with_name(old.name + ".old.tmp")  # out of the v* names at once, then deleted
+        os.replace(old, doomed)
+        shutil.rmtree(doomed, ignore_errors=True)
     return final
+
+
+def restore_latest(run_dir: str | Path, model: torch.nn.Module, optimizer: torch.optim.Optimizer,
+                   generators: dict[str, torch.Generator]) -> Restored | None:
+    """Load the newest readable checkpoint of a run (:func:`candidates`' order) into the model, optimizer and
+    generators, skipping (and logging) each that cannot be read; None when there is none to read. Raises
+    ValueError when a checkpoint reads but does not fit the model or optimizer."""
+    paths = candidates(run_dir)
+    newest = max((version_of(p) for p in paths), default=-1)  # type: ignore[type-var]
+    skipped: list[tuple[Path, str]] = []
+    for path in paths:
+        try:
+            loaded = _read(path, model)
+        except Unreadable as exc:
+            log.warning("checkpoint %s skipped: %s", path, exc)
+            skipped.append((path, str(exc)))
+            continue
+        if skipped:
+            log.warning("restoring %s instead (%d newer checkpoint%s unreadable)", path.name, len(skipped),
+                        "s" if len(skipped) > 1 else "")
+        restored = _apply(path, loaded, model, optimizer, generators)
+        restored.skipped, restored.newest = skipped, max(newest, restored.version)
+        return restored
+    if skipped:
+        log.warning("no readable checkpoint in %s (%d skipped)", checkpoint_dir(run_dir), len(skipped))
+    return None
 
 
 def restore(path: Path, model: torch.nn.Module, optimizer: torch.optim.Optimizer,
             generators: dict[str, torch.Generator]) -> Restored:
-    """Load a checkpoint directory into the model, optimizer and generators; raise ValueError when it does
-    not fit them (another policy, another optimizer)."""
-    meta = json.loads((path / "state.json").read_text())
-    load_checkpoint(model, str(path / "policy.safetensors"))
-    tensors = load_file(str(path / "train.safetensors"))
+    """Load one checkpoint directory into the model, optimizer and generators; raise ValueError when it cannot
+    be read or does not fit them (another policy, another optimizer). Nothing is loaded unless all of it reads."""
+    try:
+        loaded = _read(path, model)
+    except Unreadable as exc:
+        raise ValueError(f"checkpoint {path}: {exc}") from None
+    return _apply(path, loaded, model, optimizer, generators)
+
+
+def _read(path: Path, model: torch.nn.Module) -> tuple[dict, dict, dict]:
+    """Everything in a checkpoint directory, read and checked, nothing applied: (state, weights, tensors).
+    Raises Unreadable (missing or unreadable files) or ValueError (a policy that does not fit ``model``)."""
+    state = _read_state(path)
+    try:
+        arrays, _ = read_checkpoint(model, str(path / "policy.safetensors"))
+    except (FileNotFoundError, UnreadableCheckpoint) as exc:
+        raise Unreadable(str(exc)) from None
+    try:
+        tensors = load_file(str(path / "train.safetensors"))
+    except (SafetensorError, OSError) as exc:
+        raise Unreadable(f"train.safetensors: {exc}") from None
+    rng = tensors.get("rng.torch")
+    if rng is None or rng.dtype != torch.uint8:
+        raise Unreadable("train.safetensors: no random state (rng.torch)")
+    return state, arrays, tensors
+
+
+def _read_state(path: Path) -> dict[str, Any]:
+    try:
+        state = json.loads((path / "state.json").read_text())
+        if not isinstance(state.get("version"), int) or not isinstance(state.get("param_groups"), list):
+            raise ValueError("no version or param_groups")
+    except (OSError, ValueError, AttributeError) as exc:  # missing; not JSON (a ValueError); not a JSON object
+        raise Unreadable(f"state.json: {exc}") from None
+    if version_of(path) != state["version"]:
+        raise Unreadable(f"state.json says version {state['version']}, the directory {path.name}")
+    return state
+
+
+def _apply(path: Path, loaded: tuple[dict, dict, dict], model: torch.nn.Module, optimizer: torch.optim.Optimizer,
+           generators: dict[str, torch.Generator]) -> Restored:
+    state, arrays, tensors = loaded
+    load_arrays(model, arrays, source=f"policy checkpoint {path / 'policy.safetensors'}")
     slots: dict[int, dict[str, Any]] = {}
     for key, value in tensors.items():
         if key.startswith("opt."):
             _, index, name = key.split(".", 2)
             slots.setdefault(int(index), {})[name] = value
     try:
-        optimizer.load_state_dict({"state": slots, "param_groups": meta["param_groups"]})
+        optimizer.load_state_dict({"state": slots, "param_groups": state["param_groups"]})
     except (ValueError, KeyError) as exc:
         raise ValueError(f"checkpoint {path}: optimizer state does not fit this model: {exc}") from None
     for key, gen in generators.items():
         if f"rng.{key}" in tensors:
             gen.set_state(tensors[f"rng.{key}"])
     torch.set_rng_state(tensors["rng.torch"])
-    return Restored(version=int(meta["version"]), path=path)
+    return Restored(version=state["version"], path=path)
 
 
-def _fsync_dir(path: Path) -> None:
+def write_durably(path: Path, write: Callable[[BinaryIO], Any]) -> None:
+    """Replace ``path`` with what ``write(fh)`` writes, so that a crash at any moment leaves either the old file
+    or the whole new one: into ``<path>.tmp``, fsynced, renamed over ``path``, the directory fsynced."""
+    tmp = path.with_name(path.name + ".tmp")
+    with open(tmp, "wb") as fh:
+        write(fh)
+        fh.flush()
+        os.fsync(fh.fileno())
+    os.replace(tmp, path)
+    fsync_dir(path.parent)
+
+
+def fsync_file(path: Path) -> None:
+    with open(path, "rb") as fh:
+        os.fsync(fh.fileno())
+
+
+def fsync_dir(path: Path) -> None:
     fd = os.open(path, os.O_RDONLY)
     try:
         os.fsync(fd)
     finally:
         os.close(fd)
+
+
+def _listdir(root: Path) -> list[Path]:
+    try:
+        return list(root.iterdir())
+    except FileNotFoundError:
+        return []

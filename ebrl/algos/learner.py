@@ -7,7 +7,8 @@ It holds the policy, PPO/GRPO and the bounded collector, and the rules that keep
 * versions never go back or repeat: a restart resumes from the run's latest checkpoint and, when the
   launcher says a newer version was published before (``procenv.version_floor``), continues after it;
 * a learner stopped to start again (a new GPU share) hands the segments it had not trained on over to
-  the next one (``RUN_DIR/train-pending.msgpack``), which takes them over once.
+  the next one (``RUN_DIR/train-pending.msgpack``, fsynced, one checked record per segment), which takes
+  them over once: a file torn by a kill loses only its torn record.
 
 No bus and no event loop here: the train service (``services/train.py``) drives it, and with several
 ranks the choreography of ``ebrl.algos.parallel`` decides who learns from what.
@@ -19,8 +20,11 @@ import collections
 import contextlib
 import logging
 import os
+import struct
 import time
-from typing import Any, Callable
+import zlib
+from pathlib import Path
+from typing import Any, BinaryIO, Callable, Iterable
 
 import msgpack
 import numpy as np
@@ -31,15 +35,17 @@ from ebrl.algos import checkpoint
 from ebrl.algos.grpo import GroupCollector
 from ebrl.algos.parallel import Command, DataParallel, shards
 from ebrl.algos.ppo import PPO, Batch, SegmentCollector
-from ebrl.messages import TrajectorySegment, decode_message, encode_message
+from ebrl.messages import MessageError, TrajectorySegment, decode_message, encode_message
 from ebrl.policies import make_policy, save_checkpoint, state_arrays
-from ebrl.policies.checkpoint import portable_metadata
+from ebrl.policies.checkpoint import portable_metadata, remove_stale_temporaries
 from ebrl.recorder import Telemetry
 
 log = logging.getLogger(__name__)
 
 POLICY_FILE = "policy.safetensors"  # the trained policy, for `--set policy.checkpoint=RUN_DIR/policy.safetensors`
 HANDOVER_FILE = "train-pending.msgpack"  # segments a stopping train leaves to the next one (RUN_DIR)
+HANDOVER_MAGIC = b"EBRL-HANDOVER/1\n"  # then records: <u32 length><u32 crc32 of the payload><payload>
+_RECORD = struct.Struct("<II")
 
 
 class Learner:
@@ -151,23 +157,31 @@ class Learner:
                      values=zeros, versions=np.full(n, self.version)).to(self.device)
 
     def resume(self, floor: int) -> str | None:
-        """Carry on from the run's latest checkpoint, if any, and after version ``floor`` (the newest anyone saw
-        before a restart, which may be past the checkpoint). Returns what happened, or None for a fresh start."""
-        found = checkpoint.latest(self.run_dir)
-        if found is not None:
-            restored = checkpoint.restore(found, self.model, self.ppo.optimizer, {"ppo": self.ppo.generator})
+        """Carry on from the run's newest readable checkpoint, if any, and after version ``floor`` (the newest
+        anyone saw before a restart, which may be past the checkpoint) and after every checkpoint on disk (one
+        that could not be read was written after its version was published). Returns what happened, or None
+        for a fresh start."""
+        if self.rank == 0:  # the writer of checkpoints: what a kill in the middle of a write left goes
+            for stale in checkpoint.remove_stale(self.run_dir) + remove_stale_temporaries(self.policy_path):
+                log.warning("removed %s, left by an interrupted write", stale)
+        restored = checkpoint.restore_latest(self.run_dir, self.model, self.ppo.optimizer, {"ppo": self.ppo.generator})
+        if restored is not None:
             self.version = self.saved_version = restored.version
-            log.info("resumed from %s (policy v%d)", found, restored.version)
+            log.info("resumed from %s (policy v%d)", restored.path, restored.version)
+            if restored.newest > restored.version and restored.newest > floor:
+                log.warning("checkpoint v%d could not be read, so v%d ... v%d are not reused",
+                            restored.newest, restored.version + 1, restored.newest)
+                floor = restored.newest
         if floor >= self.version and floor >= 0:
             # also past v0: a train that died in its first update lost that batch, and in a mode without
             # overlap generation waits for v1 before it acts again; the same weights as v1 let the run go on
             log.warning("versions up to v%d were published before the restart; the %s weights continue as v%d",
-                        floor, f"v{self.version}" if found else "initial", floor + 1)
+                        floor, f"v{self.version}" if restored else "initial", floor + 1)
             self.version = floor + 1
         self.arrays = state_arrays(self.model)
-        if found is None and floor < 0:
+        if restored is None and floor < 0:
             return None
-        return f"train resumed at policy v{self.version}" + (f" from {found.name}" if found is not None
+        return f"train resumed at policy v{self.version}" + (f" from {restored.path.name}" if restored is not None
                                                               else " with fresh weights")
 
     def save_checkpoint(self, run_name: str) -> bool:
@@ -187,34 +201,50 @@ class Learner:
         self.telemetry.count("train/checkpoints")
         return True
 
+    @property
+    def policy_path(self) -> str:
+        return os.path.join(self.run_dir, POLICY_FILE)
+
     def save_policy(self, run_name: str) -> str:
-        path = os.path.join(self.run_dir, POLICY_FILE)
+        path = self.policy_path
         weights = {name: torch.from_numpy(a) for name, a in self.arrays.items()}  # full, also when sharded
         save_checkpoint(self.model, path, {"run": run_name, "version": str(self.version), **self.portable},
                         state=weights)
         return path
 
     def hand_over(self) -> int:
-        """Write the segments received and not yet trained on, for the next learner of this run; how many."""
+        """Write the segments received and not yet trained on, for the next learner of this run; how many.
+        Durably (:func:`ebrl.algos.checkpoint.write_durably`), one checked record per segment
+        (:func:`write_records`)."""
         segments = self.collector.segments()
         if segments:
-            path = os.path.join(self.run_dir, HANDOVER_FILE)
-            with open(path + ".tmp", "wb") as fh:
-                fh.write(msgpack.packb([encode_message(seg) for seg in segments]))
-                fh.flush()
-                os.fsync(fh.fileno())
-            os.replace(path + ".tmp", path)
+            path = Path(self.run_dir) / HANDOVER_FILE
+            checkpoint.write_durably(path, lambda fh: write_records(fh, (encode_message(s) for s in segments)))
         return len(segments)
 
     def take_over(self, malformed: Callable[[Exception], None]) -> tuple[int, int]:
-        """Take over what the learner before handed over, once (the file is removed): (taken, handed over)."""
-        path = os.path.join(self.run_dir, HANDOVER_FILE)
-        if not os.path.exists(path):
+        """Take over what the learner before handed over, once (the file is removed): (taken, handed over).
+        A learner killed while handing over left only the temporary file: its whole records are taken over
+        too (each is checked; a torn last one is lost, logged)."""
+        path = Path(self.run_dir) / HANDOVER_FILE
+        tmp = path.with_name(path.name + ".tmp")
+        source = path if path.exists() else tmp if tmp.exists() else None
+        if source is None:
             return 0, 0
-        with open(path, "rb") as fh:
-            payloads = msgpack.unpackb(fh.read())
-        os.remove(path)
-        taken = sum(self.accept(decode_message(TrajectorySegment, p), malformed) for p in payloads)
+        payloads, torn = read_records(source)
+        if torn:
+            log.warning("%s: %s; took the %d whole records before it", source, torn, len(payloads))
+        for stale in (path, tmp):  # before anything is trained on: never taken over twice
+            stale.unlink(missing_ok=True)
+        checkpoint.fsync_dir(path.parent)
+        taken = 0
+        for payload in payloads:
+            try:
+                segment = decode_message(TrajectorySegment, payload)
+            except MessageError as exc:  # whole, but no segment of this version (another EBRL wrote it)
+                malformed(exc)
+                continue
+            taken += self.accept(segment, malformed)
         self.telemetry.count("train/segments_taken_over", taken)
         return taken, len(payloads)
 
@@ -228,3 +258,39 @@ class Learner:
         for lag, n in enumerate(self.staleness_hist):
             out[f"train/staleness_hist_{lag}"] = float(n)
         return out
+
+
+def write_records(fh: BinaryIO, payloads: Iterable[bytes]) -> None:
+    """The handover file's format: ``HANDOVER_MAGIC``, then one record per payload, each with its length and
+    checksum, so that a reader of a file cut short (or with garbage after it) keeps every whole record."""
+    fh.write(HANDOVER_MAGIC)
+    for payload in payloads:
+        fh.write(_RECORD.pack(len(payload), zlib.crc32(payload)))
+        fh.write(payload)
+
+
+def read_records(path: Path) -> tuple[list[bytes], str]:
+    """The whole records of a handover file, up to the first torn or garbled one, and what was wrong after them
+    ("" for a whole file). A file of the older format (one msgpack list) is read whole or not at all."""
+    data = path.read_bytes()
+    if not data.startswith(HANDOVER_MAGIC):
+        try:
+            payloads = msgpack.unpackb(data)
+        except (ValueError, msgpack.UnpackException):  # ExtraData and FormatError are ValueErrors
+            payloads = None
+        if isinstance(payloads, list) and all(isinstance(p, bytes) for p in payloads):
+            return payloads, ""
+        return [], "not a handover file (no header, not the older format)"
+    payloads, at = [], len(HANDOVER_MAGIC)
+    while at < len(data):
+        if at + _RECORD.size > len(data):
+            return payloads, f"record {len(payloads)} is torn (its header is cut short)"
+        length, crc = _RECORD.unpack_from(data, at)
+        payload = data[at + _RECORD.size:at + _RECORD.size + length]
+        if len(payload) < length:
+            return payloads, f"record {len(payloads)} is torn ({len(payload)} of {length} bytes)"
+        if zlib.crc32(payload) != crc:
+            return payloads, f"record {len(payloads)} is garbled (checksum mismatch)"
+        payloads.append(payload)
+        at += _RECORD.size + length
+    return payloads, ""

@@ -14,13 +14,18 @@ the action bounds and the format version. The observation normaliser's running
 statistics (``policy.normalize_obs``) are tensors of the state dict
 (``obs_norm.mean``, ``obs_norm.var``, ``obs_norm.count``), so they travel too.
 
-Files are written atomically (a temporary file, fsynced, renamed) and readable
-as the umask allows (0644 under the usual 022), never only by their owner.
+Files are written atomically (a temporary file ``.<name>.<random>.tmp`` beside
+the target, fsynced, renamed, the directory fsynced) and readable as the umask
+allows (0644 under the usual 022), never only by their owner. A file that
+cannot be read (missing, truncated, not safetensors) is told apart from one
+that does not fit the model: :class:`UnreadableCheckpoint`.
 """
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
+import glob
 import json
 import os
 import tempfile
@@ -36,6 +41,11 @@ from ebrl.policies.base import ChunkPolicy
 CHECKED = ("kind", "chunk", "action_dim", "layout")  # reserved metadata keys, written from the model
 FORMAT = "ebrl.policy/1"  # metadata["format"] of a portable checkpoint (portable_metadata)
 PORTABLE = ("format", "policy", "env", "obs_shape", "action_low", "action_high")  # what portable_metadata adds
+
+
+class UnreadableCheckpoint(ValueError):
+    """A checkpoint file that cannot be read at all (truncated, corrupt, not safetensors), as opposed to one
+    that reads but does not fit the model (a plain ValueError)."""
 
 
 def state_arrays(model: torch.nn.Module) -> dict[str, np.ndarray]:
@@ -85,8 +95,8 @@ def read_metadata(path: str) -> dict[str, str]:
     try:
         with safe_open(path, framework="pt") as fh:
             return dict(fh.metadata() or {})
-    except SafetensorError as exc:
-        raise ValueError(f"policy checkpoint {path}: not a readable safetensors file ({exc})") from None
+    except (SafetensorError, OSError) as exc:
+        raise UnreadableCheckpoint(f"policy checkpoint {path}: not a readable safetensors file ({exc})") from None
 
 
 def save_checkpoint(model: ChunkPolicy, path: str, metadata: dict[str, str],
@@ -96,7 +106,7 @@ def save_checkpoint(model: ChunkPolicy, path: str, metadata: dict[str, str],
     tensors = {name: t.detach().cpu().contiguous() for name, t in (state or model.state_dict()).items()}
     directory = os.path.dirname(os.path.abspath(path))
     os.makedirs(directory, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=".checkpoint-", suffix=".tmp", dir=directory)
+    fd, tmp = tempfile.mkstemp(prefix=f".{os.path.basename(path)}.", suffix=".tmp", dir=directory)
     os.close(fd)
     try:
         save_file(tensors, tmp, metadata={**metadata, **policy_metadata(model)})
@@ -105,7 +115,8 @@ def save_checkpoint(model: ChunkPolicy, path: str, metadata: dict[str, str],
             os.fsync(fh.fileno())
         os.replace(tmp, path)
     except BaseException:
-        os.unlink(tmp)
+        with contextlib.suppress(OSError):
+            os.unlink(tmp)
         raise
     dir_fd = os.open(directory, os.O_RDONLY)
     try:
@@ -126,9 +137,23 @@ def _umask() -> int:
     return 0o022
 
 
-def load_checkpoint(model: ChunkPolicy, path: str) -> dict[str, str]:
-    """Load the weights at ``path`` into ``model`` after checking kind, chunk, action_dim and layout; return
-    the file's metadata. FileNotFoundError for a missing file, ValueError for anything that does not match."""
+def remove_stale_temporaries(path: str) -> list[str]:
+    """Remove what a writer of ``path`` killed in the middle of :func:`save_checkpoint` left (its temporary
+    files); returns their names. Only for a file one process writes (another writer's file in progress would
+    go too)."""
+    directory, name = os.path.split(os.path.abspath(path))
+    removed = []
+    for stale in glob.glob(os.path.join(glob.escape(directory), f".{glob.escape(name)}.*.tmp")):
+        with contextlib.suppress(FileNotFoundError):
+            os.unlink(stale)
+            removed.append(stale)
+    return removed
+
+
+def read_checkpoint(model: ChunkPolicy, path: str) -> tuple[dict[str, np.ndarray], dict[str, str]]:
+    """The weights at ``path`` (every tensor read, none loaded yet) and the file's metadata, after checking kind,
+    chunk, action_dim and layout against ``model``. FileNotFoundError for a missing file, UnreadableCheckpoint
+    for one that cannot be read, ValueError for one that does not match."""
     if not os.path.isfile(path):
         raise FileNotFoundError(f"policy checkpoint {path}: no such file")
     try:
@@ -140,7 +165,15 @@ def load_checkpoint(model: ChunkPolicy, path: str) -> dict[str, str]:
                     raise ValueError(f"policy checkpoint {path}: {key} is {metadata.get(key, 'not recorded')!r}, "
                                      f"the model's is {expected[key]!r}")
             arrays = {name: fh.get_tensor(name).numpy() for name in fh.keys()}
-    except SafetensorError as exc:
-        raise ValueError(f"policy checkpoint {path}: not a readable safetensors file ({exc})") from None
+    except (SafetensorError, OSError) as exc:
+        raise UnreadableCheckpoint(f"policy checkpoint {path}: not a readable safetensors file ({exc})") from None
+    return arrays, metadata
+
+
+def load_checkpoint(model: ChunkPolicy, path: str) -> dict[str, str]:
+    """Load the weights at ``path`` into ``model`` after checking kind, chunk, action_dim and layout; return
+    the file's metadata. FileNotFoundError for a missing file, ValueError for anything that does not match
+    (UnreadableCheckpoint, a ValueError, for a file that cannot be read)."""
+    arrays, metadata = read_checkpoint(model, path)
     load_arrays(model, arrays, source=f"policy checkpoint {path}")
     return metadata

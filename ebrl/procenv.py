@@ -38,5 +38,6 @@ def dist_addr(environ: Mapping[str, str] = os.environ) -> str:
 
 
 def version_floor(environ: Mapping[str, str] = os.environ) -> int:
-    """The newest version anyone saw before this train started (-1: none; a fresh start)."""
+    """The newest version anyone saw before this train, gen or eval was started again (-1: none; a fresh
+    start)."""
     return int(environ.get(VERSION_FLOOR, "-1"))

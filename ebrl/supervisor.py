@@ -4,6 +4,9 @@ A child is ``python -m services.<role>`` (or any command line: tests start small
 Python scripts) in a process group of its own, so that Ctrl-C reaches only the
 launcher, which stops the children in order; it dies with the launcher
 (``PR_SET_PDEATHSIG``) and appends its output to ``logs/<role>-<instance>.log``.
+Whatever a child started in its group is killed as soon as the child is seen to
+have exited (before it is started again, or given up; at shutdown), so no
+orphaned grandchild of an old child outlives it.
 
 A child that exits on its own is started again after a backoff (1, 2, 4 ... s)
 at most ``run.max_restarts`` times when ``run.restart = "on-failure"``, then
@@ -56,6 +59,21 @@ class Child:
     def name(self) -> str:
         return f"{self.role}/{self.instance}"
 
+    def running(self) -> bool:
+        """Whether the child still runs. Once it has exited, its process group (whatever it started and left
+        behind) is killed before the child is reaped: until then its pid, the group's id, cannot be reused."""
+        if self.proc.returncode is not None:
+            return False
+        try:
+            exited = os.waitid(os.P_PID, self.proc.pid, os.WEXITED | os.WNOHANG | os.WNOWAIT) is not None
+        except ChildProcessError:  # reaped already
+            exited = True
+        if not exited:
+            return True
+        _kill_group(self)
+        self.proc.wait()  # reaps it (it has exited: at once)
+        return False
+
     def tail(self, n: int = LOG_TAIL) -> str:
         try:
             lines = self.log_path.read_text(errors="replace").splitlines()
@@ -85,6 +103,13 @@ def _die_with_parent() -> None:  # runs in the child between fork and exec
     os.setpgrp()  # Ctrl-C reaches the launcher only; it stops the children in order
     libc = ctypes.CDLL("libc.so.6", use_errno=True)
     libc.prctl(1, signal.SIGTERM)  # PR_SET_PDEATHSIG: a killed launcher takes its children along
+
+
+def _kill_group(child: Child) -> None:
+    """SIGKILL ``child``'s process group (its id is the child's pid: ``_die_with_parent`` made it), which outlives
+    the child while anything it started is in it; only while the child is unreaped (:meth:`Child.running`)."""
+    with contextlib.suppress(ProcessLookupError, PermissionError):
+        os.killpg(child.proc.pid, signal.SIGKILL)
 
 
 class Supervisor:
@@ -136,9 +161,9 @@ class Supervisor:
                 if now >= child.restart_at:
                     self.restart(child)
                 continue
-            rc = child.proc.poll()
-            if rc is None:
+            if child.running():
                 continue
+            rc = child.proc.returncode
             if child.requota:
                 self.restart(child, requota=True)
                 continue
@@ -164,8 +189,8 @@ class Supervisor:
         if child.role == "train" and self.train_ranks > 1:  # one rank gone breaks the group: restart every rank
             for rank in self.children:
                 if rank.role == "train" and rank is not child:
-                    if rank.proc.poll() is None:
-                        os.killpg(rank.proc.pid, signal.SIGKILL)
+                    if rank.running():
+                        _kill_group(rank)
                         rank.proc.wait(5.0)
                     rank.restart_at = now + delay
             self.dist_addr = f"127.0.0.1:{free_port()}"
@@ -182,7 +207,9 @@ class Supervisor:
             child.restarts += 1
         child.restart_at = None
         extra = {}
-        if child.role == "train":  # never reuse a version: the new train starts past every one seen
+        # never reuse a version: a new train starts past every one seen; a new gen or eval takes the next
+        # versions as plausible from there (ebrl.weights.plausible)
+        if child.role in ("train", "gen", "eval"):
             extra = procenv.service_env(version_floor=self.version_floor())
         why = f"with GPU share {self.gpu_env.get(child.role)}" if requota else f"restart {child.restarts}"
         with open(child.log_path, "ab") as fh:
@@ -207,7 +234,7 @@ class Supervisor:
                         self.train_ranks)
             return []
         self.gpu_env[role] = env
-        asked = [c for c in self.children if c.role == role and c.proc.poll() is None and not c.requota]
+        asked = [c for c in self.children if c.role == role and c.running() and not c.requota]
         for child in asked:
             child.requota = True
         return asked
@@ -227,24 +254,23 @@ class Supervisor:
         """Stop every child: ``ask_to_stop`` (a ``Stop`` over the bus), SIGTERM after ``stop_grace_s``, SIGKILL to
         its process group at ``shutdown_s``."""
         for child in self.children:
-            if child.proc.poll() is None:
+            if child.running():
                 await ask_to_stop(child)
         await self._wait_exit(time.monotonic() + stop_grace_s)
         for child in self.children:
-            if child.proc.poll() is None:
+            if child.running():
                 log.warning("%s did not stop in %.0f s; SIGTERM", child.name, stop_grace_s)
                 child.proc.terminate()
         await self._wait_exit(time.monotonic() + shutdown_s - stop_grace_s)
-        killed = [c for c in self.children if c.proc.poll() is None]
+        killed = [c for c in self.children if c.running()]
         for child in killed:
             self.say(f"ebrl: {child.name} ignored SIGTERM; killing it")
-            with contextlib.suppress(ProcessLookupError):
-                os.killpg(child.proc.pid, signal.SIGKILL)
+            _kill_group(child)
         await self._wait_exit(time.monotonic() + KILL_WAIT_S)  # SIGKILL is not refused, but may take a moment
         for child in killed:
-            if child.proc.poll() is None:
+            if child.running():
                 self.say(f"ebrl: {child.name} (pid {child.proc.pid}) still there {KILL_WAIT_S:.0f} s after SIGKILL")
 
     async def _wait_exit(self, deadline: float) -> None:
-        while time.monotonic() < deadline and any(c.proc.poll() is None for c in self.children):
+        while time.monotonic() < deadline and any([c.running() for c in self.children]):  # each one noticed
             await asyncio.sleep(0.05)

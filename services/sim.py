@@ -73,7 +73,8 @@ class SimService(Service):
         self.fleet.stepping.timeout = self.stats.step_timeout()  # once per stats report, not per chunk
         out = {"sim/envs": float(self.fleet.count()),
                "sim/cores": float(len(self.cores_in_use())),  # what an allocator on another host plans with
-               "sim/segments_held": float(len(self.outbox.held)), **self.stats.metrics()}
+               "sim/segments_held": float(len(self.outbox.held)), "sim/envs_given_up": float(self.fleet.given_up),
+               **self.stats.metrics()}
         if (rebinding := self.fleet.rebinding) is not None:
             out.update(rebinding.metrics())
         for core, percent in enumerate(psutil.cpu_percent(percpu=True)):

@@ -106,9 +106,12 @@ def test_a_gpu_plan_starts_generation_and_training_with_their_mps_shares(tmp_pat
 LAUNCH_WITH_GPU_SHARES = """
 import asyncio, logging, sys
 from ebrl import config
+from ebrl.bus import auth
 from ebrl.launch import Launcher, make_run_dir
 cfg = config.load(sys.argv[1], sys.argv[2:])
 run_dir = make_run_dir(cfg)
+if auth.secret_path(cfg.bus, run_dir):  # as `ebrl up` does before anything starts (bus.auth, the default)
+    auth.ensure(auth.secret_path(cfg.bus, run_dir))
 (run_dir / "config.toml").write_text(config.dump_toml(cfg))
 share = {"CUDA_VISIBLE_DEVICES": "0", "CUDA_MPS_ACTIVE_THREAD_PERCENTAGE": "50",
          "CUDA_MPS_PINNED_DEVICE_MEM_LIMIT": "0=1024M"}

@@ -21,6 +21,8 @@ STUBBORN = ("import signal, subprocess, sys, time; signal.signal(signal.SIGTERM,
             "grandchild = subprocess.Popen([sys.executable, '-c', 'import time; time.sleep(600)']); "
             "print('ready', grandchild.pid, flush=True); time.sleep(600)")
 SLEEPER = "import time; print('ready', flush=True); time.sleep(600)"
+LEAKY = ("import subprocess, sys; grandchild = subprocess.Popen(['sleep', '600']); "  # left in its process group
+         "print('grandchild', grandchild.pid, flush=True); sys.exit(3)")
 
 
 class Recorded:
@@ -70,6 +72,13 @@ def running(sup: Supervisor, condition) -> bool:
     failure = sup.check()
     assert failure is None, failure
     return condition()
+
+
+def gone(pid: int) -> bool:
+    try:
+        return psutil.Process(pid).status() == psutil.STATUS_ZOMBIE  # killed, waiting for an adoptive parent
+    except psutil.NoSuchProcess:
+        return True
 
 
 def first_failure(sup: Supervisor, timeout: float = 60.0) -> str:
@@ -166,11 +175,22 @@ def test_shutdown_asks_then_terminates_then_kills_the_process_group_of_a_child_i
     assert polite.proc.returncode == -signal.SIGTERM
     assert stubborn.proc.returncode == -signal.SIGKILL
     assert "ebrl: stubborn/0 ignored SIGTERM; killing it" in said.lines
+    until(lambda: gone(grandchild), "the stubborn child's own child killed with its process group")
 
-    def gone() -> bool:
-        try:
-            return psutil.Process(grandchild).status() == psutil.STATUS_ZOMBIE
-        except psutil.NoSuchProcess:
-            return True
 
-    until(gone, "the stubborn child's own child killed with its process group")
+def test_a_child_that_exited_has_its_process_group_killed_before_it_starts_again(made):
+    """A child that leaves a grandchild in its process group and exits: the grandchild is killed as soon as the
+    exit is noticed (before the restart, and when the child fails for good), so no orphan outlives it."""
+    sup, said = made({"leaky": (LEAKY,)}, policy=RestartPolicy(True, 1, first_delay_s=600.0))
+    child = sup.start("leaky", 0)
+
+    def grandchildren() -> list[int]:
+        return [int(line.split()[1]) for line in child.log_path.read_text().splitlines()
+                if line.startswith("grandchild")]
+
+    until(lambda: running(sup, lambda: child.restart_at is not None), "its exit noticed, its restart scheduled")
+    until(lambda: gone(grandchildren()[0]), "its grandchild killed before the restart", timeout=10)
+    sup.restart(child)  # now, not in 600 s
+    assert first_failure(sup) == "leaky/0 exited with status 3 (after 1 restarts)"
+    assert len(grandchildren()) == 2
+    until(lambda: gone(grandchildren()[1]), "the last child's grandchild killed too", timeout=10)

@@ -2,16 +2,22 @@
 
 One process per environment so that each can be pinned to a core. A request
 is one pickled tuple; the parent awaits the reply through ``loop.add_reader``
-on the pipe, so hundreds of workers need no threads. A worker exits when its
-pipe closes (its parent died), so workers never outlive the sim service.
+on the pipe, so hundreds of workers need no threads. Workers never outlive the
+sim service, even in the middle of a step: one exits when its pipe closes, is
+SIGKILLed when its parent process dies (``PR_SET_PDEATHSIG``), and, since that
+parent is the forkserver (which lives on while any worker does), when the sim
+service exits (a thread waiting on a pidfd of it).
 """
 
 from __future__ import annotations
 
 import asyncio
+import ctypes
 import multiprocessing as mp
 import os
+import select
 import signal
+import threading
 import time
 from dataclasses import dataclass
 from multiprocessing.connection import Connection
@@ -26,6 +32,9 @@ from ebrl.sched.corepool import CoreClaim, CorePool, ParentGone
 
 _CTX = None
 EPISODE_SEED_STRIDE = 7919  # episode k of a worker seeded s starts from reset(seed=s + EPISODE_SEED_STRIDE * k)
+PR_SET_PDEATHSIG = 1  # prctl(2)
+# The forkserver preloads this module, so there this is its pid: the parent of every worker it forks.
+_IMPORTED_BY = os.getpid()
 
 
 def _context(spec: EnvSpec) -> mp.context.BaseContext:
@@ -65,11 +74,59 @@ def as_obs(obs: Any) -> np.ndarray:
     return np.asarray(obs, dtype=np.float32)
 
 
-def _worker_main(conn: Connection, spec: EnvSpec, seed: int, claim: CoreClaim | None = None) -> None:
+def die_with_parent(parent: int) -> bool:
+    """Have this process SIGKILLed when its parent dies (``PR_SET_PDEATHSIG``); False when the parent it was
+    started by, ``parent``, is gone already (it died before the call, so the signal will never come)."""
+    libc = ctypes.CDLL(None, use_errno=True)
+    if libc.prctl(PR_SET_PDEATHSIG, signal.SIGKILL, 0, 0, 0) != 0:
+        raise OSError(ctypes.get_errno(), "prctl(PR_SET_PDEATHSIG)")
+    return os.getppid() == parent  # read after prctl: a parent that dies from now on sends the signal
+
+
+def die_with(owner: int) -> bool:
+    """Have this process SIGKILLed when process ``owner`` exits, whoever its parent is: a daemon thread waits on a
+    pidfd of it (polls, where there are none). False when ``owner`` is gone already."""
+    try:
+        pidfd: int | None = os.pidfd_open(owner)
+    except ProcessLookupError:
+        return False
+    except OSError:  # no pidfds (Linux < 5.3)
+        pidfd = None
+
+    def watch() -> None:
+        if pidfd is not None:
+            select.select([pidfd], [], [])  # readable once the process exited
+        else:
+            while _exists(owner):
+                time.sleep(1.0)
+        os.kill(os.getpid(), signal.SIGKILL)
+
+    threading.Thread(target=watch, name="ebrl-owner-watch", daemon=True).start()
+    return _exists(owner)
+
+
+def _exists(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        pass
+    return True
+
+
+def _worker_main(conn: Connection, spec: EnvSpec, seed: int, claim: CoreClaim | None = None,
+                 owner: int | None = None) -> None:
     """Episode ``k`` starts from ``env.reset(seed=seed + 7919 * k)``: workers given the same ``seed`` replay
     the same sequence of initial states (GRPO groups). With a ``claim`` on the sim service's core pool, every
-    step runs on a core claimed from it (:mod:`ebrl.sched.corepool`)."""
+    step runs on a core claimed from it (:mod:`ebrl.sched.corepool`). ``owner``: the sim service's pid; the
+    worker dies with it."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # the sim service decides when workers stop
+    # The parent imported this module before it forked this process: the forkserver (which preloads it) or a
+    # forking sim service. Imported here (spawn, a forkserver without the preload), its pid is not known.
+    parent = _IMPORTED_BY if _IMPORTED_BY != os.getpid() else os.getppid()
+    if not die_with_parent(parent) or (owner is not None and not die_with(owner)):
+        return  # the sim service (or the forkserver) died before the worker got here
     if claim is not None:
         claim.register()
     try:
@@ -159,10 +216,12 @@ class EnvWorker:
         self.conn, child = ctx.Pipe()
         claim = CoreClaim(pool, slot, child) if pool is not None else None
         self.slot = slot  # its place in the core pool
-        self.proc = ctx.Process(target=_worker_main, args=(child, spec, seed, claim), daemon=True, name="ebrl-env")
+        self.proc = ctx.Process(target=_worker_main, args=(child, spec, seed, claim, os.getpid()), daemon=True,
+                                name="ebrl-env")
         self.proc.start()
         child.close()
         self.core = core
+        self.chunks_done = 0  # chunks it answered (a replaced worker that never did counts against its env)
         if core is not None:
             self.pin(core)
 
@@ -210,14 +269,18 @@ class EnvWorker:
         """Run ``actions`` (stopping early at an episode end). ``observe=False``: the caller will not read the
         observation after the last action (more steps of the same chunk follow), so an env that can skip
         rendering does; an episode that ends is always observed."""
-        return await self.request("chunk", (actions, observe), timeout)  # type: ignore[return-value]
+        result = await self.request("chunk", (actions, observe), timeout)
+        self.chunks_done += 1
+        return result  # type: ignore[return-value]
 
-    def kill(self) -> None:
-        """End the process now (a dead or hung worker)."""
+    def kill(self, close_pipe: bool = True) -> None:
+        """End the process now (a dead or hung worker). ``close_pipe=False`` leaves the pipe open, so that a
+        request in flight fails as for a worker that died (its caller then kills it again, closing it)."""
         if self.proc.is_alive():
             self.proc.kill()
         self.proc.join(2.0)
-        self.conn.close()
+        if close_pipe:
+            self.conn.close()
 
     def close(self, timeout: float = 2.0) -> None:
         try:

@@ -2,17 +2,25 @@
 
 Group and env ids follow the host's place in the run (sim instance ``i`` of a multi-host run owns groups
 ``i * groups ...``), so every one is unique in the run: group ids name bus keys, env ids seed the envs.
+
+A worker that dies or hangs is replaced (``recover``); an env whose workers fail ``MAX_REPLACEMENTS + 1`` times
+in a row without answering one chunk (an env that raises at every step) is given up instead of being replaced
+forever: its worker is gone, it takes no more chunks, the other envs go on (``given_up``, ``given_up_env``).
+With GRPO groups (``share`` > 1) its group-mates on this host are given up with it: their episodes could never
+be compared without it.
 """
 
 from __future__ import annotations
 
 import collections
+import logging
 import time
 from typing import Callable
 
 import numpy as np
 
 from ebrl.envs import EnvSpec, EnvWorker
+from ebrl.envs.worker import WorkerFailed
 from ebrl.messages import EPISODES_MAX, EpisodeBatch
 from ebrl.sched.corepool import CorePool
 from ebrl.sched.modes import Schedule
@@ -20,7 +28,10 @@ from ebrl.sched.rollout import Episodes
 from ebrl.sched.stepchoice import SteppingChoice
 from ebrl.sched.stepping import BatchStepping, IndependentStepping, RebindingStepping, Stepping
 
+log = logging.getLogger(__name__)
+
 ENV_SEED_STRIDE = 100_003  # env i's worker seed: run.seed * ENV_SEED_STRIDE + i
+MAX_REPLACEMENTS = 5  # replacements of an env's worker in a row, none answering a chunk, before it is given up
 
 
 class EnvFleet:
@@ -47,7 +58,10 @@ class EnvFleet:
                                                         on_mode=on_mode, on_decision=on_decision)
         else:
             self.stepping = IndependentStepping() if schedule.stepping == "async" else BatchStepping()
-        self.workers: dict[int, list[EnvWorker]] = {}
+        self.failures: dict[int, int] = {}  # env -> workers that failed in a row without answering a chunk
+        self.given_up_envs: set[int] = set()
+        self.given_up = 0  # envs given up (sim/envs_given_up)
+        self.workers: dict[int, list[EnvWorker]] = {}  # a given-up env keeps its dead worker's handle
         for g in self.groups:
             self.workers[g] = [self._start(env) for env in self.env_ids(g)]
 
@@ -75,29 +89,73 @@ class EnvFleet:
     def replace(self, g: int, i: int) -> EnvWorker:
         """Kill env ``i`` of group ``g``'s worker (dead or hung); a new one for the same env, seed and core
         (or place in the core pool, whose cores the old one held go to the others)."""
-        old = self.workers[g][i]
-        old.kill()
-        env = int(self.env_ids(g)[i])
-        if self.pool is not None:
-            self.pool.reclaim(self.slot(env))
-        worker = self.workers[g][i] = self._start(env, old.core)
+        old = self._stop(g, i)
+        worker = self.workers[g][i] = self._start(int(self.env_ids(g)[i]), old.core)
         return worker
 
+    async def recover(self, g: int, i: int, episode: int) -> np.ndarray | None:
+        """After env ``i`` of group ``g``'s worker failed: replace it and start episode ``episode`` on the new
+        one (one that fails at once is replaced again); its first observation. None: the env is given up, now
+        (``MAX_REPLACEMENTS``, logged) or before, and has no worker any more."""
+        env = int(self.env_ids(g)[i])
+        while env not in self.given_up_envs:
+            failed = self.workers[g][i]
+            failures = self.failures[env] = (0 if failed.chunks_done else self.failures.get(env, 0)) + 1
+            if failures > MAX_REPLACEMENTS:
+                self._give_up(env, failures)
+                break
+            try:
+                return await self.replace(g, i).reset(episode)  # type: ignore[return-value]
+            except WorkerFailed as exc:
+                log.warning("env %d: its new worker failed at once (%s)", env, exc)
+        self._stop(g, i)
+        return None
+
+    def _stop(self, g: int, i: int, close_pipe: bool = True) -> EnvWorker:
+        """Kill env ``i`` of group ``g``'s worker; the cores it held in the pool go to the others."""
+        worker = self.workers[g][i]
+        worker.kill(close_pipe)
+        if self.pool is not None:
+            self.pool.reclaim(self.slot(int(self.env_ids(g)[i])))
+        return worker
+
+    def given_up_env(self, env: int) -> bool:
+        """Whether env ``env`` was given up: it takes no more chunks."""
+        return env in self.given_up_envs
+
+    def _give_up(self, env: int, failures: int) -> None:
+        mates = [m for m in self.episodes.members(env)  # GRPO: the group-mates on this host, itself included
+                 if m // self.per_group in self.workers and m not in self.given_up_envs]
+        with_mates = f"; with it its GRPO group-mates {[m for m in mates if m != env]}" if len(mates) > 1 else ""
+        log.error("env %d given up: its worker failed %d times in a row without answering a chunk (after %d "
+                  "replacements)%s; the other envs go on", env, failures, failures - 1, with_mates)
+        for mate in mates:
+            self.given_up_envs.add(mate)
+            self.given_up += 1
+            if mate != env:  # its worker goes too: a chunk in flight fails, and the worker is not replaced
+                self._stop(*divmod(mate, self.per_group), close_pipe=False)  # closed by recover(), or close()
+
+    def live(self) -> list[EnvWorker]:
+        """The workers of the envs not given up."""
+        return [w for g in self.groups for env, w in zip(self.env_ids(g), self.workers[g])
+                if int(env) not in self.given_up_envs]
+
     def count(self) -> int:
-        return sum(len(w) for w in self.workers.values())
+        """Envs running (not given up)."""
+        return len(self.live())
 
     def cores(self) -> list[int]:
         """The cores the envs run on (a rebinding budget, or the statically pinned cores)."""
         if self.pool is not None:
             return self.pool.cores()
-        return sorted({w.core for ws in self.workers.values() for w in ws if w.core is not None})
+        return sorted({w.core for w in self.live() if w.core is not None})
 
     def pin(self, cores: list[int]) -> None:
         """A new simulation core budget: rebinding uses it from the next step; static pinning re-pins."""
         if self.pool is not None:
             self.pool.set_budget(cores)
             return
-        for i, worker in enumerate(w for g in self.groups for w in self.workers[g]):
+        for i, worker in enumerate(self.live()):
             worker.pin(cores[i % len(cores)])
 
     def close(self) -> None:

@@ -7,7 +7,8 @@ Three parts, each over the bus API only (a Zenoh ``Bus`` or an in-memory one):
   published again when no answer comes (a lost sample) or generation restarted (it has none in flight);
 * :class:`SegmentOutbox` — segments out on ``traj/<group>``, held while no train is live (a restart, a
   new GPU share) up to ``train.max_pending`` decisions, and sent when one is back;
-* :class:`GroupLoop` — one group's loop: GRPO gating, exchange, stepping, worker replacement, segments.
+* :class:`GroupLoop` — one group's loop: GRPO gating, exchange, stepping, worker replacement (an env given up
+  by the fleet takes no more chunks), segments.
 """
 
 from __future__ import annotations
@@ -122,13 +123,17 @@ class GroupLoop:
     async def run_forever(self) -> None:
         workers = self.fleet.workers[self.g]
         obs = np.stack(await asyncio.gather(*(w.reset() for w in workers)))
-        while True:
+        while not all(self.fleet.given_up_env(int(env)) for env in self.env_ids):
             obs = await self.step(obs)
+        log.error("group %d: every env given up; the group stops", self.g)
+        if self.fleet.count() == 0:  # a sim service without envs fails: the launcher restarts it, or reports it
+            raise RuntimeError("every env of this sim service was given up")
 
     async def step(self, obs: np.ndarray) -> np.ndarray:
         """One chunk of this group: returns the next observations."""
         g, episodes, workers = self.g, self.fleet.episodes, self.fleet.workers[self.g]
-        active = [i for i, env in enumerate(self.env_ids) if episodes.may_act(int(env))]
+        active = [i for i, env in enumerate(self.env_ids)
+                  if not self.fleet.given_up_env(int(env)) and episodes.may_act(int(env))]
         if not active:  # every env waits for GRPO group-mates in other sim groups
             await episodes.moved()
             return obs
@@ -150,12 +155,15 @@ class GroupLoop:
         env, episodes, count = int(self.env_ids[i]), self.fleet.episodes, self.telemetry.count
         if isinstance(res, WorkerFailed):
             log.warning("env %d: %s; replacing its worker (the episode in progress is dropped)", env, res)
-            self.telemetry.event("worker", f"env {env}: {res}; worker replaced")
             count("sim/worker_restarts")
-            episode = episodes.index[env] + 1  # the episode numbering, hence GRPO's groups, carries on
-            next_obs = await self.fleet.replace(self.g, i).reset(episode)
             count("sim/partial_decisions_dropped", len(self.builders[i]))
             self.builders[i] = SegmentBuilder(self.g, env, self.segment_length)
+            episode = episodes.index[env] + 1  # the episode numbering, hence GRPO's groups, carries on
+            next_obs = await self.fleet.recover(self.g, i, episode)
+            if next_obs is None:  # given up (the fleet logged why): it takes no more chunks
+                self.telemetry.event("worker", f"env {env}: {res}; given up, its worker failed at every step")
+                return obs
+            self.telemetry.event("worker", f"env {env}: {res}; worker replaced")
             episodes.set(env, episode)
             return next_obs
         self.stats.chunk_latency.append(latency)

@@ -1,0 +1,42 @@
+"""Environments that misbehave on purpose (env.id = "faulty_envs:Faulty-v0"), for the env worker tests.
+
+One env of a fleet is picked by its reset seed (``seed % EPISODE_SEED_STRIDE``: with ``run.seed = 0``, its env
+id) and ``fault`` says what it does: ``"raise"`` at every step, ``"raise-always"`` at every step and at every
+reset after its first episode's, ``"sleep"`` in its first step (for ten minutes, after touching the file
+``marker``), or nothing. The others are five-step episodes of reward 1."""
+
+import time
+from pathlib import Path
+
+import gymnasium
+import numpy as np
+
+from ebrl.envs.worker import EPISODE_SEED_STRIDE
+
+
+class Faulty(gymnasium.Env):
+    def __init__(self, fault: str = "", bad_env: int = 0, marker: str = ""):
+        self.observation_space = gymnasium.spaces.Box(-1.0, 1.0, (3,), np.float32)
+        self.action_space = gymnasium.spaces.Box(-1.0, 1.0, (1,), np.float32)
+        self.fault, self.bad_env, self.marker = fault, bad_env, marker
+        self.bad, self.t = False, 0
+
+    def reset(self, *, seed=None, options=None):
+        super().reset(seed=seed)
+        self.bad = seed is not None and seed % EPISODE_SEED_STRIDE == self.bad_env
+        if self.bad and self.fault == "raise-always" and seed >= EPISODE_SEED_STRIDE:
+            raise RuntimeError("this env fails at every reset after its first")
+        self.t = 0
+        return np.zeros(3, np.float32), {}
+
+    def step(self, action):
+        if self.bad and self.fault.startswith("raise"):
+            raise RuntimeError("this env fails at every step")
+        if self.bad and self.fault == "sleep":
+            Path(self.marker).touch()
+            time.sleep(600)
+        self.t += 1
+        return np.full(3, self.t / 5, np.float32), 1.0, False, self.t >= 5, {}
+
+
+gymnasium.register("Faulty-v0", entry_point=Faulty)

@@ -257,7 +257,7 @@ class SpanBatch:
     end: list[float] = doc("epoch seconds, one per span")
     label: list[str] = doc("what ran, one per span: chunk, wait, forward, update, v<version>")
 
-    MAX_BYTES = 4 * MIB
+    MAX_BYTES = 1 * MIB  # at most SPAN_BATCH_MAX spans, about 120 KB
 
     def __post_init__(self) -> None:
         if not len(self.start) == len(self.end) == len(self.label):
@@ -455,8 +455,9 @@ def from_wire(cls: type[T], raw: Any) -> T:
     if not isinstance(raw, dict):
         raise MessageError(f"{cls.__name__}: expected a map, got {type(raw).__name__}")
     version = raw.get("v")
-    if version != SCHEMA_VERSION:
-        raise MessageError(f"{cls.__name__}: schema version {version!r}, expected {SCHEMA_VERSION}")
+    if type(version) is not int or version != SCHEMA_VERSION:  # an array's != is elementwise; True == 1
+        shown = version if type(version) is int else typecheck.describe(version)
+        raise MessageError(f"{cls.__name__}: schema version {shown}, expected {SCHEMA_VERSION}")
     hints = _hints(cls)
     values = {}
     for f in dataclasses.fields(cls):
@@ -466,7 +467,7 @@ def from_wire(cls: type[T], raw: Any) -> T:
             raise MessageError(f"{cls.__name__}: missing field {f.name!r}")
     unknown = set(raw) - set(hints) - {"v"}
     if unknown:
-        raise MessageError(f"{cls.__name__}: unknown fields {sorted(unknown)}")
+        raise MessageError(f"{cls.__name__}: unknown fields {sorted(unknown, key=repr)}")  # str and bytes keys
     msg = cls(**values)
     check = getattr(msg, "check", None)
     if check is not None:

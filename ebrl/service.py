@@ -33,7 +33,7 @@ import psutil
 from ebrl import config as config_mod, devices
 from ebrl.bus import Bus, BusOptions, auth, keys
 from ebrl.messages import Affinity, Event, Quota, SpanBatch, StatsReport, Stop, encode_message
-from ebrl.recorder import Recorder
+from ebrl.recorder import SPAN_BATCH_MAX, Recorder
 
 STOP_GRACE_S = 5.0
 EXIT_GRACE_S = 3.0  # after a service stopped, its process exits within this (service_main)
@@ -137,10 +137,11 @@ class Service:
     def flush_spans(self) -> None:
         """Publish the spans recorded since the last flush, one ``SpanBatch`` per lane (any thread)."""
         for lane, rows in self.recorder.take_spans().items():
-            starts, ends, labels = zip(*rows)
-            self.bus.put_nowait(keys.spans(self.run_name, lane), SpanBatch(
-                lane=lane, service=self.role, instance=self.instance, start=list(starts), end=list(ends),
-                label=list(labels)))
+            for at in range(0, len(rows), SPAN_BATCH_MAX):  # other threads may have added past the bound
+                starts, ends, labels = zip(*rows[at:at + SPAN_BATCH_MAX])
+                self.bus.put_nowait(keys.spans(self.run_name, lane), SpanBatch(
+                    lane=lane, service=self.role, instance=self.instance, start=list(starts), end=list(ends),
+                    label=list(labels)))
 
     def event(self, kind: str, text: str) -> None:
         """Add a line to the run's event log (``ebrl/stats/<run>/events/<role>``), from any thread."""

@@ -3,11 +3,14 @@
 Supported annotations: ``int``, ``float`` (ints accepted), ``bool``, ``str``,
 ``Any``, ``list[T]``, ``dict[K, V]``, ``Literal[...]``, ``X | None`` and
 ``Annotated[np.ndarray, Array(dtype, ndim)]``. Errors name the path of the
-offending value (``run.iterations``, ``Observation.obs``).
+offending value (``run.iterations``, ``Observation.obs``). Any value may be checked -- a
+decoded payload is an attacker's choice -- and the only exception for a mismatch is ``error``;
+messages show a bounded summary of the value, however large or deep it is.
 """
 
 from __future__ import annotations
 
+import reprlib
 import types
 import typing
 from dataclasses import dataclass
@@ -25,11 +28,22 @@ class Array:
 
 
 _NAMES = {str: "string", int: "integer", float: "number", bool: "boolean", list: "list", dict: "map"}
+_REPR = reprlib.Repr()  # keyword arguments only from Python 3.12
+_REPR.maxlevel, _REPR.maxstring, _REPR.maxlong, _REPR.maxother = 2, 40, 40, 40
+_REPR.maxtuple = _REPR.maxlist = _REPR.maxarray = _REPR.maxdict = _REPR.maxset = _REPR.maxfrozenset = 4
 
 
 def describe(value: Any) -> str:
-    text = repr(value)
-    return f"{_NAMES.get(type(value), type(value).__name__)} {text if len(text) <= 40 else text[:37] + '...'}"
+    """The kind of ``value`` and the start of its repr, in bounded time however large or deep it is."""
+    return f"{_NAMES.get(type(value), type(value).__name__)} {_short(value)}"
+
+
+def _short(value: Any) -> str:
+    try:
+        text = _REPR.repr(value)
+    except Exception:  # a repr that fails (an int past Python's digit limit): the type says enough
+        text = f"<{type(value).__name__}>"
+    return text if len(text) <= 40 else text[:37] + "..."
 
 
 def check(value: Any, tp: Any, path: str, error: type[Exception]) -> Any:
@@ -52,9 +66,9 @@ def check(value: Any, tp: Any, path: str, error: type[Exception]) -> Any:
             except error as exc:
                 problems.append(str(exc))
         raise error("; ".join(problems))
-    if origin is Literal:
-        if value not in get_args(tp):
-            raise error(f"{path} = {value!r}: expected one of {', '.join(map(repr, get_args(tp)))}")
+    if origin is Literal:  # same type and equal: an array's == is elementwise, True == 1
+        if not any(type(value) is type(option) and value == option for option in get_args(tp)):
+            raise error(f"{path} = {_short(value)}: expected one of {', '.join(map(repr, get_args(tp)))}")
         return value
     if origin is list:
         if not isinstance(value, list):
@@ -65,12 +79,15 @@ def check(value: Any, tp: Any, path: str, error: type[Exception]) -> Any:
         if not isinstance(value, dict):
             raise error(f"{path}: expected a map, got {describe(value)}")
         key_tp, item = get_args(tp)
-        return {check(k, key_tp, f"{path} key", error): check(v, item, f"{path}[{k!r}]", error)
+        return {check(k, key_tp, f"{path} key", error): check(v, item, f"{path}[{_short(k)}]", error)
                 for k, v in value.items()}
     if tp is float:
         if isinstance(value, bool) or not isinstance(value, (int, float)):
             raise error(f"{path}: expected a number, got {describe(value)}")
-        return float(value)
+        try:
+            return float(value)
+        except OverflowError:  # an int beyond float's range
+            raise error(f"{path}: {describe(value)} is too large for a number") from None
     if tp is int:
         if isinstance(value, bool) or not isinstance(value, int):
             raise error(f"{path}: expected an integer, got {describe(value)}")

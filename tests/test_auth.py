@@ -172,7 +172,7 @@ def _readline(process: subprocess.Popen, deadline: float) -> str:
     return process.stdout.readline()
 
 
-def test_without_the_secret_a_peer_gets_nothing_in_or_out_and_an_observer_reads_stats(tmp_path):
+def test_without_the_secret_a_peer_gets_nothing_in_or_out_and_an_observer_only_reads(tmp_path):
     secret = auth.create(tmp_path / "bus.secret")
     port = free_port()
     launcher = zenoh.open(zenoh_config(BusOptions(listen=[f"tcp/127.0.0.1:{port}"], secret_file=str(secret))))
@@ -192,12 +192,23 @@ def test_without_the_secret_a_peer_gets_nothing_in_or_out_and_an_observer_reads_
         for session in (outsider, impostor):
             for key in forged:
                 session.put(key, b"forged")
+        by_observer = [keys.ctl("r", "gen", 0, "stop"), keys.traj("r", 2), keys.stats("r", "train", 8)]
+        for key in by_observer:  # an observer reads; what it publishes is dropped where it enters
+            observer.put(key, b"forged")
+        token = observer.liveliness().declare_token(keys.live("r", "train", 7))
+        seen_live: list[str] = []
+        launcher.liveliness().declare_subscriber("ebrl/live/**", lambda s: seen_live.append(str(s.key_expr)),
+                                                 history=True)
         # the forged puts first, then the service's own on other keys as the positive control
         while "ebrl/stats/r/sim/0" not in got["observer"] or keys.traj("r", 1) not in got["launcher"]:
             service.put(keys.stats("r", "sim", 0), b"ok")
             service.put(keys.traj("r", 1), b"ok")
             time.sleep(0.05)
         assert not set(forged) & set(got["launcher"]) and not set(forged) & set(got["observer"])
+        time.sleep(0.5)  # the observer's puts took another path than the service's: let them land, if they could
+        assert not set(by_observer) & set(got["launcher"])
+        assert not seen_live  # the observer's forged liveliness token never reached the run
+        del token
         assert not list(outsider.info.peers_zid()) and not list(impostor.info.peers_zid())
         assert got["outsider"] == forged and got["impostor"] == forged  # only what each sent itself
     finally:

@@ -10,11 +10,10 @@ names a shared one for a run over several hosts). It is a Zenoh user-password di
   file (Zenoh's ``transport/auth/usrpwd``). A process that does not hold the file cannot open a session with
   any of them: nothing it sends arrives, and it receives nothing.
 * A script that watches the run (``ebrl stats``, ``ebrl bench``, the README's subscriber) signs in as
-  ``observer``, as a Zenoh client of the launcher. Holding the file, it could do anything the run's services
-  do: the file is the owner's (0600), like the processes it could as well signal. (Zenoh's access-control
-  rules could narrow an observer to ``ebrl/stats/**``; with zenoh 1.10.2 any rules at all made 2 of 8 runs
-  with an observer attached stall at start, their services never seeing each other's liveliness, so there
-  are none.)
+  ``observer``, as a Zenoh client of the launcher. Zenoh's access control on every service drops what an
+  observer publishes (puts, deletes, queryables, liveliness tokens): it reads, it cannot act on the run.
+  (The file holds the service password too: it is the owner's, 0600, like the processes they could as well
+  signal.)
 
 Signing in does not encrypt the session: on loopback that is enough; between hosts the endpoints must be TLS
 (:func:`check_endpoints`).
@@ -98,12 +97,32 @@ def load(path: str | os.PathLike, role: Role) -> Credentials:
     return Credentials(user=user, password=users[user], path=path.resolve())
 
 
+# What a service takes from an observer: nothing that would act on the run. It may subscribe (to
+# ebrl/stats/** or anything else its owner could read anyway) and query; every put, delete, queryable and
+# liveliness token it sends is dropped where it enters (Zenoh's access control, on the user name).
+OBSERVER_DENIED = ["put", "delete", "declare_queryable", "liveliness_token"]
+
+
+def access_control() -> dict[str, object]:
+    """The ``access_control`` block of every service: observers may read, never publish."""
+    return {
+        "enabled": True,
+        "default_permission": "allow",
+        "rules": [{"id": "observers-read-only", "permission": "deny", "flows": ["ingress"],
+                   "messages": OBSERVER_DENIED, "key_exprs": ["**"]}],
+        "subjects": [{"id": "observers", "usernames": [OBSERVER_USER]}],
+        "policies": [{"rules": ["observers-read-only"], "subjects": ["observers"]}],
+    }
+
+
 def zenoh_settings(credentials: Credentials, role: Role) -> dict[str, object]:
     """Zenoh config entries (path -> value) for a session of ``role``: sign in with ``credentials``; a service
-    also checks whoever connects against the file."""
+    also checks whoever connects against the file, and takes nothing but subscriptions and queries from an
+    observer (:func:`access_control`)."""
     usrpwd: dict[str, str] = {"user": credentials.user, "password": credentials.password}
     if role == "service":
         usrpwd["dictionary_file"] = str(credentials.path)
+        return {"transport/auth/usrpwd": usrpwd, "access_control": access_control()}
     return {"transport/auth/usrpwd": usrpwd}
 
 

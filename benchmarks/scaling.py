@@ -36,6 +36,7 @@ import psutil
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from ebrl import config  # noqa: E402
+from ebrl.bus import auth  # noqa: E402
 from ebrl.messages import StatsReport  # noqa: E402
 from ebrl.testing import Run, StatsWatcher  # noqa: E402
 
@@ -56,7 +57,7 @@ def host_run(args, run: str, k: int, primary: Run | None, world: int, cores: lis
     the primary's bus); its launcher's output goes to ``launcher-<k>.log`` beside the hosts' run directories."""
     out_dir = Path(args.runs_dir) / run / f"host{k}"
     sets = [f"train.world_size={world}", "run.iterations=0", "run.target_return=1e9", 'viz.rerun="off"',
-            "viz.report=false", *args.set]
+            "viz.report=false", f'bus.secret_file="{Path(args.runs_dir).resolve() / run / auth.FILENAME}"', *args.set]
     if primary is not None:
         sets.append(f'bus.connect=["{primary.endpoint}"]')
     if cores is not None:
@@ -113,6 +114,7 @@ def measure(args, hosts: int, world: int, rep: int) -> dict[str, Any]:
     usable = sorted(os.sched_getaffinity(0))
     plan = core_plan(hosts, args.cores_per_host, usable)
     (Path(args.runs_dir) / run).mkdir(parents=True, exist_ok=True)
+    auth.ensure(Path(args.runs_dir) / run / auth.FILENAME)  # one secret for every host of the run (bus.auth)
     sims = [f"sim/{k}" for k in range(1, hosts + 1)]
     launchers: list[Run] = []
     began = time.monotonic()

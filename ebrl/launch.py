@@ -230,7 +230,9 @@ class Launcher:
         return time.monotonic() - self.started
 
     async def wait_live(self) -> bool:
-        children = self.supervisor.children
+        """Wait for every service the run needs. An optional one (log, eval) is not waited for: at idle priority
+        on a busy machine, eval can take minutes to start, and nothing waits on it; it joins when it is up."""
+        children = [c for c in self.supervisor.children if c.role not in OPTIONAL_ROLES]
         deadline = time.monotonic() + self.cfg.run.startup_timeout
         while missing := [c for c in children if not self.members.is_live(c.role, c.instance) and not c.given_up]:
             if self.stopping.is_set():
@@ -249,6 +251,9 @@ class Launcher:
         names = ", ".join(c.name for c in children)
         self.console.say(f"all services live after {self.elapsed():.1f} s: {names}")
         self.link.event("live", f"{names} live after {self.elapsed():.1f} s")
+        if later := [c.name for c in self.supervisor.children
+                     if c.role in OPTIONAL_ROLES and not self.members.is_live(c.role, c.instance)]:
+            self.console.say(f"{', '.join(later)} still starting (optional: the run does not wait for it)")
         if self.cfg.viz.rerun != "off":
             self.console.say(viz_line(self.cfg.viz, self.run_dir))
         return True

@@ -143,6 +143,20 @@ class FinalEvaluation:
         return True
 
 
+def run_instances(cfg: config_mod.Config, plan: HostPlan, members: Membership) -> Callable[[str, int], bool]:
+    """Whether the run has service instance ``role/instance``: a train rank, the one instance of the others, or
+    a simulator or allocator of a host that is live (this one's, or another host's)."""
+
+    def has(role: str, instance: int) -> bool:
+        if role == "train":
+            return 0 <= instance < cfg.train.world_size
+        if role in ("sim", "alloc"):
+            return instance == plan.instance or members.is_live(role, instance)
+        return instance == 0
+
+    return has
+
+
 class Launcher:
     def __init__(self, cfg: config_mod.Config, run_dir: Path, out=sys.stdout, plan: HostPlan | None = None,
                  gpu_env: dict[str, dict[str, str]] | None = None):
@@ -151,7 +165,8 @@ class Launcher:
         self.roles = enabled_roles(cfg)  # every service of the run, on any host
         self.console = Console(out)
         self.members = Membership(cfg.run.name, self.plan.instance, self.plan.multi)
-        self.view = RunView(cfg.run.name, cfg.run.iterations, cfg.run.target_return, instances=self.has_instance,
+        self.view = RunView(cfg.run.name, cfg.run.iterations, cfg.run.target_return,
+                            instances=run_instances(cfg, self.plan, self.members),
                             floor=known_version(str(run_dir)))  # a resumed run's checkpoint
         self.gpu_env = gpu_env or {}  # stage -> the CUDA variables it starts with (the allocator's first GPU share)
         self.failure: str | None = None
@@ -207,15 +222,6 @@ class Launcher:
             await self.link.close()
         self.finish(code)
         return code
-
-    def has_instance(self, role: str, instance: int) -> bool:
-        """Whether the run has service instance ``role/instance``: a train rank, the one instance of the others,
-        or a simulator or allocator of a host that is live (this one's, or another host's)."""
-        if role == "train":
-            return 0 <= instance < self.cfg.train.world_size
-        if role in ("sim", "alloc"):
-            return instance == self.plan.instance or self.members.is_live(role, instance)
-        return instance == 0
 
     async def host_number_free(self) -> bool:
         """The other hosts' tokens arrive once the routers met: is this host's number taken?"""

@@ -87,11 +87,11 @@ class Learner:
         return self.collector.ready_steps >= self.cfg.train.batch_size
 
     def accept(self, seg: TrajectorySegment, malformed: Callable[[Exception], None]) -> bool:
-        """Check one segment and add it to the collector (False: dropped, counted)."""
-        n = len(seg.obs)
+        """Check one segment against this policy and add it to the collector (False: dropped, counted). Its own
+        consistency (every per-decision field T long, finite values) was checked when it was decoded
+        (``TrajectorySegment.check``)."""
         if seg.obs.shape[1:] != self.obs_shape or seg.actions.shape[1:] != self.action_shape \
-                or seg.latents.shape[1:] != self.latent_shape \
-                or not 0 < n == len(seg.actions) == len(seg.latents) == len(seg.rewards) == len(seg.versions):
+                or seg.latents.shape[1:] != self.latent_shape:
             malformed(ValueError("segment shapes do not match the policy"))
             return False
         if int(seg.versions.max()) > self.version:  # acted by weights this train never published

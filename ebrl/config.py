@@ -155,6 +155,9 @@ class GenSection:
     threads: int = doc("torch threads of the generation process", 1)
     device: str = doc("torch device of the policy's forward passes: auto (the GPU this process is bound to when "
                       "torch sees one, else the CPU), cpu, cuda or cuda:N", "auto")
+    compile: Literal["off", "cudagraphs"] = doc(
+        "how the chunk forward runs on a GPU: off (eagerly), or cudagraphs (captured once per batch size and "
+        "replayed: one launch per batch; for small policies, whose passes are launch-bound)", "off")
 
 
 @dataclass
@@ -474,6 +477,9 @@ def _check_semantics(cfg: Config) -> None:
         devices.check_syntax(cfg.train.device, "train.device")
     except ValueError as exc:
         raise ConfigError(str(exc)) from None
+    if cfg.gen.compile == "cudagraphs" and cfg.gen.device == "cpu":
+        raise ConfigError("gen.compile = 'cudagraphs' captures CUDA graphs; gen.device is 'cpu' (use \"auto\" or "
+                          "a CUDA device, or gen.compile = 'off')")
     if cfg.train.checkpoint_every < 0 or cfg.run.max_restarts < 0:
         raise ConfigError("train.checkpoint_every and run.max_restarts must be >= 0")
     if cfg.run.iterations < 0:

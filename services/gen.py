@@ -19,6 +19,7 @@ from ebrl.bus.peers import LivePeers
 from ebrl.envs import EnvSpec, describe
 from ebrl.messages import ActionChunk, Observation, Quota
 from ebrl.policies import load_arrays, make_policy
+from ebrl.policies.graphs import Actor
 from ebrl.sched.batching import ObservationQueue
 from ebrl.sched.modes import resolve
 from ebrl.service import Service, service_main
@@ -38,6 +39,7 @@ class GenService(Service):
         self.use_device(devices.resolve(cfg.gen.device, "gen.device"))
         self.policy = make_policy(cfg.policy, info.layout, info.action_dim).to(self.device)
         self.policy.eval()
+        self.actor = Actor(self.policy, cfg.gen.compile, cfg.policy.dtype)  # eager, or CUDA graphs per batch size
         torch.manual_seed(meta.gen_seed(cfg.run.seed, self.instance))  # the actions' sampling (every device)
         self.staging = devices.Staging(self.device)  # observations in through a pinned buffer on a GPU
         self.version = -1
@@ -91,9 +93,9 @@ class GenService(Service):
         self.count("gen/envs_served", row)
 
     def forward(self, obs: np.ndarray) -> tuple[np.ndarray, ...]:
-        """One batch on the forward thread: observations in, the policy's chunks back (``policy.dtype``)."""
-        with devices.autocast(self.device, self.cfg.policy.dtype):
-            return self.policy.act(self.staging(obs))
+        """One batch on the forward thread: observations in, the policy's chunks back (``policy.dtype``,
+        ``gen.compile``)."""
+        return self.actor(self.staging(obs))
 
     async def initial_weights(self) -> None:
         """Ask train for its newest weights (request-reply; a large version comes in parts), until one is here."""

@@ -137,3 +137,47 @@ def test_the_memory_cap_bites():
         torch.empty(256 << 20, dtype=torch.uint8, device=device)  # under the cap: fine
     finally:
         torch.cuda.set_per_process_memory_fraction(1.0, device)
+
+
+def test_cudagraphs_on_the_cpu_runs_eagerly_and_naming_the_cpu_is_refused():
+    from ebrl.policies.graphs import Actor
+    policy = small_policy("flow")
+    actor = Actor(policy, "cudagraphs")
+    assert not actor.graphed
+    actions, logprobs, values, latents = actor(torch.randn(3, 6))
+    assert actions.shape == (3, 4, 2) and latents.shape == (3, 4, 2) and not actor.graphs
+    with pytest.raises(config.ConfigError, match="gen.compile = 'cudagraphs'.*gen.device is 'cpu'"):
+        config.load("configs/quickstart.toml", ['gen.device="cpu"', 'gen.compile="cudagraphs"'])
+
+
+@gpu_only
+@pytest.mark.parametrize("kind", ["mlp", "flow"])
+def test_cuda_graphs_sample_what_the_eager_policy_samples_and_follow_new_weights(kind):
+    from ebrl.policies import load_arrays, state_arrays
+    from ebrl.policies.graphs import MAX_GRAPHS, Actor
+    policy = small_policy(kind, "cuda").eval()
+    actor = Actor(policy, "cudagraphs")
+    stage = devices.Staging(torch.device("cuda"))
+    rng = np.random.default_rng(1)
+    for round_ in range(3):
+        for batch in (4, 12, 4):
+            obs = rng.normal(size=(batch, 6)).astype(np.float32)
+            actions, logprobs, values, latents = actor(stage(obs))
+            assert actions.shape == (batch, 4, 2) and np.isfinite(actions).all()
+            # the replayed graph computed this batch: its log-probs and values are the eager policy's
+            lp, _, v = policy.evaluate(*(torch.from_numpy(x).cuda() for x in (obs, actions, latents)))
+            torch.testing.assert_close(torch.from_numpy(logprobs), lp.cpu(), rtol=1e-4, atol=1e-3)
+            torch.testing.assert_close(torch.from_numpy(values), v.cpu(), rtol=1e-4, atol=1e-4)
+        assert sorted(actor.graphs) == [4, 12]
+        # fresh noise on every replay: two replays of one batch differ
+        a1, a2 = actor(stage(obs))[0], actor(stage(obs))[0]
+        assert not np.allclose(a1, a2)
+        # new weights, copied in place, are what the next replay uses
+        fresh = small_policy(kind)
+        with torch.no_grad():
+            for p in fresh.parameters():
+                p.add_(0.1 * (round_ + 1))
+        load_arrays(policy, state_arrays(fresh))
+    for batch in range(1, MAX_GRAPHS + 3):  # past MAX_GRAPHS sizes: eager, still right
+        assert actor(stage(rng.normal(size=(batch, 6)).astype(np.float32)))[0].shape == (batch, 4, 2)
+    assert len(actor.graphs) == MAX_GRAPHS

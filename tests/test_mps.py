@@ -16,12 +16,15 @@ from ebrl.resources.pool import ResourceError, mps_reachable
 FAKE = """#!/bin/sh
 if [ "$1" = "-d" ]; then
     [ -n "$FAIL" ] && { echo "cannot start: $FAIL" >&2; exit 1; }
+    rm -f "$CUDA_MPS_PIPE_DIRECTORY/gone" "$CUDA_MPS_PIPE_DIRECTORY/control"
     mkfifo "$CUDA_MPS_PIPE_DIRECTORY/control" && echo started >> "$CUDA_MPS_LOG_DIRECTORY/control.log"
     exit 0
 fi
 read cmd
-[ "$cmd" = quit ] && rm -f "$CUDA_MPS_PIPE_DIRECTORY/control" && echo quit >> "$CUDA_MPS_LOG_DIRECTORY/control.log"
-"""
+[ -e "$CUDA_MPS_PIPE_DIRECTORY/gone" ] && { echo "Cannot find MPS control daemon process"; exit 1; }
+[ "$cmd" = quit ] && touch "$CUDA_MPS_PIPE_DIRECTORY/gone" && echo quit >> "$CUDA_MPS_LOG_DIRECTORY/control.log"
+exit 0
+"""  # like the real one, a daemon that quit leaves its control pipe behind
 
 
 @pytest.fixture
@@ -49,6 +52,15 @@ def test_a_running_daemon_is_used_and_left_running(fake_control):
     os.mkfifo(pipe / "control")  # someone else's daemon
     assert mps.MpsDaemon.ensure(fake_control / "logs", pipe_dir=str(pipe)) is None
     assert mps_reachable(str(pipe)) and not (fake_control / "logs").exists()
+
+
+def test_a_pipe_a_quit_daemon_left_behind_is_not_a_daemon(fake_control):
+    pipe, logs = fake_control / "pipe", fake_control / "logs"
+    first = mps.MpsDaemon.ensure(logs, pipe_dir=str(pipe))
+    assert first is not None and first.quit()
+    assert (pipe / "control").exists() and not mps_reachable(str(pipe))  # the pipe stays, nobody answers
+    second = mps.MpsDaemon.ensure(logs, pipe_dir=str(pipe))  # so the next run starts its own
+    assert second is not None and mps_reachable(str(pipe)) and second.quit()
 
 
 def test_a_daemon_that_cannot_start_is_a_clear_error(fake_control, monkeypatch):

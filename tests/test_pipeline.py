@@ -125,10 +125,11 @@ def test_every_mode_keeps_its_staleness_bound(tmp_path, mode, max_staleness):
 @pytest.mark.gpu
 @pytest.mark.skipif(not __import__("torch").cuda.is_available(),
                     reason="needs a CUDA device (benchmarks/gpu/check.sh runs it on a GPU machine)")
-@pytest.mark.parametrize("kind", ["mlp", "flow"])
-def test_generation_and_training_share_the_gpu(tmp_path, kind):
-    """gen and train on CUDA (``auto`` picks it), the policy learning, and every report saying so."""
-    cfg = small_config(tmp_path, policy={"kind": kind, "denoise_steps": 3})
+@pytest.mark.parametrize("kind,compile", [("mlp", "off"), ("flow", "off"), ("flow", "cudagraphs")])
+def test_generation_and_training_share_the_gpu(tmp_path, kind, compile):
+    """gen and train on CUDA (``auto`` picks it), the policy learning, and every report saying so; with
+    ``gen.compile = "cudagraphs"`` generation replays captured graphs."""
+    cfg = small_config(tmp_path, policy={"kind": kind, "denoise_steps": 3}, gen={"compile": compile})
     seen: dict = {"chunks": [], "reports": []}
     gen_reports: list[dict] = []
 
@@ -143,6 +144,7 @@ def test_generation_and_training_share_the_gpu(tmp_path, kind):
     assert seen["reports"][-1]["train/cuda_device"] == 0 and gen_reports[-1]["gen/cuda_device"] == 0
     assert seen["reports"][-1]["train/cuda_mem_allocated_mb"] > 0
     assert (tmp_path / "policy.safetensors").is_file()
+    assert bool(gen.actor.graphs) == (compile == "cudagraphs")
 
 
 def test_bfloat16_autocast_runs_generation_and_training(tmp_path):

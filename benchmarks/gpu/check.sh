@@ -1,54 +1,100 @@
 #!/usr/bin/env bash
-# Run THERE, on the lent GPU machine, in one device call (well under 9 minutes), from the repository root:
-#   device run (carry .whl): bash benchmarks/gpu/check.sh
-# after benchmarks/gpu/prepare.sh has put the wheels into .whl/ here. Writes under $OUT (default ./gpu-out):
-#   gpu.txt            nvidia-smi and torch's view of the device
-#   pytest.log         the tests marked gpu (policy and learner on CUDA, the memory cap, gen + train sharing
-#                      the GPU in one process over the in-memory bus), and the fast device/pipeline tests
-#   forward.json       generation's forward pass, CPU vs GPU (benchmarks/gpu/forward.py)
-#   quickstart.json    a real `ebrl up` of the quickstart with gen and train on the GPU (device, memory, rates)
-#   mps.log            the same with the allocator's MPS shares: the launcher starts an MPS control daemon for
-#                      the run and quits it at the end
+# The GPU acceptance kit. Run THERE, on the lent GPU machine, in one device call, from the repository root:
+#   device run (carry .whl): bash benchmarks/gpu/check.sh [PART ...]
+# after benchmarks/gpu/prepare.sh has put what the machine lacks into .whl/ here. With no PART it runs every
+# part below, in order, within 9 minutes (each part has its own time limit, so one that hangs costs only its
+# own). DURATION (seconds, default 15) is each benchmark window; longer windows give the numbers in
+# BENCHMARKS.md (`DURATION=45 bash benchmarks/gpu/check.sh bench` in a call of its own).
+#   tests       the tests marked gpu (policy and learner on CUDA, the memory cap, CUDA graphs, gen + train
+#               sharing the GPU over the in-memory bus) and the fast device/pipeline/MPS tests
+#   forward     generation's forward pass: CPU vs GPU, float32 vs bfloat16, eager vs CUDA graphs, up to W3
+#   quickstart  a real `ebrl up` of the quickstart with gen and train on the GPU (device, memory, rates)
+#   mps         the same with the allocator's MPS shares: the launcher starts an MPS control daemon for the run
+#               and quits it at the end
+#   shares      gen and train of W3 sharing the GPU under MPS at 30/70, 50/50 and without MPS
+#   w3          W3 (306M-parameter flow transformer, robosuite Lift camera) learning with gen + train on the GPU
+#   bench       trajectories/s of ebrl vs colocated, hybrid and async: W1 (16 cores), W2 and W3 on the GPU
+#               (parts bench_w1, bench_w2, bench_w3)
+#   adapt       a 30 % simulator slowdown injected mid-run on 16 cores, with and without the allocator
+# Everything lands in $OUT (default ./gpu-out): summary.txt, gpu.txt and results.tgz (JSON results, logs).
 set -uo pipefail
 cd "$(dirname "$0")/../.."
-OUT="${OUT:-$PWD/gpu-out}"
-mkdir -p "$OUT"
+ROOT=$PWD
+OUT="${OUT:-$ROOT/gpu-out}"
+DURATION="${DURATION:-15}"
+W3_SECONDS="${W3_SECONDS:-120}"
+SHARES_SECONDS="${SHARES_SECONDS:-8}"
+RES=/tmp/ebrl-gpu-results
+mkdir -p "$OUT" "$RES"
+PARTS=("$@")
+[ ${#PARTS[@]} -eq 0 ] && PARTS=(tests forward quickstart mps shares w3 bench adapt)
+SUMMARY="$OUT/summary.txt"
+: > "$SUMMARY"
+T0=$(date +%s)
+
+# --- set-up: wheels, the slim robosuite, the EGL loaders
 python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target /tmp/site .whl/*.whl \
     || { echo "check.sh: installing .whl/ failed (run benchmarks/gpu/prepare.sh here first)"; exit 1; }
-export PYTHONPATH="$PWD:/tmp/site" PYTHONUNBUFFERED=1 MUJOCO_GL=egl
-status=0
-{ nvidia-smi; python3 -c "import torch; print(torch.__version__, torch.version.cuda, torch.cuda.get_device_name(0))"; } \
-    > "$OUT/gpu.txt" 2>&1
-echo "== pytest -m gpu"
-timeout 240 python3 -m pytest -q -rs -p no:cacheprovider -o addopts="" -m "gpu or not slow" \
-    tests/test_devices.py tests/test_pipeline.py 2>&1 | tee "$OUT/pytest.log" || status=1
-echo "== forward pass, CPU vs GPU"
-timeout 150 python3 benchmarks/gpu/forward.py --out "$OUT/forward.json" || status=1
-echo "== ebrl up on the GPU"
-timeout 150 python3 - "$OUT/quickstart.json" <<'PY' || status=1
-import json, sys, tempfile
-from ebrl.testing import Run, StatsWatcher
-with tempfile.TemporaryDirectory() as out, Run("configs/quickstart.toml", "run.iterations=30", 'viz.rerun="off"',
-                                               name="gpu-quickstart", out_dir=out) as run, StatsWatcher(run) as w:
-    w.wait_for(lambda: (w.latest("train/0", "train/policy_version") or 0) >= 30, 130, "30 updates")
-    code = run.stop()
-    keys = ("cuda_device", "cuda_mem_allocated_mb", "cuda_mem_cap_mb")
-    result = {"exit": code, "gen": {k: w.latest("gen/0", f"gen/{k}") for k in keys},
-              "train": {k: w.latest("train/0", f"train/{k}") for k in keys},
-              "env_steps_per_s": w.latest("sim/0", "sim/env_steps_per_s"),
-              "train_update_s": w.latest("train/0", "train/update_s"),
-              "return": w.latest("train/0", "train/episode_return_mean")}
-    print(json.dumps(result, indent=1))
-    json.dump(result, open(sys.argv[1], "w"), indent=1)
-    assert result["gen"]["cuda_device"] == 0 and result["train"]["cuda_device"] == 0, result
-PY
-echo "== ebrl up with MPS shares (the launcher starts the control daemon and quits it)"
+[ -f .whl/robosuite-slim.tgz ] && tar xzf .whl/robosuite-slim.tgz -C /tmp/site
+if [ -d .whl/gl ] && ! ldconfig -p | grep -q libEGL.so.1; then
+    for f in .whl/gl/*.deb; do dpkg -x "$f" /; done; ldconfig
+fi
+export PYTHONPATH="$ROOT:/tmp/site" PYTHONUNBUFFERED=1 MUJOCO_GL=egl PYOPENGL_PLATFORM=egl
+[ -f /usr/local/nvidia/share/glvnd/egl_vendor.d/10_nvidia.json ] && \
+    export __EGL_VENDOR_LIBRARY_FILENAMES=/usr/local/nvidia/share/glvnd/egl_vendor.d/10_nvidia.json
+{ nvidia-smi; python3 -c "import torch; print(torch.__version__, torch.version.cuda, torch.cuda.get_device_name(0))"
+  nproc; free -g; } > "$OUT/gpu.txt" 2>&1
 had_mps=0; [ -e /tmp/nvidia-mps/control ] && had_mps=1
-timeout 180 python3 -m ebrl.cli up configs/quickstart.toml --set alloc.enabled=true --set 'alloc.gpu_pool="mps"' \
-    --set run.iterations=20 --set 'run.output_dir="/tmp/mps-run"' --set 'viz.rerun="off"' > "$OUT/mps.log" 2>&1 \
-    || status=1
-tail -n 25 "$OUT/mps.log"
-grep -h "device" /tmp/mps-run/*/logs/gen-0.log /tmp/mps-run/*/logs/train-0.log 2>/dev/null | head -4
-# never leave a daemon this script's run started behind, even if the launcher was killed
-if [ $had_mps = 0 ] && [ -e /tmp/nvidia-mps/control ]; then echo quit | nvidia-cuda-mps-control; status=1; fi
-exit $status
+
+part() {  # part NAME LIMIT_S COMMAND...: runs it with a time limit, logs to $RES/NAME.log, notes the outcome
+    local name=$1 limit=$2; shift 2
+    local t=$(date +%s)
+    echo "== $name (limit ${limit}s, at $((t - T0))s)"
+    timeout -k 10 "$limit" "$@" > "$RES/$name.log" 2>&1
+    local rc=$?
+    tail -n 15 "$RES/$name.log"
+    echo "$name: exit $rc in $(($(date +%s) - t))s" | tee -a "$SUMMARY"
+}
+
+# ebrl bench CONFIG: the four modes, interleaved, one window of DURATION seconds each
+BENCH=(python3 -m ebrl.cli bench --modes ebrl,colocated,hybrid,async --raw-seconds 0 --set 'viz.rerun="off"')
+
+i=0
+while [ $i -lt ${#PARTS[@]} ]; do
+    p=${PARTS[$i]}; i=$((i + 1))
+    case $p in
+    tests) part tests 120 python3 -m pytest -q -rs -p no:cacheprovider -o addopts="" -m "gpu or not slow" \
+               tests/test_devices.py tests/test_pipeline.py tests/test_mps.py ;;
+    forward) part forward 120 python3 benchmarks/gpu/forward.py --seconds 0.5 --out "$RES/forward.json" ;;
+    quickstart) part quickstart 90 python3 benchmarks/gpu/quickstart.py --out "$RES/quickstart.json" ;;
+    mps) part mps 120 python3 -m ebrl.cli up configs/quickstart.toml --set alloc.enabled=true \
+             --set 'alloc.gpu_pool="mps"' --set alloc.profile_seconds=0.3 --set run.iterations=20 --set "run.output_dir=\"$RES/mps-run\"" \
+             --set 'viz.rerun="off"'
+         grep -h "device" "$RES"/mps-run/*/logs/gen-0.log "$RES"/mps-run/*/logs/train-0.log 2>/dev/null | head -4 ;;
+    shares) part shares $((7 * SHARES_SECONDS + 120)) python3 benchmarks/gpu/mps_shares.py --seconds "$SHARES_SECONDS" \
+                --warmup 10 --out "$RES/mps_shares.json" ;;
+    w3) part w3 $((W3_SECONDS + 100)) python3 benchmarks/gpu/w3_learning.py --seconds "$W3_SECONDS" --out "$RES/w3_learning.json" ;;
+    bench) set -- bench_w1 bench_w2 bench_w3; for b; do PARTS+=("$b"); done ;;
+    bench_w1) part bench_w1 $((8 * DURATION + 100)) "${BENCH[@]}" configs/bench_lift_16core.toml \
+                  --duration "$DURATION" --json "$RES/bench_w1_16core.json" ;;
+    bench_w2) part bench_w2 $((8 * DURATION + 100)) "${BENCH[@]}" configs/bench_w2_gpu.toml \
+                  --duration "$DURATION" --json "$RES/bench_w2_gpu.json" ;;
+    bench_w3) part bench_w3 $((8 * DURATION + 160)) "${BENCH[@]}" configs/bench_w3.toml \
+                  --duration "$DURATION" --json "$RES/bench_w3.json" ;;
+    adapt) part adapt 330 python3 benchmarks/adaptation.py --config configs/bench_lift_16core.toml \
+               --slowdown "sim=1.3@55" --duration 120 --tag lift_16core_gpu --set 'viz.rerun="off"' \
+               --set alloc.profile_seconds=0.3
+           cp benchmarks/results/adaptation_lift_16core_gpu.json "$RES/" 2>/dev/null ;;
+    *) echo "check.sh: no part '$p'"; exit 2 ;;
+    esac
+done
+
+# never leave a daemon this script's runs started behind, even if a launcher was killed
+if [ $had_mps = 0 ] && [ -e /tmp/nvidia-mps/control ]; then
+    echo quit | nvidia-cuda-mps-control; echo "mps: a control daemon was left running; quit it" | tee -a "$SUMMARY"
+fi
+nvidia-smi --query-gpu=name,memory.used,utilization.gpu --format=csv >> "$OUT/gpu.txt" 2>&1
+tar czf "$OUT/results.tgz" -C "$RES" --exclude='*.safetensors' --exclude='*.msgpack' --exclude='*.pt' .
+echo "total: $(($(date +%s) - T0))s" | tee -a "$SUMMARY"
+cat "$SUMMARY"
+! grep -qv "exit 0 \|^total" "$SUMMARY"

@@ -35,8 +35,15 @@ class ChunkPolicy(nn.Module):
         super().__init__()
         self.obs_norm: ObsNormalizer | None = None  # policy.normalize_obs: set by make_policy
 
-    def act(self, obs: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        """Sample chunks (no gradients): actions [B, K, A], log-probs [B], values [B], latents [B, *latent_shape]."""
+    @torch.no_grad()
+    def act(self, obs: np.ndarray | torch.Tensor) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """Sample chunks (no gradients): actions [B, K, A], log-probs [B], values [B], latents [B, *latent_shape],
+        float32 numpy arrays, read back from the device in one transfer."""
+        return to_host(*self.sample(obs))
+
+    def sample(self, obs: np.ndarray | torch.Tensor) -> tuple[torch.Tensor, ...]:
+        """What ``act`` returns, as tensors on the policy's device (call under ``torch.no_grad``): the part of a
+        forward pass with fixed shapes for a batch size, which ``ebrl.policies.graphs`` captures as a CUDA graph."""
         raise NotImplementedError
 
     def evaluate(self, obs: torch.Tensor, actions: torch.Tensor, latents: torch.Tensor) -> Tensors3:
@@ -70,7 +77,8 @@ def to_host(*tensors: torch.Tensor) -> tuple[np.ndarray, ...]:
     """float32 numpy copies of ``tensors`` (same leading size B), in ONE device-to-host transfer: what ``act``
     returns, once per batch, wherever the policy runs."""
     batch = tensors[0].shape[0]
-    flat = torch.cat([t.reshape(batch, -1).float() for t in tensors], 1).cpu().numpy()
+    flat = torch.cat([t.reshape(batch, int(np.prod(t.shape[1:], dtype=np.int64))).float() for t in tensors],
+                     1).cpu().numpy()
     out, col = [], 0
     for t in tensors:
         width = int(np.prod(t.shape[1:], dtype=np.int64))
@@ -88,13 +96,11 @@ class GaussianChunkPolicy(ChunkPolicy):
         """The chunk distribution over flat K*A actions and the value, from one pass over ``obs``."""
         raise NotImplementedError
 
-    @torch.no_grad()
-    def act(self, obs: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    def sample(self, obs: np.ndarray | torch.Tensor) -> tuple[torch.Tensor, ...]:
         d, v = self.heads(self.flat(obs))
         a = d.sample()
         batch = a.shape[0]
-        actions, logprobs, values = to_host(a.reshape(batch, self.chunk, self.action_dim), d.log_prob(a).sum(-1), v)
-        return actions, logprobs, values, np.zeros((batch, 0), np.float32)
+        return a.reshape(batch, self.chunk, self.action_dim), d.log_prob(a).sum(-1), v, a.new_zeros(batch, 0)
 
     def evaluate(self, obs: torch.Tensor, actions: torch.Tensor, latents: torch.Tensor) -> Tensors3:
         d, v = self.heads(self.flat(obs))

@@ -42,7 +42,7 @@ from torch import nn
 from torch.distributions import Normal
 
 from ebrl.envs.obs import ObsLayout
-from ebrl.policies.base import ChunkPolicy, Tensors3, noise, to_host
+from ebrl.policies.base import ChunkPolicy, Tensors3, noise
 from ebrl.policies.nets import ObsEncoder, mlp
 
 TIME_FREQUENCIES = 8  # the time embedding is [sin(2^k pi t), cos(2^k pi t)] for k < 8
@@ -85,15 +85,14 @@ class FlowPolicy(ChunkPolicy):
         mu = self.mean(features, x0)
         return Normal(mu, self.log_std.expand_as(mu).exp())
 
-    @torch.no_grad()
-    def act(self, obs: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    def sample(self, obs: np.ndarray | torch.Tensor) -> tuple[torch.Tensor, ...]:
         features = self.encoder(self.flat(obs))
         batch = features.shape[0]
         x0 = torch.randn(batch, self.chunk * self.action_dim, device=features.device)
         d = self.dist(features, x0)
         a = d.sample()
         shape = (batch, self.chunk, self.action_dim)
-        return to_host(a.reshape(shape), d.log_prob(a).sum(-1), self.critic(features).squeeze(-1), x0.reshape(shape))
+        return a.reshape(shape), d.log_prob(a).sum(-1), self.critic(features).squeeze(-1), x0.reshape(shape)
 
     @torch.no_grad()
     def predict_chunk(self, obs: np.ndarray, deterministic: bool = True,

@@ -14,9 +14,9 @@ import subprocess
 import time
 from pathlib import Path
 
-from ebrl.resources.pool import MPS_PIPE_DEFAULT, ResourceError, mps_reachable
+from ebrl.resources.pool import MPS_CONTROL, MPS_PIPE_DEFAULT, ResourceError, mps_reachable
 
-CONTROL = "nvidia-cuda-mps-control"
+CONTROL = MPS_CONTROL
 START_S = 10.0  # for the daemon's control pipe to appear
 QUIT_S = 10.0  # for it to go away after "quit"
 

@@ -24,6 +24,8 @@ from __future__ import annotations
 import dataclasses
 import math
 import os
+import shutil
+import subprocess
 from pathlib import Path
 from typing import Any, Literal
 
@@ -203,10 +205,27 @@ def _cuda_sm_count(index: int) -> int | None:
     return None
 
 
+MPS_CONTROL = "nvidia-cuda-mps-control"
+MPS_ASK_S = 5.0
+
+
 def mps_reachable(pipe_dir: str | None = None) -> bool:
-    """Whether an MPS control daemon listens (its ``control`` pipe exists in the pipe directory)."""
+    """Whether an MPS control daemon listens in the pipe directory: its ``control`` pipe exists and the daemon
+    answers there. The pipe outlives a daemon that has quit (seen on an H100: the daemon exited, its pipe
+    stayed), so existence alone is not enough; where the control program is not on PATH it cannot be asked
+    and the pipe's existence is the answer."""
     pipe_dir = pipe_dir or os.environ.get("CUDA_MPS_PIPE_DIRECTORY", MPS_PIPE_DEFAULT)
-    return os.path.exists(os.path.join(pipe_dir, "control"))
+    if not os.path.exists(os.path.join(pipe_dir, "control")):
+        return False
+    control = shutil.which(MPS_CONTROL)
+    if control is None:
+        return True
+    try:
+        asked = subprocess.run([control], input="get_server_list\n", capture_output=True, text=True,
+                               timeout=MPS_ASK_S, env=dict(os.environ, CUDA_MPS_PIPE_DIRECTORY=pipe_dir))
+    except (OSError, subprocess.TimeoutExpired):
+        return False
+    return asked.returncode == 0 and "cannot find" not in (asked.stdout + asked.stderr).lower()
 
 
 # --- the pool ------------------------------------------------------------------------------

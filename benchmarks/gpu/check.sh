@@ -44,7 +44,8 @@ export PYTHONPATH="$ROOT:/tmp/site" PYTHONUNBUFFERED=1 MUJOCO_GL=egl PYOPENGL_PL
     export __EGL_VENDOR_LIBRARY_FILENAMES=/usr/local/nvidia/share/glvnd/egl_vendor.d/10_nvidia.json
 { nvidia-smi; python3 -c "import torch; print(torch.__version__, torch.version.cuda, torch.cuda.get_device_name(0))"
   nproc; free -g; } > "$OUT/gpu.txt" 2>&1
-had_mps=0; [ -e /tmp/nvidia-mps/control ] && had_mps=1
+mps_up() { python3 -c "from ebrl.resources.pool import mps_reachable; raise SystemExit(not mps_reachable())"; }
+had_mps=0; mps_up && had_mps=1
 
 part() {  # part NAME LIMIT_S COMMAND...: runs it with a time limit, logs to $RES/NAME.log, notes the outcome
     local name=$1 limit=$2; shift 2
@@ -90,7 +91,7 @@ while [ $i -lt ${#PARTS[@]} ]; do
 done
 
 # never leave a daemon this script's runs started behind, even if a launcher was killed
-if [ $had_mps = 0 ] && [ -e /tmp/nvidia-mps/control ]; then
+if [ $had_mps = 0 ] && mps_up; then
     echo quit | nvidia-cuda-mps-control; echo "mps: a control daemon was left running; quit it" | tee -a "$SUMMARY"
 fi
 nvidia-smi --query-gpu=name,memory.used,utilization.gpu --format=csv >> "$OUT/gpu.txt" 2>&1

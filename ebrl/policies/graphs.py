@@ -52,6 +52,17 @@ class Actor:
             return self.policy.act(obs)
 
     def capture(self, obs: torch.Tensor) -> tuple[torch.Tensor, Any, tuple[torch.Tensor, ...]]:
+        # torch.distributions checks its arguments and samples by reading them back to the host: a
+        # synchronisation, which invalidates a capture (seen on an H100). Generation's own inputs are the
+        # policy's; the checks stay on in training, where they guard the loss.
+        validate = torch.distributions.Distribution._validate_args
+        torch.distributions.Distribution.set_default_validate_args(False)
+        try:
+            return self._capture(obs)
+        finally:
+            torch.distributions.Distribution.set_default_validate_args(validate)
+
+    def _capture(self, obs: torch.Tensor) -> tuple[torch.Tensor, Any, tuple[torch.Tensor, ...]]:
         static_in = obs.clone()
         side = torch.cuda.Stream(self.device)
         side.wait_stream(torch.cuda.current_stream(self.device))

@@ -64,7 +64,7 @@ i=0
 while [ $i -lt ${#PARTS[@]} ]; do
     p=${PARTS[$i]}; i=$((i + 1))
     case $p in
-    tests) part tests 120 python3 -m pytest -q -rs -p no:cacheprovider -o addopts="" -m "gpu or not slow" \
+    tests) part tests 120 python3 -m pytest -q -rs -p no:cacheprovider -o addopts="" --timeout 60 -m "gpu or not slow" \
                tests/test_devices.py tests/test_pipeline.py tests/test_mps.py ;;
     forward) part forward 120 python3 benchmarks/gpu/forward.py --seconds 0.5 --out "$RES/forward.json" ;;
     quickstart) part quickstart 90 python3 benchmarks/gpu/quickstart.py --out "$RES/quickstart.json" ;;

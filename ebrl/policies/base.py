@@ -98,7 +98,7 @@ class GaussianChunkPolicy(ChunkPolicy):
 
     def sample(self, obs: np.ndarray | torch.Tensor) -> tuple[torch.Tensor, ...]:
         d, v = self.heads(self.flat(obs))
-        a = d.sample()
+        a = d.rsample()  # loc + scale * eps: capturable (sample() checks scale >= 0 on the host)
         batch = a.shape[0]
         return a.reshape(batch, self.chunk, self.action_dim), d.log_prob(a).sum(-1), v, a.new_zeros(batch, 0)
 

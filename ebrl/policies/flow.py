@@ -90,7 +90,7 @@ class FlowPolicy(ChunkPolicy):
         batch = features.shape[0]
         x0 = torch.randn(batch, self.chunk * self.action_dim, device=features.device)
         d = self.dist(features, x0)
-        a = d.sample()
+        a = d.rsample()  # loc + scale * eps: capturable (sample() checks scale >= 0 on the host)
         shape = (batch, self.chunk, self.action_dim)
         return a.reshape(shape), d.log_prob(a).sum(-1), self.critic(features).squeeze(-1), x0.reshape(shape)
 

@@ -8,7 +8,8 @@
   Parameters are read from their own storage at replay, and new weights are copied into that storage in
   place (``load_arrays``), so a graph stays valid across versions; the sampling noise comes from torch's CUDA
   generator, which advances on every replay. On the CPU there is nothing to capture: ``"cudagraphs"`` runs
-  eagerly there (a config naming the CPU explicitly is refused by ``ebrl.config``).
+  eagerly there (a config naming the CPU explicitly is refused by ``ebrl.config``). A policy whose forward
+  cannot be captured (an operation that reads back to the host) is reported once and runs eagerly.
 """
 
 from __future__ import annotations
@@ -44,10 +45,17 @@ class Actor:
         """Chunks for ``obs`` ([B, ...] float32 on the policy's device): actions, log-probs, values, latents."""
         batch = obs.shape[0]
         if self.graphed and (batch in self.graphs or len(self.graphs) < MAX_GRAPHS):
-            static_in, graph, outs = self.graphs.get(batch) or self.capture(obs)
-            static_in.copy_(obs)
-            graph.replay()
-            return to_host(*outs)
+            try:
+                static_in, graph, outs = self.graphs.get(batch) or self.capture(obs)
+            except RuntimeError as exc:  # an operation CUDA cannot capture: say so once, then run eagerly
+                log.warning("gen.compile = 'cudagraphs': capturing the chunk forward failed (%s); running eagerly",
+                            str(exc).splitlines()[0])
+                self.graphed, self.graphs = False, {}
+                torch.cuda.synchronize(self.device)
+            else:
+                static_in.copy_(obs)
+                graph.replay()
+                return to_host(*outs)
         with devices.autocast(self.device, self.dtype):
             return self.policy.act(obs)
 

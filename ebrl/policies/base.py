@@ -77,11 +77,10 @@ def to_host(*tensors: torch.Tensor) -> tuple[np.ndarray, ...]:
     """float32 numpy copies of ``tensors`` (same leading size B), in ONE device-to-host transfer: what ``act``
     returns, once per batch, wherever the policy runs."""
     batch = tensors[0].shape[0]
-    flat = torch.cat([t.reshape(batch, int(np.prod(t.shape[1:], dtype=np.int64))).float() for t in tensors],
-                     1).cpu().numpy()
+    widths = [int(np.prod(t.shape[1:], dtype=np.int64)) for t in tensors]  # explicit: a [B, 0] has no -1
+    flat = torch.cat([t.reshape(batch, w).float() for t, w in zip(tensors, widths)], 1).cpu().numpy()
     out, col = [], 0
-    for t in tensors:
-        width = int(np.prod(t.shape[1:], dtype=np.int64))
+    for t, width in zip(tensors, widths):
         out.append(flat[:, col:col + width].reshape(t.shape))
         col += width
     return tuple(out)

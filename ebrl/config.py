@@ -109,6 +109,11 @@ class SimSection:
         "keeps the faster, again whenever the step latencies shift; absent: the mode's choice", None)
     group_pipeline: bool | None = doc(
         "pipeline groups through generation; false makes all envs one group; absent: the mode's choice", None)
+    vectorized: bool | Literal["auto"] = doc(
+        "each group one process stepping its envs as one batch (ManiSkill on GPU PhysX: one vectorized env of "
+        "envs_per_group envs; other backends: envs_per_group copies stepped in turn) instead of one worker process "
+        "per env; \"auto\": on where the simulator steps on the GPU (env.kwargs.sim_backend = \"physx_cuda\")",
+        "auto")
     segment_length: int = doc("chunk decisions per trajectory segment sent to training", 32)
     step_timeout: float = doc("seconds an env worker may take for one request (a chunk, or one step under batch "
                               "stepping) before it is killed and replaced; 0: automatic, 20x the "
@@ -466,6 +471,18 @@ def _hosts(raw: dict[str, Any]) -> dict[str, HostEntry]:
     return hosts
 
 
+def gpu_physics(backend: str, kwargs: dict[str, Any]) -> bool:
+    """Whether the simulator steps on the GPU: ManiSkill under ``sim_backend = "physx_cuda[:N]"``."""
+    return backend == "maniskill" and str(kwargs.get("sim_backend") or "").startswith("physx_cuda")
+
+
+def vectorized(cfg: Config) -> bool:
+    """Whether each sim group is one vectorized process (``sim.vectorized``; "auto": where physics is on the GPU)."""
+    if cfg.sim.vectorized == "auto":
+        return gpu_physics(cfg.env.backend, cfg.env.kwargs)
+    return bool(cfg.sim.vectorized)
+
+
 def _check_semantics(cfg: Config) -> None:
     def positive(path: str, value: float) -> None:
         if value <= 0:
@@ -477,6 +494,10 @@ def _check_semantics(cfg: Config) -> None:
         devices.check_syntax(cfg.train.device, "train.device")
     except ValueError as exc:
         raise ConfigError(str(exc)) from None
+    if cfg.algo.name == "grpo" and vectorized(cfg):
+        raise ConfigError("sim.vectorized: grpo needs group-mates reset to the same initial state, which a "
+                          "vectorized batch's partial resets cannot promise; set sim.vectorized = false (GPU PhysX "
+                          "groups are vectorized by default)")
     if cfg.gen.compile == "cudagraphs" and cfg.gen.device == "cpu":
         raise ConfigError("gen.compile = 'cudagraphs' captures CUDA graphs; gen.device is 'cpu' (use \"auto\" or "
                           "a CUDA device, or gen.compile = 'off')")

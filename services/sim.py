@@ -14,7 +14,7 @@ from ebrl.bus import keys
 from ebrl.bus.peers import LivePeers
 from ebrl.envs import EnvSpec, describe
 from ebrl.resources.nvml import GpuMonitor
-from ebrl.sched.fleet import EnvFleet, RolloutStats
+from ebrl.sched.fleet import RolloutStats, make_fleet
 from ebrl.sched.group import ActionExchange, GroupLoop, SegmentOutbox
 from ebrl.sched.modes import resolve
 from ebrl.sched.stepchoice import NAMES
@@ -33,7 +33,7 @@ class SimService(Service):
             os.sched_setaffinity(0, sched.sim_cores)  # rollout's share of the machine
         # sim/<instance> runs on host <instance> of a multi-host run: its groups follow the other hosts'
         share = cfg.algo.group_size if cfg.algo.name == "grpo" else 1
-        self.fleet = EnvFleet(spec, sched, host=self.instance, seed=cfg.run.seed, share=share,
+        self.fleet = make_fleet(spec, sched, host=self.instance, seed=cfg.run.seed, share=share,
                               on_core_step=lambda core, s: self.count(f"sim/core{core}_busy_s", s),
                               on_mode=lambda mode, a, b: self.publish_span("stepping", NAMES[mode], a, b, False),
                               on_decision=self.stepping_decided)

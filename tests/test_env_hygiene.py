@@ -112,13 +112,14 @@ async def drive(envs: EnvFleet, chunks: int, between=None) -> dict[int, int]:
     """A group loop's part, for every group: ``chunks`` chunks on every env not given up, a failed worker
     recovered (``between(envs)`` after each round); how many chunks each env answered."""
     for g in envs.groups:
-        await asyncio.gather(*(w.reset() for w in envs.workers[g]))
+        await envs.reset_group(g)
     answered = {int(env): 0 for g in envs.groups for env in envs.env_ids(g)}
     for _ in range(chunks):
         for g in envs.groups:
             active = [i for i, env in enumerate(envs.env_ids(g)) if not envs.given_up_env(int(env))]
-            done, _ = await envs.stepping.run_chunk([envs.workers[g][i] for i in active],
-                                                    np.zeros((len(active), 2, 1), np.float32))
+            if not active:
+                continue
+            done, _ = await envs.run_chunk(g, active, np.zeros((len(active), 2, 1), np.float32))
             for i, result in zip(active, done):
                 env = int(envs.env_ids(g)[i])
                 if isinstance(result, WorkerFailed):

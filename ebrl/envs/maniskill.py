@@ -72,6 +72,77 @@ LIB_DIRS = ("usr/lib/x86_64-linux-gnu", "usr/lib64", "usr/lib", "usr/local/nvidi
 CPU_DRIVERS = ("lvp", "lavapipe", "llvmpipe", "swiftshader", "swrast")  # software Vulkan: not a GPU
 
 
+def make_options(num_envs: int, max_episode_steps: int | None, obs: str, sim_backend: str | None, image_size: int,
+                 control_mode: str, kwargs: dict[str, Any]) -> dict[str, Any]:
+    """The ``gym.make`` keyword arguments of a ManiSkill task for the adapter's settings (``kwargs``: the caller's
+    own, passed on)."""
+    check_kwargs({"obs": obs, "image_size": image_size, "sim_backend": sim_backend, **kwargs})
+    options: dict[str, Any] = dict(num_envs=num_envs, obs_mode=obs, reward_mode="normalized_dense",
+                                   control_mode=control_mode, sim_backend=sim_backend or default_sim_backend())
+    if max_episode_steps:
+        options["max_episode_steps"] = int(max_episode_steps)  # else the task's registered limit
+    kwargs = dict(kwargs)
+    if obs == "rgb":  # every camera at image_size, under the caller's own sensor_configs
+        options["sensor_configs"] = {"width": image_size, "height": image_size, **kwargs.pop("sensor_configs", {})}
+    options.update(kwargs)
+    return options
+
+
+def action_box(task: str, control_mode: str, env: gym.Env) -> gym.spaces.Box:
+    """One environment's action space, as float32; a flat Box or a clear error."""
+    space = env.unwrapped.single_action_space
+    if not isinstance(space, gym.spaces.Box) or len(space.shape) != 1:
+        raise EnvError(f"{task}: control_mode = {control_mode!r} gives the action space {space}; a flat Box is "
+                       "supported (one robot, one controller)")
+    return gym.spaces.Box(np.asarray(space.low, np.float32), np.asarray(space.high, np.float32), dtype=np.float32)
+
+
+class ObsPacker:
+    """ManiSkill's batched observations ([N, ...] torch tensors, on the sim's device) as EBRL's flat float32
+    layout, [N, size], computed where they are (no copy to the host)."""
+
+    def __init__(self, obs_mode: str, camera: str | None, instruction: str, with_tokens: bool, raw: Any):
+        self.obs_mode, self.camera = obs_mode, camera
+        self.tokens = _torch().as_tensor(tokenize(instruction)).float()
+        parts = self.parts(raw)
+        if obs_mode == "rgb":
+            fields = [ObsField("image", "image", tuple(parts["image"].shape[1:])),
+                      ObsField("proprio", "vector", (parts["proprio"].shape[1],))]
+        else:
+            fields = [ObsField("state", "vector", (parts["state"].shape[1],))]
+        if with_tokens:
+            fields.append(ObsField("instruction", "tokens", tuple(self.tokens.shape)))
+        self.layout = ObsLayout(tuple(fields))
+
+    def _image(self, raw: dict[str, Any]) -> Any:
+        cameras = raw["sensor_data"]
+        name = self.camera or next(iter(cameras))
+        if name not in cameras:
+            raise EnvError(f"ManiSkill camera = {name!r}: this task's cameras are {', '.join(cameras)}")
+        image = _torch().as_tensor(cameras[name]["rgb"])  # (N, H, W, 3), uint8 in every shader pack
+        scaled = image.float() / 255.0 if image.dtype == _torch().uint8 else image.float()
+        return scaled.permute(0, 3, 1, 2)
+
+    def parts(self, raw: Any) -> dict[str, Any]:
+        """``{name: [N, ...]}``; the instruction tokens are packed only if the layout has the field."""
+        if self.obs_mode == "rgb":
+            image = self._image(raw)
+            parts = {"image": image, "proprio": torch_cat([_flat(raw["agent"]), _flat(raw["extra"])], image.shape[0])}
+        else:
+            state = _torch().as_tensor(raw).float()
+            parts = {"state": state.reshape(state.shape[0], -1)}
+        return parts
+
+    def pack(self, raw: Any) -> Any:
+        """``[N, layout.size]`` float32, on the observations' device."""
+        parts = self.parts(raw)
+        n = next(iter(parts.values())).shape[0]
+        device = next(iter(parts.values())).device
+        flat = [parts[f.name].reshape(n, -1) if f.name in parts else self.tokens.to(device).expand(n, -1)
+                for f in self.layout.fields]
+        return torch_cat(flat, n)
+
+
 class ManiSkillEnv(gym.Env):
     """One ManiSkill task. ``kwargs`` not named here go to ``gym.make`` (e.g. ``robot_uids``, ``render_backend``,
     ``sim_config``, ``reward_mode``)."""
@@ -82,62 +153,23 @@ class ManiSkillEnv(gym.Env):
                  sim_backend: str | None = None, image_size: int = DEFAULT_IMAGE_SIZE,
                  control_mode: str = DEFAULT_CONTROL_MODE, camera: str | None = None,
                  instruction: str | None = None, instruction_tokens: bool | None = None, **kwargs: Any):
-        check_kwargs({"obs": obs, "image_size": image_size, "sim_backend": sim_backend, **kwargs})
-        self.obs_mode = obs
+        if "num_envs" in kwargs:
+            raise EnvError("ManiSkill num_envs: the adapter runs one environment per worker process (or one "
+                           "vectorized environment per group); set sim.envs_per_group instead")
+        options = make_options(1, max_episode_steps, obs, sim_backend, image_size, control_mode, kwargs)
         self.instruction = INSTRUCTIONS.get(task, "") if instruction is None else str(instruction)
         # tokens by default only with camera observations: a state policy learns one task, the instruction is constant
         with_tokens = obs == "rgb" if instruction_tokens is None else bool(instruction_tokens)
-        options: dict[str, Any] = dict(num_envs=1, obs_mode=obs, reward_mode="normalized_dense",
-                                       control_mode=control_mode, sim_backend=sim_backend or default_sim_backend())
-        if max_episode_steps:
-            options["max_episode_steps"] = int(max_episode_steps)  # else the task's registered limit
-        if obs == "rgb":  # every camera at image_size, under the caller's own sensor_configs
-            options["sensor_configs"] = {"width": image_size, "height": image_size, **kwargs.pop("sensor_configs", {})}
-        options.update(kwargs)
         self.env = _make_maniskill(task, **options)
         self.sim_backend = options["sim_backend"]
-        self.camera = camera
-        self._tokens = tokenize(self.instruction)
-        space = self.env.unwrapped.single_action_space
-        if not isinstance(space, gym.spaces.Box) or len(space.shape) != 1:
-            raise EnvError(f"{task}: control_mode = {control_mode!r} gives the action space {space}; a flat Box is "
-                           "supported (one robot, one controller)")
-        self.action_space = gym.spaces.Box(np.asarray(space.low, np.float32), np.asarray(space.high, np.float32),
-                                           dtype=np.float32)
+        self.action_space = action_box(task, control_mode, self.env)
         raw, _ = self.env.reset()
-        self.obs_layout = self._layout(raw, with_tokens)
+        self.packer = ObsPacker(obs, camera, self.instruction, with_tokens, raw)
+        self.obs_layout = self.packer.layout
         self.observation_space = gym.spaces.Box(-np.inf, np.inf, (self.obs_layout.size,), dtype=np.float32)
 
-    def _image(self, raw: dict[str, Any]) -> np.ndarray:
-        cameras = raw["sensor_data"]
-        name = self.camera or next(iter(cameras))
-        if name not in cameras:
-            raise EnvError(f"ManiSkill camera = {name!r}: this task's cameras are {', '.join(cameras)}")
-        image = _numpy(cameras[name]["rgb"])[0]  # (H, W, 3), uint8 in every shader pack
-        scale = np.float32(255) if image.dtype == np.uint8 else np.float32(1)
-        return image.transpose(2, 0, 1).astype(np.float32) / scale
-
-    def _parts(self, raw: Any) -> dict[str, np.ndarray]:
-        if self.obs_mode == "rgb":
-            parts = {"image": self._image(raw), "proprio": np.concatenate([_flat(raw["agent"]), _flat(raw["extra"])])}
-        else:
-            parts = {"state": _numpy(raw)[0]}
-        parts["instruction"] = self._tokens  # packed only if the layout has the field
-        return parts
-
-    def _layout(self, raw: Any, with_tokens: bool) -> ObsLayout:
-        parts = self._parts(raw)
-        if self.obs_mode == "rgb":
-            fields = [ObsField("image", "image", parts["image"].shape), ObsField("proprio", "vector",
-                                                                                 (parts["proprio"].size,))]
-        else:
-            fields = [ObsField("state", "vector", (parts["state"].size,))]
-        if with_tokens:
-            fields.append(ObsField("instruction", "tokens", self._tokens.shape))
-        return ObsLayout(tuple(fields))
-
     def _obs(self, raw: Any) -> np.ndarray:
-        return self.obs_layout.pack(self._parts(raw))
+        return _numpy(self.packer.pack(raw))[0].astype(np.float32)
 
     def reset(self, *, seed: int | None = None, options: dict | None = None):
         super().reset(seed=seed)
@@ -175,12 +207,25 @@ def _numpy(value: Any) -> np.ndarray:
     return np.asarray(value)
 
 
-def _flat(tree: Any) -> np.ndarray:
-    """A dict of batched [1, ...] values, depth first in insertion order, as one float32 vector."""
+def _flat(tree: Any) -> Any:
+    """A dict of batched [N, ...] values, depth first in insertion order, as one float32 [N, n] tensor."""
     if isinstance(tree, Mapping):
         parts = [_flat(v) for v in tree.values()]
-        return np.concatenate(parts) if parts else np.zeros(0, np.float32)
-    return _numpy(tree).astype(np.float32).reshape(-1)
+        return torch_cat(parts, None)
+    value = _torch().as_tensor(tree).float()
+    return value.reshape(value.shape[0], -1)
+
+
+def _torch() -> Any:
+    """torch, imported on first use: the preflight (this module, in the launcher) needs none."""
+    import torch
+
+    return torch
+
+
+def torch_cat(parts: list[Any], n: int | None) -> Any:
+    """``parts`` ([N, n_i] each) side by side; none: an [n, 0] tensor."""
+    return _torch().cat(parts, dim=1) if parts else _torch().zeros((n or 1, 0))
 
 
 def _bool(value: Any) -> bool:
@@ -224,8 +269,8 @@ def check_kwargs(kwargs: Mapping[str, Any]) -> None:
         raise EnvError(f"ManiSkill sim_backend = {backend!r}: expected one of {', '.join(map(repr, SIM_BACKENDS))} "
                        "(or \"physx_cuda:N\")")
     if "num_envs" in kwargs:
-        raise EnvError("ManiSkill num_envs: the adapter runs one environment per worker process; "
-                       "set sim.envs_per_group instead")
+        raise EnvError("ManiSkill num_envs: the adapter runs one environment per worker process (or one "
+                       "vectorized environment per group); set sim.envs_per_group instead")
 
 
 # --- preflight --------------------------------------------------------------------------------

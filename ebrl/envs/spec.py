@@ -29,6 +29,14 @@ class EnvSpec:
     latency_mean_ms: float = 16.0
     latency_sigma: float = 0.3
 
+    @property
+    def gpu_physics(self) -> bool:
+        """Whether the simulator steps on the GPU (ManiSkill under ``sim_backend = "physx_cuda[:N]"``): a whole
+        batch of envs per process, which ``sim.vectorized = "auto"`` turns on."""
+        from ebrl.config import gpu_physics
+
+        return gpu_physics(self.backend, self.kwargs)
+
     @classmethod
     def from_config(cls, env_cfg: Any) -> "EnvSpec":
         return cls(id=env_cfg.id, backend=env_cfg.backend, max_episode_steps=env_cfg.max_episode_steps,

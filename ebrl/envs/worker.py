@@ -21,7 +21,7 @@ import threading
 import time
 from dataclasses import dataclass
 from multiprocessing.connection import Connection
-from typing import Any
+from typing import Any, Callable
 
 import numpy as np
 
@@ -115,17 +115,23 @@ def _exists(pid: int) -> bool:
     return True
 
 
+def adopt(owner: int | None) -> bool:
+    """In a worker process, first thing: SIGINT is ignored (the sim service decides when workers stop), and the
+    process dies with its parent and with ``owner`` (the sim service's pid). False: one of them is gone already."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    # The parent imported this module before it forked this process: the forkserver (which preloads it) or a
+    # forking sim service. Imported here (spawn, a forkserver without the preload), its pid is not known.
+    parent = _IMPORTED_BY if _IMPORTED_BY != os.getpid() else os.getppid()
+    return die_with_parent(parent) and (owner is None or die_with(owner))
+
+
 def _worker_main(conn: Connection, spec: EnvSpec, seed: int, claim: CoreClaim | None = None,
                  owner: int | None = None) -> None:
     """Episode ``k`` starts from ``env.reset(seed=seed + 7919 * k)``: workers given the same ``seed`` replay
     the same sequence of initial states (GRPO groups). With a ``claim`` on the sim service's core pool, every
     step runs on a core claimed from it (:mod:`ebrl.sched.corepool`). ``owner``: the sim service's pid; the
     worker dies with it."""
-    signal.signal(signal.SIGINT, signal.SIG_IGN)  # the sim service decides when workers stop
-    # The parent imported this module before it forked this process: the forkserver (which preloads it) or a
-    # forking sim service. Imported here (spawn, a forkserver without the preload), its pid is not known.
-    parent = _IMPORTED_BY if _IMPORTED_BY != os.getpid() else os.getppid()
-    if not die_with_parent(parent) or (owner is not None and not die_with(owner)):
+    if not adopt(owner):
         return  # the sim service (or the forkserver) died before the worker got here
     if claim is not None:
         claim.register()
@@ -206,28 +212,17 @@ class WorkerFailed(RuntimeError):
     """An env worker that died or did not answer in time; the caller replaces it."""
 
 
-class EnvWorker:
-    """Parent-side handle of one env worker process."""
+class WorkerProcess:
+    """Parent side of a worker process that answers requests over a pipe (an env worker, a vectorized group)."""
 
-    def __init__(self, spec: EnvSpec, seed: int, core: int | None = None, pool: CorePool | None = None,
-                 slot: int = 0):
-        """``core``: pinned there; ``pool``: every step claims a core of the pool as env ``slot`` of it."""
+    def __init__(self, spec: EnvSpec, target: Any, args: Callable[[Connection], tuple], name: str):
+        """Start ``target(child_conn, *args(child_conn), owner_pid)`` in a process of the env workers' forkserver."""
         ctx = _context(spec)
         self.conn, child = ctx.Pipe()
-        claim = CoreClaim(pool, slot, child) if pool is not None else None
-        self.slot = slot  # its place in the core pool
-        self.proc = ctx.Process(target=_worker_main, args=(child, spec, seed, claim, os.getpid()), daemon=True,
-                                name="ebrl-env")
+        self.proc = ctx.Process(target=target, args=(child, *args(child), os.getpid()), daemon=True, name=name)
         self.proc.start()
         child.close()
-        self.core = core
         self.chunks_done = 0  # chunks it answered (a replaced worker that never did counts against its env)
-        if core is not None:
-            self.pin(core)
-
-    def pin(self, core: int) -> None:
-        os.sched_setaffinity(self.proc.pid, {core})
-        self.core = core
 
     async def request(self, cmd: str, arg: object = None, timeout: float | None = None) -> object:
         """Send one command and await the reply; raise :class:`WorkerFailed` if the worker dies or takes
@@ -261,18 +256,6 @@ class EnvWorker:
         finally:
             loop.remove_reader(fd)
 
-    async def reset(self, episode: int = 0) -> np.ndarray:
-        """Start episode ``episode`` (its initial state is fixed by the worker's seed and the index)."""
-        return await self.request("reset", episode)  # type: ignore[return-value]
-
-    async def chunk(self, actions: np.ndarray, observe: bool = True, timeout: float | None = None) -> ChunkResult:
-        """Run ``actions`` (stopping early at an episode end). ``observe=False``: the caller will not read the
-        observation after the last action (more steps of the same chunk follow), so an env that can skip
-        rendering does; an episode that ends is always observed."""
-        result = await self.request("chunk", (actions, observe), timeout)
-        self.chunks_done += 1
-        return result  # type: ignore[return-value]
-
     def kill(self, close_pipe: bool = True) -> None:
         """End the process now (a dead or hung worker). ``close_pipe=False`` leaves the pipe open, so that a
         request in flight fails as for a worker that died (its caller then kills it again, closing it)."""
@@ -292,6 +275,37 @@ class EnvWorker:
             self.proc.kill()
             self.proc.join(1.0)
         self.conn.close()
+
+
+class EnvWorker(WorkerProcess):
+    """Parent-side handle of one env worker process."""
+
+    def __init__(self, spec: EnvSpec, seed: int, core: int | None = None, pool: CorePool | None = None,
+                 slot: int = 0):
+        """``core``: pinned there; ``pool``: every step claims a core of the pool as env ``slot`` of it."""
+        super().__init__(spec, _worker_main,
+                         lambda child: (spec, seed, CoreClaim(pool, slot, child) if pool is not None else None),
+                         "ebrl-env")
+        self.slot = slot  # its place in the core pool
+        self.core = core
+        if core is not None:
+            self.pin(core)
+
+    def pin(self, core: int) -> None:
+        os.sched_setaffinity(self.proc.pid, {core})
+        self.core = core
+
+    async def reset(self, episode: int = 0) -> np.ndarray:
+        """Start episode ``episode`` (its initial state is fixed by the worker's seed and the index)."""
+        return await self.request("reset", episode)  # type: ignore[return-value]
+
+    async def chunk(self, actions: np.ndarray, observe: bool = True, timeout: float | None = None) -> ChunkResult:
+        """Run ``actions`` (stopping early at an episode end). ``observe=False``: the caller will not read the
+        observation after the last action (more steps of the same chunk follow), so an env that can skip
+        rendering does; an episode that ends is always observed."""
+        result = await self.request("chunk", (actions, observe), timeout)
+        self.chunks_done += 1
+        return result  # type: ignore[return-value]
 
 
 # --- the physical limit ---------------------------------------------------------------------

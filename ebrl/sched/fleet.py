@@ -12,6 +12,7 @@ be compared without it.
 
 from __future__ import annotations
 
+import asyncio
 import collections
 import logging
 import time
@@ -20,13 +21,14 @@ from typing import Callable
 import numpy as np
 
 from ebrl.envs import EnvSpec, EnvWorker
+from ebrl.envs.vector import VectorWorker
 from ebrl.envs.worker import WorkerFailed
 from ebrl.messages import EPISODES_MAX, EpisodeBatch
 from ebrl.sched.corepool import CorePool
 from ebrl.sched.modes import Schedule
 from ebrl.sched.rollout import Episodes
 from ebrl.sched.stepchoice import SteppingChoice
-from ebrl.sched.stepping import BatchStepping, IndependentStepping, RebindingStepping, Stepping
+from ebrl.sched.stepping import BatchStepping, IndependentStepping, RebindingStepping, Result, Stepping
 
 log = logging.getLogger(__name__)
 
@@ -64,6 +66,15 @@ class EnvFleet:
         self.workers: dict[int, list[EnvWorker]] = {}  # a given-up env keeps its dead worker's handle
         for g in self.groups:
             self.workers[g] = [self._start(env) for env in self.env_ids(g)]
+
+    async def reset_group(self, g: int) -> np.ndarray:
+        """Start every env of group ``g`` (episode 0); their first observations, [envs, ...]."""
+        return np.stack(await asyncio.gather(*(w.reset() for w in self.workers[g])))
+
+    async def run_chunk(self, g: int, active: list[int], actions: np.ndarray) -> tuple[list[Result], list[float]]:
+        """Envs ``active`` (indices into group ``g``) run ``actions`` (one chunk each); per env, its result (or
+        the :class:`WorkerFailed` of a worker to recover) and its chunk latency."""
+        return await self.stepping.run_chunk([self.workers[g][i] for i in active], actions)
 
     @property
     def rebinding(self) -> RebindingStepping | None:
@@ -162,6 +173,106 @@ class EnvFleet:
         for workers in self.workers.values():
             for worker in workers:
                 worker.close(timeout=1.0)
+
+
+class VectorFleet(EnvFleet):
+    """``sim.vectorized``: each group one :class:`~ebrl.envs.vector.VectorWorker` process stepping its envs as one
+    batch (ManiSkill on GPU PhysX, or copies of the env in one process), on the whole simulation core budget.
+
+    A group's process that dies or hangs is replaced as a whole: every env of the group gets the failure, the
+    first to recover starts the new process, and each env's episode in progress is dropped (its numbering goes
+    on). A group whose process fails ``MAX_REPLACEMENTS + 1`` times in a row without answering a chunk is given up."""
+
+    def __init__(self, spec: EnvSpec, schedule: Schedule, host: int, seed: int, share: int = 1, **_: object):
+        if share > 1:
+            raise ValueError("vectorized groups cannot promise GRPO's shared initial states (sim.vectorized)")
+        self.spec, self.schedule, self.seed = spec, schedule, seed
+        first = host * schedule.groups
+        self.groups = list(range(first, first + schedule.groups))
+        self.per_group = schedule.envs_per_group
+        self.episodes = Episodes(range(first * self.per_group, (first + schedule.groups) * self.per_group), 1)
+        self.pool = None
+        self.stepping = IndependentStepping()  # its timeout: how long a batch may take for one chunk
+        self.failures: dict[int, int] = {}  # group -> processes that failed in a row without answering a chunk
+        self.given_up_envs: set[int] = set()
+        self.given_up = 0
+        self.fresh: dict[int, np.ndarray] = {}  # group -> first observations of its new process, while recovering
+        self.vectors = {g: self._start_group(g) for g in self.groups}
+        self.workers = {}  # no process per env
+
+    def _start_group(self, g: int) -> VectorWorker:
+        return VectorWorker(self.spec, [self.env_seed(int(env)) for env in self.env_ids(g)], self.schedule.sim_cores)
+
+    async def reset_group(self, g: int) -> np.ndarray:
+        return await self.vectors[g].reset(np.zeros(self.per_group, np.int64))
+
+    async def run_chunk(self, g: int, active: list[int], actions: np.ndarray) -> tuple[list[Result], list[float]]:
+        if len(active) != self.per_group:
+            raise ValueError(f"group {g}: a vectorized batch steps all of its {self.per_group} envs, not {len(active)}")
+        start = time.perf_counter()
+        try:
+            chunk = await self.vectors[g].chunk(actions, timeout=self.stepping.timeout)
+        except WorkerFailed as exc:
+            self.vectors[g].kill()
+            return [exc] * len(active), [0.0] * len(active)
+        return list(chunk.results()), [time.perf_counter() - start] * len(active)
+
+    async def recover(self, g: int, i: int, episode: int) -> np.ndarray | None:
+        """After group ``g``'s process failed: the first env to ask starts a new process for the whole group, every
+        env on the next episode of its own (``episode`` for env ``i``); env ``i``'s first observation. None: the
+        group is given up."""
+        env = int(self.env_ids(g)[i])
+        if env in self.given_up_envs:
+            return None
+        if g not in self.fresh:
+            episodes = np.asarray([self.episodes.index[int(e)] + 1 for e in self.env_ids(g)], np.int64)
+            episodes[i] = episode
+            while True:
+                failed = self.vectors[g]
+                failures = self.failures[g] = (0 if failed.chunks_done else self.failures.get(g, 0)) + 1
+                if failures > MAX_REPLACEMENTS:
+                    failed.kill()
+                    log.error("group %d given up: its process failed %d times in a row without answering a chunk "
+                              "(after %d replacements); the other groups go on", g, failures, failures - 1)
+                    for mate in self.env_ids(g):
+                        self.given_up_envs.add(int(mate))
+                        self.given_up += 1
+                    return None
+                failed.kill()
+                self.vectors[g] = self._start_group(g)
+                try:
+                    self.fresh[g] = await self.vectors[g].reset(episodes)
+                    break
+                except WorkerFailed as exc:
+                    log.warning("group %d: its new process failed at once (%s)", g, exc)
+        obs = self.fresh[g][i]
+        if i == self.per_group - 1:  # the last env of the group has its observation: recovery is done
+            del self.fresh[g]
+        return obs
+
+    def live(self) -> list[VectorWorker]:  # type: ignore[override]
+        return [self.vectors[g] for g in self.groups if int(self.env_ids(g)[0]) not in self.given_up_envs]
+
+    def count(self) -> int:
+        return len(self.live()) * self.per_group
+
+    def cores(self) -> list[int]:
+        return sorted({core for worker in self.live() for core in worker.cores})
+
+    def pin(self, cores: list[int]) -> None:
+        for worker in self.live():
+            worker.pin(cores)
+
+    def close(self) -> None:
+        for worker in self.vectors.values():
+            worker.close(timeout=1.0)
+
+
+def make_fleet(spec: EnvSpec, schedule: Schedule, host: int, seed: int, share: int = 1,
+               **hooks: Callable) -> EnvFleet:
+    """The fleet of the schedule: vectorized groups, or a worker process per env."""
+    kind = VectorFleet if schedule.vectorized else EnvFleet
+    return kind(spec, schedule, host=host, seed=seed, share=share, **hooks)
 
 
 class RolloutStats:

@@ -121,8 +121,7 @@ class GroupLoop:
         self.seq = 0
 
     async def run_forever(self) -> None:
-        workers = self.fleet.workers[self.g]
-        obs = np.stack(await asyncio.gather(*(w.reset() for w in workers)))
+        obs = await self.fleet.reset_group(self.g)
         while not all(self.fleet.given_up_env(int(env)) for env in self.env_ids):
             obs = await self.step(obs)
         log.error("group %d: every env given up; the group stops", self.g)
@@ -131,7 +130,7 @@ class GroupLoop:
 
     async def step(self, obs: np.ndarray) -> np.ndarray:
         """One chunk of this group: returns the next observations."""
-        g, episodes, workers = self.g, self.fleet.episodes, self.fleet.workers[self.g]
+        g, episodes = self.g, self.fleet.episodes
         active = [i for i, env in enumerate(self.env_ids)
                   if not self.fleet.given_up_env(int(env)) and episodes.may_act(int(env))]
         if not active:  # every env waits for GRPO group-mates in other sim groups
@@ -139,7 +138,7 @@ class GroupLoop:
             return obs
         chunk = await self.exchange.exchange(g, self.seq, self.env_ids, obs)
         start = time.time()
-        done, latency_of = await self.fleet.stepping.run_chunk([workers[i] for i in active], chunk.actions[active])
+        done, latency_of = await self.fleet.run_chunk(g, active, chunk.actions[active])
         self.telemetry.publish_span(f"sim.g{g}", "chunk", start, time.time())
         boundary = (self.seq + 1) % self.schedule.length(self.sim_hosts()) == 0
         next_obs = obs.copy()

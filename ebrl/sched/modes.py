@@ -19,6 +19,8 @@ import os
 from dataclasses import dataclass
 from typing import Any
 
+from ebrl.config import vectorized
+
 PRESETS: dict[str, dict[str, Any]] = {
     "ebrl": dict(group_pipeline=True, stepping="async", core_rebinding="auto", overlap=True, disjoint=False),
     "colocated": dict(group_pipeline=False, stepping="batch", core_rebinding=False, overlap=False, disjoint=False),
@@ -46,6 +48,8 @@ class Schedule:
     throttle: bool = True
     # sim.core_rebinding = "auto": rebinding or pinned whole chunks, whichever measures faster (stepchoice)
     rebinding_auto: bool = False
+    # sim.vectorized: each group one process stepping its envs as a batch (no per-env stepping, no rebinding)
+    vectorized: bool = False
 
     def length(self, hosts: int = 1) -> int:
         """Decisions per env per iteration while ``hosts`` sim hosts are live: an update's batch comes from all
@@ -78,7 +82,8 @@ def resolve(cfg: Any, cores: list[int] | None = None) -> Schedule:
         return preset[name] if value is None else value
 
     group_pipeline = pick(cfg.sim.group_pipeline, "group_pipeline")
-    stepping = pick(cfg.sim.stepping, "stepping")
+    batched = vectorized(cfg)
+    stepping = "batch" if batched else pick(cfg.sim.stepping, "stepping")  # a vectorized batch steps as one
     rebinding = pick(cfg.sim.core_rebinding, "core_rebinding")
     core_rebinding = bool(rebinding) and stepping == "async"
     overlap = pick(cfg.train.overlap, "overlap")
@@ -103,4 +108,5 @@ def resolve(cfg: Any, cores: list[int] | None = None) -> Schedule:
         train_cores=train_cores,
         throttle=cfg.algo.name != "grpo",
         rebinding_auto=core_rebinding and rebinding == "auto",
+        vectorized=batched,
     )

@@ -1,0 +1,335 @@
+"""Vectorized groups: one process steps all of a group's environments as one batch.
+
+ManiSkill simulates hundreds to thousands of environments in one process on GPU PhysX (``sim_backend =
+"physx_cuda"``); one environment per worker process, the CPU path, cannot use that. With ``sim.vectorized`` on (the
+default under GPU PhysX), each group is one :class:`VectorWorker` process holding a batch of
+``sim.envs_per_group`` environments:
+
+* :class:`ManiSkillBatch` — ManiSkill's own batched environment: torch tensors on the simulator's device, partial
+  resets through ``reset(options={"env_idx": ...})``;
+* :class:`EnvBatch` — ``n`` copies of any backend's environment stepped one after another in one process (no
+  process and pipe per environment: for environments whose steps cost microseconds).
+
+A chunk steps the whole batch ``K`` times (:class:`BatchRunner`). An environment whose episode ends at step j < K
+goes on being stepped with the chunk's remaining actions (a batch steps all of its environments or none); those
+steps are not counted, their results are dropped, and the environment is reset once the chunk is done. So each
+environment's :class:`ChunkResult` means what a worker process's does: the steps of one episode, up to its end,
+with the first observation of the next. Rewards, ends and the observations stay on the simulator's device until
+the chunk is done; then one copy brings them to the host: every environment's next observation, and the final
+observation of those whose episode ended (the only ones that differ from it).
+"""
+
+from __future__ import annotations
+
+import os
+import time
+from dataclasses import dataclass
+from multiprocessing.connection import Connection
+from typing import Any
+
+import numpy as np
+import torch
+
+from ebrl.envs.backends import make_env
+from ebrl.envs.spec import EnvError, EnvSpec
+from ebrl.envs.worker import EPISODE_SEED_STRIDE, ChunkResult, WorkerProcess, adopt
+
+
+@dataclass
+class BatchStep:
+    """What one step of a batch returns, on the batch's device."""
+
+    obs: torch.Tensor  # [N, obs size] float32
+    reward: torch.Tensor  # [N]
+    terminated: torch.Tensor  # [N] bool
+    truncated: torch.Tensor  # [N] bool
+    success: torch.Tensor | None  # [N] bool, where the task reports success
+
+
+class EnvBatch:
+    """``n`` environments of any backend in this process, stepped one after another. Environment ``i`` starts
+    episode ``k`` from ``reset(seed=seeds[i] + 7919 * k)``, as a worker process seeded ``seeds[i]`` does, so a
+    vectorized group replays what the same envs in worker processes would."""
+
+    device = torch.device("cpu")
+
+    def __init__(self, spec: EnvSpec, seeds: list[int]):
+        self.envs = []
+        try:
+            for seed in seeds:
+                self.envs.append(make_env(spec, seed=seed))
+        except BaseException:
+            self.close()
+            raise
+        self.seeds = list(seeds)
+        self.num_envs = len(self.envs)
+        first = self.envs[0]
+        self.low, self.high = first.action_space.low, first.action_space.high
+        self.obs = np.zeros((self.num_envs, int(np.prod(first.observation_space.shape))), np.float32)
+        bases = [env.unwrapped for env in self.envs]
+        # an env that can skip rendering the observations nobody reads (ebrl/envs/worker.py)
+        self.lazy = [b if callable(getattr(b, "observe", None)) and hasattr(b, "skip_observation") else None
+                     for b in bases]
+
+    def reset(self, idx: np.ndarray, episodes: np.ndarray) -> torch.Tensor:
+        """Start episode ``episodes[j]`` of env ``idx[j]``; every env's observation, [N, D]."""
+        for i, episode in zip(idx, episodes):
+            obs, _ = self.envs[i].reset(seed=self.seeds[i] + EPISODE_SEED_STRIDE * int(episode))
+            self.obs[i] = np.asarray(obs, np.float32).reshape(-1)
+        return torch.from_numpy(self.obs.copy())
+
+    def step(self, actions: torch.Tensor, active: torch.Tensor, observe: bool = True) -> BatchStep:
+        """Step the ``active`` envs (those whose episode has not ended in this chunk: an env may refuse steps
+        after its episode's end, and they would be dropped anyway); the others keep their last observation.
+        ``observe=False``: the observations after this step are not read (more steps of the chunk follow), so an
+        env that can skip rendering does; one whose episode ends is always observed."""
+        n = self.num_envs
+        acts = np.clip(actions.numpy(), self.low, self.high)
+        reward = np.zeros(n, np.float32)
+        terminated, truncated = np.zeros(n, bool), np.zeros(n, bool)
+        success = np.zeros(n, bool)
+        reports = False
+        for i in np.flatnonzero(active.numpy()):
+            env, lazy = self.envs[i], self.lazy[i]
+            if lazy is not None:
+                lazy.skip_observation = not observe
+            obs, r, te, tr, info = env.step(acts[i])
+            if lazy is not None and lazy.skip_observation and (te or tr):
+                obs = lazy.observe()
+            self.obs[i] = np.asarray(obs, np.float32).reshape(-1)
+            reward[i], terminated[i], truncated[i] = r, te, tr
+            if "success" in info:
+                reports, success[i] = True, bool(info["success"])
+        return BatchStep(torch.from_numpy(self.obs.copy()), torch.from_numpy(reward), torch.from_numpy(terminated),
+                         torch.from_numpy(truncated), torch.from_numpy(success) if reports else None)
+
+    def close(self) -> None:
+        for env in self.envs:
+            env.close()
+
+
+class ManiSkillBatch:
+    """ManiSkill's batched environment of ``n`` envs (``num_envs = n``; on GPU PhysX under ``physx_cuda``).
+    Partial resets are seeded ``seed + 7919 * k`` for the batch's k-th reset: a run is repeatable from its seed,
+    though not env by env as with :class:`EnvBatch` (ManiSkill draws one episode seed per reset call)."""
+
+    def __init__(self, spec: EnvSpec, n: int, seed: int):
+        from ebrl.envs import maniskill as ms
+
+        kwargs = dict(spec.kwargs)
+        if "num_envs" in kwargs:
+            raise EnvError("ManiSkill num_envs: set sim.envs_per_group instead (each group is one vectorized env)")
+        obs = kwargs.pop("obs", "state")
+        control_mode = kwargs.pop("control_mode", ms.DEFAULT_CONTROL_MODE)
+        camera = kwargs.pop("camera", None)
+        instruction = kwargs.pop("instruction", None)
+        tokens = kwargs.pop("instruction_tokens", None)
+        options = ms.make_options(n, spec.max_episode_steps or None, obs, kwargs.pop("sim_backend", None),
+                                  kwargs.pop("image_size", ms.DEFAULT_IMAGE_SIZE), control_mode, kwargs)
+        self.env = ms._make_maniskill(spec.id, **options)
+        self.num_envs, self.seed, self.resets = n, seed, 0
+        self.instruction = ms.INSTRUCTIONS.get(spec.id, "") if instruction is None else str(instruction)
+        space = ms.action_box(spec.id, control_mode, self.env)
+        raw, _ = self.env.reset(seed=seed)
+        self.packer = ms.ObsPacker(obs, camera, self.instruction, obs == "rgb" if tokens is None else bool(tokens),
+                                   raw)
+        self.obs = self.packer.pack(raw)
+        self.device = self.obs.device
+        self.low = torch.as_tensor(space.low, device=self.device)
+        self.high = torch.as_tensor(space.high, device=self.device)
+
+    def reset(self, idx: np.ndarray, episodes: np.ndarray) -> torch.Tensor:
+        self.resets += 1
+        seed = self.seed + EPISODE_SEED_STRIDE * self.resets
+        if len(idx) == self.num_envs:
+            raw, _ = self.env.reset(seed=seed)
+        else:
+            raw, _ = self.env.reset(seed=seed, options={"env_idx": torch.as_tensor(idx, device=self.device)})
+        self.obs = self.packer.pack(raw)
+        return self.obs
+
+    def step(self, actions: torch.Tensor, active: torch.Tensor, observe: bool = True) -> BatchStep:
+        """Every env steps (GPU PhysX steps the whole batch); the caller drops what the inactive ones did."""
+        raw, reward, terminated, truncated, info = self.env.step(torch.clamp(actions, self.low, self.high))
+        success = info.get("success")
+        as_bool = lambda value: torch.as_tensor(value, device=self.device).reshape(-1).bool()  # noqa: E731
+        return BatchStep(self.packer.pack(raw), torch.as_tensor(reward, device=self.device).reshape(-1).float(),
+                         as_bool(terminated), as_bool(truncated), None if success is None else as_bool(success))
+
+    def close(self) -> None:
+        self.env.close()
+
+
+def make_batch(spec: EnvSpec, seeds: list[int]) -> EnvBatch | ManiSkillBatch:
+    """The batch a vectorized group runs: ManiSkill's own under GPU PhysX, else copies of the env in one process."""
+    if spec.gpu_physics:
+        return ManiSkillBatch(spec, len(seeds), seeds[0])
+    return EnvBatch(spec, seeds)
+
+
+@dataclass
+class VectorChunk:
+    """What a batch did with one chunk, on the host: per env (``[N]``) and per env whose episode ended (``[E]``)."""
+
+    reward: np.ndarray  # [N] sum over the env's counted steps
+    steps: np.ndarray  # [N] steps counted (< K when its episode ended inside the chunk)
+    terminated: np.ndarray  # [N] bool
+    truncated: np.ndarray  # [N] bool
+    episode: np.ndarray  # [N] the episode the steps belong to
+    next_obs: np.ndarray  # [N, D] the observation for the next chunk (after the reset, where one ended)
+    ended: np.ndarray  # [E] the envs whose episode ended
+    final_obs: np.ndarray  # [E, D] their observation after their last step (before the reset)
+    episode_return: np.ndarray  # [E]
+    episode_length: np.ndarray  # [E]
+    episode_success: np.ndarray  # [E] int8: 1, 0, or -1 where the task reports no success
+    busy_s: float  # CPU seconds of the chunk's steps (the whole batch)
+    step_s: tuple[float, ...]  # wall seconds of each batch step
+
+    def results(self) -> list[ChunkResult]:
+        """One :class:`ChunkResult` per env, as a worker process would have answered; each env's share of the
+        batch's CPU time as its ``busy_s``."""
+        n = len(self.reward)
+        row = {int(env): j for j, env in enumerate(self.ended)}
+        out = []
+        for i in range(n):
+            j = row.get(i)
+            success = None if j is None or self.episode_success[j] < 0 else bool(self.episode_success[j])
+            out.append(ChunkResult(
+                reward=float(self.reward[i]), steps=int(self.steps[i]), terminated=bool(self.terminated[i]),
+                truncated=bool(self.truncated[i]), final_obs=self.next_obs[i] if j is None else self.final_obs[j],
+                next_obs=self.next_obs[i], episode_return=None if j is None else float(self.episode_return[j]),
+                episode_length=None if j is None else int(self.episode_length[j]), episode_success=success,
+                busy_s=self.busy_s / n, episode=int(self.episode[i])))
+        return out
+
+
+class BatchRunner:
+    """Chunks on a batch, with each env's episode bookkeeping (return, length, success, episode index)."""
+
+    def __init__(self, batch: EnvBatch | ManiSkillBatch):
+        self.batch = batch
+        n, device = batch.num_envs, batch.device
+        self.episodes = np.zeros(n, np.int64)
+        self.ep_return = torch.zeros(n, dtype=torch.float64, device=device)
+        self.ep_length = torch.zeros(n, dtype=torch.int64, device=device)
+        self.ep_success = torch.zeros(n, dtype=torch.bool, device=device)
+        self.obs: torch.Tensor | None = None
+
+    def reset(self, episodes: np.ndarray) -> np.ndarray:
+        """Start episode ``episodes[i]`` on every env (a replaced worker carries each env's numbering on)."""
+        self.episodes = np.asarray(episodes, np.int64).copy()
+        self.ep_return.zero_()
+        self.ep_length.zero_()
+        self.ep_success.zero_()
+        self.obs = self.batch.reset(np.arange(self.batch.num_envs), self.episodes)
+        return self.obs.cpu().numpy()
+
+    def chunk(self, actions: np.ndarray) -> VectorChunk:
+        """Step ``actions`` ([N, K, A]) on the batch; each env's steps stop counting at its episode's end."""
+        batch, device = self.batch, self.batch.device
+        acts = torch.as_tensor(np.asarray(actions, np.float32), device=device)
+        n, k_max = acts.shape[0], acts.shape[1]
+        if n != batch.num_envs:
+            raise ValueError(f"a chunk for {n} envs; this batch has {batch.num_envs}")
+        alive = torch.ones(n, dtype=torch.bool, device=device)
+        reward = torch.zeros(n, dtype=torch.float64, device=device)
+        steps = torch.zeros(n, dtype=torch.int64, device=device)
+        terminated = torch.zeros(n, dtype=torch.bool, device=device)
+        truncated = torch.zeros(n, dtype=torch.bool, device=device)
+        success = torch.zeros(n, dtype=torch.bool, device=device)
+        reports_success = False
+        if self.obs is None:
+            raise ValueError("a chunk before the first reset")
+        final = self.obs
+        step_s = []
+        cpu0 = time.thread_time()
+        for k in range(k_max):
+            t0 = time.perf_counter()
+            out = batch.step(acts[:, k], alive, observe=k == k_max - 1)
+            step_s.append(time.perf_counter() - t0)
+            reward += torch.where(alive, out.reward.double(), 0.0)
+            steps += alive.long()
+            if out.success is not None:
+                reports_success = True
+                success |= alive & out.success
+            ended = alive & (out.terminated | out.truncated)
+            terminated |= ended & out.terminated
+            truncated |= ended & out.truncated
+            final = torch.where(alive[:, None], out.obs, final)
+            alive &= ~ended
+            if k < k_max - 1 and not bool(alive.any()):  # every episode ended: the rest of the chunk is dropped
+                break
+        done = terminated | truncated
+        self.ep_return += reward
+        self.ep_length += steps
+        self.ep_success |= success
+        ended_idx = torch.nonzero(done).reshape(-1)
+        ended = ended_idx.cpu().numpy()
+        chunk_episode = self.episodes.copy()
+        ep_return = self.ep_return[ended_idx].cpu().numpy()
+        ep_length = self.ep_length[ended_idx].cpu().numpy()
+        ep_success = (self.ep_success[ended_idx].to(torch.int8) if reports_success else
+                      torch.full((len(ended),), -1, dtype=torch.int8)).cpu().numpy()
+        final_obs = final[ended_idx].cpu().numpy()
+        if len(ended):
+            self.episodes[ended] += 1
+            self.ep_return[ended_idx] = 0.0
+            self.ep_length[ended_idx] = 0
+            self.ep_success[ended_idx] = False
+            self.obs = batch.reset(ended, self.episodes[ended])
+        else:
+            self.obs = final
+        busy = time.thread_time() - cpu0
+        return VectorChunk(reward.cpu().numpy().astype(np.float32), steps.cpu().numpy(), terminated.cpu().numpy(),
+                           truncated.cpu().numpy(), chunk_episode, self.obs.cpu().numpy(), ended, final_obs,
+                           ep_return, ep_length, ep_success, busy, tuple(step_s))
+
+
+def _vector_main(conn: Connection, spec: EnvSpec, seeds: list[int], owner: int | None = None) -> None:
+    """A vectorized group's process: builds the batch, answers ``reset`` (each env's episode index) and ``chunk``
+    (actions [N, K, A]) with a :class:`VectorChunk`, until ``close`` or its pipe closes."""
+    if not adopt(owner):
+        return
+    batch: EnvBatch | ManiSkillBatch | None = None
+    try:
+        batch = make_batch(spec, seeds)
+        runner = BatchRunner(batch)
+        while True:
+            try:
+                cmd, arg = conn.recv()
+            except (EOFError, OSError):
+                return
+            if cmd == "close":
+                return
+            try:
+                reply: Any = runner.reset(arg) if cmd == "reset" else runner.chunk(arg) if cmd == "chunk" else \
+                    ValueError(f"unknown worker command {cmd!r}")
+            except (ValueError, EnvError) as exc:  # a malformed request: said, and the batch goes on
+                reply = exc
+            conn.send(reply)
+    finally:
+        if batch is not None:
+            batch.close()
+
+
+class VectorWorker(WorkerProcess):
+    """Parent-side handle of a vectorized group's process: env ``i`` of the group is row ``i`` of its batch."""
+
+    def __init__(self, spec: EnvSpec, seeds: list[int], cores: list[int]):
+        super().__init__(spec, _vector_main, lambda child: (spec, list(seeds)), "ebrl-vector")
+        self.num_envs = len(seeds)
+        self.cores: list[int] = []
+        self.pin(cores)
+
+    def pin(self, cores: list[int]) -> None:
+        """Run on ``cores`` (the simulation budget: a batch on the GPU still needs the CPU to drive it)."""
+        os.sched_setaffinity(self.proc.pid, set(cores))
+        self.cores = sorted(cores)
+
+    async def reset(self, episodes: np.ndarray) -> np.ndarray:
+        return await self.request("reset", np.asarray(episodes, np.int64))  # type: ignore[return-value]
+
+    async def chunk(self, actions: np.ndarray, timeout: float | None = None) -> VectorChunk:
+        result = await self.request("chunk", np.asarray(actions, np.float32), timeout)
+        self.chunks_done += 1
+        return result  # type: ignore[return-value]

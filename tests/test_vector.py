@@ -1,0 +1,281 @@
+"""Vectorized groups (ebrl/envs/vector.py, VectorFleet): a group's envs stepped as one batch in one process.
+
+The CPU batch (copies of a real MuJoCo env) must answer exactly what env worker processes answer for the same
+seeds and actions; ManiSkill's GPU batch is driven through a fake with ManiSkill 3's batched API (no Vulkan GPU
+here); a whole run goes through sim, gen and train with vectorized groups."""
+
+from __future__ import annotations
+
+import asyncio
+import os
+
+import gymnasium as gym
+import numpy as np
+import pytest
+import torch
+
+from ebrl import config
+from ebrl.bus import keys
+from ebrl.config import ConfigError
+from ebrl.envs import EnvSpec, EnvWorker
+from ebrl.envs import maniskill
+from ebrl.envs.vector import BatchRunner, EnvBatch, ManiSkillBatch, VectorWorker, make_batch
+from ebrl.envs.worker import WorkerFailed
+from ebrl.messages import StatsReport, TrajectorySegment
+from ebrl.sched.fleet import MAX_REPLACEMENTS, VectorFleet, make_fleet
+from ebrl.sched.modes import Schedule, resolve
+from helpers import ROOT
+from test_env_hygiene import drive
+from test_pipeline import run_services, small_config
+
+PENDULUM = EnvSpec("InvertedPendulum-v5", max_episode_steps=6)
+
+
+def chunks_of_actions(n: int, k: int, count: int, seed: int = 0) -> list[np.ndarray]:
+    rng = np.random.default_rng(seed)
+    return [rng.uniform(-3.0, 3.0, (n, k, 1)).astype(np.float32) for _ in range(count)]
+
+
+async def worker_answers(seeds: list[int], chunks: list[np.ndarray]):
+    workers = [EnvWorker(PENDULUM, seed=s) for s in seeds]
+    try:
+        first = np.stack(await asyncio.gather(*(w.reset() for w in workers)))
+        out = []
+        for actions in chunks:
+            out.append(await asyncio.gather(*(w.chunk(a) for w, a in zip(workers, actions))))
+        return first, out
+    finally:
+        for w in workers:
+            w.close()
+
+
+def test_a_cpu_batch_answers_exactly_what_env_worker_processes_answer():
+    """Same seeds, same actions: the same rewards, step counts, episode ends (inside chunks: the pendulum falls
+    under strong actions; at the 6-step limit), observations, returns and episode indices."""
+    seeds, k = [11, 12, 13], 4
+    chunks = chunks_of_actions(len(seeds), k, 12)
+    first, expected = asyncio.run(worker_answers(seeds, chunks))
+    runner = BatchRunner(EnvBatch(PENDULUM, seeds))
+    try:
+        assert np.array_equal(runner.reset(np.zeros(3, np.int64)), first)
+        ends_inside = 0
+        for actions, want in zip(chunks, expected):
+            got = runner.chunk(actions).results()
+            for g, w in zip(got, want):
+                assert (g.steps, g.terminated, g.truncated, g.episode) == (w.steps, w.terminated, w.truncated,
+                                                                          w.episode)
+                assert g.reward == pytest.approx(w.reward, rel=1e-6)
+                assert np.allclose(g.final_obs, w.final_obs) and np.allclose(g.next_obs, w.next_obs)
+                assert (g.episode_return is None) == (w.episode_return is None)
+                if w.episode_return is not None:
+                    assert g.episode_return == pytest.approx(w.episode_return, rel=1e-6)
+                    assert g.episode_length == w.episode_length
+                ends_inside += w.steps < k
+        assert ends_inside > 0  # episodes did end inside chunks
+    finally:
+        runner.batch.close()
+
+
+class Bomb(gym.Env):
+    """Refuses any step after its episode's end (as robosuite does)."""
+
+    observation_space = gym.spaces.Box(-1.0, 1.0, (2,), np.float32)
+    action_space = gym.spaces.Box(-1.0, 1.0, (1,), np.float32)
+
+    def __init__(self):
+        self.t, self.done = 0, False
+
+    def reset(self, *, seed=None, options=None):
+        super().reset(seed=seed)
+        self.t, self.done = 0, False
+        return np.zeros(2, np.float32), {}
+
+    def step(self, action):
+        assert not self.done, "stepped after its episode ended"
+        self.t += 1
+        self.done = self.t >= 3
+        return np.full(2, self.t / 10, np.float32), 1.0, False, self.done, {"success": self.t == 3}
+
+
+gym.register("VectorBomb-v0", entry_point=Bomb)
+
+
+def test_a_cpu_batch_never_steps_an_env_after_its_episode_ended_and_reports_success():
+    runner = BatchRunner(EnvBatch(EnvSpec("VectorBomb-v0"), [0, 1]))
+    runner.reset(np.zeros(2, np.int64))
+    chunk = runner.chunk(np.zeros((2, 4, 1), np.float32))  # the episodes end at step 3 of 4
+    assert chunk.steps.tolist() == [3, 3] and chunk.truncated.all() and chunk.reward.tolist() == [3.0, 3.0]
+    assert chunk.ended.tolist() == [0, 1] and chunk.episode_success.tolist() == [1, 1]
+    results = chunk.results()
+    assert results[0].episode_return == 3.0 and results[0].episode_length == 3 and results[0].episode_success
+    assert np.allclose(results[0].final_obs, 0.3) and np.allclose(results[0].next_obs, 0.0)  # reset after the end
+    assert chunk.episode.tolist() == [0, 0] and runner.episodes.tolist() == [1, 1]
+
+
+class FakeManiSkillBatch:
+    """What ``gym.make("PickCube-v1", num_envs=N, sim_backend="physx_cuda", ...)`` returns, in ManiSkill 3's
+    batched API: torch tensors [N, ...]; partial resets by ``options["env_idx"]`` returning every env's
+    observation; ``terminated`` on success; the time limit as ``truncated``; every env steps at every call.
+    Env i's state is a step counter; success when it reaches ``3 + i``."""
+
+    made: dict = {}
+    resets: list = []
+
+    def __init__(self, **kwargs):
+        FakeManiSkillBatch.made, FakeManiSkillBatch.resets = kwargs, []
+        self.n = kwargs["num_envs"]
+        self.limit = kwargs.get("max_episode_steps", 50)
+        self.single_action_space = gym.spaces.Box(-1.0, 1.0, (8,), np.float32)
+        self.t = torch.zeros(self.n)
+        self.steps_taken = 0
+
+    @property
+    def unwrapped(self):
+        return self
+
+    def _obs(self):
+        return self.t[:, None].repeat(1, 42)
+
+    def reset(self, *, seed=None, options=None):
+        idx = torch.arange(self.n) if not options else torch.as_tensor(options["env_idx"])
+        FakeManiSkillBatch.resets.append((seed, idx.tolist()))
+        self.t[idx] = 0.0
+        return self._obs(), {"reconfigure": False}
+
+    def step(self, action):
+        assert isinstance(action, torch.Tensor) and action.shape == (self.n, 8)
+        assert float(action.abs().max()) <= 1.0  # clipped to the action space
+        self.steps_taken += 1
+        self.t += 1
+        success = self.t >= 3 + torch.arange(self.n)
+        return (self._obs(), torch.full((self.n,), 0.5), success.clone(), self.t >= self.limit,
+                {"success": success, "elapsed_steps": self.t.int()})
+
+    def close(self):
+        pass
+
+
+@pytest.fixture
+def fake_batch(monkeypatch):
+    monkeypatch.setattr(maniskill, "_make_maniskill", lambda task, **kwargs: FakeManiSkillBatch(**kwargs))
+
+
+def test_maniskill_batches_step_together_partially_reset_and_count_each_envs_own_steps(fake_batch):
+    spec = EnvSpec("PickCube-v1", backend="maniskill", max_episode_steps=8, kwargs={"sim_backend": "physx_cuda"})
+    batch = make_batch(spec, [5, 6, 7])
+    assert isinstance(batch, ManiSkillBatch)
+    made = FakeManiSkillBatch.made
+    assert made["num_envs"] == 3 and made["sim_backend"] == "physx_cuda" and made["max_episode_steps"] == 8
+    assert made["obs_mode"] == "state" and made["control_mode"] == "pd_joint_delta_pos"
+    runner = BatchRunner(batch)
+    assert runner.reset(np.zeros(3, np.int64)).shape == (3, 42)
+    chunk = runner.chunk(np.full((3, 4, 8), 9.0, np.float32))  # env 0 succeeds at step 3, env 1 at step 4
+    assert batch.env.steps_taken == 4  # the batch stepped 4 times: env 0's 4th step was dropped
+    assert chunk.steps.tolist() == [3, 4, 4] and chunk.terminated.tolist() == [True, True, False]
+    assert chunk.reward.tolist() == [1.5, 2.0, 2.0] and chunk.ended.tolist() == [0, 1]
+    assert chunk.episode_success.tolist() == [1, 1] and chunk.episode_return.tolist() == [1.5, 2.0]
+    assert chunk.final_obs[:, 0].tolist() == [3.0, 4.0]  # each env's observation at its own last step
+    assert FakeManiSkillBatch.resets[-1] == (5 + 2 * 7919, [0, 1])  # one partial reset: the batch's 2nd
+    assert chunk.next_obs[:, 0].tolist() == [0.0, 0.0, 4.0]
+    results = chunk.results()
+    assert results[2].episode_return is None and results[0].episode_success is True
+    chunk = runner.chunk(np.zeros((3, 4, 8), np.float32))  # env 2 succeeds at its 5th step: the chunk's first
+    assert chunk.steps.tolist() == [3, 4, 1] and chunk.episode.tolist() == [1, 1, 0]
+    assert chunk.episode_length[chunk.ended.tolist().index(2)] == 5  # its episode ran over two chunks
+
+
+def test_a_vectorized_group_process_answers_and_fails_like_a_worker():
+    async def scenario():
+        worker = VectorWorker(PENDULUM, [1, 2], sorted(os.sched_getaffinity(0))[:1])
+        try:
+            obs = await worker.reset(np.zeros(2, np.int64))
+            assert obs.shape == (2, 4)
+            chunk = await worker.chunk(np.zeros((2, 3, 1), np.float32), timeout=30)
+            assert chunk.steps.tolist() == [3, 3] and worker.chunks_done == 1
+            with pytest.raises(ValueError, match="a chunk for 3 envs"):  # a malformed request: said, not fatal
+                await worker.chunk(np.zeros((3, 3, 1), np.float32), timeout=30)
+            worker.proc.kill()
+            with pytest.raises(WorkerFailed):
+                await worker.chunk(np.zeros((2, 3, 1), np.float32), timeout=30)
+        finally:
+            worker.close()
+
+    asyncio.run(scenario())
+
+
+def vector_fleet(fault: str, bad_env: int) -> VectorFleet:
+    spec = EnvSpec("faulty_envs:Faulty-v0", kwargs={"fault": fault, "bad_env": bad_env})
+    schedule = Schedule(mode="ebrl", groups=2, envs_per_group=2, stepping="batch", core_rebinding=False,
+                        overlap=True, max_staleness=1, rollout_length=8, sim_cores=sorted(os.sched_getaffinity(0))[:1],
+                        gen_cores=[], train_cores=[], vectorized=True)
+    fleet = make_fleet(spec, schedule, host=0, seed=0)
+    assert isinstance(fleet, VectorFleet)
+    return fleet
+
+
+def test_a_vectorized_group_whose_env_fails_at_every_step_is_given_up_and_the_other_group_goes_on(caplog):
+    fleet = vector_fleet("raise", bad_env=1)  # env 1 is in group 0, with env 0
+    try:
+        answered = asyncio.run(drive(fleet, chunks=MAX_REPLACEMENTS + 4))
+        assert answered == {0: 0, 1: 0, 2: MAX_REPLACEMENTS + 4, 3: MAX_REPLACEMENTS + 4}
+        assert fleet.given_up_envs == {0, 1} and fleet.failures[0] == MAX_REPLACEMENTS + 1 and fleet.count() == 2
+        assert asyncio.run(fleet.recover(0, 0, episode=99)) is None
+        assert f"group 0 given up: its process failed {MAX_REPLACEMENTS + 1} times in a row" in caplog.text
+    finally:
+        fleet.close()
+
+
+def test_a_killed_vectorized_group_process_is_replaced_with_each_envs_episode_numbering_carried_on():
+    fleet = vector_fleet("", bad_env=-1)
+    first = fleet.vectors[1]
+
+    def kill_group_1(fleet: VectorFleet) -> None:  # once, after its second chunk
+        if fleet.vectors[1] is first and first.chunks_done == 2:
+            first.proc.kill()
+
+    try:
+        answered = asyncio.run(drive(fleet, chunks=6, between=kill_group_1))
+        assert fleet.given_up == 0 and fleet.count() == 4 and fleet.failures[1] == 1
+        assert answered == {0: 6, 1: 6, 2: 5, 3: 5}  # one chunk lost to the kill
+        assert fleet.vectors[1] is not first and fleet.vectors[1].proc.is_alive()
+        assert fleet.episodes.index[2] == fleet.episodes.index[3] == 1  # the episode in progress was dropped
+    finally:
+        fleet.close()
+
+
+def test_vectorized_is_the_default_only_on_gpu_physics_and_refused_with_grpo(tmp_path):
+    cfg = small_config(tmp_path)
+    assert not config.vectorized(cfg) and not resolve(cfg).vectorized
+    cfg = small_config(tmp_path, sim={"vectorized": True})
+    schedule = resolve(cfg)
+    assert schedule.vectorized and schedule.stepping == "batch" and not schedule.core_rebinding
+    maniskill_toml = str(ROOT / "configs" / "maniskill.toml")
+    gpu = config.load(maniskill_toml, ["env.kwargs.sim_backend=physx_cuda"])
+    assert config.vectorized(gpu) and gpu.sim.vectorized == "auto"
+    assert not config.vectorized(config.load(maniskill_toml, ["env.kwargs.sim_backend=physx_cpu"]))
+    with pytest.raises(ConfigError, match="sim.vectorized: grpo"):
+        config.load(str(ROOT / "configs" / "grpo_pendulum.toml"), ["sim.vectorized=true"])
+
+
+def test_sim_gen_and_train_learn_with_vectorized_groups(tmp_path):
+    """The whole loop over vectorized groups: segments from every env of both groups, versions advancing."""
+    cfg = small_config(tmp_path, sim={"vectorized": True})
+    seen: dict = {"segments": [], "versions": []}
+
+    async def until(watch):
+        segments = watch.subscribe(keys.traj("pipe"), TrajectorySegment, capacity=1024)
+        stats = watch.subscribe(keys.stats("pipe", "*", 0), StatsReport, capacity=256)
+        while True:
+            seen["segments"] += [seg for _, seg in segments.drain()]
+            for _, report in stats.drain():
+                if report.service == "gen":
+                    seen["versions"].append(report.metrics["gen/policy_version"])
+            if seen["versions"] and max(seen["versions"]) >= 3:
+                return
+            await asyncio.sleep(0.05)
+
+    train, gen, sim = asyncio.run(run_services(cfg, tmp_path, until))
+    assert isinstance(sim.fleet, VectorFleet) and len(sim.fleet.vectors) == 2
+    assert {s.env_id for s in seen["segments"]} == {0, 1, 2, 3} and train.learner.version >= 3
+    assert max(int(s.versions.max()) for s in seen["segments"]) >= 1
+    assert sim.recorder.total("sim/env_steps") > 0 and sim.recorder.total("sim/episodes") > 0

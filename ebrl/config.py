@@ -43,6 +43,9 @@ class RunSection:
     iterations: int = doc("training updates (policy versions) after which the run ends; 0 runs until Ctrl-C", 100)
     target_return: float | None = doc(
         "end the run early once the mean return of the last 20 episodes reaches this; absent: never", None)
+    target_success: float | None = doc(
+        "end the run early once the success rate of the last 20 episodes (sim/success_rate, tasks that report "
+        "success) reaches this fraction (0.9: 90 %); absent: never", None)
     seed: int = doc("seed for environments and model initialisation", 0)
     output_dir: str = doc("where run directories (logs, resolved config, summary) are created", "runs")
     stats_interval: float = doc("seconds between stats reports of each service", 1.0)
@@ -112,7 +115,8 @@ class SimSection:
     vectorized: bool | Literal["auto"] = doc(
         "each group one process stepping its envs as one batch (ManiSkill on GPU PhysX: one vectorized env of "
         "envs_per_group envs; other backends: envs_per_group copies stepped in turn) instead of one worker process "
-        "per env; \"auto\": on where the simulator steps on the GPU (env.kwargs.sim_backend = \"physx_cuda\")",
+        "per env; \"auto\": on where the simulator steps on the GPU (ManiSkill with env.kwargs.sim_backend = "
+        "\"physx_cuda\", or \"auto\" on a CUDA host)",
         "auto")
     segment_length: int = doc("chunk decisions per trajectory segment sent to training", 32)
     step_timeout: float = doc("seconds an env worker may take for one request (a chunk, or one step under batch "
@@ -472,8 +476,16 @@ def _hosts(raw: dict[str, Any]) -> dict[str, HostEntry]:
 
 
 def gpu_physics(backend: str, kwargs: dict[str, Any]) -> bool:
-    """Whether the simulator steps on the GPU: ManiSkill under ``sim_backend = "physx_cuda[:N]"``."""
-    return backend == "maniskill" and str(kwargs.get("sim_backend") or "").startswith("physx_cuda")
+    """Whether the simulator steps on the GPU: ManiSkill under ``sim_backend = "physx_cuda[:N]"``, or ``"auto"``
+    where torch sees a CUDA GPU (ebrl.envs.maniskill.resolve_sim_backend)."""
+    if backend != "maniskill":
+        return False
+    value = kwargs.get("sim_backend")
+    if value == "auto":
+        from ebrl.envs.maniskill import resolve_sim_backend
+
+        value = resolve_sim_backend(value)
+    return str(value or "").startswith("physx_cuda")
 
 
 def vectorized(cfg: Config) -> bool:
@@ -494,6 +506,8 @@ def _check_semantics(cfg: Config) -> None:
         devices.check_syntax(cfg.train.device, "train.device")
     except ValueError as exc:
         raise ConfigError(str(exc)) from None
+    if cfg.run.target_success is not None and not 0.0 < cfg.run.target_success <= 1.0:
+        raise ConfigError(f"run.target_success = {cfg.run.target_success}: a fraction in (0, 1] (0.9: 90 %)")
     if cfg.algo.name == "grpo" and vectorized(cfg):
         raise ConfigError("sim.vectorized: grpo needs group-mates reset to the same initial state, which a "
                           "vectorized batch's partial resets cannot promise; set sim.vectorized = false (GPU PhysX "

@@ -167,7 +167,8 @@ class Launcher:
         self.members = Membership(cfg.run.name, self.plan.instance, self.plan.multi)
         self.view = RunView(cfg.run.name, cfg.run.iterations, cfg.run.target_return,
                             instances=run_instances(cfg, self.plan, self.members),
-                            floor=known_version(str(run_dir)))  # a resumed run's checkpoint
+                            floor=known_version(str(run_dir)),  # a resumed run's checkpoint
+                            target_success=cfg.run.target_success)
         self.gpu_env = gpu_env or {}  # stage -> the CUDA variables it starts with (the allocator's first GPU share)
         self.failure: str | None = None
         self.stop_reason = ""

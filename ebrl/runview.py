@@ -28,11 +28,12 @@ RETURN = "sim/episode_return_mean"
 
 @dataclasses.dataclass(frozen=True)
 class TargetReached:
-    """When the mean return first reached ``run.target_return``."""
+    """When the mean return first reached ``run.target_return`` (or the success rate ``run.target_success``)."""
 
     iteration: int
     wall_s: float
-    mean_return: float
+    mean_return: float | None
+    success_rate: float | None = None
 
 
 class RunView:
@@ -46,8 +47,10 @@ class RunView:
     progress."""
 
     def __init__(self, run: str, iterations: int = 0, target_return: float | None = None,
-                 instances: Callable[[str, int], bool] | None = None, floor: int = 0):
+                 instances: Callable[[str, int], bool] | None = None, floor: int = 0,
+                 target_success: float | None = None):
         self.run, self.iterations, self.target_return = run, iterations, target_return
+        self.target_success = target_success
         self.instances, self.floor = instances, max(0, floor)  # floor: the newest version known at the start
         self.refused = 0  # reports (or values) not taken
         self._train_version: dict[str, tuple[float, float]] = {}  # train key -> (version, monotonic time)
@@ -103,13 +106,18 @@ class RunView:
         return bool(self.iterations) and self.version() >= self.iterations
 
     def target_reached(self, wall_s: float) -> str | None:
-        """``run.target_return`` reached now (remembered for the summary): the line that says so; else None."""
-        ret = self.mean_return()
-        if self.target_return is None or ret is None or ret < self.target_return:
+        """``run.target_return`` or ``run.target_success`` reached now (remembered for the summary): the line
+        that says so; else None."""
+        ret, success = self.mean_return(), self.metric("sim/success_rate", "mean")
+        if self.target_return is not None and ret is not None and ret >= self.target_return:
+            self.reached = TargetReached(self.version(), wall_s, ret, success)
+            what = f"run.target_return = {self.target_return:g}: mean return {ret:.1f}"
+        elif self.target_success is not None and success is not None and success >= self.target_success:
+            self.reached = TargetReached(self.version(), wall_s, ret, success)
+            what = f"run.target_success = {self.target_success:g}: success rate {success:.0%}"
+        else:
             return None
-        self.reached = TargetReached(self.version(), wall_s, ret)
-        return (f"reached run.target_return = {self.target_return:g}: mean return {ret:.1f} at iteration "
-                f"{self.reached.iteration} after {wall_s:.0f} s")
+        return f"reached {what} at iteration {self.reached.iteration} after {wall_s:.0f} s"
 
     def progress(self, wall_s: float, restarts: int = 0, hosts: int | None = None) -> "Progress":
         """Where the run is: iterations done of ``run.iterations``, and the fields after them."""
@@ -167,13 +175,14 @@ class RunView:
             "final_return": self.mean_return(),
             "best_return": self.best_return,
             "target_return": self.target_return,
+            "target_success": self.target_success,
             "last_eval": self.last_eval_metrics,  # the eval service's latest result (eval/*), if it ran
             "restarts": restarts,
             "host": host,
             "hosts": hosts,  # every host that took part
             "target_reached": None if self.reached is None else
             {"iteration": self.reached.iteration, "wall_s": round(self.reached.wall_s, 2),
-             "return": self.reached.mean_return},
+             "return": self.reached.mean_return, "success_rate": self.reached.success_rate},
         }
 
 

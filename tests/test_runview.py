@@ -76,12 +76,22 @@ def test_the_target_return_ends_the_run_and_goes_into_the_summary(tmp_path):
     summary = view.summary(0, 40.0, run_dir=tmp_path, failure=None, restarts={"gen/0": 1}, host=0, hosts=[0, 1])
     line = write_summary(summary, tmp_path / "summary.json")
     assert json.loads((tmp_path / "summary.json").read_text()) == summary
-    assert summary["target_reached"] == {"iteration": 7, "wall_s": 20.0, "return": 905.5}
+    assert summary["target_reached"] == {"iteration": 7, "wall_s": 20.0, "return": 905.5, "success_rate": None}
     assert (summary["iterations"], summary["env_steps"], summary["env_steps_per_s"], summary["segments"]) == \
         (7, 8000, 200.0, 30)
     assert (summary["final_return"], summary["best_return"], summary["restarts"]) == (905.5, 905.5, {"gen/0": 1})
     assert line.startswith("run r finished: 7 iterations in 40 s, 8,000 env steps (200/s), mean return 905.5 "
                            "(best 905.5); summary in ")
+
+
+def test_the_target_success_ends_the_run_too(tmp_path):
+    view = fed(report("sim", sim__episode_return_mean=3.0, sim__success_rate=0.85),
+               report("train", train__policy_version=30.0), target_success=0.9)
+    assert view.target_reached(10.0) is None
+    view.on_report(*report("sim", sim__episode_return_mean=4.0, sim__success_rate=0.95))
+    assert view.target_reached(60.0) == "reached run.target_success = 0.9: success rate 95% at iteration 30 after 60 s"
+    summary = view.summary(0, 61.0, run_dir=tmp_path, failure=None, restarts={}, host=0, hosts=[0])
+    assert summary["target_success"] == 0.9 and summary["target_reached"]["success_rate"] == 0.95
 
 
 def test_a_stopped_run_says_so_and_has_no_return_yet(tmp_path):

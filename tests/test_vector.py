@@ -7,7 +7,9 @@ here); a whole run goes through sim, gen and train with vectorized groups."""
 from __future__ import annotations
 
 import asyncio
+import json
 import os
+import sys
 
 import gymnasium as gym
 import numpy as np
@@ -279,3 +281,37 @@ def test_sim_gen_and_train_learn_with_vectorized_groups(tmp_path):
     assert {s.env_id for s in seen["segments"]} == {0, 1, 2, 3} and train.learner.version >= 3
     assert max(int(s.versions.max()) for s in seen["segments"]) >= 1
     assert sim.recorder.total("sim/env_steps") > 0 and sim.recorder.total("sim/episodes") > 0
+
+
+def test_the_maniskill_ppo_peer_runs_partial_resets_and_stops_at_the_target_success(tmp_path, monkeypatch):
+    """benchmarks/peers/maniskill_ppo.py's loop on the fake batch (CPU tensors): episodes end by success, are
+    reset in the same step, and 20 successes in a row end the run with the JSON written."""
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("maniskill_ppo", ROOT / "benchmarks" / "peers" / "maniskill_ppo.py")
+    peer = importlib.util.module_from_spec(spec)
+    monkeypatch.setitem(sys.modules, "maniskill_ppo", peer)  # its dataclass looks itself up there
+    spec.loader.exec_module(peer)
+    monkeypatch.setattr(peer, "make_envs", lambda args: FakeManiSkillBatch(num_envs=args.num_envs,
+                                                                           max_episode_steps=args.max_episode_steps))
+    out = tmp_path / "peer.json"
+    assert peer.main(["--num-envs", "4", "--num-steps", "8", "--num-minibatches", "2", "--hidden", "16,16",
+                      "--total-timesteps", "3200", "--json", str(out)]) == 0
+    result = json.loads(out.read_text())
+    summary = result["summary"]
+    assert summary["stop_reason"] == "target_success" and summary["target_reached"]["success_rate"] == 1.0
+    assert summary["episodes"] >= 20 and summary["updates"] >= 1
+    assert len(FakeManiSkillBatch.resets) > 1 and all(len(idx) < 4 for _, idx in FakeManiSkillBatch.resets[1:2])
+    assert result["hyperparameters"]["gamma"] == 0.8 and result["hyperparameters"]["num_envs"] == 4
+
+
+def test_maniskill_configs_put_physics_on_the_gpu_where_cuda_is(monkeypatch):
+    for name, envs in (("maniskill.toml", 512), ("maniskill_rgb.toml", 256)):
+        monkeypatch.setattr(maniskill, "cuda_available", lambda: True)
+        cfg = config.load(str(ROOT / "configs" / name))
+        assert cfg.env.kwargs["sim_backend"] == "auto" and cfg.num_envs == envs
+        assert config.vectorized(cfg) and resolve(cfg).vectorized and cfg.run.target_success == 0.9
+        assert maniskill.resolve_sim_backend("auto") == "physx_cuda"
+        monkeypatch.setattr(maniskill, "cuda_available", lambda: False)  # no CUDA: CPU PhysX, a process per env
+        assert not config.vectorized(cfg) and maniskill.resolve_sim_backend("auto") == "physx_cpu"
+    assert maniskill.resolve_sim_backend(None) == "physx_cpu"

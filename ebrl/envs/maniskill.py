@@ -43,7 +43,7 @@ from ebrl.envs.obs import ObsField, ObsLayout, tokenize
 from ebrl.envs.spec import EnvError, EnvSpec
 
 OBS_MODES = ("state", "rgb")
-SIM_BACKENDS = ("physx_cpu", "physx_cuda")  # "physx_cuda:N" picks GPU N
+SIM_BACKENDS = ("physx_cpu", "physx_cuda", "auto")  # "physx_cuda:N" picks GPU N; auto: physx_cuda where CUDA is
 # ManiSkill's PPO baselines use joint deltas, and every robot it ships supports them (end-effector modes vary)
 DEFAULT_CONTROL_MODE = "pd_joint_delta_pos"
 DEFAULT_IMAGE_SIZE = 64
@@ -78,7 +78,7 @@ def make_options(num_envs: int, max_episode_steps: int | None, obs: str, sim_bac
     own, passed on)."""
     check_kwargs({"obs": obs, "image_size": image_size, "sim_backend": sim_backend, **kwargs})
     options: dict[str, Any] = dict(num_envs=num_envs, obs_mode=obs, reward_mode="normalized_dense",
-                                   control_mode=control_mode, sim_backend=sim_backend or default_sim_backend())
+                                   control_mode=control_mode, sim_backend=resolve_sim_backend(sim_backend))
     if max_episode_steps:
         options["max_episode_steps"] = int(max_episode_steps)  # else the task's registered limit
     kwargs = dict(kwargs)
@@ -250,10 +250,13 @@ def cuda_available() -> bool:
     return torch.cuda.is_available()
 
 
-def default_sim_backend() -> str:
-    """``physx_cpu``: one env per worker process, pinned to a core. GPU PhysX pays off for thousands of envs in
-    one process, not one per process; ask for it with ``sim_backend = "physx_cuda"``."""
-    return "physx_cpu"
+def resolve_sim_backend(value: str | None) -> str:
+    """The PhysX backend ``sim_backend`` names here. Absent: ``physx_cpu`` (one env per worker process, pinned to a
+    core). ``"auto"``: ``physx_cuda`` where torch sees a CUDA GPU (each group then one vectorized batch on it,
+    ``sim.vectorized``), else ``physx_cpu``."""
+    if value == "auto":
+        return "physx_cuda" if cuda_available() else "physx_cpu"
+    return value or "physx_cpu"
 
 
 def check_kwargs(kwargs: Mapping[str, Any]) -> None:
@@ -265,7 +268,7 @@ def check_kwargs(kwargs: Mapping[str, Any]) -> None:
     if isinstance(size, bool) or not isinstance(size, int) or size <= 0:
         raise EnvError(f"ManiSkill image_size = {size!r}: expected a positive integer (pixels per side)")
     backend = kwargs.get("sim_backend")  # None: the default
-    if backend is not None and not (backend == "physx_cpu" or str(backend).startswith("physx_cuda")):
+    if backend is not None and not (backend in ("physx_cpu", "auto") or str(backend).startswith("physx_cuda")):
         raise EnvError(f"ManiSkill sim_backend = {backend!r}: expected one of {', '.join(map(repr, SIM_BACKENDS))} "
                        "(or \"physx_cuda:N\")")
     if "num_envs" in kwargs:

@@ -76,3 +76,14 @@ def test_data_parallel_benchmark_writes_curves_for_both_world_sizes_and_a_plot(t
     assert set(result["summary"]) == {"1", "2"}
     assert all(s["per_seed"]["0"]["env_steps"] > 0 for s in result["summary"].values())
     assert (tmp_path / "data_parallel_learning.png").stat().st_size > 1000
+
+
+def test_vector_transfer_benchmark_times_every_part_of_a_chunk(tmp_path):
+    out = tmp_path / "xfer.json"
+    proc = subprocess.run([sys.executable, "benchmarks/vector_transfer.py", "--envs", "4", "--repeat", "2",
+                           "--out", str(out)], cwd=ROOT, capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    rows = json.loads(out.read_text())["rows"]
+    assert [(r["kind"], r["envs"]) for r in rows] == [("state", 4), ("rgb64", 4)]
+    assert all(r["exchange_ms"] > 0 and r["bookkeeping_ms"] > 0 and r["obs_bytes"] > 4 * 4 * r["obs_values"]
+               for r in rows)

@@ -1,0 +1,187 @@
+"""What moving a vectorized group's observations and actions costs per chunk, on the host (no physics).
+
+    python benchmarks/vector_transfer.py --envs 128,256,512 --repeat 30
+
+For ``--envs`` environments in one group and two observation kinds — ``state`` (PickCube's 42 floats) and
+``rgb64`` (a 3 x 64 x 64 image in [0, 1] as float32, 29 proprioception values and 16 instruction tokens, as
+``configs/maniskill_rgb.toml`` sends them) — it times, per chunk of ``--chunk`` steps:
+
+* ``pipe``: the group's process answering a chunk with its :class:`~ebrl.envs.vector.VectorChunk` over the
+  worker pipe (pickled, sent, unpickled in the sim service), minus the same round trip with an empty answer;
+* ``exchange``: the sim service publishing the group's :class:`~ebrl.messages.Observation` on the bus and
+  receiving the :class:`~ebrl.messages.ActionChunk` that answers it from another process over a real Zenoh
+  session on loopback (encode, send, validate and decode both ways; the answering process does no forward pass);
+* ``bookkeeping``: turning the chunk into per-env results and adding each env's decision to its segment
+  (:class:`~ebrl.sched.rollout.SegmentBuilder`), what the group loop does for every env of a chunk.
+
+The bytes column is the observation message's payload. Divided by the time GPU PhysX takes for one chunk of
+the same group (measured on the GPU machine: ``benchmarks/gpu/check.sh maniskill``), these say whether the
+bytes path is below 10 % of the step or CUDA IPC is worth building. Results: benchmarks/results/vector_transfer.json.
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import json
+import multiprocessing as mp
+import os
+import statistics
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+
+from ebrl.bus import Bus, BusOptions, keys  # noqa: E402
+from ebrl.envs.vector import VectorChunk  # noqa: E402
+from ebrl.messages import ActionChunk, Observation, encode_message  # noqa: E402
+from ebrl.sched.rollout import SegmentBuilder  # noqa: E402
+from ebrl.testing import free_port  # noqa: E402
+
+RESULTS = Path(__file__).resolve().parent / "results"
+KINDS = {"state": 42, "rgb64": 3 * 64 * 64 + 29 + 16}
+ACTION_DIM = 8  # the Panda's joint deltas and gripper
+
+
+def fake_chunk(n: int, dim: int, ended: int, rng: np.random.Generator) -> VectorChunk:
+    """A chunk of ``n`` envs, ``ended`` of them at an episode's end (their final observations travel too)."""
+    idx = np.arange(ended)
+    return VectorChunk(rng.random(n, np.float32), np.full(n, 4), np.zeros(n, bool), np.arange(n) < ended,
+                       np.zeros(n, np.int64),
+                       rng.random((n, dim), np.float32), idx, rng.random((ended, dim), np.float32),
+                       rng.random(ended), np.full(ended, 50), np.ones(ended, np.int8), 0.01, (0.0,) * 4)
+
+
+def _pipe_child(conn, n: int, dim: int, ended: int) -> None:
+    chunk = fake_chunk(n, dim, ended, np.random.default_rng(0))
+    while True:
+        cmd = conn.recv()
+        if cmd is None:
+            return
+        conn.send(chunk if cmd == "chunk" else b"")
+
+
+def pipe_ms(n: int, dim: int, ended: int, repeat: int) -> float:
+    ctx = mp.get_context("forkserver")
+    parent, child = ctx.Pipe()
+    proc = ctx.Process(target=_pipe_child, args=(child, n, dim, ended), daemon=True)
+    proc.start()
+
+    def round_trip(cmd: str) -> float:
+        t0 = time.perf_counter()
+        parent.send(cmd)
+        parent.recv()
+        return time.perf_counter() - t0
+
+    try:
+        for _ in range(3):
+            round_trip("chunk")
+        full = statistics.median(round_trip("chunk") for _ in range(repeat))
+        empty = statistics.median(round_trip("empty") for _ in range(repeat))
+        return max(0.0, full - empty) * 1e3
+    finally:
+        parent.send(None)
+        proc.join(5)
+
+
+def _answerer(port: int, n: int, k: int) -> None:
+    """Gen's side without the forward pass: an ActionChunk of the right size for every Observation."""
+    async def main() -> None:
+        bus = Bus(BusOptions(listen=["tcp/127.0.0.1:0"], connect=[f"tcp/127.0.0.1:{port}"]))
+        sub = bus.subscribe(keys.obs("xfer"), Observation, capacity=4)
+        rng = np.random.default_rng(1)
+        actions = rng.random((n, k, ACTION_DIM), np.float32)
+        logprobs, values, latents = rng.random(n, np.float32), rng.random(n, np.float32), np.zeros((n, 0), np.float32)
+        bus.declare_token(keys.live("xfer", "answer", 0))
+        async for _, msg in sub:  # until the benchmark ends this process
+            await bus.put(keys.act("xfer", msg.group), ActionChunk(msg.group, msg.seq, 1, actions, logprobs, values,
+                                                                   latents), express=True)
+
+    asyncio.run(main())
+
+
+async def exchange_ms(n: int, dim: int, k: int, repeat: int) -> tuple[float, int]:
+    port = free_port()
+    bus = Bus(BusOptions(listen=[f"tcp/127.0.0.1:{port}"]))
+    live: dict[str, bool] = {}
+    bus.watch_liveliness(keys.live("xfer", "answer", "*"), live.__setitem__)
+    proc = mp.get_context("spawn").Process(target=_answerer, args=(port, n, k), daemon=True)
+    proc.start()
+    try:
+        deadline = time.monotonic() + 60
+        while not live.get(keys.live("xfer", "answer", 0)):
+            if time.monotonic() > deadline:
+                raise RuntimeError("the answering process did not come up in 60 s")
+            await asyncio.sleep(0.05)
+        answers = bus.subscribe(keys.act("xfer", 0), ActionChunk, capacity=4)
+        obs = np.random.default_rng(2).random((n, dim), np.float32)
+        env_ids = np.arange(n, dtype=np.int64)
+        size = len(encode_message(Observation(0, 0, env_ids, obs, 0.0)))
+        times = []
+        for seq in range(repeat + 3):
+            t0 = time.perf_counter()
+            await bus.put(keys.obs("xfer", 0), Observation(0, seq, env_ids, obs, time.time()), express=True)
+            while True:
+                _, chunk = await asyncio.wait_for(answers.next(), 30)
+                if chunk.seq == seq:
+                    break
+            if seq >= 3:
+                times.append(time.perf_counter() - t0)
+        return statistics.median(times) * 1e3, size
+    finally:
+        proc.kill()
+        proc.join(10)
+        await bus.close()
+
+
+def bookkeeping_ms(n: int, dim: int, k: int, ended: int, repeat: int) -> float:
+    rng = np.random.default_rng(3)
+    chunk = fake_chunk(n, dim, ended, rng)
+    obs = rng.random((n, dim), np.float32)
+    actions, latents = rng.random((n, k, ACTION_DIM), np.float32), np.zeros((n, 0), np.float32)
+    builders = [SegmentBuilder(0, i, 12) for i in range(n)]
+    times = []
+    for _ in range(repeat):
+        t0 = time.perf_counter()
+        for i, result in enumerate(chunk.results()):
+            builders[i].add(obs[i], actions[i], latents[i], 0.0, 0.0, 1, result)
+        times.append(time.perf_counter() - t0)
+    return statistics.median(times) * 1e3
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--envs", default="128,256,512", help="envs per group")
+    parser.add_argument("--chunk", type=int, default=4, help="K: steps per chunk")
+    parser.add_argument("--ended", type=float, default=0.08, help="share of envs whose episode ends in a chunk "
+                        "(PickCube: 50-step episodes, 4-step chunks)")
+    parser.add_argument("--repeat", type=int, default=30)
+    parser.add_argument("--out", default=str(RESULTS / "vector_transfer.json"))
+    args = parser.parse_args()
+    rows = []
+    for kind, dim in KINDS.items():
+        for n in (int(x) for x in args.envs.split(",")):
+            ended = max(1, int(round(args.ended * n)))
+            row = {"kind": kind, "envs": n, "obs_values": dim,
+                   "pipe_ms": round(pipe_ms(n, dim, ended, args.repeat), 3),
+                   "bookkeeping_ms": round(bookkeeping_ms(n, dim, args.chunk, ended, args.repeat), 3)}
+            ms, size = asyncio.run(exchange_ms(n, dim, args.chunk, args.repeat))
+            row.update(exchange_ms=round(ms, 3), obs_bytes=size)
+            row["total_ms"] = round(row["pipe_ms"] + row["exchange_ms"] + row["bookkeeping_ms"], 3)
+            row["per_step_ms"] = round(row["total_ms"] / args.chunk, 3)
+            rows.append(row)
+            print(f"{kind:6s} {n:4d} envs: obs {size / 1e6:7.2f} MB | pipe {row['pipe_ms']:7.2f} ms | exchange "
+                  f"{row['exchange_ms']:7.2f} ms | bookkeeping {row['bookkeeping_ms']:7.2f} ms | per step "
+                  f"{row['per_step_ms']:6.2f} ms", flush=True)
+    out = {"command": " ".join([os.path.basename(sys.executable), *sys.argv]), "chunk": args.chunk,
+           "machine": f"{len(os.sched_getaffinity(0))} usable cores", "date": time.strftime("%Y-%m-%d"), "rows": rows}
+    Path(args.out).parent.mkdir(parents=True, exist_ok=True)
+    Path(args.out).write_text(json.dumps(out, indent=2) + "\n")
+    print(f"wrote {args.out}")
+
+
+if __name__ == "__main__":
+    main()

@@ -315,3 +315,37 @@ def test_maniskill_configs_put_physics_on_the_gpu_where_cuda_is(monkeypatch):
         monkeypatch.setattr(maniskill, "cuda_available", lambda: False)  # no CUDA: CPU PhysX, a process per env
         assert not config.vectorized(cfg) and maniskill.resolve_sim_backend("auto") == "physx_cpu"
     assert maniskill.resolve_sim_backend(None) == "physx_cpu"
+
+
+def _no_gpu_maniskill() -> str:
+    if not torch.cuda.is_available():
+        return "needs a CUDA device and ManiSkill (benchmarks/gpu/check.sh maniskill runs it on a GPU machine)"
+    try:
+        maniskill.preflight(EnvSpec("PickCube-v1", backend="maniskill", kwargs={"sim_backend": "physx_cuda"}))
+    except Exception as exc:  # noqa: BLE001
+        return str(exc)
+    return ""
+
+
+@pytest.mark.gpu
+@pytest.mark.skipif(bool(_no_gpu_maniskill()), reason=_no_gpu_maniskill() or "-")
+def test_a_real_pickcube_batch_steps_on_gpu_physx_with_partial_resets():
+    spec = EnvSpec("PickCube-v1", backend="maniskill", max_episode_steps=6,
+                   kwargs={"sim_backend": "physx_cuda", "control_mode": "pd_joint_delta_pos"})
+    batch = make_batch(spec, list(range(16)))
+    try:
+        assert isinstance(batch, ManiSkillBatch) and batch.device.type == "cuda"
+        runner = BatchRunner(batch)
+        first = runner.reset(np.zeros(16, np.int64))
+        assert first.shape == (16, 42) and np.isfinite(first).all()
+        rng = np.random.default_rng(0)
+        total_steps, ended = 0, 0
+        for _ in range(4):  # 16 steps: every env's 6-step episode ends inside a chunk at least twice
+            chunk = runner.chunk(rng.uniform(-1, 1, (16, 4, 8)).astype(np.float32))
+            total_steps += int(chunk.steps.sum())
+            ended += len(chunk.ended)
+            assert np.isfinite(chunk.next_obs).all() and (chunk.steps >= 1).all()
+        assert ended >= 32 and total_steps < 16 * 16  # steps after an episode's end were not counted
+        assert (runner.episodes >= 2).all()
+    finally:
+        batch.close()

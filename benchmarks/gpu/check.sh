@@ -16,6 +16,10 @@
 #   bench       trajectories/s of ebrl vs colocated, hybrid and async: W1 (16 cores), W2 and W3 on the GPU
 #               (parts bench_w1, bench_w2, bench_w3)
 #   adapt       a 30 % simulator slowdown injected mid-run on 16 cores, with and without the allocator
+#   maniskill   (needs .whl-ms, staged by benchmarks/gpu/prepare_maniskill.sh) the ManiSkill tests, a vectorized
+#               group's chunk time on GPU PhysX against what moving its data costs, and 2 pipelined groups vs
+#               one group of the same size (parts maniskill_tests, maniskill_step, maniskill_groups)
+#   maniskill_race  ebrl to 90 % success on PickCube, then the GPU PPO peer, RACE_SECONDS (240) each
 # Everything lands in $OUT (default ./gpu-out): summary.txt, gpu.txt and results.tgz (JSON results, logs).
 set -uo pipefail
 cd "$(dirname "$0")/../.."
@@ -24,6 +28,7 @@ OUT="${OUT:-$ROOT/gpu-out}"
 DURATION="${DURATION:-15}"
 W3_SECONDS="${W3_SECONDS:-120}"
 SHARES_SECONDS="${SHARES_SECONDS:-8}"
+RACE_SECONDS="${RACE_SECONDS:-240}"
 RES=/tmp/ebrl-gpu-results
 mkdir -p "$OUT" "$RES"
 PARTS=("$@")
@@ -32,13 +37,25 @@ SUMMARY="$OUT/summary.txt"
 : > "$SUMMARY"
 T0=$(date +%s)
 
-# --- set-up: wheels, the slim robosuite, the EGL loaders
-python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target /tmp/site .whl/*.whl \
-    || { echo "check.sh: installing .whl/ failed (run benchmarks/gpu/prepare.sh here first)"; exit 1; }
-[ -f .whl/robosuite-slim.tgz ] && tar xzf .whl/robosuite-slim.tgz -C /tmp/site
-if [ -d .whl/gl ] && ! ldconfig -p | grep -q libEGL.so.1; then
-    for f in .whl/gl/*.deb; do dpkg -x "$f" /; done; ldconfig
+# --- set-up: wheels, the slim robosuite, the EGL loaders (.whl); ManiSkill, SAPIEN and Vulkan (.whl-ms, staged)
+install() { python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target /tmp/site "$@"; }
+if [ -d .whl ]; then
+    install .whl/*.whl || { echo "check.sh: installing .whl/ failed (run benchmarks/gpu/prepare.sh here first)"; exit 1; }
+    [ -f .whl/robosuite-slim.tgz ] && tar xzf .whl/robosuite-slim.tgz -C /tmp/site
 fi
+if [ -d .whl-ms/b ]; then  # benchmarks/gpu/prepare_maniskill.sh: bundle a in an earlier call, b in this one
+    [ -d .whl-ms/a ] || { echo "check.sh: .whl-ms/a was not staged (carry it in a call just before)"; exit 1; }
+    install .whl-ms/a/*.whl .whl-ms/b/*.whl || { echo "check.sh: installing .whl-ms/ failed"; exit 1; }
+    tar xzf .whl-ms/b/mani_skill-slim.tgz -C /tmp/site
+fi
+[ -d .whl ] || [ -d .whl-ms/b ] || { echo "check.sh: nothing to install (run benchmarks/gpu/prepare.sh here)"; exit 1; }
+for gl in .whl/gl .whl-ms/b/gl; do
+    if [ -d $gl ] && ! { ldconfig -p | grep -q libEGL.so.1 && ldconfig -p | grep -q libvulkan.so.1; }; then
+        for f in $gl/*.deb; do dpkg -x "$f" /; done; ldconfig
+    fi
+done
+[ -f /usr/local/nvidia/share/vulkan/icd.d/nvidia_icd.json ] && \
+    export VK_DRIVER_FILES=/usr/local/nvidia/share/vulkan/icd.d/nvidia_icd.json
 export PYTHONPATH="$ROOT:/tmp/site" PYTHONUNBUFFERED=1 MUJOCO_GL=egl PYOPENGL_PLATFORM=egl
 [ -f /usr/local/nvidia/share/glvnd/egl_vendor.d/10_nvidia.json ] && \
     export __EGL_VENDOR_LIBRARY_FILENAMES=/usr/local/nvidia/share/glvnd/egl_vendor.d/10_nvidia.json
@@ -86,6 +103,22 @@ while [ $i -lt ${#PARTS[@]} ]; do
                --slowdown "sim=1.3@55" --duration 120 --tag lift_16core_gpu --set 'viz.rerun="off"' \
                --set alloc.profile_seconds=0.3
            cp benchmarks/results/adaptation_lift_16core_gpu.json "$RES/" 2>/dev/null ;;
+    maniskill) set -- maniskill_tests maniskill_step maniskill_groups; for b; do PARTS+=("$b"); done ;;
+    maniskill_tests) part maniskill_tests 180 python3 -m pytest -q -rs -p no:cacheprovider -o addopts="" \
+                         --timeout 120 tests/test_maniskill.py tests/test_vector.py ;;
+    maniskill_step) part maniskill_step 240 python3 benchmarks/gpu/maniskill_step.py --envs 128,256,512 \
+                        --out "$RES/maniskill_step.json" ;;
+    # env steps/s of ebrl with 2 pipelined groups of 256 vs one group of 512, side by side (group_pipeline off)
+    maniskill_groups) part maniskill_groups $((4 * DURATION + 200)) sh -c "
+        python3 -m ebrl.cli bench configs/maniskill.toml --modes ebrl --raw-seconds 0 --duration $DURATION \
+            --set 'viz.rerun=\"off\"' --json $RES/maniskill_pipelined.json &&
+        python3 -m ebrl.cli bench configs/maniskill.toml --modes ebrl --raw-seconds 0 --duration $DURATION \
+            --set 'viz.rerun=\"off\"' --set sim.group_pipeline=false --json $RES/maniskill_one_group.json" ;;
+    # the learning race, back to back: ebrl to 90 % success on PickCube, then the one-process GPU PPO peer
+    maniskill_race) part maniskill_ebrl $((RACE_SECONDS + 60)) timeout "$RACE_SECONDS" python3 -m ebrl.cli up \
+                        configs/maniskill.toml --set 'viz.rerun="off"' --set "run.output_dir=\"$RES/race\""
+                    part maniskill_peer $((RACE_SECONDS + 60)) python3 benchmarks/peers/maniskill_ppo.py \
+                        --max-seconds "$RACE_SECONDS" --json "$RES/peer_maniskill_ppo.json" ;;
     *) echo "check.sh: no part '$p'"; exit 2 ;;
     esac
 done

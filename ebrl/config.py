@@ -508,6 +508,10 @@ def _check_semantics(cfg: Config) -> None:
         raise ConfigError(str(exc)) from None
     if cfg.run.target_success is not None and not 0.0 < cfg.run.target_success <= 1.0:
         raise ConfigError(f"run.target_success = {cfg.run.target_success}: a fraction in (0, 1] (0.9: 90 %)")
+    if cfg.alloc.enabled and vectorized(cfg):
+        raise ConfigError("alloc.enabled: the allocator profiles the simulator as one env per worker process, and "
+                          "sim.vectorized runs a group's envs as one batch (GPU PhysX groups are vectorized by "
+                          "default); set alloc.enabled = false, or sim.vectorized = false")
     if cfg.algo.name == "grpo" and vectorized(cfg):
         raise ConfigError("sim.vectorized: grpo needs group-mates reset to the same initial state, which a "
                           "vectorized batch's partial resets cannot promise; set sim.vectorized = false (GPU PhysX "

@@ -255,6 +255,8 @@ def test_vectorized_is_the_default_only_on_gpu_physics_and_refused_with_grpo(tmp
     gpu = config.load(maniskill_toml, ["env.kwargs.sim_backend=physx_cuda"])
     assert config.vectorized(gpu) and gpu.sim.vectorized == "auto"
     assert not config.vectorized(config.load(maniskill_toml, ["env.kwargs.sim_backend=physx_cpu"]))
+    with pytest.raises(ConfigError, match="alloc.enabled: the allocator profiles"):
+        config.load(maniskill_toml, ["env.kwargs.sim_backend=physx_cuda", "alloc.enabled=true"])
     with pytest.raises(ConfigError, match="sim.vectorized: grpo"):
         config.load(str(ROOT / "configs" / "grpo_pendulum.toml"), ["sim.vectorized=true"])
 

@@ -35,6 +35,7 @@ MECHANISMS = {
     "group_pipeline": "sim.group_pipeline",
     "overlap": "train.overlap",
     "core_rebinding": "sim.core_rebinding",
+    "vectorized": "sim.vectorized",
 }
 
 
@@ -54,11 +55,14 @@ def ablation_variants(config: str, overrides: list[str]) -> dict[str, list[str]]
         "group_pipeline": schedule.groups > 1,
         "overlap": schedule.overlap,
         "core_rebinding": schedule.core_rebinding,
+        "vectorized": schedule.vectorized,
     }
     out = {}
     for name, key in MECHANISMS.items():
         if running[name]:
             out[f"ebrl-no_{name}"] = [f"{key}=false"]
+        if name == "vectorized" and (cfg.algo.name == "grpo" or cfg.alloc.enabled):
+            continue  # refused with GRPO (shared initial states) and with the allocator (per-env profiles)
         if not running[name] or (name == "core_rebinding" and schedule.rebinding_auto):  # auto: also always on
             out[f"ebrl+{name}"] = [f"{key}=true"]
     return out

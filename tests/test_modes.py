@@ -114,10 +114,13 @@ def test_ablations_flip_each_mechanism_from_what_ebrl_runs_with_the_config():
         "ebrl-no_overlap": ["train.overlap=false"],
         "ebrl-no_core_rebinding": ["sim.core_rebinding=false"],
         "ebrl+core_rebinding": ["sim.core_rebinding=true"],
+        "ebrl+vectorized": ["sim.vectorized=true"],  # "auto" leaves a CPU env one process per env
     }
+    assert "ebrl+vectorized" not in ablation_variants("configs/grpo_pendulum.toml", [])  # refused with GRPO
+    assert "ebrl-no_vectorized" in ablation_variants("configs/quickstart.toml", ["sim.vectorized=true"])
     assert "ebrl+core_rebinding" not in ablation_variants("configs/quickstart.toml", ["sim.core_rebinding=true"])
     lift = ablation_variants("configs/robosuite_lift.toml", ["alloc.enabled=true"])
-    assert "ebrl-no_allocator" in lift and "ebrl-no_core_rebinding" in lift
+    assert "ebrl-no_allocator" in lift and "ebrl-no_core_rebinding" in lift and "ebrl+vectorized" not in lift
     assert [base_mode(v) for v in ("ebrl", "ebrl-no_overlap", "ebrl+allocator", "colocated")] == [
         "ebrl", "ebrl", "ebrl", "colocated"]
 
@@ -139,7 +142,7 @@ def test_ebrl_bench_ablations_measure_a_number_of_trajectories(tmp_path):
     assert proc.returncode == 0, proc.stderr
     data = json.loads(out_json.read_text())
     assert set(data["results"]) == {"ebrl", "ebrl+allocator", "ebrl-no_group_pipeline", "ebrl-no_overlap",
-                                    "ebrl-no_core_rebinding", "ebrl+core_rebinding"}
+                                    "ebrl-no_core_rebinding", "ebrl+core_rebinding", "ebrl+vectorized"}
     assert data["trajectories"] == 24 and data["variants"]["ebrl+allocator"][-1] == "alloc.enabled=true"
     for variant, (result,) in data["results"].items():
         # the window ends at the first report with 24 more segments; stats come once a second

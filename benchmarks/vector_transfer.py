@@ -6,8 +6,10 @@ For ``--envs`` environments in one group and two observation kinds — ``state``
 ``rgb64`` (a 3 x 64 x 64 image in [0, 1] as float32, 29 proprioception values and 16 instruction tokens, as
 ``configs/maniskill_rgb.toml`` sends them) — it times, per chunk of ``--chunk`` steps:
 
-* ``pipe``: the group's process answering a chunk with its :class:`~ebrl.envs.vector.VectorChunk` over the
-  worker pipe (pickled, sent, unpickled in the sim service), minus the same round trip with an empty answer;
+* ``pipe``: the group's process answering a chunk with its :class:`~ebrl.envs.vector.VectorChunk`, the
+  observations written to shared memory and copied out by the sim service, the rest pickled over the worker
+  pipe (what :class:`~ebrl.envs.vector.VectorWorker` does), minus the same round trip with an empty answer;
+  ``pickled_pipe``: the same with the observations pickled through the pipe too (the first version);
 * ``exchange``: the sim service publishing the group's :class:`~ebrl.messages.Observation` on the bus and
   receiving the :class:`~ebrl.messages.ActionChunk` that answers it from another process over a real Zenoh
   session on loopback (encode, send, validate and decode both ways; the answering process does no forward pass);
@@ -55,25 +57,38 @@ def fake_chunk(n: int, dim: int, ended: int, rng: np.random.Generator) -> Vector
                        rng.random(ended), np.full(ended, 50), np.ones(ended, np.int8), 0.01, (0.0,) * 4)
 
 
-def _pipe_child(conn, n: int, dim: int, ended: int) -> None:
+def _pipe_child(conn, n: int, dim: int, ended: int, shared) -> None:
     chunk = fake_chunk(n, dim, ended, np.random.default_rng(0))
+    if shared is not None:  # as a vectorized group's process does: the observations into shared memory
+        out = np.frombuffer(shared, np.float32).reshape(2, n, dim)
+        next_obs, final_obs = chunk.next_obs, chunk.final_obs
+        chunk.next_obs = chunk.final_obs = None
     while True:
         cmd = conn.recv()
         if cmd is None:
             return
+        if cmd == "chunk" and shared is not None:
+            out[0] = next_obs
+            out[1, :ended] = final_obs
         conn.send(chunk if cmd == "chunk" else b"")
 
 
-def pipe_ms(n: int, dim: int, ended: int, repeat: int) -> float:
+def pipe_ms(n: int, dim: int, ended: int, repeat: int, shared_memory: bool = True) -> float:
+    """One chunk's results from a group's process to the sim service: observations through shared memory (as
+    :class:`~ebrl.envs.vector.VectorWorker` does) or pickled through the pipe."""
     ctx = mp.get_context("forkserver")
     parent, child = ctx.Pipe()
-    proc = ctx.Process(target=_pipe_child, args=(child, n, dim, ended), daemon=True)
+    shared = ctx.RawArray("f", 2 * n * dim) if shared_memory else None
+    view = None if shared is None else np.frombuffer(shared, np.float32).reshape(2, n, dim)
+    proc = ctx.Process(target=_pipe_child, args=(child, n, dim, ended, shared), daemon=True)
     proc.start()
 
     def round_trip(cmd: str) -> float:
         t0 = time.perf_counter()
         parent.send(cmd)
-        parent.recv()
+        reply = parent.recv()
+        if view is not None and cmd == "chunk":  # the sim service copies them out (the next chunk overwrites them)
+            reply.next_obs, reply.final_obs = view[0].copy(), view[1, :ended].copy()
         return time.perf_counter() - t0
 
     try:
@@ -167,13 +182,15 @@ def main() -> None:
             ended = max(1, int(round(args.ended * n)))
             row = {"kind": kind, "envs": n, "obs_values": dim,
                    "pipe_ms": round(pipe_ms(n, dim, ended, args.repeat), 3),
+                   "pickled_pipe_ms": round(pipe_ms(n, dim, ended, args.repeat, shared_memory=False), 3),
                    "bookkeeping_ms": round(bookkeeping_ms(n, dim, args.chunk, ended, args.repeat), 3)}
             ms, size = asyncio.run(exchange_ms(n, dim, args.chunk, args.repeat))
             row.update(exchange_ms=round(ms, 3), obs_bytes=size)
             row["total_ms"] = round(row["pipe_ms"] + row["exchange_ms"] + row["bookkeeping_ms"], 3)
             row["per_step_ms"] = round(row["total_ms"] / args.chunk, 3)
             rows.append(row)
-            print(f"{kind:6s} {n:4d} envs: obs {size / 1e6:7.2f} MB | pipe {row['pipe_ms']:7.2f} ms | exchange "
+            print(f"{kind:6s} {n:4d} envs: obs {size / 1e6:7.2f} MB | pipe {row['pipe_ms']:7.2f} ms (pickled "
+                  f"{row['pickled_pipe_ms']:7.2f}) | exchange "
                   f"{row['exchange_ms']:7.2f} ms | bookkeeping {row['bookkeeping_ms']:7.2f} ms | per step "
                   f"{row['per_step_ms']:6.2f} ms", flush=True)
     out = {"command": " ".join([os.path.basename(sys.executable), *sys.argv]), "chunk": args.chunk,

@@ -6,6 +6,7 @@ The group pipeline itself is ``ebrl.sched.group``; the env workers and their ste
 from __future__ import annotations
 
 import asyncio
+import math
 import os
 
 import psutil
@@ -34,6 +35,7 @@ class SimService(Service):
         # sim/<instance> runs on host <instance> of a multi-host run: its groups follow the other hosts'
         share = cfg.algo.group_size if cfg.algo.name == "grpo" else 1
         self.fleet = make_fleet(spec, sched, host=self.instance, seed=cfg.run.seed, share=share,
+                                obs_size=math.prod(info.obs_shape),
                               on_core_step=lambda core, s: self.count(f"sim/core{core}_busy_s", s),
                               on_mode=lambda mode, a, b: self.publish_span("stepping", NAMES[mode], a, b, False),
                               on_decision=self.stepping_decided)

@@ -186,14 +186,30 @@ def test_maniskill_batches_step_together_partially_reset_and_count_each_envs_own
     assert chunk.episode_length[chunk.ended.tolist().index(2)] == 5  # its episode ran over two chunks
 
 
-def test_a_vectorized_group_process_answers_and_fails_like_a_worker():
+@pytest.mark.parametrize("obs_size", [0, 4], ids=["pipe", "shared_memory"])
+def test_a_vectorized_group_process_answers_and_fails_like_a_worker(obs_size):
+    """Observations through the pipe or through shared memory: the same answers (the pendulum falls inside the
+    chunks, so final observations travel too)."""
+    chunks = chunks_of_actions(2, 4, 6, seed=1)
+    runner = BatchRunner(EnvBatch(PENDULUM, [1, 2]))
+    first = runner.reset(np.zeros(2, np.int64))
+    expected = [runner.chunk(actions) for actions in chunks]
+    runner.batch.close()
+
     async def scenario():
-        worker = VectorWorker(PENDULUM, [1, 2], sorted(os.sched_getaffinity(0))[:1])
+        worker = VectorWorker(PENDULUM, [1, 2], sorted(os.sched_getaffinity(0))[:1], obs_size)
         try:
             obs = await worker.reset(np.zeros(2, np.int64))
-            assert obs.shape == (2, 4)
+            assert obs.shape == (2, 4) and np.array_equal(obs, first)
+            ended = 0
+            for actions, want in zip(chunks, expected):
+                got = await worker.chunk(actions, timeout=30)
+                assert np.array_equal(got.next_obs, want.next_obs) and np.array_equal(got.final_obs, want.final_obs)
+                assert got.steps.tolist() == want.steps.tolist()
+                ended += len(got.ended)
+            assert ended > 0 and worker.chunks_done == len(chunks)
             chunk = await worker.chunk(np.zeros((2, 3, 1), np.float32), timeout=30)
-            assert chunk.steps.tolist() == [3, 3] and worker.chunks_done == 1
+            assert chunk.steps.min() >= 1 and chunk.next_obs.shape == (2, 4)
             with pytest.raises(ValueError, match="a chunk for 3 envs"):  # a malformed request: said, not fatal
                 await worker.chunk(np.zeros((3, 3, 1), np.float32), timeout=30)
             worker.proc.kill()

@@ -37,7 +37,7 @@ PR_SET_PDEATHSIG = 1  # prctl(2)
 _IMPORTED_BY = os.getpid()
 
 
-def _context(spec: EnvSpec) -> mp.context.BaseContext:
+def worker_context(spec: EnvSpec) -> mp.context.BaseContext:
     # forkserver: workers fork from a clean server that has the simulator imported
     # once, never from the sim service (whose Zenoh threads must not fork). Camera
     # observations: the GL backend is decided (into os.environ) before the server
@@ -217,7 +217,7 @@ class WorkerProcess:
 
     def __init__(self, spec: EnvSpec, target: Any, args: Callable[[Connection], tuple], name: str):
         """Start ``target(child_conn, *args(child_conn), owner_pid)`` in a process of the env workers' forkserver."""
-        ctx = _context(spec)
+        ctx = worker_context(spec)
         self.conn, child = ctx.Pipe()
         self.proc = ctx.Process(target=target, args=(child, *args(child), os.getpid()), daemon=True, name=name)
         self.proc.start()
@@ -328,7 +328,7 @@ def _raw_loop(spec: EnvSpec, seed: int, core: int, seconds: float, out) -> None:
 def raw_steps_per_s(spec: EnvSpec, cores: list[int], seconds: float = 10.0) -> float:
     """Raw simulator capacity of ``cores``: one environment per core, pinned, stepping random actions in a
     tight loop with no framework around it, all cores at once; env steps/s summed over the cores."""
-    ctx = _context(spec)
+    ctx = worker_context(spec)
     out = ctx.Queue()
     procs = [ctx.Process(target=_raw_loop, args=(spec, i, core, seconds, out), daemon=True, name="ebrl-raw")
              for i, core in enumerate(cores)]

@@ -183,10 +183,12 @@ class VectorFleet(EnvFleet):
     first to recover starts the new process, and each env's episode in progress is dropped (its numbering goes
     on). A group whose process fails ``MAX_REPLACEMENTS + 1`` times in a row without answering a chunk is given up."""
 
-    def __init__(self, spec: EnvSpec, schedule: Schedule, host: int, seed: int, share: int = 1, **_: object):
+    def __init__(self, spec: EnvSpec, schedule: Schedule, host: int, seed: int, share: int = 1, obs_size: int = 0,
+                 **_: object):
+        """``obs_size``: values per observation; observations then come back through shared memory."""
         if share > 1:
             raise ValueError("vectorized groups cannot promise GRPO's shared initial states (sim.vectorized)")
-        self.spec, self.schedule, self.seed = spec, schedule, seed
+        self.spec, self.schedule, self.seed, self.obs_size = spec, schedule, seed, obs_size
         first = host * schedule.groups
         self.groups = list(range(first, first + schedule.groups))
         self.per_group = schedule.envs_per_group
@@ -201,7 +203,8 @@ class VectorFleet(EnvFleet):
         self.workers = {}  # no process per env
 
     def _start_group(self, g: int) -> VectorWorker:
-        return VectorWorker(self.spec, [self.env_seed(int(env)) for env in self.env_ids(g)], self.schedule.sim_cores)
+        return VectorWorker(self.spec, [self.env_seed(int(env)) for env in self.env_ids(g)], self.schedule.sim_cores,
+                            self.obs_size)
 
     async def reset_group(self, g: int) -> np.ndarray:
         return await self.vectors[g].reset(np.zeros(self.per_group, np.int64))
@@ -268,11 +271,13 @@ class VectorFleet(EnvFleet):
             worker.close(timeout=1.0)
 
 
-def make_fleet(spec: EnvSpec, schedule: Schedule, host: int, seed: int, share: int = 1,
+def make_fleet(spec: EnvSpec, schedule: Schedule, host: int, seed: int, share: int = 1, obs_size: int = 0,
                **hooks: Callable) -> EnvFleet:
-    """The fleet of the schedule: vectorized groups, or a worker process per env."""
-    kind = VectorFleet if schedule.vectorized else EnvFleet
-    return kind(spec, schedule, host=host, seed=seed, share=share, **hooks)
+    """The fleet of the schedule: vectorized groups (their observations through shared memory when ``obs_size``
+    is given), or a worker process per env."""
+    if schedule.vectorized:
+        return VectorFleet(spec, schedule, host=host, seed=seed, share=share, obs_size=obs_size)
+    return EnvFleet(spec, schedule, host=host, seed=seed, share=share, **hooks)
 
 
 class RolloutStats:

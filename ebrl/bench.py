@@ -232,15 +232,30 @@ def table(results: dict[str, list[dict[str, Any]]]) -> str:
     return "\n".join("  ".join(str(c).ljust(w) for c, w in zip(r, widths)) for r in rows)
 
 
+def parse_variant(item: str) -> tuple[str, list[str]]:
+    """``LABEL=SECTION.KEY=VALUE[,...]`` -> (label, overrides); the label names its mode first (``hybrid+x``)."""
+    label, _, sets = item.partition("=")
+    if base_mode(label) not in ("ebrl", *BASELINES) or label in ("ebrl", *BASELINES) or not sets:
+        raise ValueError(f"--variant {item!r}: expected LABEL=SECTION.KEY=VALUE[,...] with LABEL a mode followed by "
+                         f"+ or - and a name (e.g. hybrid+vectorized=sim.vectorized=true)")
+    return label, [x for x in sets.split(",") if x]
+
+
 def main(config: str, modes: str, ablations: bool, duration: float, repeat: int, json_path: str,
-         overrides: list[str], raw_seconds: float = 10.0, trajectories: int = 0) -> int:
+         overrides: list[str], raw_seconds: float = 10.0, trajectories: int = 0, extra: list[str] = ()) -> int:
     names = [m.strip() for m in modes.split(",") if m.strip()]
     unknown = [m for m in names if m not in ("ebrl", *BASELINES)]
     if unknown:
         print(f"ebrl bench: unknown mode(s) {unknown}; choose from ebrl, {', '.join(BASELINES)}", file=sys.stderr)
         return 2
     try:
+        parsed = [parse_variant(item) for item in extra]
+    except ValueError as exc:
+        print(f"ebrl bench: {exc}", file=sys.stderr)
+        return 2
+    try:
         variants = {name: list(overrides) for name in names}
+        variants.update({label: [*overrides, *sets] for label, sets in parsed})
         if ablations:
             flips = ablation_variants(config, overrides)
             variants.update({name: [*overrides, *flip] for name, flip in flips.items()})

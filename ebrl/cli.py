@@ -70,6 +70,9 @@ def main(argv: list[str] | None = None) -> int:
     span.add_argument("--duration", type=float, default=60.0, help="measured seconds per run (after warm-up)")
     span.add_argument("--trajectories", type=int, default=0,
                       help="measure each run until this many trajectory segments are done, instead of --duration")
+    p.add_argument("--variant", action="append", default=[], metavar="LABEL=SECTION.KEY=VALUE[,...]",
+                   help="add a variant: LABEL is a mode followed by + or - and a name (e.g. "
+                   "hybrid+vectorized=sim.vectorized=true); it runs that mode with these overrides")
     p.add_argument("--repeat", type=int, default=1, help="rounds over all modes")
     p.add_argument("--json", default="", help="write the results here")
     p.add_argument("--raw-seconds", type=float, default=10.0,
@@ -132,7 +135,7 @@ def main(argv: list[str] | None = None) -> int:
         from ebrl import bench
 
         return bench.main(args.config, args.modes, args.ablations, args.duration, args.repeat, args.json,
-                          args.overrides, args.raw_seconds, args.trajectories)
+                          args.overrides, args.raw_seconds, args.trajectories, args.variant)
     if args.command == "profile":
         from ebrl.alloc.cli import profile_command
 

@@ -125,6 +125,19 @@ def test_ablations_flip_each_mechanism_from_what_ebrl_runs_with_the_config():
         "ebrl", "ebrl", "ebrl", "colocated"]
 
 
+def test_bench_variants_name_their_mode_and_carry_their_overrides(capsys):
+    from ebrl.bench import main, parse_variant
+
+    assert parse_variant("hybrid+vectorized=sim.vectorized=true") == ("hybrid+vectorized", ["sim.vectorized=true"])
+    assert parse_variant("ebrl-x=sim.groups=4,train.batch_size=256") == ("ebrl-x", ["sim.groups=4",
+                                                                                   "train.batch_size=256"])
+    for bad in ("vectorized=sim.vectorized=true", "hybrid=sim.vectorized=true", "hybrid+v"):
+        with pytest.raises(ValueError, match="LABEL a mode followed by"):
+            parse_variant(bad)
+    assert main("configs/quickstart.toml", "ebrl", False, 1.0, 1, "", [], extra=["turbo=sim.groups=1"]) == 2
+    assert "--variant 'turbo=sim.groups=1'" in capsys.readouterr().err
+
+
 @pytest.mark.slow
 def test_ebrl_bench_ablations_measure_a_number_of_trajectories(tmp_path):
     import json

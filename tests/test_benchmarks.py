@@ -78,6 +78,7 @@ def test_data_parallel_benchmark_writes_curves_for_both_world_sizes_and_a_plot(t
     assert (tmp_path / "data_parallel_learning.png").stat().st_size > 1000
 
 
+@pytest.mark.slow
 def test_vector_transfer_benchmark_times_every_part_of_a_chunk(tmp_path):
     out = tmp_path / "xfer.json"
     proc = subprocess.run([sys.executable, "benchmarks/vector_transfer.py", "--envs", "4", "--repeat", "2",

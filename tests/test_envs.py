@@ -24,6 +24,14 @@ def test_importing_ebrl_envs_imports_no_simulator():
     assert out.stdout.strip() == "[]"
 
 
+def test_the_sim_service_imports_no_torch():
+    """torch costs a second or more at every sim start; only a vectorized group's own process needs it."""
+    code = "import sys, services.sim, ebrl.sched.fleet, ebrl.envs.vector\nprint('torch' in sys.modules)"
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60, check=True,
+                         cwd=pathlib.Path(__file__).resolve().parent.parent)
+    assert out.stdout.strip() == "False"
+
+
 def test_every_configurable_backend_has_an_entry_and_unknown_ones_are_a_clear_error():
     assert set(BACKENDS) == set(typing.get_args(typing.get_type_hints(EnvSection)["backend"]))
     with pytest.raises(EnvError, match="env.backend = 'isaac'.*'gymnasium'"):

@@ -21,7 +21,8 @@ from ebrl.bus import keys
 from ebrl.config import ConfigError
 from ebrl.envs import EnvSpec, EnvWorker
 from ebrl.envs import maniskill
-from ebrl.envs.vector import BatchRunner, EnvBatch, ManiSkillBatch, VectorWorker, make_batch
+from ebrl.envs.batch import BatchRunner, EnvBatch, ManiSkillBatch, make_batch
+from ebrl.envs.vector import VectorWorker
 from ebrl.envs.worker import WorkerFailed
 from ebrl.messages import StatsReport, TrajectorySegment
 from ebrl.sched.fleet import MAX_REPLACEMENTS, VectorFleet, make_fleet

@@ -4,7 +4,7 @@
 
 For each group size and observation kind (``state``, and ``rgb64`` at 64 px), one :class:`ManiSkillBatch` of
 PickCube-v1 on ``physx_cuda`` runs chunks of ``--chunk`` random actions through the same
-:class:`~ebrl.envs.vector.BatchRunner` a sim group's process uses: the chunk's wall time (physics, rendering,
+:class:`~ebrl.envs.batch.BatchRunner` a sim group's process uses: the chunk's wall time (physics, rendering,
 partial resets, the one copy to the host) and env steps/s. Beside it, on the same machine, the host-side costs
 of the bytes path from benchmarks/vector_transfer.py (worker pipe, bus exchange, per-env bookkeeping). Their
 ratio decides item 2 of the GPU-parallel simulation issue: where the bytes path is more than 10 % of the chunk,
@@ -28,7 +28,7 @@ ROOT = Path(__file__).resolve().parents[2]
 sys.path[:0] = [str(ROOT), str(ROOT / "benchmarks")]
 
 from ebrl.envs import EnvSpec  # noqa: E402
-from ebrl.envs.vector import BatchRunner, ManiSkillBatch  # noqa: E402
+from ebrl.envs.batch import BatchRunner, ManiSkillBatch  # noqa: E402
 import vector_transfer  # noqa: E402
 
 KINDS = {"state": {"obs": "state"}, "rgb64": {"obs": "rgb", "image_size": 64}}

@@ -394,7 +394,24 @@ def preflight(cfg: config_mod.Config, roles: tuple[str, ...] = ("gen", "train"),
         env_preflight(EnvSpec.from_config(cfg.env))  # e.g. ManiSkill without a GPU; picks the GL backend for cameras
     except EnvError as exc:
         return str(exc)
+    if "sim" in roles:
+        return too_many_processes(cfg, len(os.sched_getaffinity(0)))
     return None
+
+
+PROCESSES_PER_CORE = 8  # env worker processes per core beyond which a run is refused (ManiSkill on CPU PhysX)
+
+
+def too_many_processes(cfg: config_mod.Config, cores: int) -> str | None:
+    """ManiSkill configs are sized for GPU PhysX (hundreds of envs, one process per group); where CPU PhysX runs
+    them instead (``sim_backend = "auto"`` without CUDA torch), each env would be a process of its own."""
+    if cfg.env.backend != "maniskill" or config_mod.vectorized(cfg) or cfg.num_envs <= PROCESSES_PER_CORE * cores:
+        return None
+    return (f"sim.envs_per_group = {cfg.sim.envs_per_group}: {cfg.num_envs} ManiSkill envs on CPU PhysX "
+            f"(env.kwargs.sim_backend = {cfg.env.kwargs.get('sim_backend', 'physx_cpu')!r}: no GPU PhysX here) would "
+            f"start {cfg.num_envs} worker processes on {cores} cores; lower sim.envs_per_group (e.g. --set "
+            f"sim.envs_per_group={max(1, PROCESSES_PER_CORE * cores // max(1, cfg.sim.groups))}), or run where "
+            "torch sees a CUDA GPU")
 
 
 def up(config_path: str, overrides: list[str], viz: str | None = None, resume: str | None = None,

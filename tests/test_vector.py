@@ -368,3 +368,18 @@ def test_a_real_pickcube_batch_steps_on_gpu_physx_with_partial_resets():
         assert (runner.episodes >= 2).all()
     finally:
         batch.close()
+
+
+def test_a_gpu_sized_maniskill_config_on_cpu_physx_is_refused_before_anything_starts(monkeypatch):
+    from ebrl.launch import too_many_processes
+
+    monkeypatch.setattr(maniskill, "cuda_available", lambda: False)  # "auto" falls back to CPU PhysX
+    cfg = config.load(str(ROOT / "configs" / "maniskill.toml"))
+    problem = too_many_processes(cfg, cores=2)
+    assert problem.startswith("sim.envs_per_group = 256: 512 ManiSkill envs on CPU PhysX")
+    assert "--set sim.envs_per_group=8" in problem
+    assert too_many_processes(config.load(str(ROOT / "configs" / "maniskill.toml"), ["sim.envs_per_group=8"]), 2) \
+        is None
+    monkeypatch.setattr(maniskill, "cuda_available", lambda: True)  # GPU PhysX: one process per group
+    assert too_many_processes(cfg, cores=2) is None
+    assert too_many_processes(config.load(str(ROOT / "configs" / "quickstart.toml")), cores=2) is None

@@ -58,24 +58,28 @@ async def run_services(cfg: config.Config, tmp_path: Path, until, timeout: float
     return services
 
 
-def test_sim_gen_and_train_learn_together_in_one_process(tmp_path):
-    cfg = small_config(tmp_path)
-    seen: dict[str, object] = {"segments": [], "versions": []}
-
+def segments_until_version(seen: dict, version: int = 3):
+    """A run's ``until``: collect every segment (``seen["segments"]``) and gen's reported policy versions
+    (``seen["versions"]``) until gen acts with ``version``."""
     async def until(watch):
         segments = watch.subscribe(keys.traj("pipe"), TrajectorySegment, capacity=1024)
         stats = watch.subscribe(keys.stats("pipe", "*", 0), StatsReport, capacity=256)
         while True:
-            for _, seg in segments.drain():
-                seen["segments"].append(seg)
+            seen["segments"] += [seg for _, seg in segments.drain()]
             for _, report in stats.drain():
                 if report.service == "gen":
                     seen["versions"].append(report.metrics["gen/policy_version"])
-            if seen["versions"] and max(seen["versions"]) >= 3:
+            if seen["versions"] and max(seen["versions"]) >= version:
                 return
             await asyncio.sleep(0.05)
 
-    sim, gen, train = reversed(asyncio.run(_run(cfg, tmp_path, until)))
+    return until
+
+
+def test_sim_gen_and_train_learn_together_in_one_process(tmp_path):
+    cfg = small_config(tmp_path)
+    seen: dict[str, list] = {"segments": [], "versions": []}
+    sim, gen, train = reversed(asyncio.run(_run(cfg, tmp_path, segments_until_version(seen))))
     segments = seen["segments"]
     assert train.learner.version >= 3 and gen.version >= 3  # versions advanced, and gen acted with them
     assert {s.group for s in segments} == {0, 1} and {s.env_id for s in segments} == {0, 1, 2, 3}

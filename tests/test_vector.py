@@ -17,19 +17,17 @@ import pytest
 import torch
 
 from ebrl import config
-from ebrl.bus import keys
 from ebrl.config import ConfigError
 from ebrl.envs import EnvSpec, EnvWorker
 from ebrl.envs import maniskill
 from ebrl.envs.batch import BatchRunner, EnvBatch, ManiSkillBatch, make_batch
 from ebrl.envs.vector import VectorWorker
 from ebrl.envs.worker import WorkerFailed
-from ebrl.messages import StatsReport, TrajectorySegment
 from ebrl.sched.fleet import MAX_REPLACEMENTS, VectorFleet, make_fleet
 from ebrl.sched.modes import Schedule, resolve
 from helpers import ROOT
 from test_env_hygiene import drive
-from test_pipeline import run_services, small_config
+from test_pipeline import run_services, segments_until_version, small_config
 
 PENDULUM = EnvSpec("InvertedPendulum-v5", max_episode_steps=6)
 
@@ -282,20 +280,7 @@ def test_sim_gen_and_train_learn_with_vectorized_groups(tmp_path):
     """The whole loop over vectorized groups: segments from every env of both groups, versions advancing."""
     cfg = small_config(tmp_path, sim={"vectorized": True})
     seen: dict = {"segments": [], "versions": []}
-
-    async def until(watch):
-        segments = watch.subscribe(keys.traj("pipe"), TrajectorySegment, capacity=1024)
-        stats = watch.subscribe(keys.stats("pipe", "*", 0), StatsReport, capacity=256)
-        while True:
-            seen["segments"] += [seg for _, seg in segments.drain()]
-            for _, report in stats.drain():
-                if report.service == "gen":
-                    seen["versions"].append(report.metrics["gen/policy_version"])
-            if seen["versions"] and max(seen["versions"]) >= 3:
-                return
-            await asyncio.sleep(0.05)
-
-    train, gen, sim = asyncio.run(run_services(cfg, tmp_path, until))
+    train, gen, sim = asyncio.run(run_services(cfg, tmp_path, segments_until_version(seen)))
     assert isinstance(sim.fleet, VectorFleet) and len(sim.fleet.vectors) == 2
     assert {s.env_id for s in seen["segments"]} == {0, 1, 2, 3} and train.learner.version >= 3
     assert max(int(s.versions.max()) for s in seen["segments"]) >= 1

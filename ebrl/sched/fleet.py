@@ -47,11 +47,8 @@ class EnvFleet:
         """With rebinding, ``on_core_step(core, seconds)`` after each chunk for each core its envs stepped on;
         under ``sim.core_rebinding = "auto"``, ``on_mode(mode, start, end)`` for each period in a mode and
         ``on_decision(text)`` for each choice."""
-        self.spec, self.schedule, self.seed = spec, schedule, seed
-        first = host * schedule.groups
-        self.groups = list(range(first, first + schedule.groups))
-        per = self.per_group = schedule.envs_per_group
-        self.episodes = Episodes(range(first * per, (first + schedule.groups) * per), share)
+        self._place(spec, schedule, host, seed, share)
+        per = self.per_group
         self.pool: CorePool | None = None
         if schedule.core_rebinding:
             self.pool = CorePool(schedule.groups * per, schedule.sim_cores)
@@ -60,12 +57,20 @@ class EnvFleet:
                                                         on_mode=on_mode, on_decision=on_decision)
         else:
             self.stepping = IndependentStepping() if schedule.stepping == "async" else BatchStepping()
-        self.failures: dict[int, int] = {}  # env -> workers that failed in a row without answering a chunk
-        self.given_up_envs: set[int] = set()
-        self.given_up = 0  # envs given up (sim/envs_given_up)
         self.workers: dict[int, list[EnvWorker]] = {}  # a given-up env keeps its dead worker's handle
         for g in self.groups:
             self.workers[g] = [self._start(env) for env in self.env_ids(g)]
+
+    def _place(self, spec: EnvSpec, schedule: Schedule, host: int, seed: int, share: int) -> None:
+        """What every fleet keeps: this host's groups and env ids, the episode bookkeeping, the failure counts."""
+        self.spec, self.schedule, self.seed = spec, schedule, seed
+        first = host * schedule.groups
+        self.groups = list(range(first, first + schedule.groups))
+        per = self.per_group = schedule.envs_per_group
+        self.episodes = Episodes(range(first * per, (first + schedule.groups) * per), share)
+        self.failures: dict[int, int] = {}  # env (a group, vectorized) -> failures in a row without a chunk answered
+        self.given_up_envs: set[int] = set()
+        self.given_up = 0  # envs given up (sim/envs_given_up)
 
     async def reset_group(self, g: int) -> np.ndarray:
         """Start every env of group ``g`` (episode 0); their first observations, [envs, ...]."""
@@ -188,16 +193,10 @@ class VectorFleet(EnvFleet):
         """``obs_size``: values per observation; observations then come back through shared memory."""
         if share > 1:
             raise ValueError("vectorized groups cannot promise GRPO's shared initial states (sim.vectorized)")
-        self.spec, self.schedule, self.seed, self.obs_size = spec, schedule, seed, obs_size
-        first = host * schedule.groups
-        self.groups = list(range(first, first + schedule.groups))
-        self.per_group = schedule.envs_per_group
-        self.episodes = Episodes(range(first * self.per_group, (first + schedule.groups) * self.per_group), 1)
+        self._place(spec, schedule, host, seed, share)
+        self.obs_size = obs_size
         self.pool = None
         self.stepping = IndependentStepping()  # its timeout: how long a batch may take for one chunk
-        self.failures: dict[int, int] = {}  # group -> processes that failed in a row without answering a chunk
-        self.given_up_envs: set[int] = set()
-        self.given_up = 0
         self.fresh: dict[int, np.ndarray] = {}  # group -> first observations of its new process, while recovering
         self.vectors = {g: self._start_group(g) for g in self.groups}
         self.workers = {}  # no process per env

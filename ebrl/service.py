@@ -30,7 +30,7 @@ from typing import Any, Iterator
 
 import psutil
 
-from ebrl import config as config_mod, devices
+from ebrl import config as config_mod, devices, threads
 from ebrl.bus import Bus, BusOptions, auth, keys
 from ebrl.messages import Affinity, Event, Quota, SpanBatch, StatsReport, Stop, encode_message
 from ebrl.recorder import SPAN_BATCH_MAX, Recorder
@@ -98,11 +98,10 @@ class Service:
         return sorted(os.sched_getaffinity(0))
 
     def on_quota(self, quota: Quota) -> None:
-        """Apply a resource quota; the default sets torch's thread count and, on a GPU, the memory cap."""
+        """Apply a resource quota; the default sets torch's thread count (``ebrl.threads``) and, on a GPU, the
+        memory cap."""
         if quota.threads:
-            import torch
-
-            torch.set_num_threads(quota.threads)
+            threads.set_threads(quota.threads)  # also in the service's TorchPool thread, before its next task
         if quota.mem_bytes and self.device is not None:
             self.memory_cap = devices.apply_memory_cap(self.device, quota.mem_bytes)
 

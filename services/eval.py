@@ -15,8 +15,7 @@ import dataclasses
 import os
 import time
 
-import torch
-
+from ebrl import threads
 from ebrl.envs import EnvSpec, describe
 from ebrl.evaluate import BestPolicy, EvalPool, EvalResult, EvalSchedule, lower_priority
 from ebrl.policies import load_arrays, make_policy
@@ -31,7 +30,7 @@ class EvalService(Service):
     async def setup(self) -> None:
         cfg, loop = self.cfg, asyncio.get_running_loop()
         priority = lower_priority()  # before the workers start: they inherit it
-        torch.set_num_threads(1)
+        threads.set_threads(1)
         info = await loop.run_in_executor(None, describe, EnvSpec.from_config(cfg.env))
         self.model = make_policy(dataclasses.replace(cfg.policy, checkpoint=""), info.layout, info.action_dim)
         self.metadata = {**policy_metadata(self.model), **portable_metadata(cfg.policy, cfg.env, info),

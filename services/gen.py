@@ -6,14 +6,13 @@ Which observations a policy version may answer (the staleness bound) is ``ebrl.s
 from __future__ import annotations
 
 import asyncio
-import concurrent.futures
 import os
 import time
 
 import numpy as np
 import torch
 
-from ebrl import devices, meta
+from ebrl import devices, meta, threads
 from ebrl.bus import keys
 from ebrl.bus.peers import LivePeers
 from ebrl.envs import EnvSpec, describe
@@ -34,7 +33,7 @@ class GenService(Service):
         self.schedule = resolve(cfg)
         if self.schedule.gen_cores:
             os.sched_setaffinity(0, self.schedule.gen_cores)
-        torch.set_num_threads(cfg.gen.threads)
+        threads.set_threads(cfg.gen.threads)
         info = await asyncio.get_running_loop().run_in_executor(None, describe, EnvSpec.from_config(cfg.env))
         self.use_device(devices.resolve(cfg.gen.device, "gen.device"))
         self.policy = make_policy(cfg.policy, info.layout, info.action_dim).to(self.device)
@@ -46,8 +45,8 @@ class GenService(Service):
         self.batch_groups = cfg.gen.max_batch_groups  # 0: every group of every live sim host
         self.sims = LivePeers(self.bus, self.run_name, "sim", warn=lambda: False)
         self.waiting = ObservationQueue(self.schedule)  # observations whose iteration needs a newer policy
-        # Forward passes run on one dedicated thread, never on the event loop.
-        self.pool = concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix="gen-forward")
+        # Forward passes run on one dedicated thread (with gen's torch threads), never on the event loop.
+        self.pool = threads.TorchPool("gen-forward")
         self.wake = asyncio.Event()
         # A group has at most one observation in flight; room for the groups of many sim hosts.
         self.obs = self.bus.subscribe(keys.obs(self.run_name), Observation, capacity=4 * self.schedule.groups * 16,

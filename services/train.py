@@ -7,13 +7,10 @@ of a data-parallel group (``ebrl.algos.ranks``): rank 0 talks to the run, the ot
 from __future__ import annotations
 
 import asyncio
-import concurrent.futures
 import os
 import time
 
-import torch
-
-from ebrl import procenv
+from ebrl import procenv, threads
 from ebrl.algos.learner import HANDOVER_FILE, Learner
 from ebrl.algos.parallel import KEEPALIVE_S
 from ebrl.algos.ranks import Ranks
@@ -34,7 +31,7 @@ class TrainService(Service):
         cores = schedule.train_cores
         if cores:  # ranks share the training cores: each its own slice when there are enough
             os.sched_setaffinity(0, cores[rank::world] if len(cores) >= world else cores)
-        torch.set_num_threads(cfg.train.threads)
+        threads.set_threads(cfg.train.threads)
         info = await loop.run_in_executor(None, describe, EnvSpec.from_config(cfg.env))
         self.learner = learner = Learner(cfg, info, schedule.max_staleness, self, self.run_dir, rank, world)
         self.use_device(learner.device)
@@ -44,7 +41,7 @@ class TrainService(Service):
         resumed = learner.resume(procenv.version_floor())  # every rank starts from the same checkpoint
         if resumed:
             self.event("resumed", resumed)
-        self.pool = concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix="train-update")
+        self.pool = threads.TorchPool("train-update")  # updates run with train's torch threads
         self.ranks: Ranks | None = None
         if world > 1:  # waits until every rank joined; every rank starts from rank 0's weights
             await loop.run_in_executor(None, learner.join)

@@ -14,7 +14,7 @@ import pytest
 
 from ebrl.envs import EnvSpec, EnvWorker
 from ebrl.sched.corepool import PINNED, REBIND, CorePool
-from ebrl.sched.stepchoice import SteppingChoice
+from ebrl.sched.stepchoice import SteppingChoice, keep_rebinding
 from ebrl.sched.stepping import RebindingStepping
 
 CORES = sorted(os.sched_getaffinity(0))[:2]
@@ -180,7 +180,7 @@ def feed(choice: SteppingChoice, now: float, rate: dict[int, float], until: floa
     return now, decided
 
 
-@pytest.mark.parametrize("rebind_rate, expected", [(1300, REBIND), (1020, PINNED), (800, PINNED)])
+@pytest.mark.parametrize("rebind_rate, expected", [(1300, REBIND), (1010, PINNED), (800, PINNED)])
 def test_the_trial_keeps_rebinding_only_when_it_measures_faster(rebind_rate, expected):
     choice = SteppingChoice(now=0.0, warmup_s=0.0)
     windows = []
@@ -192,6 +192,17 @@ def test_the_trial_keeps_rebinding_only_when_it_measures_faster(rebind_rate, exp
     assert "rebinding ran" in decided and choice.gain == pytest.approx(rebind_rate / 1000, abs=0.04)
     assert windows.count(REBIND) > 0 and windows.count(PINNED) > 0  # both measured
     assert choice.metrics()["sim/core_rebinding"] == float(expected == REBIND)
+
+
+@pytest.mark.parametrize("pinned, rebind, keep", [
+    ([1000, 1000, 1000], [1060, 980, 1070], True),  # the median's margin (5 %), whatever the spread
+    ([1000, 1010, 990], [1030, 1040, 1035], True),  # 3.5 %, every rebinding window ahead: a consistent gain
+    ([1000, 1040, 990], [1030, 1035, 1020], False),  # 3 %, but a pinning window as fast: noise
+    ([1000, 1000, 1000], [1015, 1015, 1015], False),  # ahead, by less than 2 %: ties go to pinning
+    ([0, 0, 0], [10, 10, 10], False),  # nothing measured
+])
+def test_the_trial_verdict(pinned, rebind, keep):
+    assert keep_rebinding(pinned, rebind, margin=0.05, consistent=0.02) is keep
 
 
 def test_a_shifted_step_latency_starts_a_new_trial():

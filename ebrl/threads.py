@@ -5,7 +5,7 @@ and MKL's settings are per thread. A service that sets it on its main thread and
 updates on a worker thread leaves that worker on OpenMP's default of one thread per core. MKL's vector math
 (``tanh`` over a batch of 4 to 16 observations) then starts a team of threads on every call, and the team
 spins between calls on the cores the simulators need. Measured on 2 cores, a 64x64 MLP's forward pass of 4
-observations on a worker thread cost 6.7 ms of CPU this way instead of 1.0 ms
+observations on a worker thread cost 6.6 ms of CPU this way instead of 0.75 ms
 (``python benchmarks/torch_threads.py``, BENCHMARKS.md).
 
 ``set_threads(n)`` is the process's count (the config's ``gen.threads`` / ``train.threads``, or the allocator's

@@ -11,8 +11,9 @@ rebinding only if its median beats pinning's by ``margin`` (5 %), or by ``consis
 rebinding window faster than every pinning window (``keep_rebinding``). Ties go to pinning (no hand-offs, no
 migrations). The second rule is for heavy-tailed steps of a few ms: rebinding's gain there is real but near
 the margin (4 % in 60 s runs of the sweep's ``lat:4:1``), and the median alone kept pinning; when rebinding
-gains nothing, its three windows all come out ahead 1 time in 20. The step latencies of every chunk are watched (the CPU time of each step: the env's own cost,
-the same whichever mode runs it and whoever shares its core); a trial runs again when their median or
+gains nothing, its three windows all come out ahead 1 time in 20. The step latencies of every chunk are
+watched (the CPU time of each step: the env's own cost, the same whichever mode runs it and whoever shares
+its core); a trial runs again when their median or
 their tail (p90 / p50) moved by half since the last decision, and every ``recheck_s`` seconds.
 
 Pure logic over a clock passed in: :class:`ebrl.sched.stepping.RebindingStepping` feeds it each chunk's

@@ -25,7 +25,6 @@ import multiprocessing as mp
 import os
 import platform
 import statistics
-import subprocess
 import sys
 import time
 from pathlib import Path
@@ -34,6 +33,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
+from ebrl import bench  # noqa: E402
 from ebrl.envs import EnvSpec, EnvWorker  # noqa: E402
 from ebrl.sched.corepool import CorePool  # noqa: E402
 from ebrl.sched.stepping import IndependentStepping, RebindingStepping  # noqa: E402
@@ -110,14 +110,9 @@ def main() -> None:
             h.kill()
     med = {p: {k: statistics.median(o[k] for o in v) for k in v[0]} for p, v in rounds.items()}
     extra = med["rebinding"]["wall_per_step_us"] - med["independent"]["wall_per_step_us"]
-    try:
-        commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
-                                cwd=Path(__file__).parent).stdout.strip()
-    except OSError:
-        commit = ""
     result = {
         "command": "python benchmarks/dispatch_overhead.py " + " ".join(sys.argv[1:]),
-        "commit": commit, "label": args.label,
+        "commit": bench.commit(), "label": args.label,
         "machine": f"{platform.machine()}, {os.cpu_count()} cores visible, {len(cores)} used",
         "env": ENV_ID, "envs": args.envs, "cores": len(cores), "chunk": args.chunk, "chunks": args.chunks,
         "step_us": args.step_us, "load_processes": args.load,

@@ -17,7 +17,6 @@ import json
 import os
 import platform
 import statistics
-import subprocess
 import sys
 from pathlib import Path
 
@@ -45,7 +44,7 @@ def main() -> int:
 
     ratio = med("ebrl+eval", "traj_per_s") / med("ebrl", "traj_per_s")
     steps_ratio = med("ebrl+eval", "env_steps_per_s") / med("ebrl", "env_steps_per_s")
-    commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True).stdout.strip()
+    commit = bench.commit()
     out = {
         "command": "python benchmarks/eval_overhead.py " + " ".join(sys.argv[1:]),
         "machine": f"{platform.machine()}, {len(os.sched_getaffinity(0))} usable cores", "commit": commit,

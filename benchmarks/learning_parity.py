@@ -33,7 +33,6 @@ import argparse
 import json
 import math
 import statistics
-import subprocess
 import sys
 from pathlib import Path
 from typing import Any
@@ -205,8 +204,7 @@ def main() -> None:
             data["curves"].setdefault(mode, {})[str(seed)] = curve
             data["summary"] = summarize(data["runs"], modes)
             data["command"] = "python benchmarks/learning_parity.py " + " ".join(sys.argv[1:])
-            data["commit"] = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True,
-                                            text=True, cwd=Path(__file__).resolve().parent).stdout.strip()
+            data["commit"] = bench.commit()
             tmp = path.with_suffix(".tmp")
             tmp.write_text(json.dumps(data, indent=1) + "\n")
             tmp.replace(path)

@@ -24,7 +24,6 @@ import json
 import os
 import platform
 import statistics
-import subprocess
 import sys
 import time
 from pathlib import Path
@@ -125,8 +124,7 @@ def main() -> None:
         result["command"] = (f"python benchmarks/stepping_sweep.py --points {point} --duration {args.duration:g}"
                              f" --repeat {args.repeat}" + "".join(f" --set {o}" for o in args.overrides))
         result["machine"] = machine
-        result["commit"] = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
-                                          cwd=ROOT).stdout.strip()
+        result["commit"] = bench.commit()
         data["points"][point] = result
         order = all_points()
         data["points"] = dict(sorted(data["points"].items(),

@@ -28,6 +28,8 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
+from ebrl import bench  # noqa: E402
+
 RESULTS = Path(__file__).resolve().parent / "results"
 
 
@@ -90,8 +92,7 @@ def main() -> None:
     import torch
 
     command = ("python benchmarks/torch_threads.py " + " ".join(sys.argv[1:])).strip()
-    commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
-                            cwd=Path(__file__).resolve().parent).stdout.strip()
+    commit = bench.commit()
     machine = f"{platform.machine()}, {len(os.sched_getaffinity(0))} cores visible, torch {torch.__version__}"
     Path(args.json).write_text(json.dumps({"command": command, "commit": commit, "machine": machine, "rows": rows,
                                            "calls": args.calls}, indent=1) + "\n")

@@ -14,6 +14,7 @@ from __future__ import annotations
 import json
 import os
 import statistics
+import subprocess
 import sys
 import time
 from pathlib import Path
@@ -37,6 +38,15 @@ MECHANISMS = {
     "core_rebinding": "sim.core_rebinding",
     "vectorized": "sim.vectorized",
 }
+
+
+def commit() -> str:
+    """The checkout's short commit, recorded beside each benchmark result ("" outside a git checkout)."""
+    try:
+        return subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
+                              cwd=Path(__file__).resolve().parent).stdout.strip()
+    except OSError:
+        return ""
 
 
 def base_mode(variant: str) -> str:

@@ -25,6 +25,9 @@ from ebrl.service import Service, service_main
 from ebrl.weights import WeightsLayout, WeightsReceiver, known_version
 
 
+INLINE_MAX_S = 0.002  # CPU forward passes shorter than this run on the event loop (``GenService.inline``)
+
+
 class GenService(Service):
     role = "gen"
 
@@ -45,8 +48,10 @@ class GenService(Service):
         self.batch_groups = cfg.gen.max_batch_groups  # 0: every group of every live sim host
         self.sims = LivePeers(self.bus, self.run_name, "sim", warn=lambda: False)
         self.waiting = ObservationQueue(self.schedule)  # observations whose iteration needs a newer policy
-        # Forward passes run on one dedicated thread (with gen's torch threads), never on the event loop.
+        # Forward passes run on one dedicated thread (with gen's torch threads); on the CPU, a pass shorter than
+        # the hand-off to that thread and back runs on the event loop itself (``inline``).
         self.pool = threads.TorchPool("gen-forward")
+        self.forward_s = INLINE_MAX_S  # recent forward passes' seconds (an average); the first runs on the pool
         self.wake = asyncio.Event()
         # A group has at most one observation in flight; room for the groups of many sim hosts.
         self.obs = self.bus.subscribe(keys.obs(self.run_name), Observation, capacity=4 * self.schedule.groups * 16,
@@ -76,9 +81,14 @@ class GenService(Service):
     async def serve(self, batch: list[Observation]) -> None:
         obs = np.concatenate([m.obs for m in batch])
         start = time.time()
-        actions, logprobs, values, latents = await asyncio.get_running_loop().run_in_executor(
-            self.pool, self.forward, obs)
-        self.publish_span("gen", "forward", start, time.time())
+        if self.inline():
+            actions, logprobs, values, latents = self.forward(obs)
+        else:
+            actions, logprobs, values, latents = await asyncio.get_running_loop().run_in_executor(
+                self.pool, self.forward, obs)
+        end = time.time()
+        self.forward_s += 0.1 * (end - start - self.forward_s)
+        self.publish_span("gen", "forward", start, end)
         row = 0
         for m in batch:
             n = len(m.env_ids)
@@ -90,6 +100,12 @@ class GenService(Service):
         self.count("gen/batches")
         self.count("gen/groups_served", len(batch))
         self.count("gen/envs_served", row)
+
+    def inline(self) -> bool:
+        """Run the next pass on the event loop: on the CPU, while passes take under ``INLINE_MAX_S``. The loop
+        awaits the pass either way, and the hand-off to the forward thread and back (a wake-up each way) costs
+        more than a small MLP's pass on loaded cores (``benchmarks/gen_handoff.py``)."""
+        return self.device.type == "cpu" and self.forward_s < INLINE_MAX_S
 
     def forward(self, obs: np.ndarray) -> tuple[np.ndarray, ...]:
         """One batch on the forward thread: observations in, the policy's chunks back (``policy.dtype``,

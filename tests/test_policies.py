@@ -87,6 +87,22 @@ def test_log_prob_is_the_same_in_gen_and_train(case):
     assert entropy.shape == (BATCH,) and torch.isfinite(entropy).all()
 
 
+@pytest.mark.parametrize("case", ["mlp", "cnn"])
+def test_gaussian_chunks_are_drawn_from_the_policys_distribution(case):
+    """``sample`` writes mean + std * eps out by hand (generation's hot path): its draws have the heads'
+    mean and standard deviation."""
+    model, layout = build(case)
+    with torch.no_grad():
+        model.log_std.copy_(torch.linspace(-1.0, 0.5, model.log_std.numel()))
+    obs = np.repeat(observations(layout, batch=1), 4000, axis=0)
+    actions, _, _, _ = model.act(obs)
+    d, _ = model.heads(model.flat(obs[:1]))
+    flat = actions.reshape(len(obs), -1)
+    std = d.stddev[0].detach().numpy()
+    np.testing.assert_allclose(flat.mean(0), d.mean[0].detach().numpy(), atol=4 * std.max() / np.sqrt(len(obs)))
+    np.testing.assert_allclose(flat.std(0), std, rtol=0.06)
+
+
 @pytest.mark.parametrize("sign", [1.0, -1.0])
 @pytest.mark.parametrize("case", CASES)
 def test_a_gradient_step_moves_the_log_prob_with_the_advantage(case, sign):

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import torch
 from torch import nn
-from torch.distributions import Normal
 
 from ebrl.envs.obs import ObsLayout
 from ebrl.policies.base import GaussianChunkPolicy
@@ -29,10 +28,9 @@ class ChunkGaussianCNN(GaussianChunkPolicy):
         self.critic = layer(width(self.encoder.out_dim, hidden), 1, 1.0)
         self.log_std = nn.Parameter(torch.full((chunk * action_dim,), float(init_log_std)))
 
-    def heads(self, obs: torch.Tensor) -> tuple[Normal, torch.Tensor]:
+    def moments(self, obs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         h = self.trunk(self.encoder(obs))
-        mean = self.mean(h)
-        return Normal(mean, self.log_std.expand_as(mean).exp()), self.critic(h).squeeze(-1)
+        return self.mean(h), self.log_std, self.critic(h).squeeze(-1)
 
     def value(self, obs: torch.Tensor) -> torch.Tensor:
         return self.critic(self.trunk(self.encoder(self.flat(obs)))).squeeze(-1)

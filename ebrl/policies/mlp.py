@@ -34,6 +34,6 @@ class ChunkGaussianMLP(GaussianChunkPolicy):
     def value(self, obs: torch.Tensor) -> torch.Tensor:
         return self.critic(self.flat(obs)).squeeze(-1)
 
-    def heads(self, obs: torch.Tensor) -> tuple[Normal, torch.Tensor]:
-        mean = self.actor(obs)  # obs: already flat (and standardised) by GaussianChunkPolicy
-        return Normal(mean, self.log_std.expand_as(mean).exp()), self.critic(obs).squeeze(-1)
+    def moments(self, obs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        # obs: already flat (and standardised) by GaussianChunkPolicy
+        return self.actor(obs), self.log_std, self.critic(obs).squeeze(-1)

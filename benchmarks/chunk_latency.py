@@ -31,6 +31,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
+from ebrl import bench  # noqa: E402
 from ebrl.envs import EnvSpec, EnvWorker  # noqa: E402
 from ebrl.sched.rebind import CoreRebinding  # noqa: E402
 from ebrl.sched.corepool import CorePool  # noqa: E402
@@ -145,7 +146,7 @@ def main() -> None:
     best_batch = min(("batch_pinned", "batch_os"), key=lambda p: summarize(measured[p])["avg_ms"])
     m_reb, m_bat = summarize(measured["rebinding"]), summarize(measured[best_batch])
     result = {
-        "command": "python benchmarks/chunk_latency.py " + " ".join(sys.argv[1:]),
+        "command": "python benchmarks/chunk_latency.py " + " ".join(sys.argv[1:]), "commit": bench.commit(),
         "machine": f"{platform.machine()}, {os.cpu_count()} cores visible, {len(cores)} used",
         "env": ENV_ID, "envs": args.envs, "cores": len(cores), "chunk": args.chunk, "chunks": args.chunks,
         "latency": {"dist": "lognormal", "mean_ms": args.mean_ms, "sigma": args.sigma},

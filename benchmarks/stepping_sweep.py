@@ -9,8 +9,9 @@ throughput read from the stats stream): ``ebrl`` (defaults: ``sim.core_rebinding
 * ``halfcheetah`` — ``configs/bench_halfcheetah.toml`` (HalfCheetah-v5, ~75 µs steps);
 * ``lift`` — ``configs/robosuite_lift.toml`` (robosuite Lift, ~16 ms steps).
 
-Results are merged into the JSON file point by point (a point already there is skipped unless ``--force``),
-so the sweep can run one command per point, across sessions, and a plot of every point so far is redrawn:
+Results are merged into the JSON file point by point (a point already there is skipped unless ``--force``; a
+point measured again keeps the earlier verdicts under ``earlier``), so the sweep can run one command per point,
+across sessions, and a plot of every point so far is redrawn:
 
     python benchmarks/stepping_sweep.py                       # every point (about 3 minutes each)
     python benchmarks/stepping_sweep.py --points lat:2:1.0    # one point
@@ -37,6 +38,8 @@ MEANS = (0.2, 0.5, 1.0, 2.0, 4.0, 8.0, 16.0, 32.0)
 SIGMAS = (0.3, 1.0)
 NAMED = {"halfcheetah": "configs/bench_halfcheetah.toml", "lift": "configs/robosuite_lift.toml"}
 MODES = ("ebrl", *bench.BASELINES)
+# what a point measured again keeps of its earlier measurement (under "earlier", oldest first)
+EARLIER_KEYS = ("command", "commit", "duration_s", "repeat", "ebrl_vs_best", "ebrl_vs_best_env_steps", "best_baseline")
 
 
 def all_points() -> list[str]:
@@ -125,13 +128,18 @@ def main() -> None:
                              f" --repeat {args.repeat}" + "".join(f" --set {o}" for o in args.overrides))
         result["machine"] = machine
         result["commit"] = bench.commit()
+        if (previous := data["points"].get(point)) is not None:  # measured again: the earlier verdicts stay
+            result["earlier"] = [*previous.get("earlier", []), *([previous["single_window"]]
+                                                                 if "single_window" in previous else []),
+                                 {k: previous[k] for k in EARLIER_KEYS if k in previous}]
         data["points"][point] = result
         order = all_points()
         data["points"] = dict(sorted(data["points"].items(),
                                      key=lambda kv: order.index(kv[0]) if kv[0] in order else len(order)))
-        data["command"] = (f"python benchmarks/stepping_sweep.py --force --duration {args.duration:g}"
-                           f" --repeat {args.repeat}"
-                           f" --points {','.join(p for p in all_points() if p in data['points'])}")
+        if set(points) >= set(data["points"]):  # the whole sweep is this command's (not one point re-measured)
+            data["command"] = (f"python benchmarks/stepping_sweep.py --force --duration {args.duration:g}"
+                               f" --repeat {args.repeat}"
+                               f" --points {','.join(p for p in all_points() if p in data['points'])}")
         path.parent.mkdir(parents=True, exist_ok=True)
         path.write_text(json.dumps(data, indent=2) + "\n")
         med = result["traj_per_s"]

@@ -110,6 +110,11 @@ class SimSection:
         "greedy core rebinding of single steps onto free cores (async stepping); false pins each env worker to "
         "one core and runs whole chunks; \"auto\" (the ebrl mode's choice) measures both while the run goes and "
         "keeps the faster, again whenever the step latencies shift; absent: the mode's choice", None)
+    cores_per_env: int = doc(
+        "cores each env worker is pinned to, every thread of it: 1 for a single-threaded simulator; more for one "
+        "that steps on several threads (the sim stats' sim/env_cores_used says how many it keeps busy), whose "
+        "workers then run whole chunks on their own sets of cores, without step-level rebinding; with "
+        "alloc.enabled the allocator picks it from its profile", 1)
     group_pipeline: bool | None = doc(
         "pipeline groups through generation; false makes all envs one group; absent: the mode's choice", None)
     vectorized: bool | Literal["auto"] = doc(
@@ -512,6 +517,11 @@ def _check_semantics(cfg: Config) -> None:
         raise ConfigError("alloc.enabled: the allocator profiles the simulator as one env per worker process, and "
                           "sim.vectorized runs a group's envs as one batch (GPU PhysX groups are vectorized by "
                           "default); set alloc.enabled = false, or sim.vectorized = false")
+    if cfg.sim.cores_per_env > 1 and (cfg.sim.core_rebinding is True or vectorized(cfg)):
+        what = "sim.core_rebinding = true" if cfg.sim.core_rebinding is True else "sim.vectorized"
+        raise ConfigError(f"sim.cores_per_env = {cfg.sim.cores_per_env}: pins each env worker to a set of cores, "
+                          f"which {what} does not use (rebinding hands out single cores; a vectorized group runs "
+                          "on the whole budget); set sim.cores_per_env = 1, or leave sim.core_rebinding to the mode")
     if cfg.algo.name == "grpo" and vectorized(cfg):
         raise ConfigError("sim.vectorized: grpo needs group-mates reset to the same initial state, which a "
                           "vectorized batch's partial resets cannot promise; set sim.vectorized = false (GPU PhysX "
@@ -529,7 +539,7 @@ def _check_semantics(cfg: Config) -> None:
         raise ConfigError(f"policy.width = {cfg.policy.width}: must be a multiple of policy.heads = {cfg.policy.heads}")
     if cfg.hosts and not any("sim" in entry.services for entry in cfg.hosts.values()):
         raise ConfigError("[hosts]: no host runs sim")
-    for path in ("log.flush_s", "sim.groups", "sim.envs_per_group", "sim.segment_length", "policy.chunk", "algo.epochs",
+    for path in ("log.flush_s", "sim.groups", "sim.envs_per_group", "sim.cores_per_env", "sim.segment_length", "policy.chunk", "algo.epochs",
                  "algo.minibatches", "train.batch_size", "train.lr", "train.threads", "train.world_size", "gen.threads",
                  "run.stats_interval", "train.max_pending", "viz.window_s", "viz.port", "policy.embed_dim",
                  "policy.denoise_steps", "policy.width", "policy.depth", "policy.heads", "policy.patch"):

@@ -44,6 +44,8 @@ def test_core_rebinding_with_a_heavy_tailed_step_latency(tmp_path):
     busy = [v for k, v in sim.items() if k.startswith("sim/core") and k.endswith("_busy_s")]
     assert busy and sum(busy) > 0  # steps were dispatched core by core
     assert sim["sim/chunk_latency_p99_ms"] >= sim["sim/chunk_latency_p50_ms"] > 1.0  # the latency was added
+    used = [m["sim/env_cores_used"] for m in stats["sim/0"] if "sim/env_cores_used" in m]
+    assert used and all(0 < u <= 1.05 for u in used)  # single-threaded envs: at most one core each
 
 
 @pytest.mark.slow

@@ -38,3 +38,47 @@ class SeedSuccess(gymnasium.Env):
 
 
 gymnasium.register("SeedSuccess-v0", entry_point=SeedSuccess)
+
+
+class ThreadedStep(gymnasium.Env):
+    """A simulator that steps on two threads, as multi-threaded physics does: a helper thread, started with the
+    env, hashes one buffer while the stepping thread hashes another (hashlib releases the GIL), and the step
+    returns when both are done. 20-step episodes."""
+
+    def __init__(self, work_bytes: int = 1 << 18):
+        import hashlib
+        import queue
+        import threading
+
+        import numpy as np
+
+        self.np, self.hashlib = np, hashlib
+        self.observation_space = gymnasium.spaces.Box(-1.0, 1.0, (3,), np.float32)
+        self.action_space = gymnasium.spaces.Box(-1.0, 1.0, (1,), np.float32)
+        self.buffers = (bytes(work_bytes), bytes(range(256)) * (work_bytes // 256))
+        self.todo, self.done = queue.Queue(), queue.Queue()
+        self.helper = threading.Thread(target=self._help, name="physics-helper", daemon=True)
+        self.helper.start()
+        self.t = 0
+
+    def _help(self):
+        while (job := self.todo.get()) is not None:
+            self.done.put(self.hashlib.sha256(job).digest())
+
+    def reset(self, *, seed=None, options=None):
+        super().reset(seed=seed)
+        self.t = 0
+        return self.np.zeros(3, self.np.float32), {}
+
+    def step(self, action):
+        self.todo.put(self.buffers[1])
+        self.hashlib.sha256(self.buffers[0]).digest()
+        self.done.get()
+        self.t += 1
+        return self.np.full(3, self.t / 20, self.np.float32), 1.0, False, self.t >= 20, {}
+
+    def close(self):
+        self.todo.put(None)
+
+
+gymnasium.register("ThreadedStep-v0", entry_point=ThreadedStep)

@@ -94,6 +94,15 @@ class Profiles:
     train: dict[tuple[int, int], float]  # (s_t quota, B_t batch) -> T_train
     gen_mem: dict[int, float] = field(default_factory=dict)  # B_g -> bytes generation needs (absent: 0)
     train_mem: dict[int, float] = field(default_factory=dict)  # B_t -> bytes training needs (absent: 0)
+    sim_cores_used: float | None = None  # cores one env kept busy while stepping alone (the c_env probe)
+
+    def with_c_env(self, c_env: int) -> Profiles:
+        """The same tables with the simulator's restricted to ``c_env`` cores per env (unchanged where that
+        was not profiled): a re-plan keeps the cores per env the run started with, since the env workers are
+        pinned by it; the core budget and the other stages' shares are what re-plans move."""
+        if not any(key[0] == c_env for key in self.sim):
+            return self
+        return replace(self, sim={key: rate for key, rate in self.sim.items() if key[0] == c_env})
 
     def P_sim(self, c_env: int, E: int, s_sim: int) -> float:
         """T_sim, read conservatively in s_sim; 0 for an unprofiled (c_env, E). Likewise P_gen and P_train."""
@@ -132,6 +141,7 @@ class Profiles:
             "train": _keys_to_str(self.train),
             "gen_mem": {str(b): m for b, m in self.gen_mem.items()},
             "train_mem": {str(b): m for b, m in self.train_mem.items()},
+            "sim_cores_used": self.sim_cores_used,
         }
 
     @classmethod
@@ -143,6 +153,7 @@ class Profiles:
             train=_keys_from_str(data["train"]),
             gen_mem={int(b): float(m) for b, m in data.get("gen_mem", {}).items()},
             train_mem={int(b): float(m) for b, m in data.get("train_mem", {}).items()},
+            sim_cores_used=data.get("sim_cores_used"),
         )
 
 
@@ -268,7 +279,7 @@ def _breakpoints(profiles: Profiles, lo: int, hi: int, R: int) -> list[int]:
     return sorted(points)
 
 
-def _choose_c_env(profiles: Profiles, N: int) -> tuple[int, int]:
+def choose_c_env(profiles: Profiles, N: int) -> tuple[int, int]:
     """Lines 1-2 (alloc-cores, alloc-concurrency): c_env* and E = floor(N / c_env*).
 
     E is read on the profiled grid: the largest profiled E up to floor(N / c_env). Line 1 compares the profiled
@@ -311,7 +322,7 @@ def elastic_allocation(profiles: Profiles, *, N: int | None = None, total: int =
     if simulator is None:
         if N is None:
             raise TypeError("elastic_allocation needs N (simulation cores) to choose the simulator (lines 1-3)")
-        c_env, E = _choose_c_env(profiles, N)  # line 1 (alloc-cores): c_env*; line 2 (alloc-concurrency): E
+        c_env, E = choose_c_env(profiles, N)  # line 1 (alloc-cores): c_env*; line 2 (alloc-concurrency): E
         # line 3 (alloc-sim-quota): the knee, the smallest profiled s_sim within `knee` of the best T_sim at (c_env, E)
         curve = profiles._sim_curves[c_env, E]
         s_sim = next(q for q, r in zip(curve.quotas, curve.rates) if r >= (1 - knee) * max(curve.rates))
@@ -457,7 +468,7 @@ def allocate_cpu(profiles: Profiles, *, N: int, s_g_min: int = 1, s_t_min: int =
         raise InfeasibleError(f"a CPU-only allocation needs at least {reserved + 1} cores ({what} + 1 for the "
                               f"simulator), N={N}")
     _require_batch_pair(profiles, math.inf)
-    c_env, _ = _choose_c_env(profiles, budget)  # line 1
+    c_env, _ = choose_c_env(profiles, budget)  # line 1
     simulators = [(c_env, E, c_env * E) for c, E in profiles._sim_curves if c == c_env and c * E <= budget]
     alloc = scan_simulators(profiles, simulators, total=N, M_gpu=math.inf, s_g_min=s_g_min, s_t_min=s_t_min,
                             remote_sim=remote_sim, shared_cores=shared_model_cores)
@@ -528,4 +539,5 @@ def refine(profiles: Profiles, alloc: Allocation, measured_rollout: float, measu
         train={key: rate * train_ratio for key, rate in profiles.train.items()},
         gen_mem=dict(profiles.gen_mem),
         train_mem=dict(profiles.train_mem),
+        sim_cores_used=profiles.sim_cores_used,
     )

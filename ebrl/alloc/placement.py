@@ -32,7 +32,8 @@ import dataclasses
 import math
 from typing import Callable
 
-from ebrl.alloc.algorithm import Allocation, InfeasibleError, Profiles, allocate, allocate_cpu, refine
+from ebrl.alloc.algorithm import (Allocation, InfeasibleError, Profiles, allocate, allocate_cpu, choose_c_env,
+                                  refine)
 from ebrl.resources.pool import ResourcePool, WorkerResourceBinding
 
 
@@ -82,8 +83,8 @@ def all_shared(profiles: Profiles, n: int, remote_sim: float = 0.0, local_sim: b
     With simulation on other hosts (``remote_sim`` decisions/s), their decisions cost these cores only
     1/P_gen + 1/P_train: they are taken first, and the time left simulates here (none if not ``local_sim``).
     """
-    E = max((e for c, e in profiles._sim_curves if c == 1 and e <= n), default=0) if local_sim else 0
-    T_sim = profiles.P_sim(1, E, E) if E else 0.0
+    c_env, E = choose_c_env(profiles, n) if local_sim and profiles.sim else (1, 0)  # line 1, on every core
+    T_sim = profiles.P_sim(c_env, E, c_env * E) if E else 0.0
     B_g = max(profiles._gen_curves, key=lambda b: profiles.P_gen(n, b))
     B_t = max(profiles._train_curves, key=lambda b: profiles.P_train(n, b))
     T_gen, T_train = profiles.P_gen(n, B_g), profiles.P_train(n, B_t)
@@ -93,7 +94,7 @@ def all_shared(profiles: Profiles, n: int, remote_sim: float = 0.0, local_sim: b
         remote = min(remote_sim, 1.0 / model)
         left = 1.0 - remote * model  # of each second of the cores
         theta_ = remote + (left / (model + 1.0 / T_sim) if T_sim > 0 else 0.0)
-    return Allocation(c_env=1 if E else 0, E=E, s_sim=n if E else 0, s_gen=n, s_train=n, B_gen=B_g, B_train=B_t,
+    return Allocation(c_env=c_env if E else 0, E=E, s_sim=n if E else 0, s_gen=n, s_train=n, B_gen=B_g, B_train=B_t,
                       T_sim=T_sim + remote_sim, T_gen=T_gen, T_train=T_train, theta=theta_, evaluations=1,
                       method="all_shared")
 
@@ -125,6 +126,10 @@ class EmbodiPlacement:
         self.history: list[Plan] = []
         self.applied: Plan | None = None
         self.pending: Plan | None = self._plan(self._allocate(profile), "initial allocation")
+        # cores per env stay what the run starts with (Algorithm 1's line 1 on the profile): the env workers are
+        # pinned by it, and it is a property of the simulator, not of the balance between stages
+        if self.pending.allocation.c_env:
+            self.profiles = self.profiles.with_c_env(self.pending.allocation.c_env)
 
     # --- Algorithm 1 -> a concrete plan --------------------------------------------------------
 

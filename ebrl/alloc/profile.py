@@ -7,7 +7,12 @@ stages directly:
 * simulation: E environments (real env worker processes, each pinned to its own
   core(s), ``c_env`` cores per env) running action chunks concurrently; rate =
   chunks completed per second. On CPU-only hosts the simulator's quota is its
-  core count ``E * c_env``.
+  core count ``E * c_env``. Which ``c_env`` are worth profiling comes from one
+  env stepping alone on every core first: the cores it keeps busy while it steps
+  (:func:`ebrl.envs.worker.cores_used`, the measure the sim service reports as
+  ``sim/env_cores_used`` and its stepping choice watches). A single-threaded
+  simulator is profiled at c_env = 1 only; one that keeps u > 1.25 cores busy
+  at 1 .. round(u) as well, and Algorithm 1's line 1 picks among them.
 * generation: the policy's batched forward pass (``act``) on ``s`` cores with
   ``s`` torch threads at batch ``B``; rate = ``B`` / seconds per forward.
 * training: one PPO update (``algo.epochs`` x ``algo.minibatches``) on a batch of
@@ -26,6 +31,7 @@ import contextlib
 import dataclasses
 import hashlib
 import json
+import math
 import os
 import platform
 import sys
@@ -39,7 +45,7 @@ from ebrl import config as config_mod
 from ebrl.alloc.algorithm import Profiles
 from ebrl.resources.pool import ResourcePool
 
-PROFILE_VERSION = 1
+PROFILE_VERSION = 2  # 2: the simulator's cores per env, probed (tables of 1 are re-measured)
 
 
 def fingerprint(pool: ResourcePool, cfg: config_mod.Config) -> dict[str, Any]:
@@ -105,36 +111,61 @@ def timed(fn: Callable[[], Any], seconds: float, min_reps: int = 3) -> float:
     return (time.perf_counter() - start) / reps
 
 
-def measure_sim(cfg: config_mod.Config, cores: list[int], envs: int, seconds: float) -> float:
-    """Decisions/s of ``envs`` env workers, each pinned round-robin to ``cores``, running chunks concurrently."""
+def _run_sim(cfg: config_mod.Config, homes: list[int | tuple[int, ...]], seconds: float) -> tuple[float, list]:
+    """One env worker pinned at each of ``homes``, all running random chunks back to back for ``seconds``:
+    (chunks per second, every chunk's result)."""
     from ebrl.envs import EnvSpec, EnvWorker, describe
 
     spec = EnvSpec.from_config(cfg.env)
     act_space = describe(spec).action_space
     rng = np.random.default_rng(0)
 
-    async def run() -> float:
-        workers = [EnvWorker(spec, seed=i, core=cores[i % len(cores)]) for i in range(envs)]
+    async def run() -> tuple[float, list]:
+        workers = [EnvWorker(spec, seed=i, core=home) for i, home in enumerate(homes)]
+        results = []
         try:
             await asyncio.gather(*(w.reset() for w in workers))
             chunk = lambda: rng.uniform(act_space.low, act_space.high,  # noqa: E731
                                         (cfg.policy.chunk, act_space.shape[0])).astype(np.float32)
             await asyncio.gather(*(w.chunk(chunk()) for w in workers))  # warm-up
-            done, start = 0, time.perf_counter()
+            start = time.perf_counter()
 
             async def loop(w) -> None:
-                nonlocal done
                 while time.perf_counter() - start < seconds:
-                    await w.chunk(chunk())
-                    done += 1
+                    results.append(await w.chunk(chunk()))
 
             await asyncio.gather(*(loop(w) for w in workers))
-            return done / (time.perf_counter() - start)
+            return len(results) / (time.perf_counter() - start), results
         finally:
             for w in workers:
                 w.close(timeout=1.0)
 
     return asyncio.run(run())
+
+
+def measure_sim(cfg: config_mod.Config, cores: list[int], envs: int, seconds: float, cores_per_env: int = 1) -> float:
+    """Decisions/s of ``envs`` env workers running chunks concurrently, each pinned (every thread) to its own
+    ``cores_per_env`` of ``cores`` (round-robin when they are fewer than the envs need)."""
+    from ebrl.sched.modes import home_cores
+
+    return _run_sim(cfg, [home_cores(cores, cores_per_env, i) for i in range(envs)], seconds)[0]
+
+
+def measure_cores_used(cfg: config_mod.Config, cores: list[int], seconds: float) -> float:
+    """Cores one env keeps busy while it steps, free to run on all of ``cores`` (nothing else running)."""
+    from ebrl.envs.worker import cores_used
+
+    return cores_used(_run_sim(cfg, [tuple(cores)], seconds)[1])
+
+
+def cores_per_env_candidates(cores_used: float, n: int) -> list[int]:
+    """The c_env worth profiling for an env that keeps ``cores_used`` cores busy, on ``n`` cores: 1, and for a
+    multi-threaded simulator every count up to the cores it uses (rounded)."""
+    from ebrl.sched.stepchoice import MULTI_THREADED
+
+    if not cores_used > MULTI_THREADED:  # nan (no step measured) too
+        return [1]
+    return list(range(1, min(n, max(2, round(cores_used))) + 1))
 
 
 def _model(cfg: config_mod.Config):
@@ -202,20 +233,27 @@ class Progress:
 def profile(pool: ResourcePool, cfg: config_mod.Config, seconds: float = 1.0,
             grid: dict[str, list] | None = None, progress: bool = True) -> Profiles:
     """Measure each stage alone over ``grid`` (default :func:`grids`) on the pool's cores (CPU-only:
-    quotas are core counts; c_env is 1 because one env worker process is single-threaded)."""
+    quotas are core counts). The simulator is first probed for the cores one env keeps busy
+    (:func:`measure_cores_used`), which sets the cores per env (c_env) its table covers
+    (:func:`cores_per_env_candidates`); each (c_env, E) is measured with E * c_env cores."""
     grid = grid or grids(pool, cfg)
     cores = pool.core_ids
-    jobs = ([("sim", e, None) for e in grid["sim_envs"]]
+    used = measure_cores_used(cfg, cores, seconds)
+    per_env = cores_per_env_candidates(used, len(cores))
+    jobs = ([("sim", e, c) for c in per_env for e in grid["sim_envs"] if e * c <= len(cores)]
             + [("gen", s, b) for s in grid["cores"] for b in grid["gen_batch"]]
             + [("train", s, b) for s in grid["cores"] for b in grid["train_batch"]])
-    bar = Progress(len(jobs)) if progress else None
+    bar = Progress(len(jobs) + 1) if progress else None
+    if bar:
+        bar.step(f"sim: one env keeps {used:.2f} cores busy while it steps; cores per env profiled: "
+                 f"{', '.join(map(str, per_env))}")
     sim: dict[tuple[int, int, int], float] = {}
     gen: dict[tuple[int, int], float] = {}
     train: dict[tuple[int, int], float] = {}
     for stage, a, b in jobs:
         if stage == "sim":
-            sim[(1, a, a)] = rate = measure_sim(cfg, cores[:a], a, seconds)
-            what = f"sim: {a} envs on {a} cores: {rate:,.0f} decisions/s"
+            sim[(b, a, a * b)] = rate = measure_sim(cfg, cores[:a * b], a, seconds, cores_per_env=b)
+            what = f"sim: {a} envs on {b} core{'s' if b > 1 else ''} each: {rate:,.0f} decisions/s"
         elif stage == "gen":
             gen[(a, b)] = rate = measure_gen(cfg, cores[:a], b, seconds)
             what = f"gen: {a} cores, batch {b}: {rate:,.0f} decisions/s"
@@ -224,7 +262,7 @@ def profile(pool: ResourcePool, cfg: config_mod.Config, seconds: float = 1.0,
             what = f"train: {a} cores, batch {b}: {rate:,.0f} decisions/s"
         if bar:
             bar.step(what)
-    return Profiles(sim=sim, gen=gen, train=train)
+    return Profiles(sim=sim, gen=gen, train=train, sim_cores_used=used if math.isfinite(used) else None)
 
 
 def save(path: Path, profiles: Profiles, tag: dict[str, Any]) -> None:

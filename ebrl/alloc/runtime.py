@@ -41,6 +41,8 @@ def make_placement(cfg: config_mod.Config, *, measure: bool, progress: bool = Tr
         if stored is None:
             raise FileNotFoundError(f"no stage profile of this machine and workload at {path}")
         profiles = stored
+    if cfg.sim.core_rebinding is True:  # rebinding single steps, as the user asked: one core per env
+        profiles = profiles.with_c_env(1)
     placement = EmbodiPlacement(pool, profiles, window=cfg.alloc.window, gap=cfg.alloc.gap,
                                 patience=cfg.alloc.patience, s_g_min=cfg.alloc.min_gen_cores,
                                 s_t_min=cfg.alloc.min_train_cores, local_sim=local_sim)
@@ -56,7 +58,8 @@ def initial_config(cfg: config_mod.Config, local_sim: bool = True
     per = cfg.sim.envs_per_group
     new = dataclasses.replace(
         cfg,
-        sim=dataclasses.replace(cfg.sim, cores=plan.cores["sim"]),
+        sim=dataclasses.replace(cfg.sim, cores=plan.cores["sim"],
+                                cores_per_env=plan.allocation.c_env or cfg.sim.cores_per_env),
         gen=dataclasses.replace(cfg.gen, cores=plan.cores["gen"], threads=plan.threads["gen"],
                                 max_batch_groups=max(1, plan.gen_batch // per)),
         train=dataclasses.replace(cfg.train, cores=plan.cores["train"], threads=plan.threads["train"]),
@@ -82,6 +85,7 @@ def gpu_shares(placement: EmbodiPlacement) -> list[GpuShare]:
 def describe(plan: Plan) -> str:
     a = plan.allocation
     return (f"plan v{plan.version} ({a.method}): " + ", ".join(f"{s} cores {c}" for s, c in plan.cores.items())
+            + (f" ({a.c_env} per env)" if a.c_env > 1 else "")
             + f", gen batch {plan.gen_batch}; predicted {a.theta:,.0f} decisions/s")
 
 
@@ -127,6 +131,7 @@ def metrics_of(placement: EmbodiPlacement, rates: StageRates | None) -> dict[str
                              "alloc/imbalanced_reports": float(placement.imbalanced)}
     if plan is not None:
         out["alloc/theta_predicted"] = plan.allocation.theta
+        out["alloc/cores_per_env"] = float(plan.allocation.c_env)
         for stage, cores in plan.cores.items():
             out[f"alloc/cores_{stage}"] = float(len(cores))
     if rates is not None:

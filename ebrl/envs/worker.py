@@ -21,14 +21,14 @@ import threading
 import time
 from dataclasses import dataclass
 from multiprocessing.connection import Connection
-from typing import Any, Callable
+from typing import Any, Callable, Iterable
 
 import numpy as np
 
 from ebrl.envs.backends import backend, make_env
 from ebrl.envs.render import ensure_gl_for
 from ebrl.envs.spec import EnvSpec
-from ebrl.sched.corepool import CoreClaim, CorePool, ParentGone
+from ebrl.sched.corepool import CoreClaim, CorePool, ParentGone, pin_threads
 
 _CTX = None
 EPISODE_SEED_STRIDE = 7919  # episode k of a worker seeded s starts from reset(seed=s + EPISODE_SEED_STRIDE * k)
@@ -68,6 +68,20 @@ class ChunkResult:
     step_s: tuple[float, ...] = ()  # wall seconds of each env.step of the chunk
     step_cpu_s: tuple[float, ...] = ()  # CPU seconds of each env.step (the env's own cost, whoever shares the core)
     cores: tuple[int, ...] = ()  # the core each step ran on (rebinding: the core it was granted; else empty)
+    helper_cpu_s: float = 0.0  # CPU seconds the env's other threads used during the chunk (a multi-threaded simulator)
+
+
+def cores_used(results: Iterable[ChunkResult]) -> float:
+    """Cores an env kept busy while it stepped: the CPU time of its steps, its other threads' included, over
+    their wall time (about 1 for a single-threaded simulator, more for one that steps on several threads; nan
+    before any step). The stepping choice watches it at run time and the allocator's profile measures it, so
+    both decide cores per environment from the same number."""
+    cpu = wall = 0.0
+    for r in results:
+        cpu += sum(r.step_cpu_s) + r.helper_cpu_s
+        wall += sum(r.step_s)
+    return cpu / wall if wall > 0 else float("nan")
+
 
 
 def as_obs(obs: Any) -> np.ndarray:
@@ -126,13 +140,16 @@ def adopt(owner: int | None) -> bool:
 
 
 def _worker_main(conn: Connection, spec: EnvSpec, seed: int, claim: CoreClaim | None = None,
-                 owner: int | None = None) -> None:
+                 cores: tuple[int, ...] | None = None, owner: int | None = None) -> None:
     """Episode ``k`` starts from ``env.reset(seed=seed + 7919 * k)``: workers given the same ``seed`` replay
     the same sequence of initial states (GRPO groups). With a ``claim`` on the sim service's core pool, every
-    step runs on a core claimed from it (:mod:`ebrl.sched.corepool`). ``owner``: the sim service's pid; the
-    worker dies with it."""
+    step runs on a core claimed from it (:mod:`ebrl.sched.corepool`). ``cores``: pinned there before the env
+    is made, so every thread a simulator starts runs there too. ``owner``: the sim service's pid; the worker
+    dies with it."""
     if not adopt(owner):
         return  # the sim service (or the forkserver) died before the worker got here
+    if cores:
+        os.sched_setaffinity(0, cores)
     if claim is not None:
         claim.register()
     try:
@@ -162,6 +179,7 @@ def _serve(conn: Connection, spec: EnvSpec, seed: int, claim: CoreClaim | None) 
             elif cmd == "chunk":
                 total, steps, terminated, truncated = 0.0, 0, False, False
                 started = time.thread_time()  # CPU time: a descheduled worker is not busy
+                process_started = time.process_time()  # every thread's: the env's own threads too
                 actions, observe = arg
                 step_s, step_cpu, cores = [], [], []
                 core = claim.acquire() if claim is not None else None
@@ -185,6 +203,7 @@ def _serve(conn: Connection, spec: EnvSpec, seed: int, claim: CoreClaim | None) 
                 if lazy and base.skip_observation and (terminated or truncated):  # an episode's end is always read
                     obs = base.observe()
                 busy = time.thread_time() - started
+                helper = max(0.0, time.process_time() - process_started - busy)
                 episode_return += total
                 episode_length += steps
                 final_obs = as_obs(obs)
@@ -199,13 +218,17 @@ def _serve(conn: Connection, spec: EnvSpec, seed: int, claim: CoreClaim | None) 
                     claim.release(core, step_s[-1] if step_s else 0.0)
                 conn.send(ChunkResult(total, steps, bool(terminated), bool(truncated), final_obs, as_obs(obs),
                                       ep_ret, ep_len, ep_success, busy, episode, tuple(step_s), tuple(step_cpu),
-                                      tuple(cores)))
+                                      tuple(cores), helper))
             elif cmd == "close":
                 return
             else:
                 conn.send(ValueError(f"unknown worker command {cmd!r}"))
     finally:
         env.close()
+
+
+def _cores(core: int | tuple[int, ...]) -> tuple[int, ...]:
+    return (int(core),) if isinstance(core, (int, np.integer)) else tuple(int(c) for c in core)
 
 
 class WorkerFailed(RuntimeError):
@@ -280,20 +303,28 @@ class WorkerProcess:
 class EnvWorker(WorkerProcess):
     """Parent-side handle of one env worker process."""
 
-    def __init__(self, spec: EnvSpec, seed: int, core: int | None = None, pool: CorePool | None = None,
-                 slot: int = 0):
-        """``core``: pinned there; ``pool``: every step claims a core of the pool as env ``slot`` of it."""
+    def __init__(self, spec: EnvSpec, seed: int, core: int | tuple[int, ...] | None = None,
+                 pool: CorePool | None = None, slot: int = 0):
+        """``core``: pinned there (a core, or a set of cores for a simulator that steps on several threads,
+        ``sim.cores_per_env``), every thread of it; ``pool``: every step claims a core of the pool as env
+        ``slot`` of it."""
+        home = _cores(core) if core is not None else None
         super().__init__(spec, _worker_main,
-                         lambda child: (spec, seed, CoreClaim(pool, slot, child) if pool is not None else None),
+                         lambda child: (spec, seed, CoreClaim(pool, slot, child) if pool is not None else None, home),
                          "ebrl-env")
         self.slot = slot  # its place in the core pool
         self.core = core
         if core is not None:
             self.pin(core)
 
-    def pin(self, core: int) -> None:
-        os.sched_setaffinity(self.proc.pid, {core})
+    def pin(self, core: int | tuple[int, ...]) -> None:
+        pin_threads(self.proc.pid, _cores(core))
         self.core = core
+
+    @property
+    def home(self) -> tuple[int, ...]:
+        """The cores it is pinned to (empty: it claims cores from a pool, or runs where the OS puts it)."""
+        return _cores(self.core) if self.core is not None else ()
 
     async def reset(self, episode: int = 0) -> np.ndarray:
         """Start episode ``episode`` (its initial state is fixed by the worker's seed and the index)."""

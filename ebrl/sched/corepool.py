@@ -31,6 +31,22 @@ PINNED, REBIND = 0, 1
 _NEVER = np.inf  # the priority of an env whose latency was never measured: it goes first
 
 
+def pin_threads(pid: int, cores: set[int] | tuple[int, ...] | list[int]) -> None:
+    """Pin every thread of process ``pid`` to ``cores``: ``sched_setaffinity`` moves one thread, and a
+    simulator's own threads, started before, would stay where they were (step-level rebinding moves only the
+    stepping thread, which is why it is not for multi-threaded simulators: :mod:`ebrl.sched.stepchoice`)."""
+    cores = set(cores)
+    try:
+        tids = [int(t) for t in os.listdir(f"/proc/{pid}/task")]
+    except OSError:
+        tids = [pid]
+    for tid in tids:
+        try:
+            os.sched_setaffinity(tid, cores)
+        except (ProcessLookupError, PermissionError):  # a thread that just ended
+            pass
+
+
 class PoolBroken(RuntimeError):
     """The pool's lock stayed held (a worker died inside a critical section): the sim service must restart."""
 
@@ -196,7 +212,10 @@ class CoreClaim:
         """A core for the first step of a chunk (None: pinned mode, the worker runs on its home core)."""
         pool = self.pool
         if pool.mode == PINNED:
-            self._pin(pool.home(self.slot))
+            home = pool.home(self.slot)
+            if home != self.pinned:  # the whole process, a simulator's own threads too (rarely: a new home)
+                pin_threads(os.getpid(), {home})
+            self._pin(home)
             return None
         with pool.lock:
             free = np.flatnonzero(pool.free)

@@ -22,10 +22,10 @@ import numpy as np
 
 from ebrl.envs import EnvSpec, EnvWorker
 from ebrl.envs.vector import VectorWorker
-from ebrl.envs.worker import WorkerFailed
+from ebrl.envs.worker import ChunkResult, WorkerFailed
 from ebrl.messages import EPISODES_MAX, EpisodeBatch
 from ebrl.sched.corepool import CorePool
-from ebrl.sched.modes import Schedule
+from ebrl.sched.modes import Schedule, home_cores
 from ebrl.sched.rollout import Episodes
 from ebrl.sched.stepchoice import SteppingChoice
 from ebrl.sched.stepping import BatchStepping, IndependentStepping, RebindingStepping, Result, Stepping
@@ -99,8 +99,9 @@ class EnvFleet:
     def _start(self, env: int, core: int | None = None) -> EnvWorker:
         if self.pool is not None:  # every step claims a core of the pool
             return EnvWorker(self.spec, seed=self.env_seed(env), pool=self.pool, slot=self.slot(env))
-        cores = self.schedule.sim_cores  # static pinning round-robin over them
-        return EnvWorker(self.spec, seed=self.env_seed(env), core=cores[env % len(cores)] if core is None else core)
+        # static pinning round-robin over them (sets of sim.cores_per_env cores for a multi-threaded simulator)
+        home = home_cores(self.schedule.sim_cores, self.schedule.cores_per_env, env) if core is None else core
+        return EnvWorker(self.spec, seed=self.env_seed(env), core=home)
 
     def replace(self, g: int, i: int) -> EnvWorker:
         """Kill env ``i`` of group ``g``'s worker (dead or hung); a new one for the same env, seed and core
@@ -164,15 +165,16 @@ class EnvFleet:
         """The cores the envs run on (a rebinding budget, or the statically pinned cores)."""
         if self.pool is not None:
             return self.pool.cores()
-        return sorted({w.core for w in self.live() if w.core is not None})
+        return sorted({c for w in self.live() for c in w.home})
 
     def pin(self, cores: list[int]) -> None:
-        """A new simulation core budget: rebinding uses it from the next step; static pinning re-pins."""
+        """A new simulation core budget: rebinding uses it from the next step; static pinning re-pins (every
+        thread of each worker, on ``sim.cores_per_env`` cores each)."""
         if self.pool is not None:
             self.pool.set_budget(cores)
             return
         for i, worker in enumerate(self.live()):
-            worker.pin(cores[i % len(cores)])
+            worker.pin(home_cores(cores, self.schedule.cores_per_env, i))
 
     def close(self) -> None:
         for workers in self.workers.values():
@@ -293,6 +295,12 @@ class RolloutStats:
         # every episode that ended since the last EpisodeBatch, the newest EPISODES_MAX of them
         self.episodes: collections.deque[tuple] = collections.deque(maxlen=EPISODES_MAX)
         self.episode_records_dropped = 0
+        self.step_cpu_s = self.step_wall_s = 0.0  # since the last report: the envs' CPU (every thread), wall
+
+    def chunk_done(self, result: ChunkResult) -> None:
+        """One env's chunk: what ``sim/env_cores_used`` is measured from (:func:`ebrl.envs.worker.cores_used`)."""
+        self.step_cpu_s += sum(result.step_cpu_s) + result.helper_cpu_s
+        self.step_wall_s += sum(result.step_s)
 
     def episode_ended(self, env: int, episode: int, ret: float, length: int, success: bool | None,
                       version: int) -> None:
@@ -326,6 +334,9 @@ class RolloutStats:
             out["sim/episode_return_mean"] = float(np.mean(self.returns))
         if self.successes:
             out["sim/success_rate"] = float(np.mean(self.successes))
+        if self.step_wall_s > 0:  # cores an env keeps busy while it steps (above 1: a multi-threaded simulator)
+            out["sim/env_cores_used"] = self.step_cpu_s / self.step_wall_s
+            self.step_cpu_s = self.step_wall_s = 0.0
         if self.chunk_latency:
             lat = np.asarray(self.chunk_latency)
             out["sim/chunk_latency_avg_ms"] = float(lat.mean() * 1e3)

@@ -166,10 +166,11 @@ class GroupLoop:
             episodes.set(env, episode)
             return next_obs
         self.stats.chunk_latency.append(latency)
+        self.stats.chunk_done(res)
         episodes.set(env, res.episode + int(res.terminated or res.truncated))
         count("sim/env_steps", res.steps)
         self.stats.env_steps += res.steps
-        count("sim/step_busy_s", res.busy_s)
+        count("sim/step_busy_s", res.busy_s + res.helper_cpu_s)  # a multi-threaded simulator's threads too
         if res.episode_return is not None:
             self.stats.episode_ended(env, res.episode, res.episode_return, res.episode_length or 0,
                                      res.episode_success, chunk.policy_version)

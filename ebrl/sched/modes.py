@@ -50,6 +50,9 @@ class Schedule:
     rebinding_auto: bool = False
     # sim.vectorized: each group one process stepping its envs as a batch (no per-env stepping, no rebinding)
     vectorized: bool = False
+    # sim.cores_per_env: each env worker pinned to a set of this many cores (a multi-threaded simulator); above 1
+    # there is no step-level rebinding, which hands out single cores
+    cores_per_env: int = 1
 
     def length(self, hosts: int = 1) -> int:
         """Decisions per env per iteration while ``hosts`` sim hosts are live: an update's batch comes from all
@@ -85,7 +88,7 @@ def resolve(cfg: Any, cores: list[int] | None = None) -> Schedule:
     batched = vectorized(cfg)
     stepping = "batch" if batched else pick(cfg.sim.stepping, "stepping")  # a vectorized batch steps as one
     rebinding = pick(cfg.sim.core_rebinding, "core_rebinding")
-    core_rebinding = bool(rebinding) and stepping == "async"
+    core_rebinding = bool(rebinding) and stepping == "async" and cfg.sim.cores_per_env == 1
     overlap = pick(cfg.train.overlap, "overlap")
     sim_cores, gen_cores, train_cores = list(cfg.sim.cores), list(cfg.gen.cores), list(cfg.train.cores)
     if preset["disjoint"] and not (sim_cores or gen_cores or train_cores):
@@ -109,4 +112,17 @@ def resolve(cfg: Any, cores: list[int] | None = None) -> Schedule:
         throttle=cfg.algo.name != "grpo",
         rebinding_auto=core_rebinding and rebinding == "auto",
         vectorized=batched,
+        cores_per_env=cfg.sim.cores_per_env,
     )
+
+
+def home_cores(cores: list[int], cores_per_env: int, i: int) -> int | tuple[int, ...]:
+    """Where env ``i`` is statically pinned: core ``i mod len(cores)``, or with ``cores_per_env`` = c > 1 the
+    ``i mod E``-th of the E = len(cores) // c disjoint sets of c cores (all of them when they are fewer than c)."""
+    if cores_per_env <= 1:
+        return cores[i % len(cores)]
+    sets = max(1, len(cores) // cores_per_env)
+    if sets == 1:
+        return tuple(cores[:cores_per_env])
+    j = i % sets
+    return tuple(cores[j * cores_per_env:(j + 1) * cores_per_env])

@@ -16,6 +16,11 @@ watched (the CPU time of each step: the env's own cost, the same whichever mode 
 its core); a trial runs again when their median or
 their tail (p90 / p50) moved by half since the last decision, and every ``recheck_s`` seconds.
 
+Rebinding grants single cores, the paper's greedy algorithm being for single-core workers. An env that keeps
+more than one core busy while it steps (a multi-threaded simulator: ``cores_used``, its threads' CPU time over
+its steps' wall time, the measure the allocator's profile takes too) is never rebound: the choice is pinned,
+and says which ``sim.cores_per_env`` would give each env the cores it uses.
+
 Pure logic over a clock passed in: :class:`ebrl.sched.stepping.RebindingStepping` feeds it each chunk's
 results and applies the mode it returns to the core pool.
 """
@@ -32,6 +37,7 @@ import numpy as np
 from ebrl.sched.corepool import PINNED, REBIND
 
 NAMES = {PINNED: "pinned", REBIND: "rebind"}
+MULTI_THREADED = 1.25  # cores an env keeps busy while stepping above which it counts as multi-threaded
 TRIAL_ORDER = (PINNED, REBIND, REBIND, PINNED, PINNED, REBIND)
 
 
@@ -58,6 +64,7 @@ class SteppingChoice:
         self.decisions = 0
         self.latencies: collections.deque[float] = collections.deque(maxlen=4000)
         self.chunks: collections.deque[float] = collections.deque(maxlen=200)
+        self.env_cores: collections.deque[float] = collections.deque(maxlen=200)  # cores_used per chunk
         self.reference: tuple[float, float] | None = None  # (p50, p90/p50) at the last decision
         self.reason = "start-up"
         self.check_every_s, self._checked_at = check_every_s, -math.inf  # how often to look for a shift
@@ -65,11 +72,14 @@ class SteppingChoice:
 
     # --- measurements ---------------------------------------------------------------------------------------
 
-    def observe(self, now: float, steps: int, step_s: Iterable[float], chunk_s: float) -> None:
+    def observe(self, now: float, steps: int, step_s: Iterable[float], chunk_s: float,
+                cores_used: float = math.nan) -> None:
         """An env finished its chunk at ``now``: ``steps`` steps, each costing ``step_s`` seconds (CPU), in
-        ``chunk_s`` seconds from the chunk's start."""
+        ``chunk_s`` seconds from the chunk's start, keeping ``cores_used`` cores busy while it stepped."""
         self.latencies.extend(step_s)
         self.chunks.append(chunk_s)
+        if math.isfinite(cores_used):
+            self.env_cores.append(cores_used)
         if self.trial and now >= self.window_start + self.settle():
             self.window_steps += steps
 
@@ -89,6 +99,19 @@ class SteppingChoice:
         p50, p90 = np.percentile(np.fromiter(self.latencies, float), [50, 90])
         return float(p50), float(p90 / max(p50, 1e-9))
 
+    def cores_used(self) -> float | None:
+        """Median cores an env keeps busy while it steps, over the recent chunks; None before 20 were seen."""
+        return statistics.median(self.env_cores) if len(self.env_cores) >= 20 else None
+
+    def multi_threaded(self) -> bool:
+        used = self.cores_used()
+        return used is not None and used > MULTI_THREADED
+
+    def _multi_threaded_text(self) -> str:
+        used = self.cores_used() or 0.0
+        return (f"each env keeps {used:.1f} cores busy while it steps, and rebinding grants single cores; "
+                f"sim.cores_per_env = {max(2, round(used))} would pin each to that many")
+
     # --- decisions ----------------------------------------------------------------------------------------
 
     def tick(self, now: float) -> str | None:
@@ -107,6 +130,11 @@ class SteppingChoice:
         if now - self._checked_at < self.check_every_s:  # the percentiles cost ~0.1 ms: not after every chunk
             return None
         self._checked_at = now
+        if self.multi_threaded():  # no trial: rebinding is not for multi-threaded envs
+            if self.mode == REBIND:
+                self.mode, self.decided_at, self.decisions = PINNED, now, self.decisions + 1
+                return f"pinned: {self._multi_threaded_text()}"
+            return None
         why = self._shifted(now)
         if why:
             self._start_trial(now, why)
@@ -120,14 +148,16 @@ class SteppingChoice:
     def _decide(self, now: float) -> str:
         pinned, rebind = statistics.median(self.rates[PINNED]), statistics.median(self.rates[REBIND])
         self.gain = rebind / pinned if pinned > 0 else float("nan")
-        self.mode = REBIND if keep_rebinding(self.rates[PINNED], self.rates[REBIND], self.margin,
-                                             self.consistent) else PINNED
+        multi = self.multi_threaded()
+        self.mode = REBIND if not multi and keep_rebinding(self.rates[PINNED], self.rates[REBIND], self.margin,
+                                                           self.consistent) else PINNED
         self.decided_at, self.decisions = now, self.decisions + 1
         dist = self.distribution()
         dist_text = f"step latency p50 {dist[0] * 1e3:.2f} ms, p90/p50 {dist[1]:.2f}" if dist else "few steps seen"
         self.reference = None  # taken from the next steps
         return (f"{NAMES[self.mode]} ({self.reason}): rebinding ran {self.gain:.2f}x the env steps/s of pinned "
-                f"whole chunks ({rebind:.0f} vs {pinned:.0f}; {dist_text})")
+                f"whole chunks ({rebind:.0f} vs {pinned:.0f}; {dist_text})"
+                + (f"; {self._multi_threaded_text()}" if multi else ""))
 
     def _shifted(self, now: float) -> str:
         if now - self.decided_at >= self.recheck_s:

@@ -25,7 +25,7 @@ from typing import Callable, Protocol, Sequence
 
 import numpy as np
 
-from ebrl.envs.worker import ChunkResult, EnvWorker, WorkerFailed
+from ebrl.envs.worker import ChunkResult, EnvWorker, WorkerFailed, cores_used
 from ebrl.sched.corepool import CorePool
 from ebrl.sched.stepchoice import SteppingChoice
 
@@ -48,6 +48,7 @@ def merge(results: Sequence[ChunkResult]) -> ChunkResult:
         step_s=tuple(t for r in results for t in r.step_s),
         step_cpu_s=tuple(t for r in results for t in r.step_cpu_s),
         cores=tuple(c for r in results for c in r.cores),
+        helper_cpu_s=float(sum(r.helper_cpu_s for r in results)),
     )
 
 
@@ -143,7 +144,7 @@ class RebindingStepping(IndependentStepping):
             for core, seconds in zip(result.cores, result.step_s):
                 busy[core] += seconds
             if self.choice is not None:
-                self.choice.observe(now, result.steps, result.step_cpu_s, latency)
+                self.choice.observe(now, result.steps, result.step_cpu_s, latency, cores_used([result]))
         if self.on_step is not None:  # once per core and chunk, not per step
             for core, seconds in busy.items():
                 self.on_step(core, seconds)

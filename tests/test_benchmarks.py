@@ -88,3 +88,24 @@ def test_vector_transfer_benchmark_times_every_part_of_a_chunk(tmp_path):
     assert [(r["kind"], r["envs"]) for r in rows] == [("state", 4), ("rgb64", 4)]
     assert all(r["exchange_ms"] > 0 and r["bookkeeping_ms"] > 0 and r["obs_bytes"] > 4 * 4 * r["obs_values"]
                for r in rows)
+
+
+def test_the_parity_verdict_is_within_three_percent_or_above_also_for_negative_returns():
+    import importlib.util
+    import math
+
+    spec = importlib.util.spec_from_file_location("learning_parity", ROOT / "benchmarks/learning_parity.py")
+    parity = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(parity)
+
+    def verdict(a: list[float], b: list[float]) -> dict:
+        runs = {mode: {str(i): {"final_return": r, "best_return": r, "wall_s": wall, "env_steps": 1.0,
+                                "to_target_s": None} for i, r in enumerate(returns)}
+                for mode, returns, wall in (("ebrl", a, 60.0), ("colocated", b, 100.0))}
+        return parity.summarize(runs, ["ebrl", "colocated"])["verdict"]
+
+    assert verdict([970, 960, 980], [1000, 990, 1010])["parity"]  # 0.97x: within 3 %
+    assert not verdict([950, 960, 940], [1000, 990, 1010])["parity"]  # 0.95x
+    below_zero = verdict([78, -157, 193], [-24, -49, 105])  # returns around 0: no ratio, the difference judges
+    assert math.isnan(below_zero["final_return_ratio"]) and below_zero["parity"] and below_zero["faster"]
+    assert not verdict([-60, -70, -80], [-24, -49, 105])["parity"]  # more than 3 % below a negative median

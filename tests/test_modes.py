@@ -46,6 +46,8 @@ def test_core_rebinding_with_a_heavy_tailed_step_latency(tmp_path):
     assert sim["sim/chunk_latency_p99_ms"] >= sim["sim/chunk_latency_p50_ms"] > 1.0  # the latency was added
     used = [m["sim/env_cores_used"] for m in stats["sim/0"] if "sim/env_cores_used" in m]
     assert used and all(0 < u <= 1.05 for u in used)  # single-threaded envs: at most one core each
+    logs = out + "".join(p.read_text() for p in (tmp_path / "runs").glob("*/logs/*.log"))
+    assert "never retrieved" not in logs and "InvalidStateError" not in logs  # stopping with rebinding on: clean
 
 
 @pytest.mark.slow

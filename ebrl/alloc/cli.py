@@ -31,7 +31,8 @@ def profile_command(config_path: str, overrides: list[str], force: bool = False,
         print(f"Algorithm 1: no feasible allocation: {exc}")
         return 1
     a = plan.allocation
-    print(f"Algorithm 1 ({a.method}, {a.evaluations} evaluations): sim {a.s_sim} ({a.E} envs at once), "
+    print(f"Algorithm 1 ({a.method}, {a.evaluations} evaluations): sim {a.s_sim} ({a.E} envs at once, "
+          f"{a.c_env} core{'s' if a.c_env != 1 else ''} each), "
           f"gen {a.s_gen}, train {a.s_train}; batches gen {a.B_gen}, train {a.B_train}")
     print(f"  predicted decisions/s: sim {a.T_sim:,.0f}, gen {a.T_gen:,.0f}, train {a.T_train:,.0f} -> "
           f"Theta {a.theta:,.0f}")
@@ -40,7 +41,10 @@ def profile_command(config_path: str, overrides: list[str], force: bool = False,
 
 
 def format_tables(profiles) -> str:
-    lines = ["P_sim  (c_env, E, quota) -> decisions/s"]
+    lines = []
+    if profiles.sim_cores_used is not None:
+        lines.append(f"one env keeps {profiles.sim_cores_used:.2f} cores busy while it steps (sim/env_cores_used)")
+    lines.append("P_sim  (c_env, E, quota) -> decisions/s")
     lines += [f"  {key}: {rate:,.0f}" for key, rate in sorted(profiles.sim.items())]
     lines.append("P_gen  (quota, batch) -> decisions/s")
     lines += [f"  {key}: {rate:,.0f}" for key, rate in sorted(profiles.gen.items())]

@@ -83,7 +83,6 @@ def cores_used(results: Iterable[ChunkResult]) -> float:
     return cpu / wall if wall > 0 else float("nan")
 
 
-
 def as_obs(obs: Any) -> np.ndarray:
     return np.asarray(obs, dtype=np.float32)
 

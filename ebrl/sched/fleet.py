@@ -96,7 +96,7 @@ class EnvFleet:
         """The env's place in this host's core pool (its envs numbered from 0)."""
         return env - self.groups[0] * self.per_group
 
-    def _start(self, env: int, core: int | None = None) -> EnvWorker:
+    def _start(self, env: int, core: int | tuple[int, ...] | None = None) -> EnvWorker:
         if self.pool is not None:  # every step claims a core of the pool
             return EnvWorker(self.spec, seed=self.env_seed(env), pool=self.pool, slot=self.slot(env))
         # static pinning round-robin over them (sets of sim.cores_per_env cores for a multi-threaded simulator)

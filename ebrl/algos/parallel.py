@@ -183,5 +183,14 @@ class DataParallel:
         return mine[0]
 
     def close(self) -> None:
+        """Leave the process group. DDP's reducer (and its logger) are let go first, while the group is still
+        registered: a process group whose last holder is the reducer is destroyed inside the reducer's
+        deallocation, which holds the GIL while it joins gloo's worker threads, and a worker thread that is
+        freeing a finished work may need the GIL for it (a deadlock when the rank's objects go, seen in about
+        one run in three of the DDP test). Destroyed from the registry, the group is freed without the GIL."""
+        if isinstance(self.net, nn.parallel.DistributedDataParallel):
+            for attr in ("logger", "reducer"):
+                if getattr(self.net, attr, None) is not None:
+                    setattr(self.net, attr, None)
         if dist.is_initialized():
             dist.destroy_process_group()

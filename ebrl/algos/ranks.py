@@ -63,11 +63,13 @@ class Ranks:
         if self.stopped:
             return
         self.stopped = True
-        learner = self.learner
+        learner, loop = self.learner, asyncio.get_running_loop()
         try:
-            await asyncio.wait_for(asyncio.to_thread(learner.dp.send, Command("stop")), 5.0)
+            # on the update thread, after whatever collective it still runs (a keep-alive whose await was
+            # cancelled by the stop): from another thread the stop could race it, out of order on the ranks
+            await asyncio.wait_for(loop.run_in_executor(self.pool, learner.dp.send, Command("stop")), 5.0)
             if learner.sharded:
-                state = await asyncio.wait_for(asyncio.to_thread(learner.dp.checkpoint_state), 30.0)
+                state = await asyncio.wait_for(loop.run_in_executor(self.pool, learner.dp.checkpoint_state), 30.0)
                 learner.train_state = (learner.version, *state)
         except (asyncio.TimeoutError, RuntimeError) as exc:
             log.warning("could not stop the other training ranks cleanly: %r", exc)

@@ -64,7 +64,7 @@ class TrainService(Service):
         if self.instance > 0:
             while await self.ranks.follow_one(self.learned):
                 pass
-            self.log.info("rank 0 said stop; idle until stopped")
+            self.log.info("idle until stopped")
             return await self.stopping.wait()
         receiver = asyncio.create_task(self.receive())
         try:

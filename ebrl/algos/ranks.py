@@ -24,6 +24,7 @@ class Ranks:
         self.learner, self.pool = learner, pool
         self.stopped = False  # rank 0 sent (or, on ranks > 0, received) the stop command
         self.receiving: concurrent.futures.Future | None = None
+        self.stopping: asyncio.Future | None = None  # rank 0: the stop sequence, once begun
 
     async def keepalive(self) -> None:
         """Rank 0, waiting for data: the other ranks wait in a collective, tell them to go on."""
@@ -37,14 +38,19 @@ class Ranks:
             self.receiving = self.pool.submit(dp.receive)
         command = await asyncio.wrap_future(self.receiving)
         self.receiving = None
-        if command.kind == "stop" and self.learner.sharded:  # rank 0 gathers the final training state: take part
-            await loop.run_in_executor(self.pool, dp.checkpoint_state)
+        if command.kind == "stop":
+            # known at once: a stop of this rank during the gather below must not wait for another command
+            # (the gather, already on the update thread, ends with rank 0's part; the teardown waits for it)
+            self.stopped = True
+            log.info("rank 0 said stop")
+            if self.learner.sharded:  # rank 0 gathers the final training state: take part
+                await loop.run_in_executor(self.pool, dp.checkpoint_state)
+            return False
         if command.kind == "update":
             start = time.time()
             losses = await loop.run_in_executor(self.pool, self.learner.learn, command.items)
             learned(losses, start)
-        self.stopped = command.kind == "stop"
-        return not self.stopped
+        return True
 
     async def drain(self) -> None:
         """Ranks > 0, stopping: finish what rank 0 started, up to its stop (rank 0 may be gone: give up)."""
@@ -53,23 +59,28 @@ class Ranks:
         try:
             while await self.follow_one(lambda losses, start: None):
                 pass
-            log.info("rank 0 said stop while this rank was stopping")
         except RuntimeError as exc:  # rank 0 is gone: the collective failed
             log.info("rank 0 is gone (%s); not waiting for its stop", exc)
 
     async def stop(self) -> None:
         """Rank 0: release the other ranks from their collective (once) and, sharded, gather the final
-        training state with them; they may be gone (a crash): give up after a few seconds."""
-        if self.stopped:
-            return
-        self.stopped = True
-        learner, loop = self.learner, asyncio.get_running_loop()
+        training state with them; they may be gone (a crash): give up after a few seconds. The sequence runs
+        to its end once begun: a run stopped between the stop command and the sharded gather (the launcher's
+        stop right after the last update) would otherwise leave the other ranks in the gather, and the
+        teardown's call would find the stop already sent. Every call awaits the same sequence."""
+        if self.stopping is None:
+            self.stopped = True
+            self.stopping = asyncio.ensure_future(self._stop())
+        await asyncio.shield(self.stopping)
+
+    async def _stop(self) -> None:
+        learner = self.learner
         try:
-            # on the update thread, after whatever collective it still runs (a keep-alive whose await was
-            # cancelled by the stop): from another thread the stop could race it, out of order on the ranks
-            await asyncio.wait_for(loop.run_in_executor(self.pool, learner.dp.send, Command("stop")), 5.0)
+            # its own thread, not the update thread's pool: the teardown shuts that pool down, cancelling
+            # what waits in it
+            await asyncio.wait_for(asyncio.to_thread(learner.dp.send, Command("stop")), 5.0)
             if learner.sharded:
-                state = await asyncio.wait_for(loop.run_in_executor(self.pool, learner.dp.checkpoint_state), 30.0)
+                state = await asyncio.wait_for(asyncio.to_thread(learner.dp.checkpoint_state), 30.0)
                 learner.train_state = (learner.version, *state)
         except (asyncio.TimeoutError, RuntimeError) as exc:
             log.warning("could not stop the other training ranks cleanly: %r", exc)

@@ -129,9 +129,7 @@ def main() -> None:
         result["machine"] = machine
         result["commit"] = bench.commit()
         if (previous := data["points"].get(point)) is not None:  # measured again: the earlier verdicts stay
-            result["earlier"] = [*previous.get("earlier", []), *([previous["single_window"]]
-                                                                 if "single_window" in previous else []),
-                                 {k: previous[k] for k in EARLIER_KEYS if k in previous}]
+            result["earlier"] = [*previous.get("earlier", []), {k: previous[k] for k in EARLIER_KEYS if k in previous}]
         data["points"][point] = result
         order = all_points()
         data["points"] = dict(sorted(data["points"].items(),

@@ -539,8 +539,9 @@ def _check_semantics(cfg: Config) -> None:
         raise ConfigError(f"policy.width = {cfg.policy.width}: must be a multiple of policy.heads = {cfg.policy.heads}")
     if cfg.hosts and not any("sim" in entry.services for entry in cfg.hosts.values()):
         raise ConfigError("[hosts]: no host runs sim")
-    for path in ("log.flush_s", "sim.groups", "sim.envs_per_group", "sim.cores_per_env", "sim.segment_length", "policy.chunk", "algo.epochs",
-                 "algo.minibatches", "train.batch_size", "train.lr", "train.threads", "train.world_size", "gen.threads",
+    for path in ("log.flush_s", "sim.groups", "sim.envs_per_group", "sim.cores_per_env", "sim.segment_length",
+                 "policy.chunk", "algo.epochs", "algo.minibatches", "train.batch_size", "train.lr", "train.threads",
+                 "train.world_size", "gen.threads",
                  "run.stats_interval", "train.max_pending", "viz.window_s", "viz.port", "policy.embed_dim",
                  "policy.denoise_steps", "policy.width", "policy.depth", "policy.heads", "policy.patch"):
         section, key = path.split(".")

@@ -70,6 +70,10 @@ class ChunkResult:
     cores: tuple[int, ...] = ()  # the core each step ran on (rebinding: the core it was granted; else empty)
     helper_cpu_s: float = 0.0  # CPU seconds the env's other threads used during the chunk (a multi-threaded simulator)
 
+    def stepped(self) -> tuple[float, float]:
+        """(CPU seconds of its steps, its other threads' included; wall seconds of its steps)."""
+        return sum(self.step_cpu_s) + self.helper_cpu_s, sum(self.step_s)
+
 
 def cores_used(results: Iterable[ChunkResult]) -> float:
     """Cores an env kept busy while it stepped: the CPU time of its steps, its other threads' included, over
@@ -78,8 +82,8 @@ def cores_used(results: Iterable[ChunkResult]) -> float:
     both decide cores per environment from the same number."""
     cpu = wall = 0.0
     for r in results:
-        cpu += sum(r.step_cpu_s) + r.helper_cpu_s
-        wall += sum(r.step_s)
+        c, w = r.stepped()
+        cpu, wall = cpu + c, wall + w
     return cpu / wall if wall > 0 else float("nan")
 
 

@@ -299,8 +299,9 @@ class RolloutStats:
 
     def chunk_done(self, result: ChunkResult) -> None:
         """One env's chunk: what ``sim/env_cores_used`` is measured from (:func:`ebrl.envs.worker.cores_used`)."""
-        self.step_cpu_s += sum(result.step_cpu_s) + result.helper_cpu_s
-        self.step_wall_s += sum(result.step_s)
+        cpu, wall = result.stepped()
+        self.step_cpu_s += cpu
+        self.step_wall_s += wall
 
     def episode_ended(self, env: int, episode: int, ret: float, length: int, success: bool | None,
                       version: int) -> None:

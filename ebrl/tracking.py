@@ -102,36 +102,89 @@ def flat_config(cfg: config_mod.Config) -> dict[str, str | float | int]:
 
 
 class TensorBoardSink:
-    """``RUN_DIR/tb/``: scalars, the config as hparams and as text, the metadata as text."""
+    """``RUN_DIR/tb/``: scalars, the config as hparams and as text, the metadata as text. Written with
+    TensorBoard's own event-file writer and protobufs (the records ``torch.utils.tensorboard`` writes), so the
+    log service does not import torch: on a small host it starts while generation and training import theirs,
+    and its start-up was the CPU they waited for."""
 
     name = "tensorboard"
 
     def __init__(self, info: RunInfo, flush_s: float):
-        from torch.utils.tensorboard import SummaryWriter
-        from torch.utils.tensorboard.summary import hparams
+        from tensorboard.compat.proto.event_pb2 import Event
+        from tensorboard.compat.proto.summary_pb2 import Summary
+        from tensorboard.summary.writer.event_file_writer import EventFileWriter
 
-        self.writer = SummaryWriter(log_dir=str(info.run_dir / TB_DIR), flush_secs=max(1, int(flush_s)))
+        self._event, self._summary = Event, Summary
+        self.writer = EventFileWriter(str(info.run_dir / TB_DIR), flush_secs=max(1, int(flush_s)))
         self.last_step: dict[str, int] = {}
-        params = flat_config(info.config)
-        experiment, start, self._end = hparams(params, {key: 0.0 for key in HPARAM_METRICS})
-        self.writer.file_writer.add_summary(experiment)
-        self.writer.file_writer.add_summary(start)
-        self.writer.add_text("config", _code_block(info.config_toml), 0)
-        self.writer.add_text("meta", _code_block(json.dumps(info.meta, indent=2)), 0)
+        experiment, start, self._end = hparams_summaries(flat_config(info.config), HPARAM_METRICS)
+        self._add(experiment)
+        self._add(start)
+        self._add(text_summary("config", _code_block(info.config_toml)), step=0)
+        self._add(text_summary("meta", _code_block(json.dumps(info.meta, indent=2))), step=0)
+
+    def _add(self, summary: Any, step: int | None = None, wall_time: float | None = None) -> None:
+        event = self._event(summary=summary, wall_time=time.time() if wall_time is None else wall_time)
+        if step is not None:
+            event.step = int(step)
+        self.writer.add_event(event)
 
     def scalars(self, points: list[Point]) -> None:
         for p in points:
             # TensorBoard's reader drops a tag's later points when a step goes back (it takes it for a restart)
             step = max(p.step, self.last_step.get(p.key, p.step))
             self.last_step[p.key] = step
-            self.writer.add_scalar(p.key, p.value, global_step=step, walltime=p.wall_time)
+            self._add(self._summary(value=[self._summary.Value(tag=p.key, simple_value=float(p.value))]),
+                      step=step, wall_time=p.wall_time)
 
     def flush(self) -> None:
         self.writer.flush()
 
     def close(self) -> None:
-        self.writer.file_writer.add_summary(self._end)
+        self._add(self._end)
         self.writer.close()
+
+
+def text_summary(tag: str, text: str) -> Any:
+    """A TensorBoard text summary (the text plugin's record: one string tensor under ``TAG/text_summary``)."""
+    from tensorboard.compat.proto.summary_pb2 import Summary, SummaryMetadata
+    from tensorboard.compat.proto.tensor_pb2 import TensorProto
+    from tensorboard.compat.proto.tensor_shape_pb2 import TensorShapeProto
+    from tensorboard.plugins.text.plugin_data_pb2 import TextPluginData
+
+    metadata = SummaryMetadata(plugin_data=SummaryMetadata.PluginData(
+        plugin_name="text", content=TextPluginData(version=0).SerializeToString()))
+    tensor = TensorProto(dtype="DT_STRING", string_val=[text.encode("utf-8")],
+                         tensor_shape=TensorShapeProto(dim=[TensorShapeProto.Dim(size=1)]))
+    return Summary(value=[Summary.Value(tag=f"{tag}/text_summary", metadata=metadata, tensor=tensor)])
+
+
+def hparams_summaries(params: dict[str, str | float | int], metrics: Iterable[str]) -> tuple[Any, Any, Any]:
+    """The HParams plugin's three records: the experiment (which hyperparameters and metrics there are), the
+    session's start (this run's values) and its end (success)."""
+    from tensorboard.compat.proto.summary_pb2 import Summary, SummaryMetadata
+    from tensorboard.plugins.hparams import metadata as hp
+    from tensorboard.plugins.hparams.api_pb2 import DataType, Experiment, HParamInfo, MetricInfo, MetricName, Status
+    from tensorboard.plugins.hparams.plugin_data_pb2 import HParamsPluginData, SessionEndInfo, SessionStartInfo
+
+    def summary(tag: str, content: Any) -> Any:
+        data = SummaryMetadata.PluginData(plugin_name=hp.PLUGIN_NAME, content=content.SerializeToString())
+        return Summary(value=[Summary.Value(tag=tag, metadata=SummaryMetadata(plugin_data=data))])
+
+    start, infos = SessionStartInfo(), []
+    for key, value in params.items():
+        if isinstance(value, str):
+            start.hparams[key].string_value = value
+            infos.append(HParamInfo(name=key, type=DataType.Value("DATA_TYPE_STRING")))
+        else:
+            start.hparams[key].number_value = float(value)
+            infos.append(HParamInfo(name=key, type=DataType.Value("DATA_TYPE_FLOAT64")))
+    experiment = Experiment(hparam_infos=infos, metric_infos=[MetricInfo(name=MetricName(tag=m)) for m in metrics])
+    end = SessionEndInfo(status=Status.Value("STATUS_SUCCESS"))
+    version = hp.PLUGIN_DATA_VERSION
+    return (summary(hp.EXPERIMENT_TAG, HParamsPluginData(experiment=experiment, version=version)),
+            summary(hp.SESSION_START_INFO_TAG, HParamsPluginData(session_start_info=start, version=version)),
+            summary(hp.SESSION_END_INFO_TAG, HParamsPluginData(session_end_info=end, version=version)))
 
 
 class CsvSink:

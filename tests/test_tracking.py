@@ -377,3 +377,36 @@ def test_generation_samples_from_a_seed_fixed_per_instance():
     reseeded = asyncio.run(actions(0, config.load(str(ROOT / "configs" / "quickstart.toml"), ["run.seed=4"])))
     assert np.array_equal(first, again)
     assert not np.allclose(first, other) and not np.allclose(first, reseeded)
+
+
+def test_the_log_service_writes_tensorboard_without_importing_torch(tmp_path):
+    """The log service starts beside gen and train, which import torch: on a small host the CPU a third import
+    took was time the first env step waited for. Its TensorBoard records come from TensorBoard's own writer."""
+    run_dir, cfg = write_run(tmp_path)
+    script = f"""
+import sys
+from pathlib import Path
+import services.log
+from ebrl import config, tracking
+cfg = config.load({str(run_dir / "config.toml")!r})
+info = tracking.RunInfo(cfg.run.name, Path({str(run_dir)!r}), cfg, config.dump_toml(cfg), {{}})
+sink = tracking.TensorBoardSink(info, 1.0)
+sink.scalars([tracking.Point("run/env_steps", 3.0, 100, 1.0)])
+sink.close()
+print("torch imported" if "torch" in sys.modules else "no torch")
+"""
+    env = dict(os.environ, PYTHONPATH=str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", ""))
+    out = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, env=env, cwd=ROOT,
+                         timeout=120)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.strip() == "no torch"
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    acc = EventAccumulator(str(run_dir / tracking.TB_DIR))
+    acc.Reload()
+    assert [(e.step, e.value) for e in acc.Scalars("run/env_steps")] == [(100, 3.0)]
+    from tensorboard.plugins.hparams.plugin_data_pb2 import HParamsPluginData
+
+    start = HParamsPluginData.FromString(acc.PluginTagToContent("hparams")["_hparams_/session_start_info"])
+    assert start.session_start_info.hparams["run.seed"].number_value == cfg.run.seed
+    assert start.session_start_info.hparams["policy.kind"].string_value == "mlp"

@@ -163,8 +163,22 @@ class PPO:
         DistributedDataParallel when several ranks train); the gradient steps go through it."""
         self.model, self.cfg = model, algo_cfg
         self.net = net if net is not None else Methods(model)
-        self.optimizer = torch.optim.Adam(model.parameters(), lr=lr, eps=1e-5)
+        self.lr = lr
+        self._optimizer: torch.optim.Optimizer | None = None
         self.generator = torch.Generator().manual_seed(seed)
+
+    @property
+    def optimizer(self) -> torch.optim.Optimizer:
+        """Adam over the model's parameters, made on first use: torch's first optimizer imports torch._dynamo,
+        most of a second of CPU, which a new run spends after its first weights are out (``Learner.prepare``)
+        rather than before generation can act."""
+        if self._optimizer is None:
+            self._optimizer = torch.optim.Adam(self.model.parameters(), lr=self.lr, eps=1e-5)
+        return self._optimizer
+
+    @optimizer.setter
+    def optimizer(self, optimizer: torch.optim.Optimizer) -> None:
+        self._optimizer = optimizer
 
     def update(self, batch: Batch, scale: float = 1.0, version: int | None = None) -> dict[str, float]:
         """``epochs`` x ``minibatches`` gradient steps, always exactly that many (data-parallel ranks step in

@@ -73,6 +73,8 @@ def ablation_variants(config: str, overrides: list[str]) -> dict[str, list[str]]
             out[f"ebrl-no_{name}"] = [f"{key}=false"]
         if name == "vectorized" and (cfg.algo.name == "grpo" or cfg.alloc.enabled):
             continue  # refused with GRPO (shared initial states) and with the allocator (per-env profiles)
+        if name == "group_pipeline" and cfg.sim.groups < 2:
+            continue  # one group: nothing to pipeline
         if not running[name] or (name == "core_rebinding" and schedule.rebinding_auto):  # auto: also always on
             out[f"ebrl+{name}"] = [f"{key}=true"]
     return out

@@ -111,10 +111,9 @@ def test_ablations_flip_each_mechanism_from_what_ebrl_runs_with_the_config():
     from ebrl.bench import ablation_variants, base_mode
 
     # The quickstart leaves the allocator off, so its variant switches it on; core rebinding is "auto", so it
-    # is switched off and forced on; the other two are switched off.
+    # is switched off and forced on; overlap is switched off. Its one group has nothing to pipeline.
     assert ablation_variants("configs/quickstart.toml", []) == {
         "ebrl+allocator": ["alloc.enabled=true"],
-        "ebrl-no_group_pipeline": ["sim.group_pipeline=false"],
         "ebrl-no_overlap": ["train.overlap=false"],
         "ebrl-no_core_rebinding": ["sim.core_rebinding=false"],
         "ebrl+core_rebinding": ["sim.core_rebinding=true"],
@@ -123,6 +122,9 @@ def test_ablations_flip_each_mechanism_from_what_ebrl_runs_with_the_config():
     assert "ebrl+vectorized" not in ablation_variants("configs/grpo_pendulum.toml", [])  # refused with GRPO
     assert "ebrl-no_vectorized" in ablation_variants("configs/quickstart.toml", ["sim.vectorized=true"])
     assert "ebrl+core_rebinding" not in ablation_variants("configs/quickstart.toml", ["sim.core_rebinding=true"])
+    two = ["sim.groups=2", "sim.envs_per_group=4"]
+    assert ablation_variants("configs/quickstart.toml", two)["ebrl-no_group_pipeline"] == ["sim.group_pipeline=false"]
+    assert "ebrl+group_pipeline" not in ablation_variants("configs/quickstart.toml", [])  # one group: no variant
     lift = ablation_variants("configs/robosuite_lift.toml", ["alloc.enabled=true"])
     assert "ebrl-no_allocator" in lift and "ebrl-no_core_rebinding" in lift and "ebrl+vectorized" not in lift
     assert [base_mode(v) for v in ("ebrl", "ebrl-no_overlap", "ebrl+allocator", "colocated")] == [
@@ -158,8 +160,8 @@ def test_ebrl_bench_ablations_measure_a_number_of_trajectories(tmp_path):
                           cwd=ROOT, capture_output=True, text=True, timeout=600)
     assert proc.returncode == 0, proc.stderr
     data = json.loads(out_json.read_text())
-    assert set(data["results"]) == {"ebrl", "ebrl+allocator", "ebrl-no_group_pipeline", "ebrl-no_overlap",
-                                    "ebrl-no_core_rebinding", "ebrl+core_rebinding", "ebrl+vectorized"}
+    assert set(data["results"]) == {"ebrl", "ebrl+allocator", "ebrl-no_overlap", "ebrl-no_core_rebinding",
+                                    "ebrl+core_rebinding", "ebrl+vectorized"}
     assert data["trajectories"] == 24 and data["variants"]["ebrl+allocator"][-1] == "alloc.enabled=true"
     for variant, (result,) in data["results"].items():
         # the window ends at the first report with 24 more segments; stats come once a second

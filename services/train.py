@@ -69,7 +69,7 @@ class TrainService(Service):
         receiver = asyncio.create_task(self.receive())
         try:
             await self.publish_weights()
-            await asyncio.get_running_loop().run_in_executor(self.pool, self.learner.prepare)
+            await asyncio.get_running_loop().run_in_executor(self.pool, self.learner.ppo.prepare)
             while self.cfg.run.iterations == 0 or self.learner.version < self.cfg.run.iterations:
                 try:
                     await asyncio.wait_for(self.enough.wait(), KEEPALIVE_S if self.ranks else None)

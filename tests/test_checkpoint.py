@@ -53,6 +53,27 @@ def test_round_trip_restores_everything(tmp_path):
     assert torch.equal(torch.rand(3), expected_global)
 
 
+def test_a_new_run_makes_its_optimizer_only_when_it_first_needs_it(tmp_path):
+    """torch's first optimizer imports torch._dynamo (most of a second of CPU): a new run's train makes it after
+    publishing its first weights. A restore makes it at once when there is a checkpoint to load into it."""
+    torch.manual_seed(0)
+    model = make_policy(POLICY, ObsLayout.vector(3), 1)
+    ppo = PPO(model, ALGO, lr=1e-2)
+    assert checkpoint.restore_latest(tmp_path, model, lambda: ppo.optimizer, {"ppo": ppo.generator}) is None
+    assert ppo._optimizer is None  # nothing to restore: still not made
+    ppo.prepare()
+    assert isinstance(ppo._optimizer, torch.optim.Adam) and ppo.optimizer is ppo._optimizer
+
+    trained_model, trained_ppo = trained()
+    checkpoint.save(tmp_path, trained_model, trained_ppo.optimizer, 3, {"ppo": trained_ppo.generator})
+    other = PPO(model, ALGO, lr=1e-2)
+    restored = checkpoint.restore_latest(tmp_path, model, lambda: other.optimizer, {"ppo": other.generator})
+    assert restored.version == 3 and other._optimizer is not None
+    expected = trained_ppo.optimizer.state_dict()["state"][0]
+    for key, value in other.optimizer.state_dict()["state"][0].items():
+        torch.testing.assert_close(value, expected[key])
+
+
 def test_latest_always_names_a_complete_checkpoint_and_old_ones_go(tmp_path):
     model, ppo = trained()
     for version in (10, 20, 30):

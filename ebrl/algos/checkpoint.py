@@ -166,11 +166,13 @@ def save(run_dir: str | Path, model: torch.nn.Module, optimizer: torch.optim.Opt
     return final
 
 
-def restore_latest(run_dir: str | Path, model: torch.nn.Module, optimizer: torch.optim.Optimizer,
+def restore_latest(run_dir: str | Path, model: torch.nn.Module,
+                   optimizer: torch.optim.Optimizer | Callable[[], torch.optim.Optimizer],
                    generators: dict[str, torch.Generator]) -> Restored | None:
     """Load the newest readable checkpoint of a run (:func:`candidates`' order) into the model, optimizer and
     generators, skipping (and logging) each that cannot be read; None when there is none to read. Raises
-    ValueError when a checkpoint reads but does not fit the model or optimizer."""
+    ValueError when a checkpoint reads but does not fit the model or optimizer. ``optimizer`` may be a function
+    that makes it, called only once a checkpoint was read (a new run makes its optimizer later: ``PPO``)."""
     paths = candidates(run_dir)
     newest = max((version_of(p) for p in paths), default=-1)  # type: ignore[type-var]
     skipped: list[tuple[Path, str]] = []
@@ -184,7 +186,7 @@ def restore_latest(run_dir: str | Path, model: torch.nn.Module, optimizer: torch
         if skipped:
             log.warning("restoring %s instead (%d newer checkpoint%s unreadable)", path.name, len(skipped),
                         "s" if len(skipped) > 1 else "")
-        restored = _apply(path, loaded, model, optimizer, generators)
+        restored = _apply(path, loaded, model, optimizer() if callable(optimizer) else optimizer, generators)
         restored.skipped, restored.newest = skipped, max(newest, restored.version)
         return restored
     if skipped:

@@ -78,11 +78,6 @@ class Learner:
                                shard=self.cfg.train.parallel == "fsdp", device=self.device)
         self.ppo.net, self.ppo.optimizer = self.dp.net, self.dp.optimizer
 
-    def prepare(self) -> None:
-        """Make what the first update needs and a new run has not made yet (the optimizer): called once the
-        first weights are published, while the first batch is being collected."""
-        _ = self.ppo.optimizer
-
     @property
     def sharded(self) -> bool:
         return self.dp is not None and self.dp.shard
@@ -162,17 +157,14 @@ class Learner:
                      values=zeros, versions=np.full(n, self.version)).to(self.device)
 
     def resume(self, floor: int) -> str | None:
-        """Carry on from the run's newest readable checkpoint, if any, and after version ``floor`` (the newest
-        anyone saw before a restart, which may be past the checkpoint) and after every checkpoint on disk (one
-        that could not be read was written after its version was published). Returns what happened, or None
-        for a fresh start."""
+        """Carry on from the run's newest readable checkpoint, if any, after version ``floor`` (the newest anyone
+        saw before a restart, maybe past the checkpoint) and after every checkpoint on disk (an unreadable one
+        was written after its version was published). Returns what happened, or None for a fresh start."""
         if self.rank == 0:  # the writer of checkpoints: what a kill in the middle of a write left goes
             for stale in checkpoint.remove_stale(self.run_dir) + remove_stale_temporaries(self.policy_path):
                 log.warning("removed %s, left by an interrupted write", stale)
-        restored = None  # without checkpoints the optimizer is not made yet (``prepare``)
-        if checkpoint.candidates(self.run_dir):
-            restored = checkpoint.restore_latest(self.run_dir, self.model, self.ppo.optimizer,
-                                                 {"ppo": self.ppo.generator})
+        restored = checkpoint.restore_latest(self.run_dir, self.model, lambda: self.ppo.optimizer,
+                                             {"ppo": self.ppo.generator})  # no checkpoint: no optimizer yet
         if restored is not None:
             self.version = self.saved_version = restored.version
             log.info("resumed from %s (policy v%d)", restored.path, restored.version)

@@ -170,8 +170,8 @@ class PPO:
     @property
     def optimizer(self) -> torch.optim.Optimizer:
         """Adam over the model's parameters, made on first use: torch's first optimizer imports torch._dynamo,
-        most of a second of CPU, which a new run spends after its first weights are out (``Learner.prepare``)
-        rather than before generation can act."""
+        most of a second of CPU, which a new run spends after its first weights are out (``prepare``) rather
+        than before generation can act."""
         if self._optimizer is None:
             self._optimizer = torch.optim.Adam(self.model.parameters(), lr=self.lr, eps=1e-5)
         return self._optimizer
@@ -179,6 +179,10 @@ class PPO:
     @optimizer.setter
     def optimizer(self, optimizer: torch.optim.Optimizer) -> None:
         self._optimizer = optimizer
+
+    def prepare(self) -> None:
+        """Make the optimizer now (train: once v0 is published, while the first batch is collected)."""
+        _ = self.optimizer
 
     def update(self, batch: Batch, scale: float = 1.0, version: int | None = None) -> dict[str, float]:
         """``epochs`` x ``minibatches`` gradient steps, always exactly that many (data-parallel ranks step in

@@ -259,11 +259,14 @@ def hue_pixels(png) -> dict[str, int]:
 
 # --- end to end ----------------------------------------------------------------------------------
 
+TWO_GROUPS = ("sim.groups=2", "sim.envs_per_group=4")
+
 
 @pytest.mark.slow
 def test_up_with_viz_save_writes_timeline_and_report(tmp_path):
+    # Two groups of 4 (the quickstart runs one group of 8), so the record has a lane per group.
     with helpers.up(tmp_path / "runs", "configs/quickstart.toml", "run.iterations=3", 'viz.rerun="save"',
-                    name="vizsave") as run:
+                    *TWO_GROUPS, name="vizsave") as run:
         code = run.wait(300)
     out = run.output
     assert code == 0, out
@@ -312,8 +315,10 @@ def viewer(tmp_path, monkeypatch):
 @pytest.mark.slow
 def test_live_gantt_in_a_headless_viewer_shows_every_lane(tmp_path, viewer):
     port = int(viewer.url.rsplit(":", 1)[1].split("/")[0])
+    # Two groups, as in the layouts with idle hardware to overlap (BENCHMARKS "Group layout on 2 cores"): each
+    # group's exchanges are their own forwards, so the gen lane has enough bars for the pixel count below.
     with helpers.up(tmp_path / "runs", "configs/quickstart.toml", "run.iterations=0", f"viz.port={port}",
-                    'viz.rerun="spawn"', name="vizlive") as run:
+                    'viz.rerun="spawn"', *TWO_GROUPS, name="vizlive") as run:
         deadline = time.monotonic() + 300
         view = None
         while time.monotonic() < deadline:  # wait for the run's spans to reach the viewer

@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import contextlib
 import datetime
+import inspect
 import logging
 import warnings
 from dataclasses import dataclass
@@ -44,6 +45,13 @@ log = logging.getLogger(__name__)
 KEEPALIVE_S = 1.0
 TIMEOUT_S = 60.0
 CLOSE_BARRIER_S = 10.0  # how long a closing rank waits for the others (``DataParallel.close``)
+
+
+# Newer torch (2.13 here) names it forward_sync_buffers, which still syncs buffers from rank 0 at init as it does the
+# weights, and warns on every rank for broadcast_buffers; older torch (the GPU image's 2.11) knows only the latter.
+_NO_FORWARD_BUFFER_SYNC = ({"forward_sync_buffers": False}
+                           if "forward_sync_buffers" in inspect.signature(nn.parallel.DistributedDataParallel).parameters
+                           else {"broadcast_buffers": False})
 
 
 class Methods(nn.Module):
@@ -99,11 +107,11 @@ class DataParallel:
                                 timeout=datetime.timedelta(seconds=TIMEOUT_S))
         self.names = [f"policy.{name}" for name, _ in policy.named_parameters()]  # optimizer index -> FQN
         if not shard:
-            # broadcast_buffers=False: a forward pass is no collective (ranks call value() a different number
+            # No buffer sync in forward: a forward pass is no collective (ranks call value() a different number
             # of times). The one buffer that changes, the observation statistics, every rank updates alike
             # from the sum over ranks (``all_sum``).
             self.net: nn.Module = nn.parallel.DistributedDataParallel(
-                Methods(policy), broadcast_buffers=False, device_ids=[self.device.index] if cuda else None)
+                Methods(policy), device_ids=[self.device.index] if cuda else None, **_NO_FORWARD_BUFFER_SYNC)
             return
         from torch.distributed.checkpoint.state_dict import StateDictOptions, set_optimizer_state_dict
         from torch.distributed.fsdp import fully_shard

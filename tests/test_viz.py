@@ -315,8 +315,7 @@ def viewer(tmp_path, monkeypatch):
 @pytest.mark.slow
 def test_live_gantt_in_a_headless_viewer_shows_every_lane(tmp_path, viewer):
     port = int(viewer.url.rsplit(":", 1)[1].split("/")[0])
-    # Two groups, as in the layouts with idle hardware to overlap (BENCHMARKS "Group layout on 2 cores"): each
-    # group's exchanges are their own forwards, so the gen lane has enough bars for the pixel count below.
+    # Two groups of 4: twice the forward passes of one group of 8, enough gen bars for the pixel count below.
     with helpers.up(tmp_path / "runs", "configs/quickstart.toml", "run.iterations=0", f"viz.port={port}",
                     'viz.rerun="spawn"', *TWO_GROUPS, name="vizlive") as run:
         deadline = time.monotonic() + 300

@@ -48,8 +48,8 @@ CLOSE_BARRIER_S = 10.0  # how long a closing rank waits for the others (``DataPa
 
 # Newer torch (2.13 here) names it forward_sync_buffers, which still syncs buffers from rank 0 at init as it does the
 # weights, and warns on every rank for broadcast_buffers; older torch (the GPU image's 2.11) knows only the latter.
-_NO_FORWARD_BUFFER_SYNC = ({"forward_sync_buffers": False}
-                           if "forward_sync_buffers" in inspect.signature(nn.parallel.DistributedDataParallel).parameters
+_DDP_OPTIONS = inspect.signature(nn.parallel.DistributedDataParallel).parameters
+_NO_FORWARD_BUFFER_SYNC = ({"forward_sync_buffers": False} if "forward_sync_buffers" in _DDP_OPTIONS
                            else {"broadcast_buffers": False})
 
 

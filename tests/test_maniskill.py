@@ -3,6 +3,8 @@ a fake ManiSkill at its boundary (gym.make), and real PickCube-v1 episodes where
 
 import asyncio
 import json
+import threading
+import time
 from pathlib import Path
 
 import gymnasium as gym
@@ -14,7 +16,8 @@ from ebrl import config
 from ebrl.envs import EnvSpec, EnvWorker, tokenize
 from ebrl.envs import maniskill
 from ebrl.envs import EnvError
-from ebrl.envs.maniskill import CPU_CONFIGS, INSTRUCTIONS, ManiSkillEnv, preflight, scan_vulkan
+from ebrl.envs.maniskill import (CPU_CONFIGS, INSTRUCTIONS, MJWARP_CONFIG, ManiSkillEnv, download_host, host_reachable,
+                                 preflight, scan_vulkan)
 
 REPO = Path(__file__).resolve().parent.parent
 SPEC = EnvSpec("PickCube-v1", backend="maniskill")
@@ -137,6 +140,108 @@ def test_preflight_never_hangs_here():
     code = ("from ebrl.envs.maniskill import preflight; from ebrl.envs.spec import EnvSpec, EnvError\n"
             "try: preflight(EnvSpec('PickCube-v1', backend='maniskill'))\nexcept EnvError: pass")
     subprocess.run([sys.executable, "-c", code], check=True, timeout=120)
+
+
+PHYSX = "105.1-physx-5.3.1.patch0"  # sapien 3.0.3's sapien.physx.version()
+PHYSX_ZIP = f"https://github.com/sapien-sim/physx-precompiled/releases/download/{PHYSX}/linux-so.zip"
+
+
+@pytest.fixture
+def gpu_physx(tmp_path, monkeypatch, installed):
+    """A machine that passes every check before SAPIEN's GPU library: an NVIDIA GPU with its Vulkan driver, CUDA
+    torch, SAPIEN 3.0.3; a home of its own, without the library; the download host unreachable (tests change it)."""
+    monkeypatch.setattr(maniskill, "cuda_available", lambda: True)
+    monkeypatch.setattr(maniskill, "sapien_version", lambda: "3.0.3")
+    monkeypatch.setattr(maniskill, "physx_host_reachable", lambda environ: False)
+    monkeypatch.setattr(maniskill.platform, "machine", lambda: "x86_64")
+    home = tmp_path / "home"
+    home.mkdir()
+    return machine(tmp_path / "root", nvidia=True, nvidia_icd=True), {"HOME": str(home)}, home
+
+
+def test_gpu_physx_offline_without_sapiens_library_says_what_to_copy_where(gpu_physx):
+    """Offline, SAPIEN's first-use download of libPhysXGpu_64.so would fail in a worker with a network stack
+    trace; the preflight says at once which file, from where, into which folder, and the MuJoCo Warp config."""
+    root, environ, home = gpu_physx
+    folder = f"{home}/.sapien/physx/{PHYSX}/"
+    for backend in ("physx_cuda", "physx_cuda:1", "auto"):  # auto: physx_cuda, torch sees a GPU
+        spec = EnvSpec("PickCube-v1", backend="maniskill", kwargs={"sim_backend": backend})
+        start = time.monotonic()
+        with pytest.raises(EnvError) as err:
+            preflight(spec, root=root, environ=environ)
+        assert time.monotonic() - start < 5.0
+        message = str(err.value)
+        assert "\n" not in message and "PickCube-v1" in message
+        assert f"libPhysXGpu_64.so (PhysX {PHYSX})" in message and f"unzip it into {folder}" in message
+        assert PHYSX_ZIP in message and "github.com:443" in message
+        assert MJWARP_CONFIG == "configs/mjwarp_pickcube.toml" and MJWARP_CONFIG in message
+    assert (REPO / MJWARP_CONFIG).is_file()
+
+
+def test_gpu_physx_passes_with_sapiens_library_or_a_reachable_download_host(gpu_physx, monkeypatch):
+    """Where the library is in SAPIEN's folder nothing is probed (SAPIEN loads it); where it is missing but the
+    download host answers, SAPIEN downloads it as before; under CPU PhysX the library is not needed."""
+    root, environ, home = gpu_physx
+    spec = EnvSpec("PickCube-v1", backend="maniskill", kwargs={"sim_backend": "physx_cuda"})
+    preflight(EnvSpec("PickCube-v1", backend="maniskill", kwargs={"sim_backend": "physx_cpu"}), root=root,
+              environ=environ)
+    library = home / ".sapien" / "physx" / PHYSX / "libPhysXGpu_64.so"
+    library.parent.mkdir(parents=True)
+    library.touch()
+
+    def no_probe(environ):
+        raise AssertionError("the download host is probed although the library is there")
+
+    monkeypatch.setattr(maniskill, "physx_host_reachable", no_probe)
+    preflight(spec, root=root, environ=environ)
+    library.unlink()
+    monkeypatch.setattr(maniskill, "physx_host_reachable", lambda environ: True)
+    preflight(spec, root=root, environ=environ)
+
+
+def test_gpu_physx_is_checked_again_in_the_batch_process(gpu_physx, monkeypatch):
+    """A run that skipped the preflight gets the same error from ManiSkill's own process, before gym.make (the
+    check comes before ManiSkill is imported, which is not installed here)."""
+    from ebrl.envs.batch import ManiSkillBatch
+
+    _, environ, home = gpu_physx
+    monkeypatch.setenv("HOME", environ["HOME"])
+    spec = EnvSpec("PickCube-v1", backend="maniskill", kwargs={"sim_backend": "physx_cuda"})
+    start = time.monotonic()
+    with pytest.raises(EnvError, match=r"libPhysXGpu_64\.so") as err:
+        ManiSkillBatch(spec, 4, seed=0)
+    assert time.monotonic() - start < 5.0
+    assert f"{home}/.sapien/physx/{PHYSX}/" in str(err.value) and MJWARP_CONFIG in str(err.value)
+
+
+def test_download_host_probe_is_bounded_and_follows_the_proxy():
+    """The probe answers within its timeout even when the connection (or the name lookup before it) hangs; it
+    asks the HTTPS proxy where SAPIEN's download (requests) would go through one."""
+    release = threading.Event()
+
+    def hangs(address, timeout):
+        release.wait(30)
+        raise OSError("released")
+
+    start = time.monotonic()
+    try:
+        assert host_reachable("github.com", 443, timeout=0.2, connect=hangs) is False
+        assert time.monotonic() - start < 2.0
+    finally:
+        release.set()
+
+    class Socket:
+        def close(self):
+            pass
+
+    def refused(address, timeout):
+        raise ConnectionRefusedError(address)
+
+    assert host_reachable("github.com", 443, connect=lambda address, timeout: Socket()) is True
+    assert host_reachable("github.com", 443, connect=refused) is False
+    assert download_host({}) == ("github.com", 443)
+    assert download_host({"https_proxy": "http://proxy.lab:3128"}) == ("proxy.lab", 3128)
+    assert download_host({"HTTPS_PROXY": "proxy.lab:3128", "NO_PROXY": "localhost,.github.com"}) == ("github.com", 443)
 
 
 def test_config_parses():

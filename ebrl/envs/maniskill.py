@@ -19,19 +19,26 @@ ManiSkill renders with SAPIEN, which needs a Vulkan device even for state
 observations: a GPU, or a software driver SAPIEN accepts (Mesa 25's lavapipe
 does, Debian 12's Mesa 22.3 does not). :func:`preflight` says in a second or
 less, before any process starts, when there is none, instead of a worker
-failing deep inside SAPIEN.
+failing deep inside SAPIEN. GPU PhysX (``sim_backend = "physx_cuda"``) also needs SAPIEN's GPU PhysX library,
+which SAPIEN downloads from GitHub at first use: :func:`check_physx_gpu` says at once, before a worker's download
+fails, where it is missing and cannot be fetched.
 """
 
 from __future__ import annotations
 
 import glob
+import importlib.metadata
 import importlib.util
 import json
 import logging
 import os
+import platform
+import socket
 import subprocess
 import sys
-from collections.abc import Mapping
+import threading
+import urllib.parse
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -70,6 +77,16 @@ ICD_DIRS = ("etc/vulkan/icd.d", "usr/local/share/vulkan/icd.d", "usr/share/vulka
 NVIDIA_LIB = "libGLX_nvidia.so.0"
 LIB_DIRS = ("usr/lib/x86_64-linux-gnu", "usr/lib64", "usr/lib", "usr/local/nvidia/lib64")
 CPU_DRIVERS = ("lvp", "lavapipe", "llvmpipe", "swiftshader", "swrast")  # software Vulkan: not a GPU
+# SAPIEN's GPU PhysX library, which sapien.physx.enable_gpu() loads from ~/.sapien/physx/<version>/ (Path.home(): $HOME)
+# and, where it is not there, downloads from physx-precompiled's GitHub release of that version (sapien 3.0.3's
+# sapien/physx/__init__.py); the version is sapien.physx.version(), built into SAPIEN, by SAPIEN release
+PHYSX_GPU_LIB = "libPhysXGpu_64.so"
+PHYSX_VERSIONS = {"3.0.3": "105.1-physx-5.3.1.patch0"}
+PHYSX_PINNED = "3.0.3"  # pyproject's maniskill extra
+PHYSX_URL = "https://github.com/sapien-sim/physx-precompiled/releases/download/{version}/{zip}"
+PHYSX_HOST = ("github.com", 443)
+PROBE_TIMEOUT = 2.0  # seconds for the reachability check of the download host, name lookup included
+MJWARP_CONFIG = "configs/mjwarp_pickcube.toml"  # GPU-parallel physics without SAPIEN: MuJoCo Warp
 
 
 def make_options(num_envs: int, max_episode_steps: int | None, obs: str, sim_backend: str | None, image_size: int,
@@ -195,7 +212,10 @@ def build(spec: EnvSpec) -> ManiSkillEnv:
 
 
 def _make_maniskill(task: str, **kwargs: Any) -> gym.Env:
-    """``gym.make`` of a ManiSkill task (the one place that imports ManiSkill; tests replace it with a fake)."""
+    """``gym.make`` of a ManiSkill task (the one place that imports ManiSkill; tests replace it with a fake). Under
+    GPU PhysX, SAPIEN's GPU library is checked for first: a process started without the preflight still gets the
+    clear error, not a failed download's stack trace."""
+    check_physx_gpu(str(kwargs.get("sim_backend") or ""), f"env.id = {task!r} (backend maniskill)")
     import mani_skill.envs  # noqa: F401  registers the tasks with gymnasium
 
     return gym.make(task, **kwargs)
@@ -295,9 +315,10 @@ def mani_skill_installed() -> bool:
 
 def preflight(spec: EnvSpec, *, root: str | Path = "/", environ: Mapping[str, str] | None = None) -> None:
     """Raise :class:`EnvError` when ManiSkill cannot run here: no Vulkan device SAPIEN can render on, ManiSkill not
-    installed, or no CUDA torch for what ``spec`` asks of the GPU. Reads files only (well under a second), except
-    on a machine whose only Vulkan driver is a software one with ManiSkill installed: that costs a SAPIEN probe
-    in a subprocess (1-2 s).
+    installed, no CUDA torch for what ``spec`` asks of the GPU, or GPU PhysX without SAPIEN's GPU library and no
+    way to download it (:func:`check_physx_gpu`). Reads files only (well under a second), except on a machine
+    whose only Vulkan driver is a software one with ManiSkill installed: that costs a SAPIEN probe in a subprocess
+    (1-2 s); and GPU PhysX without its library costs a check of the download host (2 s at most).
     ``root`` and ``environ`` are where the machine is read from (tests point them elsewhere);
     ``EBRL_MANISKILL_SKIP_PREFLIGHT=1`` skips the checks."""
     environ = os.environ if environ is None else environ
@@ -327,6 +348,7 @@ def preflight(spec: EnvSpec, *, root: str | Path = "/", environ: Mapping[str, st
     if need and not cuda_available():
         raise EnvError(f"{where}: {need} needs torch with CUDA, and torch.cuda.is_available() is False here; "
                        "install a CUDA build of torch, or use obs = \"state\" with sim_backend = \"physx_cpu\"")
+    check_physx_gpu(resolve_sim_backend(spec.kwargs.get("sim_backend")), where, environ)
 
 
 def _needs_cuda_torch(kwargs: Mapping[str, Any], nvidia: bool) -> str:
@@ -340,6 +362,91 @@ def _needs_cuda_torch(kwargs: Mapping[str, Any], nvidia: bool) -> str:
     if nvidia and kwargs.get("obs", "state") == "rgb" and render.split(":")[0] in ("gpu", "cuda", "sapien_cuda"):
         return f"obs = \"rgb\" rendered on the GPU (render_backend = {render!r})"
     return ""
+
+
+def sapien_version() -> str:
+    """The installed SAPIEN's release, read from its package metadata (no import); without SAPIEN, the pinned one."""
+    try:
+        return importlib.metadata.version("sapien")
+    except importlib.metadata.PackageNotFoundError:
+        return PHYSX_PINNED
+
+
+def physx_gpu_library(environ: Mapping[str, str] | None = None) -> tuple[Path, str, str] | None:
+    """Where SAPIEN looks for its GPU PhysX library, as sapien.physx.enable_gpu() computes it (sapien 3.0.3):
+    ``Path.home() / ".sapien" / "physx" / <PhysX version> / "libPhysXGpu_64.so"``, with no variable to move it;
+    and the PhysX version and the release URL it downloads the zip from where the file is missing. None for a
+    SAPIEN release whose PhysX version is not known here (nothing is checked then); without SAPIEN, the pinned one."""
+    environ = os.environ if environ is None else environ
+    version = PHYSX_VERSIONS.get(sapien_version())
+    if version is None:
+        return None
+    home = Path(environ["HOME"]) if environ.get("HOME") else Path.home()  # Path.home(): $HOME, else the user's entry
+    archive = "linux-aarch64-so.zip" if platform.machine() in ("aarch64", "arm64") else "linux-so.zip"
+    return home / ".sapien" / "physx" / version / PHYSX_GPU_LIB, version, PHYSX_URL.format(version=version, zip=archive)
+
+
+def download_host(environ: Mapping[str, str] | None = None) -> tuple[str, int]:
+    """The host SAPIEN's download (requests, which honours the proxy variables) connects to first: the HTTPS proxy
+    where one is set and github.com is not excluded from it, else github.com:443."""
+    environ = os.environ if environ is None else environ
+    proxy = next((environ[k] for k in ("HTTPS_PROXY", "https_proxy", "ALL_PROXY", "all_proxy") if environ.get(k)), "")
+    bypass = [h.strip().lstrip(".") for h in (environ.get("NO_PROXY") or environ.get("no_proxy") or "").split(",")]
+    if proxy and not any(h == "*" or (h and ("." + PHYSX_HOST[0]).endswith("." + h)) for h in bypass):
+        url = urllib.parse.urlsplit(proxy if "://" in proxy else "http://" + proxy)
+        if url.hostname:
+            return url.hostname, url.port or (443 if url.scheme == "https" else 80)
+    return PHYSX_HOST
+
+
+def host_reachable(host: str, port: int, timeout: float = PROBE_TIMEOUT,
+                   connect: Callable[..., Any] = socket.create_connection) -> bool:
+    """Whether a TCP connection to ``host:port`` opens within ``timeout`` seconds. The attempt runs in a daemon
+    thread, so a name lookup that hangs (which the socket timeout does not bound) cannot hold the caller longer."""
+    opened = threading.Event()
+
+    def attempt() -> None:
+        try:
+            connect((host, port), timeout=timeout).close()
+            opened.set()
+        except OSError:
+            pass
+
+    thread = threading.Thread(target=attempt, name="ebrl-physx-probe", daemon=True)
+    thread.start()
+    thread.join(timeout)
+    return opened.is_set()
+
+
+def physx_host_reachable(environ: Mapping[str, str]) -> bool:
+    """The reachability check :func:`check_physx_gpu` uses by default (tests replace it)."""
+    return host_reachable(*download_host(environ))
+
+
+def check_physx_gpu(sim_backend: str, where: str, environ: Mapping[str, str] | None = None,
+                    reachable: Callable[[Mapping[str, str]], bool] | None = None) -> None:
+    """Raise :class:`EnvError` when ``sim_backend`` (resolved: ``"physx_cuda"``, ``"physx_cuda:N"``) asks for GPU
+    PhysX and SAPIEN's GPU library is neither where SAPIEN loads it from nor downloadable (the download host does
+    not answer in 2 s; ``reachable`` replaces that check). SAPIEN would otherwise try the download in the worker
+    and fail there with a network stack trace. Nothing happens where the file is there, or can be fetched (SAPIEN
+    downloads it). The preflight calls it in the launcher, and ManiSkill's process before ``gym.make``."""
+    if not sim_backend.startswith("physx_cuda"):
+        return
+    environ = os.environ if environ is None else environ
+    found = physx_gpu_library(environ)
+    if found is None:
+        return
+    library, version, url = found
+    if library.exists():  # SAPIEN only checks that it exists, then loads it
+        return
+    if (reachable or physx_host_reachable)(environ):
+        return
+    host, port = download_host(environ)
+    raise EnvError(
+        f"{where}: sim_backend = {sim_backend!r} needs SAPIEN's GPU PhysX library, {PHYSX_GPU_LIB} (PhysX "
+        f"{version}), which is not in {library.parent}/ and cannot be downloaded here ({host}:{port} does not "
+        f"answer). Fetch {url} on a machine with network access and unzip it into {library.parent}/ (SAPIEN then "
+        f"loads it, no download); or run GPU physics on MuJoCo Warp instead: {MJWARP_CONFIG}")
 
 
 _PROBE = "import sapien; sapien.render.RenderSystem(sapien.Device('cpu'))"

@@ -84,11 +84,13 @@ class BusSection:
 
 @dataclass
 class EnvSection:
-    backend: Literal["gymnasium", "robosuite", "maniskill"] = doc(
-        "simulator adapter (maniskill: the optional extra, `pip install -e '.[maniskill]'`, needs a Vulkan GPU)",
-        "gymnasium")
+    backend: Literal["gymnasium", "robosuite", "maniskill", "mjwarp"] = doc(
+        "simulator adapter (maniskill: the optional extra, `pip install -e '.[maniskill]'`, needs a Vulkan GPU; "
+        "mjwarp: MuJoCo Warp, `pip install -e '.[mjwarp]'`, each group one batch of envs_per_group worlds on the GPU "
+        "or the CPU, env.kwargs.device)", "gymnasium")
     id: str = doc("environment id: a gymnasium id (InvertedPendulum-v5, my_pkg.envs:MyEnv-v0), a robosuite "
-                  "task (Lift, PickPlaceCan, Stack) or a ManiSkill task (PickCube-v1)", "InvertedPendulum-v5")
+                  "task (Lift, PickPlaceCan, Stack), a ManiSkill task (PickCube-v1) or an mjwarp task "
+                  "(PandaPickCube-v0, my_pkg.tasks:MyTask)", "InvertedPendulum-v5")
     max_episode_steps: int = doc("time limit in env steps; 0 keeps the environment's own", 0)
     kwargs: dict[str, Any] = doc("extra keyword arguments for the environment constructor (robosuite and ManiSkill: "
                                  "obs = \"state\" | \"rgb\", image_size, camera, instruction, ...)", factory=dict)
@@ -482,7 +484,10 @@ def _hosts(raw: dict[str, Any]) -> dict[str, HostEntry]:
 
 def gpu_physics(backend: str, kwargs: dict[str, Any]) -> bool:
     """Whether the simulator steps on the GPU: ManiSkill under ``sim_backend = "physx_cuda[:N]"``, or ``"auto"``
-    where torch sees a CUDA GPU (ebrl.envs.maniskill.resolve_sim_backend)."""
+    where torch sees a CUDA GPU (ebrl.envs.maniskill.resolve_sim_backend); MuJoCo Warp on a CUDA
+    ``env.kwargs.device`` (``"auto"``, its default: where torch sees one)."""
+    if backend == "mjwarp":
+        return devices.is_cuda(str(kwargs.get("device", "auto")))
     if backend != "maniskill":
         return False
     value = kwargs.get("sim_backend")
@@ -494,7 +499,10 @@ def gpu_physics(backend: str, kwargs: dict[str, Any]) -> bool:
 
 
 def vectorized(cfg: Config) -> bool:
-    """Whether each sim group is one vectorized process (``sim.vectorized``; "auto": where physics is on the GPU)."""
+    """Whether each sim group is one vectorized process (``sim.vectorized``; "auto": where physics is on the GPU;
+    always for MuJoCo Warp, whose group is one model of many worlds)."""
+    if cfg.env.backend == "mjwarp":
+        return True
     if cfg.sim.vectorized == "auto":
         return gpu_physics(cfg.env.backend, cfg.env.kwargs)
     return bool(cfg.sim.vectorized)
@@ -513,6 +521,11 @@ def _check_semantics(cfg: Config) -> None:
         raise ConfigError(str(exc)) from None
     if cfg.run.target_success is not None and not 0.0 < cfg.run.target_success <= 1.0:
         raise ConfigError(f"run.target_success = {cfg.run.target_success}: a fraction in (0, 1] (0.9: 90 %)")
+    if cfg.env.backend == "mjwarp" and cfg.sim.vectorized is False:
+        raise ConfigError("sim.vectorized = false: an mjwarp group is one MuJoCo Warp model of envs_per_group worlds; "
+                          "for one CPU MuJoCo env per worker process use env.backend = \"gymnasium\" with "
+                          "env.id = \"ebrl.envs.tasks:PandaPickCube-v0\" (or your task through "
+                          "ebrl.envs.mjtask.MjTaskEnv)")
     if cfg.alloc.enabled and vectorized(cfg):
         raise ConfigError("alloc.enabled: the allocator profiles the simulator as one env per worker process, and "
                           "sim.vectorized runs a group's envs as one batch (GPU PhysX groups are vectorized by "

@@ -34,6 +34,15 @@ def check_syntax(value: str, field: str) -> None:
         raise DeviceError(f"{field} = {value!r}: expected \"auto\", \"cpu\", \"cuda\" or \"cuda:N\"")
 
 
+def is_cuda(value: str) -> bool:
+    """Whether ``value`` (auto, cpu, cuda, cuda:N) means a CUDA device here; ``auto``: where torch sees one."""
+    if value == "auto":
+        import torch
+
+        return torch.cuda.is_available()
+    return value.startswith("cuda")
+
+
 def resolve(value: str, field: str) -> Any:
     """The ``torch.device`` that ``value`` names on this machine; DeviceError if it does not exist."""
     import torch

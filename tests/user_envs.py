@@ -82,3 +82,47 @@ class ThreadedStep(gymnasium.Env):
 
 
 gymnasium.register("ThreadedStep-v0", entry_point=ThreadedStep)
+
+
+from ebrl.envs.mjtask import MjInit, MjTask  # noqa: E402  (a user's own MuJoCo task, env.backend = "mjwarp")
+
+
+class SlidingBlock(MjTask):
+    """The smallest MuJoCo task: a block on a rail, pushed by a motor, rewarded for staying near 0 (named
+    "user_envs:SlidingBlock"). ``explode_after``: world 0's control turns to NaN after that many steps, as a
+    diverging simulation's state would."""
+
+    ctrl_dt = 0.02
+    max_episode_steps = 50
+    action_size = 1
+    obs_size = 2
+
+    def __init__(self, explode_after: int = 0, **kwargs):
+        super().__init__(**kwargs)
+        self.explode_after = explode_after
+
+    def mjcf(self):
+        return ('<mujoco><option timestep="0.01"/><worldbody><body><joint name="x" type="slide" axis="1 0 0"/>'
+                '<geom type="box" size=".05 .05 .05" mass="1"/></body></worldbody>'
+                '<actuator><motor joint="x"/></actuator></mujoco>', {})
+
+    def task_fields(self):
+        return {"t": ()}
+
+    def initial_state(self, rng):
+        import numpy as np
+
+        return MjInit(qpos=np.array([rng.uniform(-0.1, 0.1)]), qvel=np.zeros(1))
+
+    def apply_action(self, xp, state, action):
+        state.ctrl[:, 0] = action[:, 0]
+        state.task["t"] += 1
+        if self.explode_after and float(state.task["t"][0]) > self.explode_after:
+            state.ctrl[0, 0] = float("nan")
+
+    def observe(self, xp, state):
+        return xp.astype(xp.concat([state.qpos, state.qvel], axis=1), xp.float32)
+
+    def evaluate(self, xp, state):
+        x = state.qpos[:, 0]
+        return -xp.abs(x), xp.abs(x) < 0.01, xp.zeros_like(x, dtype=xp.bool)

@@ -30,6 +30,7 @@ BACKENDS: dict[str, Backend] = {
     "gymnasium": Backend("ebrl.envs.gym", ("gymnasium", "mujoco")),
     "robosuite": Backend("ebrl.envs.robosuite", ("gymnasium", "mujoco", "robosuite")),
     "maniskill": Backend("ebrl.envs.maniskill", ("gymnasium", "torch", "mani_skill.envs")),
+    "mjwarp": Backend("ebrl.envs.mjwarp", ("gymnasium", "mujoco")),  # a group is one batch; one env: CPU MuJoCo
 }
 
 

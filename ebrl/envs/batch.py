@@ -1,19 +1,26 @@
-"""The batches a vectorized group's process steps (ebrl/envs/vector.py): ManiSkill's own batched environment, or
-copies of any env in turn; and :class:`BatchRunner`, which runs chunks on either with each env's episode
+"""The batches a vectorized group's process steps (ebrl/envs/vector.py): ManiSkill's own batched environment, a
+MuJoCo Warp model of many worlds, or copies of any env in turn; and :class:`BatchRunner`, which runs chunks on either with each env's episode
 bookkeeping. Imported in that process only (it needs torch; the sim service does not)."""
 
 from __future__ import annotations
 
+import logging
 import time
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 import torch
+from gymnasium.utils import seeding
 
 from ebrl.envs.backends import make_env
+from ebrl.envs.mjtask import MjState, MjTask, make_task
+from ebrl.envs.mjwarp import resolve_device, split_kwargs
 from ebrl.envs.spec import EnvError, EnvSpec
 from ebrl.envs.vector import VectorChunk
 from ebrl.envs.worker import EPISODE_SEED_STRIDE
+
+log = logging.getLogger(__name__)
 
 
 @dataclass
@@ -141,8 +148,130 @@ class ManiSkillBatch:
         self.env.close()
 
 
-def make_batch(spec: EnvSpec, seeds: list[int]) -> EnvBatch | ManiSkillBatch:
-    """The batch a vectorized group runs: ManiSkill's own under GPU PhysX, else copies of the env in one process."""
+class MjWarpBatch:
+    """``len(seeds)`` worlds of one :class:`~ebrl.envs.mjtask.MjTask` in one MuJoCo Warp model, on the GPU or the
+    CPU (ebrl/envs/mjwarp.py says what it takes). World ``i`` starts episode ``k`` from the task's initial state for
+    seed ``seeds[i] + 7919 k``, drawn on the host as a CPU env worker's; everything else stays on the device."""
+
+    def __init__(self, spec: EnvSpec, seeds: list[int]):
+        import mujoco_warp as mjw  # Warp: in this process only
+        import warp as wp
+        from array_api_compat import array_namespace
+
+        own, task_kwargs = split_kwargs(dict(spec.kwargs))
+        self.wp, self.mjw = wp, mjw
+        self.task: MjTask = make_task(spec.id, task_kwargs)
+        self.seeds = list(seeds)
+        self.num_envs = n = len(seeds)
+        self.limit = spec.max_episode_steps or self.task.max_episode_steps
+        wp.config.quiet = True
+        where = resolve_device(own["device"])
+        self.wp_device = wp.get_device(where)
+        self.device = torch.device(wp.device_to_torch(self.wp_device))
+        self.nconmax, self.njmax = own["nconmax"], own["njmax"]
+        mjm = self.task.model
+        self.substeps = self.task.substeps
+        with wp.ScopedDevice(self.wp_device):
+            self.m = mjw.put_model(mjm)
+            self.d = mjw.make_data(mjm, nworld=n, nconmax=self.nconmax, njmax=self.njmax)
+        if self.device.type == "cuda":  # torch works on Warp's stream: one order for both, and graphs can capture
+            torch.cuda.set_device(self.device)
+            torch.cuda.set_stream(wp.stream_to_torch(self.wp_device))
+        d, view = self.d, wp.to_torch
+        self.vars = {name: torch.zeros((n, *shape), dtype=torch.float32, device=self.device)
+                     for name, shape in self.task.task_fields().items()}
+        self.state = MjState(qpos=view(d.qpos), qvel=view(d.qvel), ctrl=view(d.ctrl), mocap_pos=view(d.mocap_pos),
+                             mocap_quat=view(d.mocap_quat), xpos=view(d.xpos), xquat=view(d.xquat),
+                             site_xpos=view(d.site_xpos), site_xmat=view(d.site_xmat), task=self.vars)
+        self.xp = array_namespace(self.state.qpos)
+        self.elapsed = torch.zeros(n, dtype=torch.int64, device=self.device)
+        self.nacon, self.nefc = view(d.nacon), view(d.nefc)
+        self.unstable = 0  # worlds whose state went non-finite (their episode ended there, as a truncation)
+        self.graph = None
+        self._physics()  # compiles the kernels (a first run is slow; Warp's kernel cache keeps them)
+        if own["cuda_graph"] and self.device.type == "cuda":
+            with wp.ScopedCapture(device=self.wp_device) as capture:
+                self._physics()
+            self.graph = capture.graph
+
+    def _physics(self) -> None:
+        with self.wp.ScopedDevice(self.wp_device):
+            for _ in range(self.substeps):
+                self.mjw.step(self.m, self.d)
+
+    def reset(self, idx: np.ndarray, episodes: np.ndarray) -> Any:
+        """Start episode ``episodes[j]`` of world ``idx[j]`` (its initial state drawn on the host from the episode's
+        seed, as a CPU worker's); every world's observation, [N, D] on the device."""
+        wp, state = self.wp, self.state
+        idx = np.asarray(idx, np.int64)
+        if len(idx):
+            inits = [self.task.initial_state(seeding.np_random(self.seeds[i] + EPISODE_SEED_STRIDE * int(k))[0])
+                     for i, k in zip(idx, episodes)]
+            rows = torch.as_tensor(idx, device=self.device)
+            mask = torch.zeros(self.num_envs, dtype=torch.bool, device=self.device)
+            mask[rows] = True
+            with wp.ScopedDevice(self.wp_device):
+                self.mjw.reset_data(self.m, self.d, reset=wp.from_torch(mask))
+
+            def put(target: Any, values: list[Any]) -> None:
+                target[rows] = torch.as_tensor(np.stack(values), dtype=target.dtype, device=self.device)
+
+            put(state.qpos, [i.qpos for i in inits])
+            put(state.qvel, [i.qvel for i in inits])
+            for name in ("mocap_pos", "mocap_quat", "ctrl"):  # None: the model's own, as reset_data left them
+                values = [getattr(i, name) for i in inits]
+                if values[0] is not None:
+                    put(getattr(state, name), values)
+            for name, value in self.vars.items():
+                put(value, [np.broadcast_to(np.asarray(i.task.get(name, 0.0), np.float32), value.shape[1:])
+                            for i in inits])
+            self.elapsed[rows] = 0
+            with wp.ScopedDevice(self.wp_device):
+                self.mjw.forward(self.m, self.d)
+        return self.task.observe(self.xp, state)
+
+    def step(self, actions: Any, active: Any, observe: bool = True) -> Any:
+        """Every world steps (the inactive ones' results are dropped by the caller). A world whose state or reward
+        is not finite (the physics diverged) ends its episode there as a truncation, reward 0."""
+        self.task.apply_action(self.xp, self.state, torch.clamp(actions.to(self.device, torch.float32), -1.0, 1.0))
+        if self.graph is not None:
+            self.wp.capture_launch(self.graph)
+        else:
+            self._physics()
+        reward, success, terminated = self.task.evaluate(self.xp, self.state)
+        obs = self.task.observe(self.xp, self.state)
+        self.elapsed += 1
+        reward = reward.to(torch.float32)
+        bad = ~(torch.isfinite(obs).all(dim=1) & torch.isfinite(reward))
+        # one transfer to the host per step: contacts, constraint rows, diverged worlds
+        contacts, rows, diverged = torch.stack([self.nacon[0].long(), self.nefc.max().long(),
+                                                  (bad & active).sum()]).tolist()
+        if contacts > self.nconmax * self.num_envs or rows > self.njmax:
+            raise EnvError(f"MuJoCo Warp ran out of room ({contacts} contacts for {self.nconmax} x {self.num_envs} "
+                           f"worlds, {rows} constraint rows for {self.njmax}): raise env.kwargs.nconmax or "
+                           "env.kwargs.njmax")
+        if diverged:
+            self._unstable(diverged)
+            obs = torch.where(bad[:, None], torch.zeros_like(obs), obs)
+            reward = torch.where(bad, torch.zeros_like(reward), reward)
+        truncated = (self.elapsed >= self.limit) | bad
+        return BatchStep(obs, reward, terminated & ~bad, truncated, success & ~bad)
+
+    def _unstable(self, count: int) -> None:
+        before, self.unstable = self.unstable, self.unstable + count
+        if self.unstable.bit_length() > before.bit_length():  # said at 1, 2, 4, 8, ... in all
+            log.warning("%d world(s) diverged (non-finite state); their episodes ended as truncations (%d so far)",
+                        count, self.unstable)
+
+    def close(self) -> None:
+        self.graph = None
+
+
+def make_batch(spec: EnvSpec, seeds: list[int]) -> EnvBatch | ManiSkillBatch | MjWarpBatch:
+    """The batch a vectorized group runs: MuJoCo Warp's worlds (backend mjwarp), ManiSkill's own under GPU PhysX,
+    else copies of the env in one process."""
+    if spec.backend == "mjwarp":
+        return MjWarpBatch(spec, seeds)
     if spec.gpu_physics:
         return ManiSkillBatch(spec, len(seeds), seeds[0])
     return EnvBatch(spec, seeds)
@@ -151,7 +280,7 @@ def make_batch(spec: EnvSpec, seeds: list[int]) -> EnvBatch | ManiSkillBatch:
 class BatchRunner:
     """Chunks on a batch, with each env's episode bookkeeping (return, length, success, episode index)."""
 
-    def __init__(self, batch: EnvBatch | ManiSkillBatch):
+    def __init__(self, batch: EnvBatch | ManiSkillBatch | MjWarpBatch):
         self.batch = batch
         n, device = batch.num_envs, batch.device
         self.episodes = np.zeros(n, np.int64)

@@ -74,7 +74,7 @@ def with_rendering(spec: Any) -> Any:
     call it before mujoco is imported in this process."""
     import dataclasses
 
-    if spec.backend in ("gymnasium", "robosuite"):
+    if spec.backend in ("gymnasium", "robosuite", "mjwarp"):
         choose_gl()
     return dataclasses.replace(spec, kwargs={**spec.kwargs, "render_mode": "rgb_array"})
 

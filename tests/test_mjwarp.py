@@ -1,0 +1,249 @@
+"""MuJoCo tasks on both engines: PandaPickCube on CPU MuJoCo (its gymnasium version), its simple model against the
+full one, the MuJoCo Warp batch on Warp's CPU device against CPU MuJoCo, and `ebrl up` of the mjwarp config.
+
+Warp compiles MuJoCo Warp's kernels on first use (15-60 s on 2 cores, once per machine: Warp's kernel cache keeps
+them), so the batch is built once per module where it can be."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import gymnasium as gym
+import mujoco
+import numpy as np
+import pytest
+
+from ebrl.config import ConfigError, load, vectorized
+from ebrl.envs import EnvError, EnvSpec, describe, preflight
+from ebrl.envs.mjtask import MjTaskEnv, task_class
+from ebrl.envs.mjwarp import build
+from ebrl.envs.tasks.pick_cube import HAND_HOME, HOME_QPOS, PandaPickCube
+
+ROOT = Path(__file__).resolve().parent.parent
+warp = pytest.importorskip("warp", reason="MuJoCo Warp is the mjwarp extra: pip install -e '.[mjwarp]'")
+torch = pytest.importorskip("torch")
+
+SPEC = EnvSpec(id="PandaPickCube-v0", backend="mjwarp", kwargs={"device": "cpu"})
+GRIP, FINGERS, CUBE, TARGET = slice(0, 3), slice(3, 5), slice(7, 10), slice(17, 20)
+POSITIONS = slice(0, 30)  # grip, fingers, cube pose, relative vectors, target, arm joints (37:40: the hand target)
+VELOCITIES = slice(30, 37)  # the arm's joint velocities
+
+
+def scripted(obs: np.ndarray, phase: list[int]) -> np.ndarray:
+    """A pick-and-place by hand: above the cube, down to it, close, carry to the target (``phase`` is its state)."""
+    grip, cube, target = obs[GRIP], obs[CUBE], obs[TARGET]
+    action = np.zeros(4, np.float32)
+    if phase[0] == 0:
+        aim, action[3] = cube + (0, 0, 0.04), 1.0
+        phase[0] += np.linalg.norm(aim - grip) < 0.01
+    elif phase[0] == 1:
+        aim, action[3] = cube + (0, 0, 0.01), 1.0
+        phase[0] += np.linalg.norm(aim - grip) < 0.008
+    elif phase[0] < 12:  # closing, 10 steps
+        aim, action[3] = grip, -1.0
+        phase[0] += 1
+    else:
+        aim, action[3] = target, -1.0
+    action[:3] = np.clip((aim - grip) / 0.02, -1.0, 1.0)
+    return action
+
+
+@pytest.fixture(scope="module")
+def batch():
+    from ebrl.envs.batch import MjWarpBatch
+
+    return MjWarpBatch(SPEC, [0, 1, 2])
+
+
+def cpu_envs(seeds):
+    envs = [build(SPEC) for _ in seeds]
+    return envs, np.stack([env.reset(seed=s)[0] for env, s in zip(envs, seeds)])
+
+
+def test_the_cpu_version_is_a_registered_gymnasium_env_that_a_scripted_pick_solves():
+    env = gym.make("ebrl.envs.tasks:PandaPickCube-v0")
+    assert env.spec.max_episode_steps == PandaPickCube.max_episode_steps
+    solved = 0
+    for seed in range(4):
+        obs, _ = env.reset(seed=seed)
+        assert env.observation_space.contains(obs)
+        phase = [0]
+        for _ in range(100):
+            obs, reward, terminated, truncated, info = env.step(scripted(obs, phase))
+            assert 0.0 <= reward <= 1.0
+            if terminated or truncated:
+                break
+        solved += info["success"] and terminated
+    assert solved >= 3, "the scripted pick should hold the cube at the target"
+    random = gym.make("ebrl.envs.tasks:PandaPickCube-v0")
+    random.reset(seed=0)
+    random.action_space.seed(0)
+    successes = 0
+    for _ in range(100):
+        *_, info = random.step(random.action_space.sample())
+        successes += info["success"]
+    assert successes == 0
+
+
+def test_the_hand_target_starts_where_the_hand_is():
+    """HAND_HOME (where each episode's hand target starts) is the hand's position in the home pose."""
+    task = PandaPickCube()
+    data = mujoco.MjData(task.model)
+    data.qpos[task.arm_qpos] = HOME_QPOS
+    mujoco.mj_kinematics(task.model, data)
+    hand = mujoco.mj_name2id(task.model, mujoco.mjtObj.mjOBJ_BODY, "hand")
+    np.testing.assert_allclose(data.xpos[hand], HAND_HOME, atol=2e-3)
+
+
+def rollout(model: str, seed: int, actions: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, bool]:
+    """Observations of one episode on CPU MuJoCo under ``actions`` (or the scripted pick); the actions; success."""
+    env = MjTaskEnv(PandaPickCube(model=model))
+    obs, _ = env.reset(seed=seed)
+    seen, taken, phase, success = [obs], [], [0], False
+    for k in range(60 if actions is None else len(actions)):
+        action = scripted(obs, phase) if actions is None else actions[k]
+        obs, _, terminated, _, info = env.step(action)
+        seen.append(obs)
+        taken.append(action)
+        success = success or info["success"]
+        if terminated:
+            break
+    return np.stack(seen), np.stack(taken), success
+
+
+def test_the_simple_model_moves_as_the_full_one_under_the_same_actions():
+    """The simple model (no meshes; hand box and finger pads collide) against robosuite's meshes: in free space the
+    arm's motion is the same (the bodies' inertia is explicit, so meshes change no mass); through a grasp and a
+    lift under the full model's actions, the cube follows the same path to within a centimetre."""
+    rng = np.random.default_rng(0)
+    free = np.concatenate([rng.uniform(-1, 1, (40, 3)), np.ones((40, 1))], axis=1).astype(np.float32)
+    free[:, 2] = np.abs(free[:, 2])  # upwards, away from the table and the cube
+    full, _, _ = rollout("full", 3, free)
+    simple, _, _ = rollout("simple", 3, free)
+    np.testing.assert_allclose(simple[:, POSITIONS], full[:, POSITIONS], atol=1e-6)
+    for seed in (2, 4, 6):
+        full, actions, full_success = rollout("full", seed)
+        simple, _, simple_success = rollout("simple", seed, actions)
+        n = min(len(full), len(simple))
+        assert full_success and simple_success, f"seed {seed}: the pick should succeed in both models"
+        assert full[n - 1, CUBE][2] > 0.08, "the cube was lifted"
+        np.testing.assert_allclose(simple[:n, CUBE], full[:n, CUBE], atol=0.01)
+
+
+def test_the_warp_batch_agrees_with_cpu_mujoco_on_the_same_actions(batch):
+    """Warp (float32) against MuJoCo's C engine (float64), 3 worlds: the same start from the same seeds, then the
+    same actions (a scripted pick, contacts included): positions within 2 mm, joint velocities within 5 cm/s or
+    rad/s, rewards within 1e-3, the same successes."""
+    obs = batch.reset(np.arange(3), np.zeros(3, np.int64)).numpy()
+    envs, cpu = cpu_envs([0, 1, 2])
+    np.testing.assert_allclose(obs, cpu, atol=1e-5)
+    phases = [[0], [0], [0]]
+    alive = torch.ones(3, dtype=torch.bool)
+    successes = 0
+    for _ in range(45):
+        actions = np.stack([scripted(o, p) for o, p in zip(cpu, phases)])
+        stepped = batch.step(torch.from_numpy(actions), alive)
+        outs = [env.step(a) for env, a in zip(envs, actions)]
+        cpu = np.stack([o[0] for o in outs])
+        got = stepped.obs.numpy()
+        live = alive.numpy()
+        np.testing.assert_allclose(got[live][:, POSITIONS], cpu[live][:, POSITIONS], atol=2e-3)
+        np.testing.assert_allclose(got[live][:, VELOCITIES], cpu[live][:, VELOCITIES], atol=5e-2)
+        np.testing.assert_allclose(stepped.reward.numpy()[live], [o[1] for o in np.array(outs, object)[live]],
+                                   atol=1e-3)
+        np.testing.assert_array_equal(stepped.success.numpy()[live], [o[4]["success"] for o in np.array(outs,
+                                                                                                      object)[live]])
+        successes += int((stepped.success & alive).sum())
+        alive &= ~(stepped.terminated | stepped.truncated)
+        if not alive.any():
+            break
+    assert successes >= 2
+
+
+def test_a_partial_reset_starts_each_world_where_a_worker_with_its_seed_would(batch):
+    before = batch.reset(np.arange(3), np.zeros(3, np.int64)).clone()
+    after = batch.reset(np.array([1]), np.array([5])).numpy()
+    _, cpu = cpu_envs([1 + 7919 * 5])  # world 1's seed, episode 5 (EPISODE_SEED_STRIDE)
+    np.testing.assert_allclose(after[1], cpu[0], atol=1e-5)
+    np.testing.assert_array_equal(after[[0, 2]], before.numpy()[[0, 2]])
+
+
+def test_a_chunk_on_the_batch_keeps_each_worlds_episode_accounts():
+    """BatchRunner over MuJoCo Warp worlds with a 6-step limit and chunks of 4: each world's second chunk ends its
+    episode after 2 counted steps, truncated, with the return of its 6 rewards; the next chunk starts episode 1."""
+    from ebrl.envs.batch import BatchRunner, MjWarpBatch
+
+    spec = EnvSpec(id="PandaPickCube-v0", backend="mjwarp", max_episode_steps=6, kwargs={"device": "cpu"})
+    runner = BatchRunner(MjWarpBatch(spec, [10, 11]))
+    runner.reset(np.zeros(2, np.int64))
+    actions = np.zeros((2, 4, 4), np.float32)
+    first = runner.chunk(actions)
+    second = runner.chunk(actions)
+    assert list(first.steps) == [4, 4] and list(second.steps) == [2, 2]
+    assert second.truncated.all() and not second.terminated.any()
+    np.testing.assert_allclose(second.episode_return, first.reward + second.reward, rtol=1e-5)
+    assert list(second.episode_length) == [6, 6] and list(second.episode_success) == [0, 0]
+    assert list(runner.chunk(actions).episode) == [1, 1]
+
+
+def test_a_world_that_diverges_ends_its_episode_and_the_others_go_on():
+    """A user's task (tests/user_envs.py, named "module:Class") whose world 0 turns non-finite: that world's episode
+    ends there as a truncation with reward 0 and a finite observation; world 1 is untouched."""
+    from ebrl.envs.batch import MjWarpBatch
+
+    sys.path.insert(0, str(Path(__file__).parent))
+    spec = EnvSpec(id="user_envs:SlidingBlock", backend="mjwarp", kwargs={"device": "cpu", "explode_after": 2})
+    batch = MjWarpBatch(spec, [0, 1])
+    batch.reset(np.arange(2), np.zeros(2, np.int64))
+    alive = torch.ones(2, dtype=torch.bool)
+    for step in range(3):
+        out = batch.step(torch.ones((2, 1)), alive)
+    assert out.truncated.tolist() == [True, False] and out.reward[0] == 0 and torch.isfinite(out.obs).all()
+    assert batch.unstable == 1
+
+
+def test_too_few_contacts_allocated_is_an_error_naming_the_key():
+    from ebrl.envs.batch import MjWarpBatch
+
+    spec = EnvSpec(id="PandaPickCube-v0", backend="mjwarp", kwargs={"device": "cpu", "nconmax": 1})
+    batch = MjWarpBatch(spec, [0])
+    batch.reset(np.arange(1), np.zeros(1, np.int64))
+    with pytest.raises(EnvError, match="env.kwargs.nconmax"):
+        batch.step(torch.zeros((1, 4)), torch.ones(1, dtype=torch.bool))
+
+
+def test_preflight_and_config_say_what_is_wrong():
+    preflight(SPEC)
+    info = describe(EnvSpec(id="PandaPickCube-v0", backend="mjwarp"))
+    assert info.obs_shape == (PandaPickCube.obs_size,) and info.action_dim == 4
+    for kwargs, match in (({"device": "tpu"}, "env.kwargs.device"), ({"nconmax": 0}, "env.kwargs.nconmax"),
+                          ({"colour": "red"}, "unknown env.kwargs 'colour'"), ({"model": "huge"}, "model")):
+        with pytest.raises(EnvError, match=match):
+            preflight(EnvSpec(id="PandaPickCube-v0", backend="mjwarp", kwargs=kwargs))
+    with pytest.raises(EnvError, match="PandaPickCube-v0"):
+        preflight(EnvSpec(id="PickCube", backend="mjwarp"))
+    with pytest.raises(EnvError, match="MjTask subclass"):
+        task_class("ebrl.envs.tasks.pick_cube:panda_pick_cube_mjcf")
+    if not torch.cuda.is_available():
+        with pytest.raises(EnvError, match="torch sees no CUDA device"):
+            preflight(EnvSpec(id="PandaPickCube-v0", backend="mjwarp", kwargs={"device": "cuda"}))
+    cfg = load(str(ROOT / "configs/mjwarp_pickcube.toml"))
+    assert vectorized(cfg) and cfg.sim.groups * cfg.sim.envs_per_group >= 1024
+    with pytest.raises(ConfigError, match="sim.vectorized = false"):
+        load(str(ROOT / "configs/mjwarp_pickcube.toml"), ["sim.vectorized=false"])
+
+
+def test_up_trains_the_mjwarp_config_on_the_cpu_and_stops_cleanly(tmp_path):
+    """A new user's `ebrl up configs/mjwarp_pickcube.toml` on a machine without a GPU, made small: 2 groups of 4
+    worlds on Warp's CPU device, 3 updates."""
+    overrides = ["sim.envs_per_group=4", "train.batch_size=32", "run.iterations=3", 'viz.rerun="off"',
+                 f'run.output_dir="{tmp_path}"']
+    done = subprocess.run([sys.executable, "-m", "ebrl.cli", "up", str(ROOT / "configs/mjwarp_pickcube.toml"),
+                           *[arg for o in overrides for arg in ("--set", o)]],
+                          capture_output=True, text=True, timeout=400, cwd=ROOT)
+    assert done.returncode == 0, done.stdout[-3000:] + done.stderr[-3000:]
+    summary = json.loads(next(tmp_path.glob("*/summary.json")).read_text())
+    assert summary["iterations"] >= 3 and summary["env_steps"] > 0, summary

@@ -164,7 +164,7 @@ class MjWarpBatch:
         self.seeds = list(seeds)
         self.num_envs = n = len(seeds)
         self.limit = spec.max_episode_steps or self.task.max_episode_steps
-        wp.config.quiet = True
+        wp.config.log_level = wp.LOG_WARNING  # no init banner
         where = resolve_device(own["device"])
         self.wp_device = wp.get_device(where)
         self.device = torch.device(wp.device_to_torch(self.wp_device))
@@ -246,9 +246,9 @@ class MjWarpBatch:
         # one transfer to the host per step: contacts, constraint rows, diverged worlds
         contacts, rows, diverged = torch.stack([self.nacon[0].long(), self.nefc.max().long(),
                                                   (bad & active).sum()]).tolist()
-        if contacts > self.nconmax * self.num_envs or rows > self.njmax:
-            raise EnvError(f"MuJoCo Warp ran out of room ({contacts} contacts for {self.nconmax} x {self.num_envs} "
-                           f"worlds, {rows} constraint rows for {self.njmax}): raise env.kwargs.nconmax or "
+        if contacts >= self.nconmax * self.num_envs or rows >= self.njmax:  # a full buffer: Warp dropped the rest
+            raise EnvError(f"MuJoCo Warp ran out of room ({contacts} contacts in {self.nconmax} x {self.num_envs} "
+                           f"slots, {rows} constraint rows of {self.njmax} per world): raise env.kwargs.nconmax or "
                            "env.kwargs.njmax")
         if diverged:
             self._unstable(diverged)

@@ -140,14 +140,18 @@ def panda_pick_cube_mjcf(full: bool = False) -> str:
     hx, hy, hz = HAND_HOME
     return f"""<mujoco model="panda_pick_cube">
   <compiler angle="radian" autolimits="true"/>
-  <option timestep="0.005" integrator="implicitfast" cone="pyramidal"/>
+  <option timestep="0.005" integrator="implicitfast" cone="pyramidal">
+    <!-- MuJoCo's own box-box collider on both engines: MuJoCo Warp's native CCD gives one contact per finger pad
+         on the cube (the pads then sink 1 cm into it under the grip), the dedicated collider four, as CPU MuJoCo -->
+    <flag nativeccd="disable"/>
+  </option>
   <default>
     <geom contype="0" conaffinity="0"/>
     <default class="visual"><geom type="mesh" group="1" rgba="0.9 0.9 0.9 1"/></default>
     <default class="collision_mesh"><geom type="mesh" group="3" contype="1" conaffinity="1"/></default>
     <default class="finger_mesh"><geom type="mesh" group="3" contype="0" conaffinity="1"/></default>
     <default class="pad"><geom type="box" size="0.008 0.004 0.008" contype="1" conaffinity="1" friction="2 0.05 0.0001"
-      solref="0.01 0.5" rgba="0.3 0.3 0.3 1"/></default>
+      solref="0.01 1" rgba="0.3 0.3 0.3 1"/></default>
   </default>
   <asset>
     <texture name="grid" type="2d" builtin="checker" rgb1="0.2 0.3 0.4" rgb2="0.1 0.2 0.3" width="256" height="256"/>
@@ -168,7 +172,7 @@ def panda_pick_cube_mjcf(full: bool = False) -> str:
     <body name="cube" pos="{CUBE_CENTRE[0]} {CUBE_CENTRE[1]} {CUBE_HALF}">
       <freejoint name="cube"/>
       <geom name="cube" type="box" size="{CUBE_HALF} {CUBE_HALF} {CUBE_HALF}" mass="0.064" contype="1" conaffinity="1"
-        friction="1 0.005 0.0001" rgba="0.8 0.1 0.1 1"/>
+        friction="1 0.005 0.0001" solref="0.01 1" rgba="0.8 0.1 0.1 1"/>
     </body>
     <body name="target" mocap="true" pos="{CUBE_CENTRE[0]} {CUBE_CENTRE[1]} 0.2">
       <geom type="sphere" size="0.01" rgba="0.1 0.8 0.1 0.6" group="2"/>

@@ -7,7 +7,6 @@ them), so the batch is built once per module where it can be."""
 from __future__ import annotations
 
 import json
-import subprocess
 import sys
 from pathlib import Path
 
@@ -21,6 +20,7 @@ from ebrl.envs import EnvError, EnvSpec, describe, preflight
 from ebrl.envs.mjtask import MjTaskEnv, task_class
 from ebrl.envs.mjwarp import build
 from ebrl.envs.tasks.pick_cube import HAND_HOME, HOME_QPOS, PandaPickCube
+from helpers import up
 
 ROOT = Path(__file__).resolve().parent.parent
 warp = pytest.importorskip("warp", reason="MuJoCo Warp is the mjwarp extra: pip install -e '.[mjwarp]'")
@@ -142,7 +142,7 @@ def test_the_warp_batch_agrees_with_cpu_mujoco_on_the_same_actions(batch):
     success; every world succeeds on both, at the same step (give or take one). Measured at 4 mm, 0.2 mm, 0.07 and
     the same steps. (A grasp that grazes the cube's edge first, as on seeds 0, 1 and 5, parts the two by up to 2 cm
     in the cube's path: the engines' arithmetic differs most in contact, and a graze amplifies it.)"""
-    obs = batch.reset(np.arange(3), np.zeros(3, np.int64)).numpy()
+    obs = batch.reset(np.arange(3), np.zeros(3, np.int64)).cpu().numpy()
     envs, cpu = cpu_envs(SEEDS)
     np.testing.assert_allclose(obs, cpu, atol=1e-5)
     phases = [[0], [0], [0]]
@@ -154,7 +154,7 @@ def test_the_warp_batch_agrees_with_cpu_mujoco_on_the_same_actions(batch):
         outs = [env.step(a) if succeeded["cpu"][i] is None else (cpu[i], 0.0, True, False, {"success": True})
                 for i, (env, a) in enumerate(zip(envs, actions))]
         cpu = np.stack([o[0] for o in outs])
-        got = stepped.obs.numpy()
+        got = stepped.obs.cpu().numpy()
         for i in range(3):
             for engine, success in (("warp", bool(stepped.success[i])), ("cpu", outs[i][4]["success"])):
                 if success and succeeded[engine][i] is None:
@@ -164,8 +164,9 @@ def test_the_warp_batch_agrees_with_cpu_mujoco_on_the_same_actions(batch):
         np.testing.assert_allclose(got[live][:, CUBE], cpu[live][:, CUBE], atol=2e-3)
         np.testing.assert_allclose(got[live][:, FINGERS], cpu[live][:, FINGERS], atol=2e-3)
         np.testing.assert_allclose(got[live][:, ARM_VELOCITY], cpu[live][:, ARM_VELOCITY], rtol=0.03, atol=0.05)
-        still = live & ~stepped.success.numpy() & ~np.array([o[4]["success"] for o in outs])
-        np.testing.assert_allclose(stepped.reward.numpy()[still], np.array([o[1] for o in outs])[still], atol=1e-2)
+        still = live & ~stepped.success.cpu().numpy() & ~np.array([o[4]["success"] for o in outs])
+        np.testing.assert_allclose(stepped.reward.cpu().numpy()[still], np.array([o[1] for o in outs])[still],
+                                   atol=1e-2)
         if all(s is not None for s in succeeded["warp"] + succeeded["cpu"]):
             break
     assert None not in succeeded["warp"] + succeeded["cpu"], succeeded
@@ -247,12 +248,54 @@ def test_preflight_and_config_say_what_is_wrong():
 
 def test_up_trains_the_mjwarp_config_on_the_cpu_and_stops_cleanly(tmp_path):
     """A new user's `ebrl up configs/mjwarp_pickcube.toml` on a machine without a GPU, made small: 2 groups of 4
-    worlds on Warp's CPU device, 3 updates."""
-    overrides = ["sim.envs_per_group=4", "train.batch_size=32", "run.iterations=3", 'viz.rerun="off"',
-                 f'run.output_dir="{tmp_path}"']
-    done = subprocess.run([sys.executable, "-m", "ebrl.cli", "up", str(ROOT / "configs/mjwarp_pickcube.toml"),
-                           *[arg for o in overrides for arg in ("--set", o)]],
-                          capture_output=True, text=True, timeout=400, cwd=ROOT)
-    assert done.returncode == 0, done.stdout[-3000:] + done.stderr[-3000:]
-    summary = json.loads(next(tmp_path.glob("*/summary.json")).read_text())
+    worlds on Warp's CPU device, 3 updates; it ends by itself, with every service stopped cleanly."""
+    with up(tmp_path, "configs/mjwarp_pickcube.toml", "sim.envs_per_group=4", "train.batch_size=32",
+            "run.iterations=3", 'viz.rerun="off"', name="mjwarp_cpu") as run:
+        code = run.wait(400)
+        summary = json.loads((run.run_dir / "summary.json").read_text())
+    assert code == 0, run.output
     assert summary["iterations"] >= 3 and summary["env_steps"] > 0, summary
+
+
+# --- on a GPU (benchmarks/gpu/check.sh mjwarp_tests runs these on the lent GPU machine)
+
+needs_cuda = pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA GPU (benchmarks/gpu/check.sh "
+                                "mjwarp_tests runs it on the lent GPU machine)")
+
+
+@pytest.mark.gpu
+@needs_cuda
+def test_the_warp_batch_on_the_gpu_agrees_with_cpu_mujoco_and_its_graphs_with_eager_steps():
+    """The same comparison as on Warp's CPU device, on the GPU with an env step's physics as one CUDA graph; and a
+    batch stepped eagerly lands where the graph does."""
+    from ebrl.envs.batch import MjWarpBatch
+
+    graphed = MjWarpBatch(EnvSpec(id="PandaPickCube-v0", backend="mjwarp", kwargs={"device": "cuda"}), SEEDS)
+    eager = MjWarpBatch(EnvSpec(id="PandaPickCube-v0", backend="mjwarp",
+                                kwargs={"device": "cuda", "cuda_graph": False}), SEEDS)
+    assert graphed.graph is not None and eager.graph is None and graphed.device.type == "cuda"
+    test_the_warp_batch_agrees_with_cpu_mujoco_on_the_same_actions(graphed)
+    eager.reset(np.arange(3), np.zeros(3, np.int64))
+    graphed.reset(np.arange(3), np.zeros(3, np.int64))
+    rng = np.random.default_rng(1)
+    alive = torch.ones(3, dtype=torch.bool, device="cuda")
+    for _ in range(20):
+        actions = torch.as_tensor(rng.uniform(-1, 1, (3, 4)), dtype=torch.float32, device="cuda")
+        a, b = graphed.step(actions, alive), eager.step(actions, alive)
+        torch.testing.assert_close(a.obs, b.obs, atol=1e-4, rtol=1e-4)
+
+
+@pytest.mark.gpu
+@needs_cuda
+def test_a_gpu_group_of_1024_worlds_steps_chunks_with_partial_resets():
+    from ebrl.envs.batch import BatchRunner, MjWarpBatch
+
+    spec = EnvSpec(id="PandaPickCube-v0", backend="mjwarp", max_episode_steps=10, kwargs={"device": "cuda"})
+    runner = BatchRunner(MjWarpBatch(spec, list(range(1024))))
+    obs = runner.reset(np.zeros(1024, np.int64))
+    assert obs.shape == (1024, PandaPickCube.obs_size) and np.isfinite(obs).all()
+    rng = np.random.default_rng(0)
+    for _ in range(6):  # 24 steps: every world's episode ends twice
+        chunk = runner.chunk(rng.uniform(-1, 1, (1024, 4, 4)).astype(np.float32))
+        assert np.isfinite(chunk.next_obs).all() and np.isfinite(chunk.reward).all()
+    assert (runner.episodes >= 2).all()

@@ -20,6 +20,11 @@
 #               group's chunk time on GPU PhysX against what moving its data costs, and 2 pipelined groups vs
 #               one group of the same size (parts maniskill_tests, maniskill_step, maniskill_groups)
 #   maniskill_race  ebrl to 90 % success on PickCube, then the GPU PPO peer, RACE_SECONDS (240) each
+#   stage       (MuJoCo Warp's kit, benchmarks/gpu/prepare_mjwarp.sh) copy the carried .whl-mjw/K part to /tmp
+#   mjwarp      (every part of .whl-mjw staged) the MuJoCo Warp tests on the GPU (mjwarp_tests), the race:
+#               ebrl to 90 % success on PandaPickCube, then the one-process GPU PPO peer, RACE_SECONDS each
+#               (mjwarp_race), and 2 pipelined groups of 1024 worlds vs one group of 2048 (mjwarp_groups);
+#               Warp's compiled kernels come back as $OUT/warp-cache.tgz (carry it next time in .whl-mjw/cache)
 # Everything lands in $OUT (default ./gpu-out): summary.txt, gpu.txt and results.tgz (JSON results, logs).
 set -uo pipefail
 cd "$(dirname "$0")/../.."
@@ -48,7 +53,19 @@ if [ -d .whl-ms/b ]; then  # benchmarks/gpu/prepare_maniskill.sh: bundle a in an
     install .whl-ms/a/*.whl .whl-ms/b/*.whl || { echo "check.sh: installing .whl-ms/ failed"; exit 1; }
     tar xzf .whl-ms/b/mani_skill-slim.tgz -C /tmp/site
 fi
-[ -d .whl ] || [ -d .whl-ms/b ] || { echo "check.sh: nothing to install (run benchmarks/gpu/prepare.sh here)"; exit 1; }
+# MuJoCo Warp (benchmarks/gpu/prepare_mjwarp.sh): each call copies the part it carries to /tmp, which stays while
+# the machine is warm; once every part named in MANIFEST is there (sha256 checked), the wheels are installed
+MJW=/tmp/ebrl-mjw
+for d in .whl-mjw/[0-9]*; do [ -d "$d" ] && mkdir -p $MJW && cp "$d"/* $MJW/; done
+if [ -f $MJW/MANIFEST ] && [ ! -f $MJW/installed ] && (cd $MJW && sha256sum -c --quiet MANIFEST >/dev/null 2>&1); then
+    (cat $MJW/part-* | tar x -C $MJW) && install $MJW/wheels/*.whl && touch $MJW/installed \
+        || { echo "check.sh: installing MuJoCo Warp's kit failed"; exit 1; }
+fi
+export WARP_CACHE_PATH=/tmp/warp-cache  # Warp's compiled kernels: brought in, and sent back at the end
+if [ -f .whl-mjw/cache/warp-cache.tgz ] && [ ! -d $WARP_CACHE_PATH ]; then
+    mkdir -p $WARP_CACHE_PATH && tar xzf .whl-mjw/cache/warp-cache.tgz -C $WARP_CACHE_PATH
+fi
+[ -d .whl ] || [ -d .whl-ms/b ] || [ -d $MJW ] || { echo "check.sh: nothing to install (run benchmarks/gpu/prepare.sh here)"; exit 1; }
 for gl in .whl/gl .whl-ms/b/gl; do
     if [ -d $gl ] && ! { ldconfig -p | grep -q libEGL.so.1 && ldconfig -p | grep -q libvulkan.so.1; }; then
         for f in $gl/*.deb; do dpkg -x "$f" /; done; ldconfig
@@ -119,6 +136,24 @@ while [ $i -lt ${#PARTS[@]} ]; do
                         configs/maniskill.toml --set 'viz.rerun="off"' --set "run.output_dir=\"$RES/race\""
                     part maniskill_peer $((RACE_SECONDS + 60)) python3 benchmarks/peers/maniskill_ppo.py \
                         --max-seconds "$RACE_SECONDS" --json "$RES/peer_maniskill_ppo.json" ;;
+    stage) n=$(ls $MJW/part-* 2>/dev/null | wc -l)
+           echo "stage: $n of $(wc -l < $MJW/MANIFEST) parts of MuJoCo Warp's kit in $MJW" ;;
+    mjwarp) [ -f $MJW/installed ] || { echo "check.sh: MuJoCo Warp's kit is not complete in $MJW (stage every part)"
+                                       exit 1; }
+            set -- mjwarp_tests mjwarp_race mjwarp_groups; for b; do PARTS+=("$b"); done ;;
+    mjwarp_tests) part mjwarp_tests 300 python3 -m pytest -q -rs -p no:cacheprovider -o addopts="" --timeout 240 \
+                      -m gpu tests/test_mjwarp.py ;;
+    # the learning race, back to back: ebrl to 90 % success on PandaPickCube, then the one-process GPU PPO peer
+    mjwarp_race) part mjwarp_ebrl $((RACE_SECONDS + 90)) timeout "$RACE_SECONDS" python3 -m ebrl.cli up \
+                     configs/mjwarp_pickcube.toml --set 'viz.rerun="off"' --set "run.output_dir=\"$RES/mjwarp-race\""
+                 part mjwarp_peer $((RACE_SECONDS + 90)) python3 benchmarks/peers/mjwarp_ppo.py \
+                     --max-seconds "$RACE_SECONDS" --json "$RES/peer_mjwarp_ppo.json" ;;
+    # env steps/s of ebrl with 2 pipelined groups of 1024 worlds vs one group of 2048, side by side
+    mjwarp_groups) part mjwarp_groups $((4 * DURATION + 240)) sh -c "
+        python3 -m ebrl.cli bench configs/mjwarp_pickcube.toml --modes ebrl --raw-seconds 0 --duration $DURATION \
+            --set 'viz.rerun=\"off\"' --json $RES/mjwarp_pipelined.json &&
+        python3 -m ebrl.cli bench configs/mjwarp_pickcube.toml --modes ebrl --raw-seconds 0 --duration $DURATION \
+            --set 'viz.rerun=\"off\"' --set sim.group_pipeline=false --json $RES/mjwarp_one_group.json" ;;
     *) echo "check.sh: no part '$p'"; exit 2 ;;
     esac
 done
@@ -128,6 +163,9 @@ if [ $had_mps = 0 ] && mps_up; then
     echo quit | nvidia-cuda-mps-control; echo "mps: a control daemon was left running; quit it" | tee -a "$SUMMARY"
 fi
 nvidia-smi --query-gpu=name,memory.used,utilization.gpu --format=csv >> "$OUT/gpu.txt" 2>&1
+if [ -n "$(ls -A $WARP_CACHE_PATH 2>/dev/null)" ]; then  # the kernels compiled here, for the next machine
+    tar czf "$OUT/warp-cache.tgz" -C $WARP_CACHE_PATH . && ls -la "$OUT/warp-cache.tgz"
+fi
 tar czf "$OUT/results.tgz" -C "$RES" --exclude='*.safetensors' --exclude='*.msgpack' --exclude='*.pt' .
 echo "total: $(($(date +%s) - T0))s" | tee -a "$SUMMARY"
 cat "$SUMMARY"

@@ -13,7 +13,8 @@ WHEELS=(
     eclipse-zenoh==1.10.2     # the bus
     tomli-w==1.2.0            # the resolved config
     gymnasium==1.4.0 farama-notifications==0.0.6 cloudpickle==3.1.1
-    mujoco==3.3.7 glfw==2.10.0 pyopengl==3.1.10 etils==1.13.0 absl-py==2.3.1   # MuJoCo tasks
+    mujoco==3.9.0 glfw==2.10.0 pyopengl==3.1.10 etils==1.13.0 absl-py==2.3.1   # MuJoCo tasks
+    array-api-compat==1.16.0  # MuJoCo tasks: one reward for numpy and torch (ebrl/envs/mjtask.py)
     termcolor==3.1.0          # robosuite's logging
 )
 rm -rf .whl && mkdir -p .whl/gl

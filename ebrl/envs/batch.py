@@ -242,6 +242,7 @@ class MjWarpBatch:
         obs = self.task.observe(self.xp, self.state)
         self.elapsed += 1
         reward = reward.to(torch.float32)
+        active = active.to(self.device)
         bad = ~(torch.isfinite(obs).all(dim=1) & torch.isfinite(reward))
         # one transfer to the host per step: contacts, constraint rows, diverged worlds
         contacts, rows, diverged = torch.stack([self.nacon[0].long(), self.nefc.max().long(),

@@ -27,8 +27,8 @@ Why it is a faithful baseline, not a straw man:
   before its gradient steps, exactly as EBRL's ``policy.normalize_obs``), gamma 0.97, lambda 0.95, clip 0.2,
   4 epochs of 8 minibatches (the same 32 gradient steps per update), Adam at 3e-4 (eps 1e-5), value
   coefficient 0.5, no entropy bonus, gradient norm clipped at 0.5, advantages normalised per minibatch;
-* the textbook details ManiSkill's loop gets right: partial resets (a world whose episode ended, by success,
-  a fall or the 100-step limit, starts its next episode in the same step, with its episode counter
+* the textbook details ManiSkill's loop gets right: partial resets (a world whose episode ended, by a fall
+  or the 100-step limit, starts its next episode in the same step, with its episode counter
   incremented, through ``batch.reset(idx, episodes)``); GAE that bootstraps a time-limit truncation from the
   value of the final observation (ManiSkill's ``final_values``) and a termination from nothing;
 * it acts every env step (no action chunks: a researcher's own baseline would not chunk), which gives it

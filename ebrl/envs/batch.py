@@ -226,8 +226,8 @@ class MjWarpBatch:
                 put(value, [np.broadcast_to(np.asarray(i.task.get(name, 0.0), np.float32), value.shape[1:])
                             for i in inits])
             self.elapsed[rows] = 0
-            with wp.ScopedDevice(self.wp_device):
-                self.mjw.forward(self.m, self.d)
+            with wp.ScopedDevice(self.wp_device):  # a whole forward pass, as CPU MuJoCo's reset: its accelerations
+                self.mjw.forward(self.m, self.d)  # warm-start the first step's solver (kinematics alone parts them)
         return self.task.observe(self.xp, state)
 
     def step(self, actions: Any, active: Any, observe: bool = True) -> Any:

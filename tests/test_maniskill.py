@@ -175,6 +175,7 @@ def test_gpu_physx_offline_without_sapiens_library_says_what_to_copy_where(gpu_p
         assert f"libPhysXGpu_64.so (PhysX {PHYSX})" in message and f"unzip it into {folder}" in message
         assert PHYSX_ZIP in message and "github.com:443" in message
         assert MJWARP_CONFIG == "configs/mjwarp_pickcube.toml" and MJWARP_CONFIG in message
+        assert (REPO / MJWARP_CONFIG).is_file()  # the config the message sends a user to is there
 
 
 def test_gpu_physx_passes_with_sapiens_library_or_a_reachable_download_host(gpu_physx, monkeypatch):

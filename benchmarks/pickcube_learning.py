@@ -1,14 +1,14 @@
 """Is PandaPickCube learnable as designed? Success rate against wall-clock of `ebrl up configs/pickcube_cpu.toml`.
 
-    python benchmarks/pickcube_learning.py --minutes 30            # a real run, stopped after 30 minutes
-    python benchmarks/pickcube_learning.py --run-dir runs/pickcube_cpu-...  # record a run made by hand
+    python benchmarks/pickcube_learning.py --minutes 30 --seeds 0,1,2   # real runs, each stopped at 30 minutes
 
 The CPU MuJoCo version of the task (the same model, reward and success check as the MuJoCo Warp batch of
-configs/mjwarp_pickcube.toml) trained by a plain ``ebrl up`` on this machine; the run ends at 90 % success or
-when ``--minutes`` pass (Ctrl-C, as a user would). From the run's ``metrics.csv`` (every finished episode's
-success and return, with the time its report arrived): per window of ``--window`` seconds, the success rate
-and mean return of the episodes that ended in it, and the env steps so far. Writes
-``benchmarks/results/NAME.json`` and ``NAME.png`` (success rate and return against minutes).
+configs/mjwarp_pickcube.toml) trained by a plain ``ebrl up`` on this machine, one seed after another; a run
+ends at 90 % success (``run.target_success``) or when ``--minutes`` pass (Ctrl-C, as a user would). From each
+run's ``metrics.csv`` (every finished episode's success and return, with the time its report arrived): per
+window of ``--window`` seconds, the success rate and mean return of the episodes that ended in it, and the env
+steps so far. Writes ``benchmarks/results/NAME.json`` and ``NAME.png`` (success rate and return against
+minutes, every seed).
 """
 
 from __future__ import annotations
@@ -67,7 +67,7 @@ def curve(run_dir: Path, window: float) -> list[dict[str, Any]]:
         inside = [(s, ret) for t, s, ret in episodes if k * window <= t < (k + 1) * window]
         done = [v for t, v in steps if t < (k + 1) * window]
         if inside:
-            points.append({"minute": round((k + 1) * window / 60, 2), "episodes": len(inside),
+            points.append({"minute": round((k + 1) * window / 60, 3), "episodes": len(inside),
                            "success_rate": statistics.fmean(s for s, _ in inside),
                            "return_mean": statistics.fmean(r for _, r in inside),
                            "env_steps": done[-1] if done else 0})
@@ -75,19 +75,21 @@ def curve(run_dir: Path, window: float) -> list[dict[str, Any]]:
     return points
 
 
-def plot(points: list[dict[str, Any]], path: Path, title: str) -> None:
+def plot(runs: dict[str, list[dict[str, Any]]], path: Path, title: str) -> None:
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
     fig, (top, bottom) = plt.subplots(2, 1, figsize=(7, 5.5), sharex=True)
-    minutes = [p["minute"] for p in points]
-    top.plot(minutes, [100 * p["success_rate"] for p in points], color="tab:green")
+    for seed, points in runs.items():
+        minutes = [p["minute"] for p in points]
+        top.plot(minutes, [100 * p["success_rate"] for p in points], label=f"seed {seed}")
+        bottom.plot(minutes, [p["return_mean"] for p in points], label=f"seed {seed}")
+    top.legend(fontsize=8)
     top.set_ylabel("success rate (%)")
     top.set_ylim(0, 100)
     top.grid(alpha=0.3)
-    bottom.plot(minutes, [p["return_mean"] for p in points], color="tab:blue")
     bottom.set_ylabel("episode return")
     bottom.set_xlabel("minutes since the first report")
     bottom.grid(alpha=0.3)
@@ -104,41 +106,43 @@ def _cuda() -> bool:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--minutes", type=float, default=30.0)
-    parser.add_argument("--run-dir", type=Path, help="record this finished run instead of starting one")
+    parser.add_argument("--minutes", type=float, default=30.0, help="the most each run may take")
+    parser.add_argument("--seeds", default="0", help="run.seed of each run, in order")
     parser.add_argument("--window", type=float, default=60.0, help="seconds per point of the curve")
     parser.add_argument("--set", dest="overrides", action="append", default=[], help="a config override")
     parser.add_argument("--name", default="pickcube_cpu_learning")
     parser.add_argument("--note", default="", help="recorded with the result (e.g. what else ran)")
-    parser.add_argument("--command", default="", help="with --run-dir: the command that made the run")
     args = parser.parse_args()
-    if args.run_dir is None:
-        run_dir = run(args.minutes, ROOT / "runs" / "pickcube_learning", args.overrides)
-        command = " ".join(["python benchmarks/pickcube_learning.py", f"--minutes {args.minutes:g}",
-                            *[f"--set {o}" for o in args.overrides]])
-    else:
-        run_dir, command = args.run_dir, args.command or f"ebrl up {CONFIG} (recorded from {args.run_dir.name})"
-    summary = json.loads((run_dir / "summary.json").read_text())
-    points = curve(run_dir, args.window)
-    first, last = points[:3], points[-3:]
+    command = " ".join(["python benchmarks/pickcube_learning.py", f"--minutes {args.minutes:g}",
+                        f"--seeds {args.seeds}", f"--window {args.window:g}",
+                        *[f"--set {o}" for o in args.overrides]])
+    runs: dict[str, Any] = {}
+    for seed in args.seeds.split(","):
+        run_dir = run(args.minutes, ROOT / "runs" / "pickcube_learning", [f"run.seed={seed}", *args.overrides])
+        summary = json.loads((run_dir / "summary.json").read_text())
+        points = curve(run_dir, args.window)
+        runs[seed] = {
+            "summary": {key: summary.get(key) for key in ("exit_code", "iterations", "wall_s", "env_steps",
+                                                          "env_steps_per_s", "episodes", "final_return",
+                                                          "target_success", "target_reached")},
+            "success_first_window": points[0]["success_rate"], "best_window": max(points, key=lambda p: p[
+                "success_rate"]), "curve": points}
+        print(json.dumps({"seed": seed, **{k: runs[seed][k] for k in ("success_first_window", "best_window")},
+                          "target_reached": summary.get("target_reached")}), flush=True)
+    reached = [r["summary"]["target_reached"] for r in runs.values()]
     out = {
-        "command": command, "config": CONFIG, "date": time.strftime("%Y-%m-%d"),
-        "machine": f"{platform.machine()}, {len(os.sched_getaffinity(0))} cores, no GPU" if not _cuda() else
-                   f"{platform.machine()}, {len(os.sched_getaffinity(0))} cores, with a CUDA GPU",
-        "commit": bench.commit(), "note": args.note, "window_s": args.window,
-        "summary": {key: summary.get(key) for key in ("exit_code", "iterations", "wall_s", "env_steps",
-                                                      "env_steps_per_s", "episodes", "final_return",
-                                                      "target_success", "target_reached")},
-        "success_first_3_windows": statistics.fmean(p["success_rate"] for p in first),
-        "success_last_3_windows": statistics.fmean(p["success_rate"] for p in last),
-        "best_window": max(points, key=lambda p: p["success_rate"]),
-        "curve": points,
+        "command": command, "config": CONFIG, "date": time.strftime("%Y-%m-%d"), "commit": bench.commit(),
+        "machine": f"{platform.machine()}, {len(os.sched_getaffinity(0))} cores, "
+                   f"{'a CUDA GPU' if _cuda() else 'no GPU'}",
+        "note": args.note, "window_s": args.window, "minutes": args.minutes,
+        "seeds_reaching_target": sum(r is not None for r in reached),
+        "median_s_to_target": statistics.median(r["wall_s"] if r else float("inf") for r in reached),
+        "runs": runs,
     }
     RESULTS.mkdir(exist_ok=True)
     (RESULTS / f"{args.name}.json").write_text(json.dumps(out, indent=1) + "\n")
-    plot(points, RESULTS / f"{args.name}.png",
-         f"PandaPickCube-v0, CPU MuJoCo, {out['machine']}\n{command}")
-    print(json.dumps({k: out[k] for k in ("success_first_3_windows", "success_last_3_windows", "best_window")}))
+    plot({seed: r["curve"] for seed, r in runs.items()}, RESULTS / f"{args.name}.png",
+         f"PandaPickCube-v0 on CPU MuJoCo, {out['machine']}\n{command}")
 
 
 if __name__ == "__main__":

@@ -93,7 +93,8 @@ class EnvSection:
                   "(PandaPickCube-v0, my_pkg.tasks:MyTask)", "InvertedPendulum-v5")
     max_episode_steps: int = doc("time limit in env steps; 0 keeps the environment's own", 0)
     kwargs: dict[str, Any] = doc("extra keyword arguments for the environment constructor (robosuite and ManiSkill: "
-                                 "obs = \"state\" | \"rgb\", image_size, camera, instruction, ...)", factory=dict)
+                                 "obs = \"state\" | \"rgb\", image_size, camera, instruction, ...; mjwarp: device, "
+                                 "nconmax, njmax, cuda_graph, then the task's own, e.g. model)", factory=dict)
     latency: Literal["none", "lognormal"] = doc(
         "add a synthetic step latency (CPU busy-wait) drawn from this distribution, for scheduler experiments", "none")
     latency_mean_ms: float = doc("mean of the added step latency in milliseconds", 16.0)

@@ -213,19 +213,19 @@ def test_choose_gl_says_what_failed_and_how_to_fix_it(monkeypatch):
 
 
 def test_choose_gl_tells_robosuites_egl_from_an_explicit_one(monkeypatch):
-    import mujoco.gl_context
-
     importlib.import_module("robosuite.utils.binding_utils")  # robosuite writes MUJOCO_GL=egl on import
+    gl_context = render._mujoco_gl_context()  # where mujoco keeps the value it read on import
+    assert hasattr(gl_context, "_MUJOCO_GL")
 
     for var in GL_VARS:
         monkeypatch.delenv(var, raising=False)
     monkeypatch.setattr(render, "_probe", lambda backend: None if backend == "osmesa" else "no")
     monkeypatch.setenv("MUJOCO_GL", "egl")
-    monkeypatch.setattr(mujoco.gl_context, "_MUJOCO_GL", "")  # mujoco saw no MUJOCO_GL: robosuite wrote it
+    monkeypatch.setattr(gl_context, "_MUJOCO_GL", "")  # mujoco saw no MUJOCO_GL: robosuite wrote it
     monkeypatch.setattr(render, "_chosen", None)
     assert render.choose_gl(["osmesa"]) == "osmesa"
     monkeypatch.setenv("MUJOCO_GL", "egl")
     monkeypatch.delenv(render.CHOSEN_VAR)
-    monkeypatch.setattr(mujoco.gl_context, "_MUJOCO_GL", "egl")  # mujoco saw it: somebody chose egl
+    monkeypatch.setattr(gl_context, "_MUJOCO_GL", "egl")  # mujoco saw it: somebody chose egl
     monkeypatch.setattr(render, "_chosen", None)
     assert render.choose_gl(["osmesa"]) == "egl"

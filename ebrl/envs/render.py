@@ -100,8 +100,17 @@ def _explicit_gl() -> str | None:
 def _written_by_robosuite() -> bool:
     # robosuite writes MUJOCO_GL=egl on import (macros.MUJOCO_GPU_RENDERING) unless it is osmesa or glx. It imports
     # mujoco first, which keeps the value it read: an "egl" that mujoco did not see is robosuite's, nobody's choice
-    mujoco_gl = sys.modules.get("mujoco.gl_context")
-    return "robosuite.utils.binding_utils" in sys.modules and getattr(mujoco_gl, "_MUJOCO_GL", "") != "egl"
+    return "robosuite.utils.binding_utils" in sys.modules and getattr(_mujoco_gl_context(), "_MUJOCO_GL", "") != "egl"
+
+
+# where mujoco keeps the MUJOCO_GL it read on import: MuJoCo 3.9 moved its GL context module, and the old name
+# re-exports it with `import *`, which leaves the private value behind
+GL_CONTEXT_MODULES = ("mujoco.rendering.classic.gl_context", "mujoco.gl_context")
+
+
+def _mujoco_gl_context() -> Any:
+    """mujoco's imported GL context module (None before mujoco's import)."""
+    return next((sys.modules[name] for name in GL_CONTEXT_MODULES if name in sys.modules), None)
 
 
 def _first_working(candidates: list[str]) -> str:

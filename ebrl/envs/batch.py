@@ -1,6 +1,6 @@
 """The batches a vectorized group's process steps (ebrl/envs/vector.py): ManiSkill's own batched environment, a
-MuJoCo Warp model of many worlds, or copies of any env in turn; and :class:`BatchRunner`, which runs chunks on either with each env's episode
-bookkeeping. Imported in that process only (it needs torch; the sim service does not)."""
+MuJoCo Warp model of many worlds, or copies of any env in turn; and :class:`BatchRunner`, which runs chunks on any
+of them with each env's episode bookkeeping. Imported in that process only (it needs torch; the sim service does not)."""
 
 from __future__ import annotations
 

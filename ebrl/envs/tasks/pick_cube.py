@@ -167,7 +167,8 @@ def panda_pick_cube_mjcf(full: bool = False) -> str:
     <light pos="0.5 0 1.5" dir="0 0 -1" directional="true"/>
     <camera name="front" pos="1.45 0.55 0.85" xyaxes="-0.35 0.94 0 -0.45 -0.17 0.88" fovy="55"/>
     <geom name="floor" type="plane" pos="0 0 -0.8" size="2 2 0.1" material="grid"/>
-    <geom name="table" type="box" pos="0.4 0 -0.02" size="0.5 0.6 0.02" contype="1" conaffinity="1" rgba="0.6 0.5 0.4 1"/>
+    <geom name="table" type="box" pos="0.4 0 -0.02" size="0.5 0.6 0.02" contype="1" conaffinity="1"
+      rgba="0.6 0.5 0.4 1"/>
     <body name="link0" pos="0 0 0">
       <inertial pos="0 0 0.05" mass="4" diaginertia="0.4 0.4 0.4"/>
       {_visuals("link0", full)}

@@ -21,9 +21,11 @@
 #               one group of the same size (parts maniskill_tests, maniskill_step, maniskill_groups)
 #   maniskill_race  ebrl to 90 % success on PickCube, then the GPU PPO peer, RACE_SECONDS (240) each
 #   stage       (MuJoCo Warp's kit, benchmarks/gpu/prepare_mjwarp.sh) copy the carried .whl-mjw/K part to /tmp
-#   mjwarp      (every part of .whl-mjw staged) the MuJoCo Warp tests on the GPU (mjwarp_tests), the race:
-#               ebrl to 90 % success on PandaPickCube, then the one-process GPU PPO peer, RACE_SECONDS each
-#               (mjwarp_race), and 2 pipelined groups of 1024 worlds vs one group of 2048 (mjwarp_groups);
+#   mjwarp      (every part of .whl-mjw staged) the MuJoCo Warp tests on the GPU (mjwarp_tests, which also
+#               compile Warp's kernels before anything is timed), a group's chunk time at 1024-4096 worlds with
+#               and without CUDA graphs (mjwarp_step), the race: ebrl to 90 % success on PandaPickCube, then the
+#               one-process GPU PPO peer, RACE_SECONDS each (mjwarp_race), and 2 pipelined groups of 1024 worlds
+#               vs one group of 2048 (mjwarp_groups);
 #               Warp's compiled kernels come back as $OUT/warp-cache.tgz (carry it next time in .whl-mjw/cache)
 # Everything lands in $OUT (default ./gpu-out): summary.txt, gpu.txt and results.tgz (JSON results, logs).
 set -uo pipefail
@@ -140,10 +142,13 @@ while [ $i -lt ${#PARTS[@]} ]; do
            echo "stage: $n of $(wc -l < $MJW/MANIFEST) parts of MuJoCo Warp's kit in $MJW" ;;
     mjwarp) [ -f $MJW/installed ] || { echo "check.sh: MuJoCo Warp's kit is not complete in $MJW (stage every part)"
                                        exit 1; }
-            set -- mjwarp_tests mjwarp_race mjwarp_groups; for b; do PARTS+=("$b"); done ;;
+            set -- mjwarp_tests mjwarp_step mjwarp_race mjwarp_groups; for b; do PARTS+=("$b"); done ;;
     mjwarp_tests) part mjwarp_tests 300 python3 -m pytest -q -rs -p no:cacheprovider -o addopts="" --timeout 240 \
                       -m gpu tests/test_mjwarp.py ;;
-    # the learning race, back to back: ebrl to 90 % success on PandaPickCube, then the one-process GPU PPO peer
+    mjwarp_step) part mjwarp_step 150 python3 benchmarks/gpu/mjwarp_step.py --worlds 1024,2048,4096 \
+                     --out "$RES/mjwarp_step.json" ;;
+    # the learning race, back to back (after the tests: Warp's kernels compiled and cached for both sides):
+    # ebrl to 90 % success on PandaPickCube, then the one-process GPU PPO peer
     mjwarp_race) part mjwarp_ebrl $((RACE_SECONDS + 90)) timeout "$RACE_SECONDS" python3 -m ebrl.cli up \
                      configs/mjwarp_pickcube.toml --set 'viz.rerun="off"' --set "run.output_dir=\"$RES/mjwarp-race\""
                  part mjwarp_peer $((RACE_SECONDS + 90)) python3 benchmarks/peers/mjwarp_ppo.py \

@@ -3,7 +3,8 @@
 The robot is robosuite's Panda (robosuite 1.5.1, MIT licence, installed with EBRL): its kinematics, joint limits
 and damping, and the explicit inertia of every body, with its parallel-jaw gripper. Two variants of the model:
 
-* ``model = "simple"`` (the default, and what MuJoCo Warp steps): no meshes at all. Only the gripper collides:
+* ``model = "simple"`` (the default, and what MuJoCo Warp steps): no meshes at all (the arm is drawn as capsules,
+  which touch nothing). Only the gripper collides:
   the hand as one box (the oriented bounding box of robosuite's hand collision mesh) and the two finger pads
   (robosuite's own pad boxes), as MuJoCo Playground's Panda (Menagerie's panda_mjx) collides only through its
   hand capsule and finger pads. The arm's links collide with nothing.
@@ -82,9 +83,17 @@ LINKS = (
 VISUAL_MESHES = {"link0": 12, "link1": 1, "link2": 1, "link3": 4, "link4": 4, "link5": 3, "link6": 17, "link7": 8}
 
 
+# the simple model's look: a capsule from each link's origin to the next one's (visual only, group 1: no contact,
+# no mass, since every body's inertia is explicit), so that videos show an arm
+SIMPLE_LOOK = {"link0": "0 0 0 0 0 0.333", "link2": "0 0 0 0 -0.316 0", "link3": "0 0 0 0.0825 0 0",
+               "link4": "0 0 0 -0.0825 0.384 0", "link6": "0 0 0 0.088 0 0", "link7": "0 0 0 0 0 0.1065"}
+
+
 def _visuals(link: str, full: bool) -> str:
     if not full:
-        return ""
+        fromto = SIMPLE_LOOK.get(link)
+        shape = f'type="capsule" fromto="{fromto}"' if fromto else 'type="sphere"'
+        return f'<geom class="visual" {shape} size="0.055"/>'
     n = VISUAL_MESHES[link]
     names = [f"{link}_vis"] if n == 1 else [f"{link}_vis_{i}" for i in range(n)]
     geoms = "".join(f'<geom class="visual" mesh="{name}"/>' for name in names)

@@ -1,9 +1,12 @@
 """Is PandaPickCube learnable as designed? Success rate against wall-clock of `ebrl up configs/pickcube_cpu.toml`.
 
     python benchmarks/pickcube_learning.py --minutes 30 --seeds 0,1,2   # real runs, each stopped at 30 minutes
+    python benchmarks/pickcube_learning.py --config configs/mjwarp_pickcube.toml --set sim.envs_per_group=32 \
+        --set train.batch_size=512 --name mjwarp_cpu_learning     # the MuJoCo Warp batch, on Warp's CPU device
 
 The CPU MuJoCo version of the task (the same model, reward and success check as the MuJoCo Warp batch of
-configs/mjwarp_pickcube.toml) trained by a plain ``ebrl up`` on this machine, one seed after another; a run
+configs/mjwarp_pickcube.toml), or with ``--config configs/mjwarp_pickcube.toml`` that batch itself, trained by a
+plain ``ebrl up`` on this machine, one seed after another; a run
 ends at 90 % success (``run.target_success``) or when ``--minutes`` pass (Ctrl-C, as a user would). From each
 run's ``metrics.csv`` (every finished episode's success and return, with the time its report arrived): per
 window of ``--window`` seconds, the success rate and mean return of the episodes that ended in it, and the env
@@ -35,9 +38,9 @@ RESULTS = ROOT / "benchmarks" / "results"
 CONFIG = "configs/pickcube_cpu.toml"
 
 
-def run(minutes: float, out_dir: Path, overrides: list[str]) -> Path:
-    """``ebrl up CONFIG`` until it ends or ``minutes`` pass (then SIGINT, as Ctrl-C); the run's directory."""
-    cmd = [sys.executable, "-m", "ebrl.cli", "up", CONFIG, "--set", 'viz.rerun="off"',
+def run(config: str, minutes: float, out_dir: Path, overrides: list[str]) -> Path:
+    """``ebrl up config`` until it ends or ``minutes`` pass (then SIGINT, as Ctrl-C); the run's directory."""
+    cmd = [sys.executable, "-m", "ebrl.cli", "up", config, "--set", 'viz.rerun="off"',
            "--set", f'run.output_dir="{out_dir}"', *[a for o in overrides for a in ("--set", o)]]
     proc = subprocess.Popen(cmd, cwd=ROOT)
     try:
@@ -108,17 +111,20 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--minutes", type=float, default=30.0, help="the most each run may take")
     parser.add_argument("--seeds", default="0", help="run.seed of each run, in order")
+    parser.add_argument("--config", default=CONFIG)
     parser.add_argument("--window", type=float, default=60.0, help="seconds per point of the curve")
     parser.add_argument("--set", dest="overrides", action="append", default=[], help="a config override")
     parser.add_argument("--name", default="pickcube_cpu_learning")
     parser.add_argument("--note", default="", help="recorded with the result (e.g. what else ran)")
     args = parser.parse_args()
-    command = " ".join(["python benchmarks/pickcube_learning.py", f"--minutes {args.minutes:g}",
+    command = " ".join(["python benchmarks/pickcube_learning.py",
+                        *([f"--config {args.config}"] if args.config != CONFIG else []), f"--minutes {args.minutes:g}",
                         f"--seeds {args.seeds}", f"--window {args.window:g}",
                         *[f"--set {o}" for o in args.overrides]])
     runs: dict[str, Any] = {}
     for seed in args.seeds.split(","):
-        run_dir = run(args.minutes, ROOT / "runs" / "pickcube_learning", [f"run.seed={seed}", *args.overrides])
+        run_dir = run(args.config, args.minutes, ROOT / "runs" / "pickcube_learning",
+                      [f"run.seed={seed}", *args.overrides])
         summary = json.loads((run_dir / "summary.json").read_text())
         points = curve(run_dir, args.window)
         runs[seed] = {
@@ -131,7 +137,7 @@ def main() -> None:
                           "target_reached": summary.get("target_reached")}), flush=True)
     reached = [r["summary"]["target_reached"] for r in runs.values()]
     out = {
-        "command": command, "config": CONFIG, "date": time.strftime("%Y-%m-%d"), "commit": bench.commit(),
+        "command": command, "config": args.config, "date": time.strftime("%Y-%m-%d"), "commit": bench.commit(),
         "machine": f"{platform.machine()}, {len(os.sched_getaffinity(0))} cores, "
                    f"{'a CUDA GPU' if _cuda() else 'no GPU'}",
         "note": args.note, "window_s": args.window, "minutes": args.minutes,
@@ -142,7 +148,7 @@ def main() -> None:
     RESULTS.mkdir(exist_ok=True)
     (RESULTS / f"{args.name}.json").write_text(json.dumps(out, indent=1) + "\n")
     plot({seed: r["curve"] for seed, r in runs.items()}, RESULTS / f"{args.name}.png",
-         f"PandaPickCube-v0 on CPU MuJoCo, {out['machine']}\n{command}")
+         f"PandaPickCube-v0 ({args.config}), {out['machine']}\n{command}")
 
 
 if __name__ == "__main__":

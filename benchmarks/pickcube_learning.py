@@ -25,6 +25,7 @@ import signal
 import statistics
 import subprocess
 import sys
+import textwrap
 import time
 from pathlib import Path
 from typing import Any
@@ -96,9 +97,13 @@ def plot(runs: dict[str, list[dict[str, Any]]], path: Path, title: str) -> None:
     bottom.set_ylabel("episode return")
     bottom.set_xlabel("minutes since the first report")
     bottom.grid(alpha=0.3)
-    top.set_title(title, fontsize=10)
+    top.set_title("\n".join(textwrap.wrap(title, 95, break_long_words=False)), fontsize=8)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
+
+
+def title(out: dict[str, Any]) -> str:
+    return f"PandaPickCube-v0 ({out['config']}), {out['machine']}: {out['command']}"
 
 
 def _cuda() -> bool:
@@ -116,7 +121,13 @@ def main() -> None:
     parser.add_argument("--set", dest="overrides", action="append", default=[], help="a config override")
     parser.add_argument("--name", default="pickcube_cpu_learning")
     parser.add_argument("--note", default="", help="recorded with the result (e.g. what else ran)")
+    parser.add_argument("--replot", action="store_true", help="only redraw NAME.png from NAME.json")
     args = parser.parse_args()
+    if args.replot:
+        out = json.loads((RESULTS / f"{args.name}.json").read_text())
+        plot({seed: r["curve"] for seed, r in out["runs"].items()}, RESULTS / f"{args.name}.png",
+             title(out))
+        return
     command = " ".join(["python benchmarks/pickcube_learning.py",
                         *([f"--config {args.config}"] if args.config != CONFIG else []), f"--minutes {args.minutes:g}",
                         f"--seeds {args.seeds}", f"--window {args.window:g}",
@@ -147,8 +158,7 @@ def main() -> None:
     }
     RESULTS.mkdir(exist_ok=True)
     (RESULTS / f"{args.name}.json").write_text(json.dumps(out, indent=1) + "\n")
-    plot({seed: r["curve"] for seed, r in runs.items()}, RESULTS / f"{args.name}.png",
-         f"PandaPickCube-v0 ({args.config}), {out['machine']}\n{command}")
+    plot({seed: r["curve"] for seed, r in runs.items()}, RESULTS / f"{args.name}.png", title(out))
 
 
 if __name__ == "__main__":

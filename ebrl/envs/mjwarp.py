@@ -14,14 +14,14 @@ worker seeded ``seeds[i]`` would: a batch replays what the same envs on CPU MuJo
 * ``device``: ``"auto"`` (default: ``cuda`` where torch sees a CUDA GPU, else ``cpu``), ``"cpu"``, ``"cuda"`` or
   ``"cuda:N"``;
 * ``nconmax``: contacts per world to allocate (default 32), ``njmax``: constraint rows per world (default 128;
-  PandaPickCube, pressed into the table by random actions for 60 episodes on CPU MuJoCo, peaked at 9 and 44). A
+  PandaPickCube, pressed into the table by random actions on CPU MuJoCo, peaks at 9 and 44: a test keeps 2x). A
   step that needs more stops the group with an error saying which to raise: MuJoCo Warp would drop contacts;
 * ``cuda_graph``: capture an env step's physics steps as one CUDA graph (default true; ignored on the CPU).
 
 Where this module runs without the GPU batch (the launcher's preflight, gen and train describing the task, the
 evaluation service), the task's CPU MuJoCo version stands in (:func:`build`): same model, same spaces, same reward.
-MuJoCo Warp compiles its kernels on first use (15-60 s on the CPU) into Warp's kernel cache (``WARP_CACHE_PATH``,
-default ``~/.cache/warp``); later runs load them from there.
+MuJoCo Warp compiles its kernels on first use (about 20 s for PandaPickCube on 2 CPU cores) into Warp's kernel
+cache (``WARP_CACHE_PATH``, default ``~/.cache/warp``); later runs load them from there.
 """
 
 from __future__ import annotations

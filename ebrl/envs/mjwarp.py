@@ -29,6 +29,8 @@ from __future__ import annotations
 import importlib.util
 from typing import Any
 
+import gymnasium as gym
+
 from ebrl import devices
 from ebrl.envs.mjtask import MjTaskEnv, make_task
 from ebrl.envs.spec import EnvError, EnvSpec
@@ -60,16 +62,14 @@ def resolve_device(device: str) -> str:
         raise EnvError(str(exc)) from None
 
 
-def build(spec: EnvSpec) -> MjTaskEnv:
+def build(spec: EnvSpec) -> gym.Env:
     """One world on CPU MuJoCo (the backend's single env: describing the task, evaluation), time-limited as a
     batch world is; ``env.kwargs.render_mode`` (evaluation videos) reaches the env, the batch's keys do not."""
-    import gymnasium as gym
-
     kwargs = dict(spec.kwargs)
     render_mode = kwargs.pop("render_mode", None)
     task = make_task(spec.id, split_kwargs(kwargs)[1])
     env = MjTaskEnv(task, render_mode=render_mode)
-    return gym.wrappers.TimeLimit(env, spec.max_episode_steps or task.max_episode_steps)  # type: ignore[return-value]
+    return gym.wrappers.TimeLimit(env, spec.max_episode_steps or task.max_episode_steps)
 
 
 def preflight(spec: EnvSpec) -> None:

@@ -36,6 +36,7 @@ import os
 from typing import Any
 
 import numpy as np
+from array_api_compat import device
 
 from ebrl.envs.mjtask import MjInit, MjState, MjTask
 from ebrl.envs.spec import EnvError
@@ -233,8 +234,7 @@ class PandaPickCube(MjTask):
         self.finger_qpos = [int(model.jnt_qposadr[ident(joint, f"finger_joint{i}")]) for i in (1, 2)]
         self.finger_dof = [int(model.jnt_dofadr[ident(joint, f"finger_joint{i}")]) for i in (1, 2)]
         cube_joint = ident(joint, "cube")
-        self.cube_qpos, self.cube_dof = int(model.jnt_qposadr[cube_joint]), int(model.jnt_dofadr[cube_joint])
-        self.cube_body = ident(mujoco.mjtObj.mjOBJ_BODY, "cube")
+        self.cube_qpos = int(model.jnt_qposadr[cube_joint])
         self.grip_site = ident(mujoco.mjtObj.mjOBJ_SITE, "grip")
         self.target_mocap = int(model.body_mocapid[ident(mujoco.mjtObj.mjOBJ_BODY, "target")])
         self.hand_mocap = int(model.body_mocapid[ident(mujoco.mjtObj.mjOBJ_BODY, "hand_target")])
@@ -244,7 +244,7 @@ class PandaPickCube(MjTask):
         return {"target": (3,)}
 
     def initial_state(self, rng: np.random.Generator) -> MjInit:
-        self.model  # noqa: B018  (bound on first use)
+        _ = self.model  # built, and bound (the indices below), on first use
         qpos = np.zeros(self.nq)
         qpos[self.arm_qpos] = HOME_QPOS
         qpos[self.finger_qpos] = (FINGER_OPEN, -FINGER_OPEN)
@@ -261,8 +261,8 @@ class PandaPickCube(MjTask):
 
     def apply_action(self, xp: Any, state: MjState, action: Any) -> None:
         hand = state.mocap_pos[:, self.hand_mocap, :]
-        low = xp.asarray(WORKSPACE_LOW, dtype=hand.dtype, device=_device(hand))
-        high = xp.asarray(WORKSPACE_HIGH, dtype=hand.dtype, device=_device(hand))
+        low = xp.asarray(WORKSPACE_LOW, dtype=hand.dtype, device=device(hand))
+        high = xp.asarray(WORKSPACE_HIGH, dtype=hand.dtype, device=device(hand))
         move = xp.astype(action[:, :3], hand.dtype) * MOVE
         state.mocap_pos[:, self.hand_mocap, :] = xp.minimum(xp.maximum(hand + move, low), high)
         opening = (xp.astype(action[:, 3], state.ctrl.dtype) + 1.0) * (FINGER_OPEN / 2)
@@ -296,9 +296,3 @@ class PandaPickCube(MjTask):
         reward = xp.where(success, xp.ones_like(reward), reward)
         fell = cube[:, 2] < -0.05
         return reward, success, fell
-
-
-def _device(array: Any) -> Any:
-    from array_api_compat import device
-
-    return device(array)

@@ -56,11 +56,13 @@ if [ -d .whl-ms/b ]; then  # benchmarks/gpu/prepare_maniskill.sh: bundle a in an
     tar xzf .whl-ms/b/mani_skill-slim.tgz -C /tmp/site
 fi
 # MuJoCo Warp (benchmarks/gpu/prepare_mjwarp.sh): each call copies the part it carries to /tmp, which stays while
-# the machine is warm; once every part named in MANIFEST is there (sha256 checked), the wheels are installed
+# the machine is warm; once every part named in MANIFEST is there (sha256 checked), they unpack into /tmp/site
 MJW=/tmp/ebrl-mjw
 for d in .whl-mjw/[0-9]*; do [ -d "$d" ] && mkdir -p $MJW && cp "$d"/* $MJW/; done
 if [ -f $MJW/MANIFEST ] && [ ! -f $MJW/installed ] && (cd $MJW && sha256sum -c --quiet MANIFEST >/dev/null 2>&1); then
-    (cat $MJW/part-* | tar x -C $MJW) && install $MJW/wheels/*.whl && touch $MJW/installed \
+    unxz() { if command -v xz >/dev/null; then xz -d -T0; else  # Python's lzma where the image has no xz
+        python3 -c "import lzma, shutil, sys; shutil.copyfileobj(lzma.open(sys.stdin.buffer), sys.stdout.buffer)"; fi; }
+    mkdir -p /tmp/site && (cat $MJW/part-* | unxz | tar x -C /tmp/site) && touch $MJW/installed \
         || { echo "check.sh: installing MuJoCo Warp's kit failed"; exit 1; }
 fi
 export WARP_CACHE_PATH=/tmp/warp-cache  # Warp's compiled kernels: brought in, and sent back at the end

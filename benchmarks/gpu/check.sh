@@ -26,7 +26,8 @@
 #               and without CUDA graphs (mjwarp_step), the race: ebrl to 90 % success on PandaPickCube, then the
 #               one-process GPU PPO peer, RACE_SECONDS each (mjwarp_race), and 2 pipelined groups of 1024 worlds
 #               vs one group of 2048 (mjwarp_groups);
-#               Warp's compiled kernels come back as $OUT/warp-cache.tgz (carry it next time in .whl-mjw/cache)
+#               Warp's compiled kernels come back as $OUT/warp-cache.tgz.0, .1, ... (put them in .whl-mjw/cache
+#               here and re-run prepare_mjwarp.sh: the next machine loads them instead of compiling)
 # Everything lands in $OUT (default ./gpu-out): summary.txt, gpu.txt and results.tgz (JSON results, logs).
 set -uo pipefail
 cd "$(dirname "$0")/../.."
@@ -57,18 +58,16 @@ if [ -d .whl-ms/b ]; then  # benchmarks/gpu/prepare_maniskill.sh: bundle a in an
 fi
 # MuJoCo Warp (benchmarks/gpu/prepare_mjwarp.sh): each call copies the part it carries to /tmp, which stays while
 # the machine is warm; once every part named in MANIFEST is there (sha256 checked), they unpack into /tmp/site
+# and, when the kit holds Warp's kernels from an earlier run, /tmp/warp-cache
 MJW=/tmp/ebrl-mjw
 for d in .whl-mjw/[0-9]*; do [ -d "$d" ] && mkdir -p $MJW && cp "$d"/* $MJW/; done
 if [ -f $MJW/MANIFEST ] && [ ! -f $MJW/installed ] && (cd $MJW && sha256sum -c --quiet MANIFEST >/dev/null 2>&1); then
     unxz() { if command -v xz >/dev/null; then xz -d -T0; else  # Python's lzma where the image has no xz
         python3 -c "import lzma, shutil, sys; shutil.copyfileobj(lzma.open(sys.stdin.buffer), sys.stdout.buffer)"; fi; }
-    mkdir -p /tmp/site && (cat $MJW/part-* | unxz | tar x -C /tmp/site) && touch $MJW/installed \
+    (cat $MJW/part-* | unxz | tar x -C /tmp) && touch $MJW/installed \
         || { echo "check.sh: installing MuJoCo Warp's kit failed"; exit 1; }
 fi
-export WARP_CACHE_PATH=/tmp/warp-cache  # Warp's compiled kernels: brought in, and sent back at the end
-if [ -f .whl-mjw/cache/warp-cache.tgz ] && [ ! -d $WARP_CACHE_PATH ]; then
-    mkdir -p $WARP_CACHE_PATH && tar xzf .whl-mjw/cache/warp-cache.tgz -C $WARP_CACHE_PATH
-fi
+export WARP_CACHE_PATH=/tmp/warp-cache  # Warp's compiled kernels: brought in with the kit, sent back at the end
 [ -d .whl ] || [ -d .whl-ms/b ] || [ -d $MJW ] || { echo "check.sh: nothing to install (run benchmarks/gpu/prepare.sh here)"; exit 1; }
 for gl in .whl/gl .whl-ms/b/gl; do
     if [ -d $gl ] && ! { ldconfig -p | grep -q libEGL.so.1 && ldconfig -p | grep -q libvulkan.so.1; }; then
@@ -77,7 +76,10 @@ for gl in .whl/gl .whl-ms/b/gl; do
 done
 [ -f /usr/local/nvidia/share/vulkan/icd.d/nvidia_icd.json ] && \
     export VK_DRIVER_FILES=/usr/local/nvidia/share/vulkan/icd.d/nvidia_icd.json
-export PYTHONPATH="$ROOT:/tmp/site" PYTHONUNBUFFERED=1 MUJOCO_GL=egl PYOPENGL_PLATFORM=egl
+export PYTHONPATH="$ROOT:/tmp/site" PYTHONUNBUFFERED=1
+# MuJoCo renders through EGL where its loader is there (the .gl/.whl kits bring it); without one, MUJOCO_GL=egl
+# makes `import mujoco` itself fail, so rendering is switched off and everything else runs
+if ldconfig -p | grep -q libEGL.so.1; then export MUJOCO_GL=egl PYOPENGL_PLATFORM=egl; else export MUJOCO_GL=disable; fi
 [ -f /usr/local/nvidia/share/glvnd/egl_vendor.d/10_nvidia.json ] && \
     export __EGL_VENDOR_LIBRARY_FILENAMES=/usr/local/nvidia/share/glvnd/egl_vendor.d/10_nvidia.json
 { nvidia-smi; python3 -c "import torch; print(torch.__version__, torch.version.cuda, torch.cuda.get_device_name(0))"
@@ -170,8 +172,9 @@ if [ $had_mps = 0 ] && mps_up; then
     echo quit | nvidia-cuda-mps-control; echo "mps: a control daemon was left running; quit it" | tee -a "$SUMMARY"
 fi
 nvidia-smi --query-gpu=name,memory.used,utilization.gpu --format=csv >> "$OUT/gpu.txt" 2>&1
-if [ -n "$(ls -A $WARP_CACHE_PATH 2>/dev/null)" ]; then  # the kernels compiled here, for the next machine
-    tar czf "$OUT/warp-cache.tgz" -C $WARP_CACHE_PATH . && ls -la "$OUT/warp-cache.tgz"
+if [ -n "$(ls -A $WARP_CACHE_PATH 2>/dev/null)" ]; then  # the kernels compiled here, for the next machine, in
+    # pieces under the 16 MiB a file from $OUT may have (put them in .whl-mjw/cache/ and re-run prepare_mjwarp.sh)
+    tar czf - -C $WARP_CACHE_PATH . | split -b 15M -d -a 1 - "$OUT/warp-cache.tgz." && ls -la "$OUT"/warp-cache.tgz.*
 fi
 tar czf "$OUT/results.tgz" -C "$RES" --exclude='*.safetensors' --exclude='*.msgpack' --exclude='*.pt' .
 echo "total: $(($(date +%s) - T0))s" | tee -a "$SUMMARY"

@@ -46,8 +46,9 @@ def measure(n: int, k: int, repeat: int, device: str, graph: bool) -> dict:
         if i >= 2:
             times.append(time.perf_counter() - t0)
     ms = 1000 * statistics.median(times)
+    graphed = batch.graph is not None  # read before close(), which drops the graph
     batch.close()
-    return {"worlds": n, "chunk": k, "device": str(batch.device), "cuda_graph": batch.graph is not None,
+    return {"worlds": n, "chunk": k, "device": str(batch.device), "cuda_graph": graphed,
             "build_s": round(build_s, 2), "chunk_ms_median": round(ms, 3),
             "env_steps_per_s": round(n * k / (ms / 1000)), "chunks": len(times)}
 

@@ -99,6 +99,10 @@ class EnvSection:
         "add a synthetic step latency (CPU busy-wait) drawn from this distribution, for scheduler experiments", "none")
     latency_mean_ms: float = doc("mean of the added step latency in milliseconds", 16.0)
     latency_sigma: float = doc("sigma of the lognormal step latency (0.3: mild tail, 0.8: heavy tail)", 0.3)
+    max_abs_reward: float = doc(
+        "the largest reward magnitude of one env step that training takes: a larger one is clipped to it and a "
+        "non-finite one counts as 0 (counted: sim/rewards_clipped, sim/rewards_nonfinite), and train drops a "
+        "segment that carries more (train/reward_bound_dropped); inf: no bound", 1e6)
 
 
 @dataclass
@@ -562,6 +566,8 @@ def _check_semantics(cfg: Config) -> None:
         positive(path, getattr(getattr(cfg, section), key))
     if not 0 < cfg.algo.gamma <= 1:
         raise ConfigError(f"algo.gamma = {cfg.algo.gamma}: must be in (0, 1]")
+    if not cfg.env.max_abs_reward > 0:  # NaN too
+        raise ConfigError(f"env.max_abs_reward = {cfg.env.max_abs_reward}: must be > 0 (inf: no bound)")
     if not cfg.bus.listen and not cfg.bus.connect:
         raise ConfigError("bus.listen and bus.connect are both empty: services could not find each other")
     if cfg.train.batch_size % cfg.num_envs:

@@ -11,7 +11,8 @@ import os
 import time
 
 from ebrl import procenv, threads
-from ebrl.algos.learner import HANDOVER_FILE, Learner
+from ebrl.algos.handover import HANDOVER_FILE
+from ebrl.algos.learner import Learner
 from ebrl.algos.parallel import KEEPALIVE_S
 from ebrl.algos.ranks import Ranks
 from ebrl.bus import keys
@@ -145,8 +146,8 @@ class TrainService(Service):
                 self.log.info("handed over %d segments not yet trained on (%s)", n, HANDOVER_FILE)
         if self.learner.version > 0:
             self.learner.save_checkpoint(self.run_name)
-            path = self.learner.save_policy(self.run_name)
-            self.log.info("policy v%d saved to %s", self.learner.version, path)
+            if path := self.learner.save_policy(self.run_name):
+                self.log.info("policy v%d saved to %s", self.learner.version, path)
 
 
 def main() -> None:

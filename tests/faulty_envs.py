@@ -40,3 +40,36 @@ class Faulty(gymnasium.Env):
 
 
 gymnasium.register("Faulty-v0", entry_point=Faulty)
+
+
+class BuggyReward(gymnasium.Wrapper):
+    """InvertedPendulum-v5 with a user's numeric bugs (``env.id = "faulty_envs:BuggyReward-v0"``): every
+    ``absurd_every``-th step's reward is 1e38 (a division by a tiny number), every ``nan_every``-th NaN and every
+    ``inf_every``-th -inf; every ``bad_obs_every``-th step's observation holds a NaN. Each counter runs over the
+    env's whole life, so every worker hits them at its own steps."""
+
+    def __init__(self, absurd_every: int = 3000, nan_every: int = 0, inf_every: int = 0, bad_obs_every: int = 0):
+        super().__init__(gymnasium.make("InvertedPendulum-v5"))
+        self.every = {"absurd": absurd_every, "nan": nan_every, "inf": inf_every, "obs": bad_obs_every}
+        self.steps = 0
+
+    def step(self, action):
+        obs, reward, terminated, truncated, info = self.env.step(action)
+        self.steps += 1
+
+        def due(kind: str) -> bool:
+            return bool(self.every[kind]) and self.steps % self.every[kind] == 0
+
+        if due("absurd"):
+            reward = 1e38
+        elif due("nan"):
+            reward = float("nan")
+        elif due("inf"):
+            reward = float("-inf")
+        if due("obs"):
+            obs = np.array(obs, np.float64)
+            obs[0] = np.nan
+        return obs, reward, terminated, truncated, info
+
+
+gymnasium.register("BuggyReward-v0", entry_point=BuggyReward, max_episode_steps=1000)

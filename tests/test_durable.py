@@ -18,7 +18,8 @@ import pytest
 import torch
 
 from ebrl.algos import checkpoint
-from ebrl.algos.learner import HANDOVER_FILE, HANDOVER_MAGIC, Learner, read_records
+from ebrl.algos.handover import HANDOVER_FILE, HANDOVER_MAGIC, read_records
+from ebrl.algos.learner import Learner
 from ebrl.config import Config, PolicySection
 from ebrl.envs import EnvSpec, ObsLayout, describe
 from ebrl.messages import TrajectorySegment, encode_message

@@ -1,5 +1,7 @@
 """PPO pieces: GAE by hand, bootstrapping rules, log-prob consistency between gen and train, learning signal."""
 
+import dataclasses
+
 import numpy as np
 import pytest
 import torch
@@ -7,7 +9,7 @@ from types import SimpleNamespace
 
 from ebrl.config import PolicySection
 from ebrl.envs.obs import ObsLayout
-from ebrl.algos.ppo import PPO, build_batch, gae
+from ebrl.algos.ppo import PPO, BadBatch, Batch, build_batch, gae
 from ebrl.envs.worker import ChunkResult
 from ebrl.policies import load_arrays, make_policy, state_arrays
 from ebrl.sched.rollout import SegmentBuilder
@@ -210,3 +212,42 @@ def test_update_reports_how_far_the_behaviour_policy_is():
         assert stats["behave_weight_capped"] == capped
         assert stats["behave_weight_mean"] == pytest.approx(min(np.exp(-shift), 5.0), rel=1e-4)
         assert {"value_drift", "explained_variance", "adv_mean", "adv_std"} <= set(stats)
+
+
+# --- no bad step (issue 34): what cannot be learned from is dropped and counted, the weights stay finite ---
+
+
+def test_gae_runs_in_float64_and_a_segment_whose_returns_overflow_is_left_out():
+    r = np.array([3.0e38, 3.0e38], np.float32)  # each finite in float32; their sum is not
+    adv, ret = gae(r, np.zeros(2, np.float32), np.ones(2), last_value=0.0, lam=1.0)
+    assert adv.dtype == np.float64 and np.isfinite(ret).all() and ret[0] == pytest.approx(6.0e38)
+    torch.manual_seed(0)
+    model = make_policy(POLICY, ObsLayout.vector(4), 1)
+    good, bad = stale_segment(model, end="terminated"), stale_segment(model, end="terminated")
+    bad = dataclasses.replace(bad, rewards=np.full_like(bad.rewards, 3.0e38))
+    batch = build_batch([good, bad], model, gamma=0.99, lam=0.95)
+    assert len(batch) == len(good.obs) and batch.dropped == len(bad.obs)
+    assert torch.isfinite(batch.returns).all()
+    with pytest.raises(BadBatch) as caught:
+        build_batch([bad], model, gamma=0.99, lam=0.95)
+    assert caught.value.dropped == len(bad.obs)
+
+
+def test_an_update_skips_a_step_that_is_not_finite_drops_its_data_and_keeps_the_weights_finite():
+    torch.manual_seed(3)
+    model = make_policy(POLICY, ObsLayout.vector(4), 1)
+    n = 64
+    obs = np.random.default_rng(0).normal(size=(n, 4)).astype(np.float32)
+    actions, logprobs, values, latents = model.act(obs)
+    returns = torch.randn(n)
+    returns[5] = 3.0e38  # finite, but its squared error in the value loss is not
+    batch = Batch(obs=torch.as_tensor(obs), actions=torch.as_tensor(actions), latents=torch.as_tensor(latents),
+                  logprobs=torch.as_tensor(logprobs), advantages=torch.randn(n), returns=returns,
+                  values=torch.as_tensor(values), versions=np.zeros(n, np.int64))
+    before = state_arrays(model)
+    out = PPO(model, ALGO, lr=1e-2).update(batch)
+    assert out["steps_skipped"] == 1 and out["decisions_dropped"] == 1  # decision 5 only, then never again
+    after = state_arrays(model)
+    assert all(np.isfinite(a).all() for a in after.values())
+    assert any(not np.array_equal(before[k], after[k]) for k in before)  # the other steps were taken
+    assert all(np.isfinite(v) for k, v in out.items())

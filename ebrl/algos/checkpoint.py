@@ -140,6 +140,10 @@ def save(run_dir: str | Path, model: torch.nn.Module, optimizer: torch.optim.Opt
     tensors = {f"opt.{index}.{key}": value.detach().cpu().contiguous()
                for index, slots in state["state"].items() for key, value in slots.items()
                if isinstance(value, torch.Tensor)}
+    bad = nonfinite({**(model_state if model_state is not None else model.state_dict()), **tensors})
+    if bad:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise NonFiniteState(f"checkpoint v{version} not written: values that are not finite ({', '.join(bad[:3])})")
     tensors.update({f"rng.{key}": gen.get_state() for key, gen in generators.items()})
     tensors["rng.torch"] = torch.get_rng_state()
     save_file(tensors, str(tmp / "train.safetensors"))
@@ -164,6 +168,10 @@ def save(run_dir: str | Path, model: torch.nn.Module, optimizer: torch.optim.Opt
         os.replace(old, doomed)
         shutil.rmtree(doomed, ignore_errors=True)
     return final
+
+
+class NonFiniteState(ValueError):
+    """Training state with a value that is not finite: never written, never resumed from."""
 
 
 def restore_latest(run_dir: str | Path, model: torch.nn.Module,
@@ -220,7 +228,15 @@ def _read(path: Path, model: torch.nn.Module) -> tuple[dict, dict, dict]:
     rng = tensors.get("rng.torch")
     if rng is None or rng.dtype != torch.uint8:
         raise Unreadable("train.safetensors: no random state (rng.torch)")
+    bad = nonfinite({**{f"policy.{k}": torch.as_tensor(v) for k, v in arrays.items()}, **tensors})
+    if bad:  # never resumed from (nothing writes one now: save refuses; an older EBRL's or a forged one)
+        raise Unreadable(f"values that are not finite ({', '.join(bad[:3])})")
     return state, arrays, tensors
+
+
+def nonfinite(tensors: dict[str, torch.Tensor]) -> list[str]:
+    """The names of the floating-point tensors that hold a value that is not finite."""
+    return [name for name, t in tensors.items() if t.is_floating_point() and not bool(torch.isfinite(t).all())]
 
 
 def _read_state(path: Path) -> dict[str, Any]:

@@ -7,8 +7,9 @@ It holds the policy, PPO/GRPO and the bounded collector, and the rules that keep
 * versions never go back or repeat: a restart resumes from the run's latest checkpoint and, when the
   launcher says a newer version was published before (``procenv.version_floor``), continues after it;
 * a learner stopped to start again (a new GPU share) hands the segments it had not trained on over to
-  the next one (``RUN_DIR/train-pending.msgpack``, fsynced, one checked record per segment), which takes
-  them over once: a file torn by a kill loses only its torn record.
+  the next one (``ebrl.algos.handover``), which takes them over once;
+* nothing that is not finite is learned from, published, saved or resumed from (``ebrl.algos.ppo`` skips a
+  bad gradient step, :meth:`Learner.finite_or_previous` undoes an update that made non-finite weights).
 
 No bus and no event loop here: the train service (``services/train.py``) drives it, and with several
 ranks the choreography of ``ebrl.algos.parallel`` decides who learns from what.
@@ -20,32 +21,26 @@ import collections
 import contextlib
 import logging
 import os
-import struct
 import time
-import zlib
-from pathlib import Path
-from typing import Any, BinaryIO, Callable, Iterable
+from typing import Any, Callable
 
-import msgpack
 import numpy as np
 import torch
 
 from ebrl import devices
-from ebrl.algos import checkpoint
+from ebrl.algos import checkpoint, handover
 from ebrl.algos.grpo import GroupCollector
 from ebrl.algos.parallel import Command, DataParallel, shards
-from ebrl.algos.ppo import PPO, Batch, SegmentCollector
-from ebrl.messages import MessageError, TrajectorySegment, decode_message, encode_message
-from ebrl.policies import make_policy, save_checkpoint, state_arrays
+from ebrl.algos.ppo import PPO, BadBatch, Batch, SegmentCollector
+from ebrl.envs.guard import decision_bound
+from ebrl.messages import TrajectorySegment
+from ebrl.policies import load_arrays, make_policy, save_checkpoint, state_arrays
 from ebrl.policies.checkpoint import portable_metadata, remove_stale_temporaries
 from ebrl.recorder import Telemetry
 
 log = logging.getLogger(__name__)
 
 POLICY_FILE = "policy.safetensors"  # the trained policy, for `--set policy.checkpoint=RUN_DIR/policy.safetensors`
-HANDOVER_FILE = "train-pending.msgpack"  # segments a stopping train leaves to the next one (RUN_DIR)
-HANDOVER_MAGIC = b"EBRL-HANDOVER/1\n"  # then records: <u32 length><u32 crc32 of the payload><payload>
-_RECORD = struct.Struct("<II")
 
 
 class Learner:
@@ -87,15 +82,16 @@ class Learner:
         return self.collector.ready_steps >= self.cfg.train.batch_size
 
     def accept(self, seg: TrajectorySegment, malformed: Callable[[Exception], None]) -> bool:
-        """Check one segment against this policy and add it to the collector (False: dropped, counted). Its own
-        consistency (every per-decision field T long, finite values) was checked when it was decoded
-        (``TrajectorySegment.check``)."""
+        """Check one segment against this policy and add it to the collector (False: dropped, counted); its own
+        consistency (fields T long, finite values) was checked as it was decoded (``TrajectorySegment.check``)."""
         if seg.obs.shape[1:] != self.obs_shape or seg.actions.shape[1:] != self.action_shape \
                 or seg.latents.shape[1:] != self.latent_shape:
             malformed(ValueError("segment shapes do not match the policy"))
             return False
-        if int(seg.versions.max()) > self.version:  # acted by weights this train never published
-            self.telemetry.count("train/future_version_dropped")
+        refused = ("train/reward_bound_dropped" if out_of_bound(seg, self.cfg.env.max_abs_reward) else
+                   "train/future_version_dropped" if int(seg.versions.max()) > self.version else None)
+        if refused:  # rewards no sim sends (env.max_abs_reward clips them), or acted by weights never published
+            self.telemetry.count(refused)
             return False
         self.collector.add(seg)
         self.returns.extend(seg.episode_returns)
@@ -118,7 +114,8 @@ class Learner:
         """The gradient steps on this rank's items, then ``sync``; a rank without items steps with zero
         gradients. Every rank makes the same collective calls in the same order, items or not."""
         with self.dp.gathered() if self.dp is not None else contextlib.nullcontext():
-            batch = self.collector.build(items, self.model).to(self.device) if items else None
+            batch = checked_batch(self.collector, items, self.model, self.telemetry)
+        batch = batch.to(self.device) if batch is not None else None
         if self.model.obs_norm is not None:  # before the gradient steps, the same statistics on every rank
             sums = self.model.obs_norm.sums(batch.obs if batch is not None else torch.zeros(0, *self.obs_shape))
             self.model.obs_norm.merge(sums if self.dp is None else self.dp.all_sum(sums))
@@ -132,6 +129,7 @@ class Learner:
                 out = self.ppo.update(batch, version=self.version)
             out.update(staleness_mean=float(staleness.mean()), staleness_max=float(staleness.max()),
                        batch_size=float(len(batch)))
+        count_skipped(out, self.telemetry, self.version + 1)
         self.sync(self.version + 1)
         self.version += 1
         return out
@@ -141,12 +139,24 @@ class Learner:
         checkpoint is due, the training state (sharded, both are collectives on every rank)."""
         if not self.sharded:
             if self.rank == 0:
-                self.arrays = state_arrays(self.model)
+                self.arrays = self.finite_or_previous(state_arrays(self.model))
             return
         self.arrays = self.dp.full_arrays()  # type: ignore[union-attr]
         every = self.cfg.train.checkpoint_every
         if every and version % every == 0:
             self.train_state = (version, *self.dp.checkpoint_state())  # type: ignore[union-attr]
+
+    def finite_or_previous(self, arrays: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+        """``arrays``, or where a value in them is not finite the last published weights, loaded back into the
+        model, the optimizer's moments cleared (counted: ``train/weights_refused``)."""
+        if not (bad := checkpoint.nonfinite({name: torch.from_numpy(a) for name, a in arrays.items()})):
+            return arrays
+        self.telemetry.count("train/weights_refused")
+        log.error("the update to v%d made non-finite weights (%s): v%d's are kept", self.version + 1, bad[0], self.version)
+        if self.arrays:
+            load_arrays(self.model, self.arrays)
+        self.ppo.optimizer.state.clear()  # the moments that led there
+        return self.arrays or arrays
 
     def empty_batch(self) -> Batch:
         """Zeros shaped like a batch of ``algo.minibatches`` decisions (for ``scale = 0`` steps)."""
@@ -194,8 +204,13 @@ class Learner:
             if self.train_state is None or self.train_state[0] != self.version:
                 return False
             _, model_state, optimizer = self.train_state
-        checkpoint.save(self.run_dir, self.model, optimizer, self.version, {"ppo": self.ppo.generator},
-                        {"run": run_name, **self.portable}, model_state=model_state)
+        try:
+            checkpoint.save(self.run_dir, self.model, optimizer, self.version, {"ppo": self.ppo.generator},
+                            {"run": run_name, **self.portable}, model_state=model_state)
+        except checkpoint.NonFiniteState as exc:  # the newest good checkpoint stays the one a restart reads
+            log.error("%s", exc)
+            self.telemetry.count("train/checkpoints_refused")
+            return False
         self.saved_version = self.version
         self.telemetry.publish_span("train", "checkpoint", start, time.time())
         self.telemetry.count("train/checkpoints")
@@ -205,48 +220,28 @@ class Learner:
     def policy_path(self) -> str:
         return os.path.join(self.run_dir, POLICY_FILE)
 
-    def save_policy(self, run_name: str) -> str:
+    def save_policy(self, run_name: str) -> str | None:
+        """Write the newest published weights to ``RUN_DIR/policy.safetensors``; its path, or None where they
+        are not finite (then nothing is written, logged)."""
         path = self.policy_path
         weights = {name: torch.from_numpy(a) for name, a in self.arrays.items()}  # full, also when sharded
+        # the published weights, finite (finite_or_previous); a sharded run's gathered ones are checked here
+        if bad := checkpoint.nonfinite(weights):
+            log.error("%s not written: values that are not finite (%s)", path, ", ".join(bad[:3]))
+            return None
         save_checkpoint(self.model, path, {"run": run_name, "version": str(self.version), **self.portable},
                         state=weights)
         return path
 
     def hand_over(self) -> int:
-        """Write the segments received and not yet trained on, for the next learner of this run; how many.
-        Durably (:func:`ebrl.algos.checkpoint.write_durably`), one checked record per segment
-        (:func:`write_records`)."""
-        segments = self.collector.segments()
-        if segments:
-            path = Path(self.run_dir) / HANDOVER_FILE
-            checkpoint.write_durably(path, lambda fh: write_records(fh, (encode_message(s) for s in segments)))
-        return len(segments)
+        """The segments not yet trained on, written for the next learner (:func:`ebrl.algos.handover.hand_over`)."""
+        return handover.hand_over(self.run_dir, self.collector.segments())
 
     def take_over(self, malformed: Callable[[Exception], None]) -> tuple[int, int]:
-        """Take over what the learner before handed over, once (the file is removed): (taken, handed over).
-        A learner killed while handing over left only the temporary file: its whole records are taken over
-        too (each is checked; a torn last one is lost, logged)."""
-        path = Path(self.run_dir) / HANDOVER_FILE
-        tmp = path.with_name(path.name + ".tmp")
-        source = path if path.exists() else tmp if tmp.exists() else None
-        if source is None:
-            return 0, 0
-        payloads, torn = read_records(source)
-        if torn:
-            log.warning("%s: %s; took the %d whole records before it", source, torn, len(payloads))
-        for stale in (path, tmp):  # before anything is trained on: never taken over twice
-            stale.unlink(missing_ok=True)
-        checkpoint.fsync_dir(path.parent)
-        taken = 0
-        for payload in payloads:
-            try:
-                segment = decode_message(TrajectorySegment, payload)
-            except MessageError as exc:  # whole, but no segment of this version (another EBRL wrote it)
-                malformed(exc)
-                continue
-            taken += self.accept(segment, malformed)
+        """(taken, handed over) of what the learner before left (:func:`ebrl.algos.handover.take_over`)."""
+        taken, handed = handover.take_over(self.run_dir, lambda segment: self.accept(segment, malformed), malformed)
         self.telemetry.count("train/segments_taken_over", taken)
-        return taken, len(payloads)
+        return taken, handed
 
     def metrics(self) -> dict[str, float]:
         out = {"train/policy_version": float(self.version)}
@@ -260,37 +255,32 @@ class Learner:
         return out
 
 
-def write_records(fh: BinaryIO, payloads: Iterable[bytes]) -> None:
-    """The handover file's format: ``HANDOVER_MAGIC``, then one record per payload, each with its length and
-    checksum, so that a reader of a file cut short (or with garbage after it) keeps every whole record."""
-    fh.write(HANDOVER_MAGIC)
-    for payload in payloads:
-        fh.write(_RECORD.pack(len(payload), zlib.crc32(payload)))
-        fh.write(payload)
+def checked_batch(collector: Any, items: list, model: torch.nn.Module, telemetry: Telemetry) -> Batch | None:
+    """The batch of ``items`` (None for none), without the decisions whose advantages or returns are not finite
+    (counted: ``train/decisions_dropped``; None when that is all of them)."""
+    if not items:
+        return None
+    try:
+        batch = collector.build(items, model)
+    except BadBatch as exc:
+        telemetry.count("train/decisions_dropped", exc.dropped)
+        return None
+    if batch.dropped:
+        telemetry.count("train/decisions_dropped", batch.dropped)
+    return batch
 
 
-def read_records(path: Path) -> tuple[list[bytes], str]:
-    """The whole records of a handover file, up to the first torn or garbled one, and what was wrong after them
-    ("" for a whole file). A file of the older format (one msgpack list) is read whole or not at all."""
-    data = path.read_bytes()
-    if not data.startswith(HANDOVER_MAGIC):
-        try:
-            payloads = msgpack.unpackb(data)
-        except (ValueError, msgpack.UnpackException):  # ExtraData and FormatError are ValueErrors
-            payloads = None
-        if isinstance(payloads, list) and all(isinstance(p, bytes) for p in payloads):
-            return payloads, ""
-        return [], "not a handover file (no header, not the older format)"
-    payloads, at = [], len(HANDOVER_MAGIC)
-    while at < len(data):
-        if at + _RECORD.size > len(data):
-            return payloads, f"record {len(payloads)} is torn (its header is cut short)"
-        length, crc = _RECORD.unpack_from(data, at)
-        payload = data[at + _RECORD.size:at + _RECORD.size + length]
-        if len(payload) < length:
-            return payloads, f"record {len(payloads)} is torn ({len(payload)} of {length} bytes)"
-        if zlib.crc32(payload) != crc:
-            return payloads, f"record {len(payloads)} is garbled (checksum mismatch)"
-        payloads.append(payload)
-        at += _RECORD.size + length
-    return payloads, ""
+def count_skipped(out: dict[str, float], telemetry: Telemetry, version: int) -> None:
+    """Count the gradient steps an update skipped and the decisions it dropped (``train/updates_skipped``,
+    ``train/decisions_dropped``), taken out of ``out``: totals, not the update's own numbers."""
+    skipped, dropped = out.pop("steps_skipped", 0.0), out.pop("decisions_dropped", 0.0)
+    if skipped:
+        telemetry.count("train/updates_skipped", skipped)
+        telemetry.count("train/decisions_dropped", dropped)
+        log.warning("v%d: %d gradient step(s) skipped, their loss or gradient not finite; %d decisions dropped",
+                    version, skipped, dropped)
+
+
+def out_of_bound(seg: TrajectorySegment, max_abs_reward: float) -> bool:
+    """Whether a segment carries a reward larger than a sim that clips at ``max_abs_reward`` sends."""
+    return bool((np.abs(seg.rewards.astype(np.float64)) > decision_bound(max_abs_reward, seg.steps)).any())

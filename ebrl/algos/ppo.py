@@ -47,16 +47,31 @@ def gae(rewards: np.ndarray, values: np.ndarray, discounts: np.ndarray, last_val
     delta_t = r_t + gamma_t * V(s_{t+1}) - V(s_t);  A_t = delta_t + gamma_t * lambda * A_{t+1}
     where gamma_t = gamma**k_t, V(s_T) = ``last_value`` (0 for a terminal state).
     Returns advantages and returns (A_t + V(s_t)).
+    In float64 throughout (a float32 sum of large rewards overflows where float64 does not); the caller checks
+    the result is finite before it is cast down.
     """
     T = len(rewards)
-    advantages = np.zeros(T, dtype=np.float32)
-    next_value, lastgaelam = last_value, 0.0
+    rewards, values = np.asarray(rewards, np.float64), np.asarray(values, np.float64)
+    advantages = np.zeros(T, dtype=np.float64)
+    next_value, lastgaelam = float(last_value), 0.0
     for t in reversed(range(T)):
         delta = rewards[t] + discounts[t] * next_value - values[t]
         lastgaelam = delta + discounts[t] * lam * lastgaelam
         advantages[t] = lastgaelam
         next_value = values[t]
     return advantages, advantages + values
+
+
+FLOAT32_SAFE = 1e30  # returns beyond this would overflow float32 once squared in the value loss
+
+
+class BadBatch(ValueError):
+    """Every decision of a batch was left out (its advantages or returns were not finite); ``dropped`` says how
+    many decisions."""
+
+    def __init__(self, dropped: int):
+        super().__init__(f"no decision of the batch had finite advantages and returns ({dropped} dropped)")
+        self.dropped = dropped
 
 
 @dataclass
@@ -71,6 +86,7 @@ class Batch:
     versions: np.ndarray
     normalize_advantages: bool = True  # per minibatch (PPO); GRPO's are normalised per group already
     diagnostics: dict[str, float] = dataclasses.field(default_factory=dict)  # reported with the update's stats
+    dropped: int = 0  # decisions left out as they were built (advantages or returns not finite)
 
     def __len__(self) -> int:
         return self.obs.shape[0]
@@ -124,21 +140,29 @@ def build_batch(segments: Sequence[TrajectorySegment], model: nn.Module, gamma: 
             current = behave_values
         else:
             raise ValueError(f"values = {values!r}: 'current' or 'behaviour'")
-    advs, rets = [], []
-    for seg, seg_values, last_value in zip(segments, current, last_values):
+    advs, rets, kept, used, behave, dropped = [], [], [], [], [], 0
+    for seg, seg_values, seg_behave, last_value in zip(segments, current, behave_values, last_values):
         a, r = gae(seg.rewards, seg_values, gamma ** seg.steps.astype(np.float64), float(last_value), lam)
-        advs.append(a)
-        rets.append(r)
+        if not (np.isfinite(a).all() and np.isfinite(r).all() and np.all(np.abs(r) < FLOAT32_SAFE)):
+            dropped += len(a)  # nothing to learn from: left out of the batch, counted by the caller
+            continue
+        advs.append(a.astype(np.float32))
+        rets.append(r.astype(np.float32))
+        kept.append(seg)
+        used.append(seg_values)
+        behave.append(seg_behave)
+    if not kept:
+        raise BadBatch(dropped)
 
     def cat(name: str) -> torch.Tensor:
-        return torch.as_tensor(np.concatenate([getattr(s, name) for s in segments]))
+        return torch.as_tensor(np.concatenate([getattr(s, name) for s in kept]))
 
-    used = np.concatenate(current)
-    drift = float(np.sqrt(np.mean((used - np.concatenate(behave_values)) ** 2)))
+    used_values = np.concatenate(used)
+    drift = float(np.sqrt(np.mean((used_values - np.concatenate(behave)) ** 2)))
     return Batch(obs=cat("obs"), actions=cat("actions"), latents=cat("latents"), logprobs=cat("logprobs"),
                  advantages=torch.as_tensor(np.concatenate(advs)), returns=torch.as_tensor(np.concatenate(rets)),
-                 values=torch.as_tensor(used), versions=np.concatenate([s.versions for s in segments]),
-                 diagnostics={"value_drift": drift})
+                 values=torch.as_tensor(used_values), versions=np.concatenate([s.versions for s in kept]),
+                 diagnostics={"value_drift": drift}, dropped=dropped)
 
 
 def policy_loss(logp: torch.Tensor, prox_logp: torch.Tensor, behave_logp: torch.Tensor, adv: torch.Tensor,
@@ -205,9 +229,12 @@ class PPO:
             prox = batch.logprobs  # pi_prox = pi_behave: weight 1, plain PPO
         weights: list[float] = [] if interpolate else [
             (prox - batch.logprobs).exp().clamp(max=cap).mean().item()]
+        keep = torch.ones(n, dtype=torch.bool)  # decisions still in the batch (a bad step drops its data)
+        skipped = dropped = 0
         for _ in range(cfg.epochs):
             order = torch.randperm(n, generator=self.generator)
             for idx in torch.tensor_split(order, cfg.minibatches):
+                idx = idx[keep[idx]]
                 step_scale = scale if len(idx) else 0.0
                 idx = idx if len(idx) else order[:1]
                 newlogprob, entropy, newvalue = self.net("evaluate", batch.obs[idx], batch.actions[idx],
@@ -233,7 +260,18 @@ class PPO:
                 loss = step_scale * (pg_loss - cfg.ent_coef * ent + cfg.vf_coef * v_loss)
                 self.optimizer.zero_grad()
                 loss.backward()
-                nn.utils.clip_grad_norm_(self.model.parameters(), cfg.max_grad_norm)
+                norm = nn.utils.clip_grad_norm_(self.model.parameters(), cfg.max_grad_norm)
+                if not bool(torch.isfinite(loss) & torch.isfinite(norm)):
+                    # AMP's answer to a bad step: skip it and go on. The decisions that made it leave the batch
+                    # (those whose own log-prob or value is not finite, else the whole minibatch)
+                    self.optimizer.zero_grad()
+                    own = torch.isfinite(newlogprob) & torch.isfinite(newvalue) & torch.isfinite(ratio * adv)
+                    if batch.returns is not None:
+                        own &= torch.isfinite((newvalue - batch.returns[idx]) ** 2)
+                    bad = idx[~own.cpu()] if not bool(own.all()) else idx
+                    keep[bad] = False
+                    skipped, dropped = skipped + 1, dropped + len(bad)
+                    continue
                 self.optimizer.step()
                 with torch.no_grad():
                     stats["policy_loss"].append(pg_loss.item())
@@ -243,7 +281,7 @@ class PPO:
                     stats["clipfrac"].append(((ratio - 1.0).abs() > cfg.clip).float().mean().item())
         stats["behave_weight_mean"] = weights
         out = {k: float(np.mean(v)) for k, v in stats.items() if v}
-        return {**out, **self.batch_stats(batch)}
+        return {**out, **self.batch_stats(batch), "steps_skipped": float(skipped), "decisions_dropped": float(dropped)}
 
     @staticmethod
     def _behaviour_stats(stats: dict[str, list[float]], log_w: torch.Tensor, cap: float) -> None:
@@ -264,13 +302,13 @@ class PPO:
         out = dict(batch.diagnostics)
         if len(batch) < 2:
             return out
-        adv = batch.advantages.float()
+        adv = batch.advantages.double()  # float64: the squares of large returns overflow float32
         out.update(adv_mean=adv.mean().item(), adv_std=adv.std().item())
         if batch.returns is not None:
-            ret = batch.returns.float()
+            ret = batch.returns.double()
             var = ret.var().item()
             if var > 0:
-                out["explained_variance"] = 1.0 - (ret - batch.values.float()).var().item() / var
+                out["explained_variance"] = 1.0 - (ret - batch.values.double()).var().item() / var
         return out
 
 

@@ -5,6 +5,7 @@ of them with each env's episode bookkeeping. Imported in that process only (it n
 from __future__ import annotations
 
 import logging
+import math
 import time
 from dataclasses import dataclass
 from typing import Any
@@ -13,6 +14,7 @@ import numpy as np
 import torch
 from gymnasium.utils import seeding
 
+from ebrl.envs import guard
 from ebrl.envs.backends import make_env
 from ebrl.envs.mjtask import MjState, MjTask, make_task
 from ebrl.envs.mjwarp import resolve_device, split_kwargs
@@ -281,8 +283,10 @@ def make_batch(spec: EnvSpec, seeds: list[int]) -> EnvBatch | ManiSkillBatch | M
 class BatchRunner:
     """Chunks on a batch, with each env's episode bookkeeping (return, length, success, episode index)."""
 
-    def __init__(self, batch: EnvBatch | ManiSkillBatch | MjWarpBatch):
-        self.batch = batch
+    def __init__(self, batch: EnvBatch | ManiSkillBatch | MjWarpBatch, max_abs_reward: float = math.inf):
+        """``max_abs_reward``: each env step's reward is checked as a worker process checks it
+        (:mod:`ebrl.envs.guard`: clipped to it, 0 where not finite; counted per env in the chunk)."""
+        self.batch, self.bound = batch, max_abs_reward
         n, device = batch.num_envs, batch.device
         self.episodes = np.zeros(n, np.int64)
         self.ep_return = torch.zeros(n, dtype=torch.float64, device=device)
@@ -312,6 +316,9 @@ class BatchRunner:
             raise ValueError(f"a chunk for {n} envs; this batch has {batch.num_envs}")
         alive = torch.ones(n, dtype=torch.bool, device=device)
         reward = torch.zeros(n, dtype=torch.float64, device=device)
+        clipped = torch.zeros(n, dtype=torch.int64, device=device)
+        nonfinite = torch.zeros(n, dtype=torch.int64, device=device)
+        bad_obs = torch.zeros(n, dtype=torch.int64, device=device)
         steps = torch.zeros(n, dtype=torch.int64, device=device)
         terminated = torch.zeros(n, dtype=torch.bool, device=device)
         truncated = torch.zeros(n, dtype=torch.bool, device=device)
@@ -326,15 +333,21 @@ class BatchRunner:
             t0 = time.perf_counter()
             stepped = batch.step(acts[:, k], alive, observe=k == k_max - 1)
             step_s.append(time.perf_counter() - t0)
-            reward += torch.where(alive, stepped.reward.double(), 0.0)
+            step_reward, was_clipped, was_nonfinite = guard.rewards(stepped.reward.double(), self.bound)
+            reward += torch.where(alive, step_reward, 0.0)
+            clipped += alive & was_clipped
+            nonfinite += alive & was_nonfinite
             steps += alive.long()
             if stepped.success is not None:
                 reports_success = True
                 success |= alive & stepped.success
-            ended = alive & (stepped.terminated | stepped.truncated)
+            step_obs, broken = guard.observations(stepped.obs)  # a non-finite state ends its episode, truncated
+            bad_obs += alive & broken
+            step_truncated = stepped.truncated | (broken & ~stepped.terminated)
+            ended = alive & (stepped.terminated | step_truncated)
             terminated |= ended & stepped.terminated
-            truncated |= ended & stepped.truncated
-            final = torch.where(alive[:, None], stepped.obs, final)
+            truncated |= ended & step_truncated
+            final = torch.where(alive[:, None], step_obs, final)
             alive &= ~ended
             if k < k_max - 1 and not bool(alive.any()):  # every episode ended: the rest of the chunk is dropped
                 break
@@ -362,7 +375,8 @@ class BatchRunner:
         next_obs = to_host(self.obs, None if out is None else out[0])
         return VectorChunk(reward.cpu().numpy().astype(np.float32), steps.cpu().numpy(), terminated.cpu().numpy(),
                            truncated.cpu().numpy(), chunk_episode, next_obs, ended, final_obs,
-                           ep_return, ep_length, ep_success, busy, tuple(step_s))
+                           ep_return, ep_length, ep_success, busy, tuple(step_s), clipped.cpu().numpy(),
+                           nonfinite.cpu().numpy(), bad_obs.cpu().numpy())
 
 
 def to_host(values: torch.Tensor, out: np.ndarray | None) -> np.ndarray | None:

@@ -28,6 +28,7 @@ from typing import Any
 
 import numpy as np
 
+from ebrl.envs.guard import Guarded
 from ebrl.envs.spec import EnvError, EnvSpec
 from ebrl.envs.worker import ChunkResult, WorkerProcess, adopt, worker_context
 
@@ -50,6 +51,9 @@ class VectorChunk:
     episode_success: np.ndarray  # [E] int8: 1, 0, or -1 where the task reports no success
     busy_s: float  # CPU seconds of the chunk's steps (the whole batch)
     step_s: tuple[float, ...]  # wall seconds of each batch step
+    rewards_clipped: np.ndarray | None = None  # [N] steps whose reward was clipped (ebrl.envs.guard)
+    rewards_nonfinite: np.ndarray | None = None  # [N] steps whose reward was not finite
+    obs_nonfinite: np.ndarray | None = None  # [N] steps whose observation was not finite (its episode ended)
 
     def results(self) -> list[ChunkResult]:
         """One :class:`ChunkResult` per env, as a worker process would have answered; each env's share of the
@@ -65,7 +69,10 @@ class VectorChunk:
                 truncated=bool(self.truncated[i]), final_obs=self.next_obs[i] if j is None else self.final_obs[j],
                 next_obs=self.next_obs[i], episode_return=None if j is None else float(self.episode_return[j]),
                 episode_length=None if j is None else int(self.episode_length[j]), episode_success=success,
-                busy_s=self.busy_s / n, episode=int(self.episode[i])))
+                busy_s=self.busy_s / n, episode=int(self.episode[i]), guarded=Guarded(
+                    0 if self.rewards_clipped is None else int(self.rewards_clipped[i]),
+                    0 if self.rewards_nonfinite is None else int(self.rewards_nonfinite[i]),
+                    0 if self.obs_nonfinite is None else int(self.obs_nonfinite[i]))))
         return out
 
 
@@ -81,7 +88,7 @@ def _vector_main(conn: Connection, spec: EnvSpec, seeds: list[int], shared: Any 
     batch = None
     try:
         batch = make_batch(spec, seeds)
-        runner = BatchRunner(batch)
+        runner = BatchRunner(batch, spec.max_abs_reward)
         out = None if shared is None else np.frombuffer(shared, np.float32).reshape(2, len(seeds), -1)
         while True:
             try:

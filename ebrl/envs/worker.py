@@ -19,13 +19,15 @@ import select
 import signal
 import threading
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from multiprocessing.connection import Connection
 from typing import Any, Callable, Iterable
 
 import numpy as np
 
+from ebrl.envs import guard
 from ebrl.envs.backends import backend, make_env
+from ebrl.envs.guard import Guarded
 from ebrl.envs.render import ensure_gl_for
 from ebrl.envs.spec import EnvSpec
 from ebrl.sched.corepool import CoreClaim, CorePool, ParentGone, pin_threads
@@ -69,6 +71,7 @@ class ChunkResult:
     step_cpu_s: tuple[float, ...] = ()  # CPU seconds of each env.step (the env's own cost, whoever shares the core)
     cores: tuple[int, ...] = ()  # the core each step ran on (rebinding: the core it was granted; else empty)
     helper_cpu_s: float = 0.0  # CPU seconds the env's other threads used during the chunk (a multi-threaded simulator)
+    guarded: Guarded = field(default_factory=Guarded)  # rewards and observations the checks changed (ebrl.envs.guard)
 
     def stepped(self) -> tuple[float, float]:
         """(CPU seconds of its steps, its other threads' included; wall seconds of its steps)."""
@@ -164,6 +167,7 @@ def _worker_main(conn: Connection, spec: EnvSpec, seed: int, claim: CoreClaim | 
 def _serve(conn: Connection, spec: EnvSpec, seed: int, claim: CoreClaim | None) -> None:
     env = make_env(spec, seed=seed)
     low, high = env.action_space.low, env.action_space.high
+    bound = spec.max_abs_reward
     base = env.unwrapped
     lazy = callable(getattr(base, "observe", None)) and hasattr(base, "skip_observation")
     episode_return, episode_length, episodes = 0.0, 0, 0
@@ -178,9 +182,10 @@ def _serve(conn: Connection, spec: EnvSpec, seed: int, claim: CoreClaim | None) 
                 episodes = int(arg or 0)
                 obs, _ = env.reset(seed=seed + EPISODE_SEED_STRIDE * episodes)
                 episode_return, episode_length, success = 0.0, 0, None
-                conn.send(as_obs(obs))
+                conn.send(guard.observation(as_obs(obs), Guarded())[0])
             elif cmd == "chunk":
                 total, steps, terminated, truncated = 0.0, 0, False, False
+                seen = Guarded()
                 started = time.thread_time()  # CPU time: a descheduled worker is not busy
                 process_started = time.process_time()  # every thread's: the env's own threads too
                 actions, observe = arg
@@ -199,12 +204,14 @@ def _serve(conn: Connection, spec: EnvSpec, seed: int, claim: CoreClaim | None) 
                         cores.append(core)
                     if "success" in info:
                         success = bool(success) or bool(info["success"])
-                    total += float(reward)
+                    total += guard.reward(reward, bound, seen)
                     steps += 1
                     if terminated or truncated:
                         break
                 if lazy and base.skip_observation and (terminated or truncated):  # an episode's end is always read
                     obs = base.observe()
+                obs, broken = guard.observation(as_obs(obs), seen)
+                truncated = truncated or (broken and not terminated)  # a non-finite state ends its episode
                 busy = time.thread_time() - started
                 helper = max(0.0, time.process_time() - process_started - busy)
                 episode_return += total
@@ -216,12 +223,13 @@ def _serve(conn: Connection, spec: EnvSpec, seed: int, claim: CoreClaim | None) 
                     ep_ret, ep_len, ep_success = episode_return, episode_length, success
                     episodes += 1
                     obs, _ = env.reset(seed=seed + EPISODE_SEED_STRIDE * episodes)
+                    obs, _ = guard.observation(as_obs(obs), seen)
                     episode_return, episode_length, success = 0.0, 0, None
                 if claim is not None:
                     claim.release(core, step_s[-1] if step_s else 0.0)
                 conn.send(ChunkResult(total, steps, bool(terminated), bool(truncated), final_obs, as_obs(obs),
                                       ep_ret, ep_len, ep_success, busy, episode, tuple(step_s), tuple(step_cpu),
-                                      tuple(cores), helper))
+                                      tuple(cores), helper, seen))
             elif cmd == "close":
                 return
             else:

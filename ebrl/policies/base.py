@@ -105,7 +105,9 @@ class GaussianChunkPolicy(ChunkPolicy):
     def heads(self, obs: torch.Tensor) -> tuple[Normal, torch.Tensor]:
         """The chunk distribution over flat K*A actions and the value, from one pass over ``obs``."""
         mean, log_std, v = self.moments(obs)
-        return Normal(mean, log_std.expand_as(mean).exp()), v
+        # no argument checks: a non-finite mean makes a non-finite loss, which the update skips (ebrl.algos.ppo),
+        # where a check would raise and end the process
+        return Normal(mean, log_std.expand_as(mean).exp(), validate_args=False), v
 
     def sample(self, obs: np.ndarray | torch.Tensor) -> tuple[torch.Tensor, ...]:
         """mean + std * eps and its log-prob, written out rather than through ``torch.distributions.Normal``:

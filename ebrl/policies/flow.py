@@ -83,7 +83,7 @@ class FlowPolicy(ChunkPolicy):
 
     def dist(self, features: torch.Tensor, x0: torch.Tensor) -> Normal:
         mu = self.mean(features, x0)
-        return Normal(mu, self.log_std.expand_as(mu).exp())
+        return Normal(mu, self.log_std.expand_as(mu).exp(), validate_args=False)  # see PolicyBase.heads
 
     def sample(self, obs: np.ndarray | torch.Tensor) -> tuple[torch.Tensor, ...]:
         features = self.encoder(self.flat(obs))

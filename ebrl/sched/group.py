@@ -171,6 +171,10 @@ class GroupLoop:
         count("sim/env_steps", res.steps)
         self.stats.env_steps += res.steps
         count("sim/step_busy_s", res.busy_s + res.helper_cpu_s)  # a multi-threaded simulator's threads too
+        if res.guarded:  # what the env returned that training must not see as it was (ebrl.envs.guard)
+            count("sim/rewards_clipped", res.guarded.rewards_clipped)
+            count("sim/rewards_nonfinite", res.guarded.rewards_nonfinite)
+            count("sim/obs_nonfinite", res.guarded.obs_nonfinite)
         if res.episode_return is not None:
             self.stats.episode_ended(env, res.episode, res.episode_return, res.episode_length or 0,
                                      res.episode_success, chunk.policy_version)

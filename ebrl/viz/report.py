@@ -293,6 +293,41 @@ def learning_markdown(series: dict[str, list], paths: dict[str, Path]) -> list[s
     return lines
 
 
+# What a run dropped, clipped or refused rather than learn from or crash on (issue 34), as the report lists it
+DATA_HEALTH = {
+    "sim/rewards_clipped": "env rewards beyond env.max_abs_reward, clipped",
+    "sim/rewards_nonfinite": "env rewards that were not finite, taken as 0",
+    "sim/obs_nonfinite": "env observations that were not finite (the episode ended there)",
+    "train/reward_bound_dropped": "segments with rewards no sim sends, dropped",
+    "train/updates_skipped": "gradient steps skipped (loss or gradient not finite)",
+    "train/decisions_dropped": "decisions dropped from training (their numbers not finite)",
+    "train/weights_refused": "updates whose weights were not finite, undone",
+    "train/checkpoints_refused": "checkpoints not written (state not finite)",
+    "train/future_version_dropped": "segments acted by a version train never made, dropped",
+    "gen/version_resets": "times gen found itself ahead of train and went back to train's newest",
+    "gen/obs_dropped": "observations whose shape does not fit the policy, dropped",
+    "gen/weights_refused": "weight versions refused",
+    "bus/malformed": "messages that failed validation, dropped (every service)",
+}
+
+
+def data_health(rec: record.Recording) -> list[str]:
+    """The "Dropped or changed data" section: each counter of ``DATA_HEALTH`` at the end of the run, summed over
+    the services that report it; only those above 0."""
+    latest: dict[tuple[str, int, str], float] = {}
+    for report in rec.stats:
+        for name in DATA_HEALTH:
+            value = report.metrics.get(name)
+            if value is not None:
+                latest[(report.service, report.instance, name)] = value
+    totals = {name: sum(v for (_, _, n), v in latest.items() if n == name) for name in DATA_HEALTH}
+    rows = [f"| `{name}` | {total:,.0f} | {DATA_HEALTH[name]} |" for name, total in totals.items() if total > 0]
+    lines = ["## Dropped or changed data", ""]
+    if not rows:
+        return lines + ["Nothing was dropped, clipped or refused.", ""]
+    return lines + ["| counter | total | what |", "|---|---|---|", *rows, ""]
+
+
 def markdown(rec: record.Recording, run_name: str, lo: float, hi: float, t0: float, lanes: list[str],
              points: list[tuple[float, float, float]], paths: dict[str, Path],
              series: dict[str, list] | None = None) -> str:
@@ -319,7 +354,7 @@ def markdown(rec: record.Recording, run_name: str, lo: float, hi: float, t0: flo
             if inside:
                 lines.append(f"| {a - t0:.0f} | {b - t0:.0f} | {statistics.fmean(p[1] for p in inside):,.0f} "
                              f"| {statistics.fmean(p[2] for p in inside):.2f} |")
-    lines += [""] + learning_markdown(series or {}, paths)
+    lines += [""] + learning_markdown(series or {}, paths) + data_health(rec)
     if rec.events:
         lines += ["", "## Events", ""]
         lines += [f"- {e.time - t0:7.1f} s  {e.service}/{e.instance} {e.kind}: {e.text}" for e in rec.events[:200]]

@@ -1,0 +1,155 @@
+"""No bad step (issue 34): what a user's env returns and what arrives on the bus is bounded and checked before
+training sees it; an update that is not finite is skipped, its data dropped; non-finite weights are never
+published, saved, checkpointed or resumed from. Each is counted."""
+
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+import torch
+from safetensors import safe_open
+from safetensors.numpy import load_file
+from safetensors.torch import save_file
+
+from ebrl.algos import checkpoint
+from ebrl.algos.learner import Learner
+from ebrl.config import Config
+from ebrl.envs import EnvSpec, describe
+from ebrl.envs.batch import BatchRunner, EnvBatch
+from ebrl.messages import TrajectorySegment
+from ebrl.policies import state_arrays
+from ebrl.testing import StatsWatcher
+from helpers import up
+
+CFG = Config()  # the default env: InvertedPendulum-v5
+TESTS = Path(__file__).resolve().parent
+INFO = describe(EnvSpec.from_config(CFG.env))
+
+
+class Counts(SimpleNamespace):
+    def __init__(self):
+        super().__init__(counts={})
+
+    def count(self, name, n=1):
+        self.counts[name] = self.counts.get(name, 0) + n
+
+    def publish_span(self, *args):
+        pass
+
+
+def learner(run_dir) -> tuple[Learner, Counts]:
+    telemetry = Counts()
+    return Learner(CFG, INFO, 4, telemetry, str(run_dir)), telemetry
+
+
+def segment(T: int = 8, reward: float = 1.0) -> TrajectorySegment:
+    rng = np.random.default_rng(0)
+    obs_dim, (k, a) = INFO.obs_shape[0], (CFG.policy.chunk, INFO.action_dim)
+    return TrajectorySegment(
+        group=0, env_id=0, episode=0, obs=rng.normal(size=(T, obs_dim)).astype(np.float32),
+        actions=np.zeros((T, k, a), np.float32), latents=np.zeros((T, 0), np.float32),
+        logprobs=np.zeros(T, np.float32), values=np.zeros(T, np.float32), rewards=np.full(T, reward, np.float32),
+        steps=np.full(T, k, np.int32), versions=np.zeros(T, np.int64), end="cut",
+        last_obs=np.zeros(obs_dim, np.float32), episode_returns=[], episode_lengths=[])
+
+
+def test_a_buggy_envs_rewards_and_observations_are_bounded_and_counted_in_a_batch():
+    spec = EnvSpec("faulty_envs:BuggyReward-v0", max_abs_reward=100.0,
+                   kwargs={"absurd_every": 3, "nan_every": 5, "inf_every": 7, "bad_obs_every": 11})
+    runner = BatchRunner(EnvBatch(spec, [0, 1]), spec.max_abs_reward)
+    runner.reset(np.zeros(2, np.int64))
+    clipped = nonfinite = bad_obs = 0
+    for _ in range(10):
+        chunk = runner.chunk(np.zeros((2, 4, 1), np.float32))
+        assert np.isfinite(chunk.reward).all() and np.all(np.abs(chunk.reward) <= 4 * 100.0)
+        assert np.isfinite(chunk.next_obs).all() and np.isfinite(chunk.episode_return).all()
+        clipped, nonfinite = clipped + chunk.rewards_clipped.sum(), nonfinite + chunk.rewards_nonfinite.sum()
+        bad_obs += chunk.obs_nonfinite.sum()
+        assert set(np.flatnonzero(chunk.obs_nonfinite)) <= set(chunk.ended)  # a broken state ends its episode
+    assert clipped > 0 and nonfinite > 0 and bad_obs > 0
+
+
+def test_train_drops_a_segment_whose_rewards_no_sim_could_send(tmp_path):
+    learn, telemetry = learner(tmp_path)
+    assert learn.accept(segment(reward=1e6 * CFG.policy.chunk), lambda exc: None)  # at the bound: taken
+    assert not learn.accept(segment(reward=3.0e38), lambda exc: None)
+    assert telemetry.counts == {"train/segments_received": 1, "train/reward_bound_dropped": 1}
+
+
+def test_weights_that_turned_non_finite_are_never_published_and_the_last_good_ones_come_back(tmp_path):
+    learn, telemetry = learner(tmp_path)
+    learn.sync(1)
+    good = {k: v.copy() for k, v in learn.arrays.items()}
+    with torch.no_grad():
+        next(learn.model.parameters()).fill_(float("nan"))
+    learn.sync(2)
+    assert telemetry.counts == {"train/weights_refused": 1}
+    for name, array in good.items():
+        np.testing.assert_array_equal(learn.arrays[name], array)
+        np.testing.assert_array_equal(state_arrays(learn.model)[name], array)  # the model is back too
+
+
+def test_a_non_finite_state_is_never_checkpointed_saved_or_resumed_from(tmp_path):
+    learn, telemetry = learner(tmp_path)
+    learn.version = 3
+    assert learn.save_checkpoint("r")
+    with torch.no_grad():
+        next(learn.model.parameters()).fill_(float("inf"))
+    learn.version = 4
+    assert not learn.save_checkpoint("r")  # refused, counted; v3 stays the newest
+    assert telemetry.counts["train/checkpoints_refused"] == 1
+    assert [p.name for p in checkpoint.candidates(tmp_path)] == ["v00000003"]
+    learn.arrays = state_arrays(learn.model)
+    assert learn.save_policy("r") is None and not (tmp_path / "policy.safetensors").exists()
+
+    # one written by other means (an older EBRL, a hand-made file): skipped at resume, the one before taken
+    forged = checkpoint.checkpoint_dir(tmp_path) / "v00000005"
+    forged.mkdir()
+    source = checkpoint.checkpoint_dir(tmp_path) / "v00000003"
+    for name in ("policy.safetensors", "train.safetensors"):
+        (forged / name).write_bytes((source / name).read_bytes())
+    (forged / "state.json").write_text(json.dumps({**json.loads((source / "state.json").read_text()), "version": 5}))
+    with safe_open(str(forged / "policy.safetensors"), "pt") as fh:
+        metadata = fh.metadata()
+    weights = {k: torch.from_numpy(v) for k, v in load_file(str(forged / "policy.safetensors")).items()}
+    next(iter(weights.values())).fill_(float("nan"))
+    save_file(weights, str(forged / "policy.safetensors"), metadata)
+    fresh, _ = learner(tmp_path)
+    assert fresh.resume(-1) is not None and fresh.version == 6  # v3's weights, continuing after every version seen
+    assert all(np.isfinite(a).all() for a in fresh.arrays.values())
+
+
+@pytest.fixture(scope="module")
+def buggy_run(tmp_path_factory):
+    """The quickstart on InvertedPendulum with a user's numeric bugs: absurd (1e38), NaN and -inf rewards and NaN
+    observations, each every few hundred steps of every env."""
+    out = tmp_path_factory.mktemp("buggy")
+    kwargs = '{absurd_every = 300, nan_every = 401, inf_every = 503, bad_obs_every = 607}'
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setenv("PYTHONPATH", os.pathsep.join([str(TESTS), os.environ.get("PYTHONPATH", "")]))  # faulty_envs
+        # the target return is off: one clipped 1e38 reward (1e6) in an episode would reach it
+        with up(out, "configs/quickstart.toml", "run.iterations=10", "run.target_return=1e300",
+                "train.batch_size=256", 'viz.rerun="off"', 'env.id="faulty_envs:BuggyReward-v0"',
+                f"env.kwargs={kwargs}", name="buggy") as run, \
+                StatsWatcher(run) as stats:
+            code = run.wait(300)
+    return run, stats, code
+
+
+def test_a_run_on_a_buggy_env_finishes_every_iteration_with_no_restart_and_a_finite_policy(buggy_run):
+    run, stats, code = buggy_run
+    assert code == 0, run.output
+    summary = json.loads((run.run_dir / "summary.json").read_text())
+    assert summary["iterations"] == 10 and summary["restarts"] == {}
+    for name in ("sim/rewards_clipped", "sim/rewards_nonfinite", "sim/obs_nonfinite"):
+        assert stats.latest("sim/0", name, 0) > 0, name
+    assert stats.latest("train/0", "train/reward_bound_dropped", 0) == 0  # the sim bounded them all
+    policy = load_file(str(run.run_dir / "policy.safetensors"))
+    assert all(np.isfinite(a).all() for a in policy.values())
+    report = (run.run_dir / "report" / "report.md").read_text()
+    assert "sim/rewards_clipped" in report

@@ -48,6 +48,10 @@ class RunSection:
         "success) reaches this fraction (0.9: 90 %); absent: never", None)
     seed: int = doc("seed for environments and model initialisation", 0)
     output_dir: str = doc("where run directories (logs, resolved config, summary) are created", "runs")
+    stall_timeout: float = doc(
+        "seconds a stage may stop moving (a service's stats reports, env steps, answered observations, updates) "
+        "before the launcher says which and why, restarts it, and ends the run if that does not help "
+        "(ebrl/stall.py); each stage is watched from its first progress on; 0: off", 30.0)
     stats_interval: float = doc("seconds between stats reports of each service", 1.0)
     startup_timeout: float = doc("seconds to wait for every service to come up", 120.0)
     log_level: Literal["debug", "info", "warning"] = doc("log level of the services", "info")

@@ -30,7 +30,7 @@ import time
 from pathlib import Path
 from typing import Callable
 
-from ebrl import config as config_mod, devices, meta, procenv, tracking
+from ebrl import config as config_mod, devices, meta, procenv, stall, tracking
 from ebrl.bus import Bus, BusOptions, auth, keys
 from ebrl.bus.endpoints import config_file_listen, listen_endpoint
 from ebrl.hosts import PRIMARY_LOST_S, HostPlan, Membership, enabled_roles, plan as plan_host
@@ -172,7 +172,7 @@ class Launcher:
         self.gpu_env = gpu_env or {}  # stage -> the CUDA variables it starts with (the allocator's first GPU share)
         self.failure: str | None = None
         self.stop_reason = ""
-        self.ctl_unknown = 0
+        self.ctl_unknown, self.stalls = 0, stall.StallWatch(cfg.run.stall_timeout)
         self.started = time.monotonic()
         self.final_eval = FinalEvaluation(cfg.eval.final_timeout, cfg.run.iterations, self.console.say)
 
@@ -268,7 +268,8 @@ class Launcher:
     async def supervise(self) -> int:
         last_stats = 0.0
         while not self.stopping.is_set():
-            self.failure = self.supervisor.check(restart=True)
+            self.failure = self.supervisor.check(restart=True) or stall.watch(
+                self.stalls, self.view, self.supervisor, self.console.say, self.link.event)
             if self.failure is not None:
                 return 1
             if time.monotonic() - last_stats >= self.cfg.run.stats_interval:

@@ -60,6 +60,7 @@ class RunView:
         self.best_return: float | None = None
         self.started = time.monotonic()
         self.reached: TargetReached | None = None
+        self.note: str | None = None  # what the progress line says first (a stall being acted on: ebrl.stall)
 
     def on_report(self, key: str, report: StatsReport) -> None:
         if key != keys.stats(self.run, report.service, report.instance) or (
@@ -123,6 +124,7 @@ class RunView:
         """Where the run is: iterations done of ``run.iterations``, and the fields after them."""
         ret, success = self.mean_return(), self.metric("sim/success_rate", "mean")
         fields = [  # what matters most first: a narrow terminal cuts the end
+            *([self.note] if self.note else []),
             f"return {ret:.1f}" if ret is not None else "return -",
             *([f"success {success:.0%}"] if success is not None else []),
             *([self.last_eval()] if self.last_eval() else []),

@@ -54,6 +54,7 @@ class Child:
     restart_at: float | None = None  # monotonic time of a scheduled restart
     requota: bool = False  # asked to stop for a new GPU share: started again with it once it has exited
     given_up: bool = False  # an optional child that exited for good: the run goes on without it
+    started: float = dataclasses.field(default_factory=time.monotonic)  # when its process was last started
 
     @property
     def name(self) -> str:
@@ -215,6 +216,7 @@ class Supervisor:
         with open(child.log_path, "ab") as fh:
             fh.write(f"\n--- {why} by the launcher ---\n".encode())
         child.proc = self._spawn(child.role, child.instance, child.log_path, extra)
+        child.started = time.monotonic()
         if requota:
             self.event("requota", f"{child.name} started again {why}")
         else:
@@ -238,6 +240,13 @@ class Supervisor:
         for child in asked:
             child.requota = True
         return asked
+
+    def kill(self, name: str) -> None:
+        """Kill a stuck child's process group (``"gen/0"``: the stall watch, ``ebrl.stall``); :meth:`check` then
+        sees it exited and restarts it like any failed child."""
+        for child in self.children:
+            if child.name == name and child.running():
+                _kill_group(child)
 
     def restarts(self) -> dict[str, int]:
         """Restarts after a failure, per child that had any."""

@@ -41,13 +41,15 @@ from typing import Callable, Literal
 import numpy as np
 
 from ebrl.bus import BusBase, Query, keys
-from ebrl.messages import MessageError, Weights, WeightsPart, decode_message, encode_message
+from ebrl.messages import MessageError, StatsReport, Weights, WeightsPart, decode_message, encode_message
 
 log = logging.getLogger("ebrl.weights")
 
 SINGLE_MAX_BYTES = 4 << 20  # a version this large or larger goes in parts
 MAX_JUMP = 64  # a version may be this far past the receiver's newest, plus MAX_RATE per second since it came
 MAX_RATE = 200.0  # versions per second: no update of a real policy is this fast (the quickstart's: ~3 per second)
+AHEAD_S = 2.0  # a receiver ahead of the trainer's reported version this long, in AHEAD_REPORTS reports in a row,
+AHEAD_REPORTS = 3  # goes back to the trainer's weights (a report is at most one update behind a real receiver)
 PART_BYTES = 4 << 20  # four fit the default 16 MiB shared-memory pool; a 256 MiB pool measured no better
 ALIGN = 64  # each array starts at a multiple of this in a version's buffer
 
@@ -299,16 +301,20 @@ class WeightsReceiver:
 
     ``layout`` (the receiver's policy) makes it take only versions of exactly those tensors, finite;
     ``floor`` is the newest version known to exist when it starts (a resumed run's checkpoint, the newest
-    seen before a restart), from which the first version must be :func:`plausible`."""
+    seen before a restart), from which the first version must be :func:`plausible`. ``follow``: read the
+    trainer's reports all along (:meth:`follow_trainer`), so a receiver put ahead of it goes back."""
 
     def __init__(self, bus: BusBase, run: str, *, notify: asyncio.Event | None = None,
-                 layout: WeightsLayout | None = None, floor: int = -1):
+                 layout: WeightsLayout | None = None, floor: int = -1, follow: bool = False):
         self.bus, self.run, self._notify, self.layout = bus, run, notify, layout
         self.version = -1  # newest complete version so far
         self.completed = 0  # versions assembled or received whole
         self.discarded = 0  # incomplete versions given up for a newer one
         self.stale = 0  # messages of a version older than one already here
         self.refused = 0  # versions too far ahead to be real (plausible), or that failed the layout
+        self.resets = 0  # times it found itself ahead of the trainer and went back to the trainer's (trainer_at)
+        self._ahead = (0.0, 0)  # since when, and in how many reports in a row, the trainer is behind the receiver
+        self._reset = False  # take_newer hands out the next version even though it is older than the taker's
         self._anchor = (floor, time.monotonic())  # (newest version taken or the floor, when): plausible() from it
         self._parts_key = keys.weights_parts(run)
         self._lock = threading.Lock()  # assembly state; held while a part is copied in
@@ -317,6 +323,12 @@ class WeightsReceiver:
         self._latest: Weights | None = None
         self._spare: np.ndarray | None = None  # the previous version's buffer, reused once it is free
         bus.subscribe_raw(keys.weights_all(run), self._on_payload)
+        # made in a running event loop (gen's and eval's setup); the loop holds tasks weakly, so keep a reference
+        self.follower = asyncio.get_running_loop().create_task(self.follow_trainer()) if follow else None
+
+    def counters(self) -> dict[str, int]:
+        """What the taker reports (``gen/...``): versions discarded incomplete, refused, and resets."""
+        return {"weights_discarded": self.discarded, "weights_refused": self.refused, "version_resets": self.resets}
 
     def reject(self, weights: Weights, current: int) -> None:
         """The taker could not load ``weights`` (it stays at version ``current``): the version never counted,
@@ -328,12 +340,13 @@ class WeightsReceiver:
             self.refused += 1
 
     def take_newer(self, version: int) -> Weights | None:
-        """The newest complete version if it is newer than ``version``; the receiver forgets it then, so its
-        memory goes once the caller is done with it."""
+        """The newest complete version if it is newer than ``version`` (or, after the receiver found itself
+        ahead of every trainer, the trainer's newest even though it is older); the receiver forgets it then, so
+        its memory goes once the caller is done with it."""
         with self._handoff:
-            if self._latest is None or self._latest.version <= version:
+            if self._latest is None or (self._latest.version <= version and not self._reset):
                 return None
-            latest, self._latest = self._latest, None
+            latest, self._latest, self._reset = self._latest, None, False
             return latest
 
     async def request(self, timeout: float = 10.0) -> bool:
@@ -360,6 +373,38 @@ class WeightsReceiver:
             self.refused += 1
             raise MessageError(f"weights v{version}: implausibly far past v{newest} (at most {MAX_JUMP} + "
                                f"{MAX_RATE:g}/s ahead)")
+
+    def trainer_at(self, version: int) -> bool:
+        """The trainer reports ``version`` as its newest. A receiver ahead of it in ``AHEAD_REPORTS`` reports in a
+        row, over ``AHEAD_S`` seconds or more, holds a version no trainer made (a forged one, plausibly
+        numbered): it forgets it, counted in ``resets``, and takes whatever the trainer sends next, even an older
+        number (True: ask the trainer now, :meth:`request`). Only the trainer's weights are ever taken, so a
+        forged report costs one request."""
+        now = time.monotonic()
+        with self._lock:
+            if self.version <= version:
+                self._ahead = (now, 0)
+                return False
+            since, reports = self._ahead if self._ahead[1] else (now, 0)
+            self._ahead = (since, reports + 1)
+            if reports + 1 < AHEAD_REPORTS or now - since < AHEAD_S:
+                return False
+            log.warning("weights: v%d is ahead of the trainer's v%d for %.0f s: going back to the trainer's",
+                        self.version, version, now - since)
+            self.version, self._anchor, self._ahead, self._assembly = -1, (version, now), (0.0, 0), None
+            self.resets += 1
+            with self._handoff:
+                self._latest, self._reset = None, True
+        return True
+
+    async def follow_trainer(self) -> None:
+        """Read the trainer's reports (train/0's ``train/policy_version``) for as long as it runs; whenever the
+        receiver is found ahead (:meth:`trainer_at`), ask for the trainer's newest weights."""
+        reports = self.bus.subscribe(keys.stats(self.run, "train", 0), StatsReport, policy="latest", capacity=1)
+        async for _, report in reports:
+            version = report.metrics.get("train/policy_version")
+            if version is not None and math.isfinite(version) and self.trainer_at(int(version)):
+                await self.request()
 
     def _on_whole(self, weights: Weights) -> None:
         with self._lock:

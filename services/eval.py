@@ -45,7 +45,8 @@ class EvalService(Service):
         self.busy = False
         self.wake, self.due = asyncio.Event(), asyncio.Event()
         self.weights = WeightsReceiver(self.bus, self.run_name, notify=self.wake,
-                                       layout=WeightsLayout.of_model(self.model), floor=known_version(self.run_dir))
+                                       layout=WeightsLayout.of_model(self.model), floor=known_version(self.run_dir),
+                                       follow=True)  # back to train's weights if a forged version put eval ahead
         self.log.info("evaluating every %d versions, %d episodes from seed %d, %d worker(s) at %s", cfg.eval.every,
                       cfg.eval.episodes, cfg.eval.seeds, self.workers.workers, priority)
 

@@ -47,7 +47,7 @@ class GenService(Service):
         self.version = -1
         self.batch_groups = cfg.gen.max_batch_groups  # 0: every group of every live sim host
         self.sims = LivePeers(self.bus, self.run_name, "sim", warn=lambda: False)
-        self.waiting = ObservationQueue(self.schedule)  # observations whose iteration needs a newer policy
+        self.waiting = ObservationQueue(self.schedule, info.obs_shape)  # those whose iteration needs a newer policy
         # Forward passes run on one dedicated thread (with gen's torch threads); on the CPU, a pass shorter than
         # the hand-off to that thread and back runs on the event loop itself (``inline``).
         self.pool = threads.TorchPool("gen-forward")
@@ -58,7 +58,8 @@ class GenService(Service):
                                       notify=self.wake)
         # assembles off the event loop; takes only versions of this policy's tensors, finite, plausibly numbered
         self.weights = WeightsReceiver(self.bus, self.run_name, notify=self.wake,
-                                       layout=WeightsLayout.of_model(self.policy), floor=known_version(self.run_dir))
+                                       layout=WeightsLayout.of_model(self.policy), floor=known_version(self.run_dir),
+                                       follow=True)  # back to train's weights if a forged version put gen ahead
 
     @property
     def max_groups(self) -> int:
@@ -143,10 +144,7 @@ class GenService(Service):
 
     def metrics(self) -> dict[str, float]:
         return {"gen/policy_version": float(self.version), "gen/obs_queue": float(len(self.obs)),
-                "gen/obs_waiting_for_policy": float(len(self.waiting)),
-                "gen/obs_waiting_dropped": float(self.waiting.dropped),
-                "gen/weights_discarded": float(self.weights.discarded),
-                "gen/weights_refused": float(self.weights.refused)}
+                **{f"gen/{k}": float(v) for k, v in {**self.waiting.counters(), **self.weights.counters()}.items()}}
 
     async def teardown(self) -> None:
         self.pool.shutdown(wait=False, cancel_futures=True)

@@ -60,10 +60,14 @@ def crafted(run: str, seen: dict[str, bytes]) -> list[tuple[str, bytes]]:
         out.append((keys.traj(run, 0), encode_message(dataclasses.replace(seg, rewards=np.full_like(seg.rewards, np.nan)))))
         out.append((keys.traj(run, 0), encode_message(dataclasses.replace(seg, logprobs=seg.logprobs[:-1]))))
         out.append((keys.traj(run, 0), encode_message(dataclasses.replace(seg, versions=seg.versions + 10**9))))
+        # rewards finite but absurd (3e38, as no sim that clips at env.max_abs_reward sends): a NaN update once
+        out.append((keys.traj(run, 0), encode_message(dataclasses.replace(seg, rewards=np.full_like(seg.rewards, 3e38)))))
     if keys.weights(run) in seen:
         real = decode_message(Weights, seen[keys.weights(run)])
         nan = {name: np.full_like(a, np.nan) if a.dtype.kind == "f" else a for name, a in real.params.items()}
         out.append((keys.weights(run), encode_message(dataclasses.replace(real, version=10**9, created_at=now))))
+        # the trainer's own tensors numbered plausibly ahead: generation ahead of training stalled a run for good once
+        out.append((keys.weights(run), encode_message(dataclasses.replace(real, version=real.version + 60, created_at=now))))
         out.append((keys.weights(run), encode_message(Weights(version=real.version + 1, params=nan, created_at=now))))
     out.append((keys.weights_parts(run), encode_message(WeightsPart(
         version=1, index=0, count=1 << 18, part_bytes=4 << 20, total_bytes=1 << 40, created_at=now,

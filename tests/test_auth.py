@@ -279,7 +279,8 @@ def test_a_hostile_process_can_neither_read_nor_stop_nor_poison_a_run(tmp_path):
 def test_on_an_open_bus_crafted_payloads_on_every_key_are_refused_and_the_run_finishes(tmp_path):
     """Validation alone (bus.auth = false: any process may publish): for 40 s a peer sends, on every key of a
     live run, messages made from the run's own traffic with poisoned meaning and payloads crafted against the
-    decoder. The run finishes every iteration with finite, monotonic versions; each receiver counted what it
+    decoder (among them a segment with rewards of 3e38 and weights numbered the trainer's version + 60). The run
+    finishes every iteration with finite, monotonic versions and no restart; each receiver counted what it
     refused; no service's memory grew by 100 MB."""
     ITERATIONS = 150  # about a minute and a half here: the run outlasts the attack
     env = {**os.environ, "PYTHONPATH": str(ROOT)}
@@ -312,6 +313,10 @@ def test_on_an_open_bus_crafted_payloads_on_every_key_are_refused_and_the_run_fi
                for k, v in r.metrics.items() if "loss" in k)  # no NaN reached an update
     assert last("train/0", "bus/malformed") > 0 and last("gen/0", "bus/malformed") > 0
     assert last("gen/0", "gen/weights_refused") > 0 and last("sim/0", "bus/malformed") > 0
+    assert last("train/0", "train/reward_bound_dropped") > 0  # the 3e38 rewards: dropped, no update saw them
+    assert last("gen/0", "gen/version_resets") > 0  # put ahead by the forged version + 60, gen went back to train's
+    summary = json.loads((run.run_dir / "summary.json").read_text())
+    assert summary["restarts"] == {}, summary  # nothing crashed
     assert stats.latest("launcher/0", "launcher/stats_refused") > 0  # the forged train/0 reports
     for service, rss in before.items():
         if rss is not None:  # the launcher reports no memory

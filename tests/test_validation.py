@@ -250,3 +250,16 @@ def test_generation_s_waiting_observations_stay_bounded():
     assert len(queue) == 8 and queue.dropped == 994
     batch = queue.take(version=0, sim_hosts=1, max_groups=100)
     assert [m.group for m in batch] == list(range(1092, 1100)) and len(queue) == 0
+
+
+def test_generation_drops_an_observation_that_does_not_fit_its_policy_and_counts_it():
+    cfg = config.load(ROOT / "configs/quickstart.toml", [])
+    queue = ObservationQueue(resolve(cfg), obs_shape=(4,))
+
+    def obs(group: int, rows: np.ndarray) -> Observation:
+        return Observation(group=group, seq=0, env_ids=np.arange(len(rows)), obs=rows.astype(np.float32), sent_at=0.0)
+
+    queue.extend([obs(0, np.zeros((2, 4))), obs(1, np.zeros((2, 5))), obs(2, np.zeros((2, 4, 1))),
+                  obs(3, np.array([[0.0, np.nan, 0.0, 0.0]]))])  # a wrong width, a wrong rank, a NaN
+    assert [m.group for m in queue.take(version=0, sim_hosts=1, max_groups=10)] == [0]
+    assert queue.counters() == {"obs_waiting_for_policy": 0, "obs_waiting_dropped": 0, "obs_dropped": 3}

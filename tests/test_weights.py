@@ -11,6 +11,7 @@ import pytest
 
 from ebrl.bus import keys
 from ebrl.messages import StatsReport, Weights, WeightsPart, decode_message, encode_message
+import ebrl.weights as weights_module
 from ebrl.weights import ALIGN, WeightsPublisher, WeightsReceiver
 from helpers import BUS_KINDS, bus_pair, until
 
@@ -252,6 +253,55 @@ def test_the_receiver_reuses_a_buffer_only_once_nothing_reads_it(kind):
             assert address(third) == reused_at  # v2's buffer, free again
             assert_identical(held.params, arrays(1))
             assert_identical(third.params, arrays(3))
+            publisher.close()
+
+    asyncio.run(scenario())
+
+
+@pytest.mark.parametrize("whole", [True, False], ids=["whole", "parts"])
+def test_a_receiver_put_ahead_of_the_trainer_by_a_forged_version_goes_back_to_the_trainers(kind, whole, monkeypatch):
+    """Issue 34: one plausible forged version (the trainer's own tensors, its version + 60) puts the receiver
+    ahead of the trainer, whose reports say it is at v1; after 3 such reports the receiver asks the trainer for
+    its newest and hands it out although its number is older (counted in ``resets``), then follows it again."""
+    monkeypatch.setattr(weights_module, "AHEAD_S", 0.2)
+
+    async def scenario():
+        async with two_peers(kind) as (pub_bus, sub_bus, pair):
+            receiver = WeightsReceiver(sub_bus, RUN)
+            follower = asyncio.create_task(receiver.follow_trainer())
+            sizes = {"part_bytes": 1024, "single_max_bytes": (4 << 20) if whole else 0}
+            publisher = WeightsPublisher(pub_bus, RUN, **sizes)
+            await pair.settled()
+            arrays = model()
+            assert (await publisher.publish(1, arrays)).mode == ("whole" if whole else "parts")
+            await until(lambda: receiver.version == 1, 10, "v1")
+            assert receiver.take_newer(0).version == 1
+            forger = WeightsPublisher(pub_bus, RUN, **sizes)  # a peer that only puts (no answer to queries)
+            await forger.publish(61, arrays)
+            forger.close()
+            await until(lambda: receiver.version == 61, 10, "the forged v61")
+            current = receiver.take_newer(1).version  # the taker acts with v61 now
+
+            async def report(version: int) -> None:
+                await pub_bus.put(keys.stats(RUN, "train", 0), StatsReport(
+                    run=RUN, service="train", instance=0, time=0.0, seq=0, metrics={"train/policy_version": version}))
+
+            for _ in range(2):
+                await report(1)
+                await asyncio.sleep(0.15)
+            assert receiver.resets == 0 and receiver.take_newer(current) is None  # not yet
+            await report(1)
+            await until(lambda: receiver.resets == 1 and receiver.version == 1, 10, "the reset to the trainer's v1")
+            got = receiver.take_newer(current)
+            assert got is not None and got.version == 1  # older than the taker's v61, handed out all the same
+            assert_identical(got.params, arrays)
+            await publisher.publish(2, arrays)
+            await until(lambda: receiver.version == 2, 10, "v2")
+            assert receiver.take_newer(1).version == 2 and receiver.counters()["version_resets"] == 1
+            await report(2)  # at the trainer's version: nothing happens
+            await asyncio.sleep(0.3)
+            assert receiver.resets == 1 and not sub_bus.malformed
+            follower.cancel()
             publisher.close()
 
     asyncio.run(scenario())

@@ -152,7 +152,7 @@ class Learner:
         if not (bad := checkpoint.nonfinite({name: torch.from_numpy(a) for name, a in arrays.items()})):
             return arrays
         self.telemetry.count("train/weights_refused")
-        log.error("the update to v%d made non-finite weights (%s): v%d's are kept", self.version + 1, bad[0], self.version)
+        log.error("the update to v%d made non-finite weights (%s): v%d's kept", self.version + 1, bad[0], self.version)
         if self.arrays:
             load_arrays(self.model, self.arrays)
         self.ppo.optimizer.state.clear()  # the moments that led there

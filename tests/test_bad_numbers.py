@@ -4,6 +4,7 @@ published, saved, checkpointed or resumed from. Each is counted."""
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 from pathlib import Path
@@ -153,3 +154,36 @@ def test_a_run_on_a_buggy_env_finishes_every_iteration_with_no_restart_and_a_fin
     assert all(np.isfinite(a).all() for a in policy.values())
     report = (run.run_dir / "report" / "report.md").read_text()
     assert "sim/rewards_clipped" in report
+
+
+def test_one_forged_weights_version_ahead_of_train_does_not_stall_the_run(tmp_path):
+    """The issue's case: one plausible weights message -- train's newest tensors numbered its version + 60 --
+    put gen ahead of train, train dropped every later segment as acted by a future version, and the run stood
+    still for good. Now gen goes back to train's weights and the run finishes, nothing restarted."""
+    import asyncio
+
+    from ebrl.bus import keys
+    from ebrl.messages import Weights
+    from helpers import loopback_bus
+
+    async def forge(port: int, run: str) -> int:
+        bus = loopback_bus(port, listen=False)
+        try:
+            sub = bus.subscribe(keys.weights(run), Weights, policy="latest", capacity=1)
+            _, real = await asyncio.wait_for(sub.next(), 120)
+            await bus.put(keys.weights(run), dataclasses.replace(real, version=real.version + 60))
+            await asyncio.sleep(0.5)
+            return real.version + 60
+        finally:
+            await bus.close()
+
+    with up(tmp_path, "configs/quickstart.toml", "run.iterations=16", "train.batch_size=256", 'viz.rerun="off"',
+            "bus.auth=false", "train.checkpoint_every=0", name="forged") as run, StatsWatcher(run) as stats:
+        stats.wait_for(lambda: (stats.latest("train/0", "train/policy_version") or 0) >= 3, 300, "policy v3")
+        forged = asyncio.run(forge(run.port, run.name))
+        stats.wait_for(lambda: (stats.latest("gen/0", "gen/policy_version") or 0) >= forged, 30, "gen at the forgery")
+        code = run.wait(300)
+    assert code == 0, run.output
+    summary = json.loads((run.run_dir / "summary.json").read_text())
+    assert summary["iterations"] == 16 and summary["restarts"] == {}
+    assert stats.latest("gen/0", "gen/version_resets") >= 1  # it went back to train's weights, on its own

@@ -7,10 +7,12 @@ kernels compiling, a simulator loading -- is not a stall):
 
 * an instance of sim, gen or train sent no stats report for that long: its process is stopped or hung;
 * a sim instance made no env steps: gen answered nothing in that time either -- if gen holds observations that
-  need a newer policy and train made no update, train is the one stuck, else gen -- or gen answers and the sim
-  itself is stuck;
-* train made no update for that long (and 3x its last update's time) while segments kept coming and its process
-  used next to no CPU: it waits on something that will not come.
+  need a newer policy and train, with a full batch, made no update and uses next to no CPU, train is the one
+  stuck; without a batch, the segments do not reach it (the sim); while it computes, a long update is no
+  stall; else gen -- or gen answers and the sim itself is stuck;
+* train made no update for that long (and 3x its last update's time) with a full batch while segments kept
+  coming and its process used next to no CPU: it waits on something that will not come (not an attack that
+  keeps its batch from filling: that is no stall of train's).
 
 The launcher (``ebrl.launch``) shows the stall on the progress line and in the run's events, kills the stuck
 instance's process group so that the supervisor starts it again (a restart like any other, counted against
@@ -82,10 +84,13 @@ class StallWatch:
             r = reports[key]
             return f"{r.service}/{r.instance}"
 
-        def waits(key: str) -> bool:  # a train that makes no update and computes none: not a long update
+        def waits(key: str) -> bool:  # a train with a full batch that makes no update and computes none
             r = reports[key]
-            return idle[key] > 3 * r.metrics.get("train/update_s", 0.0) \
+            return idle[key] > 3 * r.metrics.get("train/update_s", 0.0) and r.metrics.get("train/batch_ready", 1) \
                 and r.metrics.get("proc/cpu_percent", 100.0) < IDLE_CPU_PERCENT
+
+        def computes(key: str) -> bool:  # a long update (a mode without overlap waits for it): not a stall
+            return reports[key].metrics.get("proc/cpu_percent", 100.0) >= IDLE_CPU_PERCENT
 
         if sims := stuck("sim"):
             quiet = f"no env steps for {idle[sims[0]]:.0f} s"
@@ -93,18 +98,21 @@ class StallWatch:
             if gens and all(key in stuck("gen") for key in gens):
                 waiting = view.metric("gen/obs_waiting_for_policy") or 0
                 if waiting and (trains := stuck("train")):
-                    if not any(waits(key) for key in trains):
+                    if waiting_trains := [key for key in trains if waits(key)]:
+                        return Stall(name(waiting_trains[0]), f"{quiet}: generation holds {waiting:.0f} observation(s) "
+                                                              f"for a newer policy and train, with a full batch, made "
+                                                              f"no update for {idle[trains[0]]:.0f} s, next to no CPU used")
+                    if any(computes(key) for key in trains):
                         return None  # a long update: generation waits for it (a mode without overlap)
-                    return Stall(name(trains[0]), f"{quiet}: generation holds {waiting:.0f} observation(s) for a "
-                                                  f"newer policy and train made no update for "
-                                                  f"{idle[trains[0]]:.0f} s, next to no CPU used")
+                    return Stall(name(sims[0]), f"{quiet}: generation holds {waiting:.0f} observation(s) for a newer "
+                                                f"policy and train lacks a batch: the segments do not reach it")
                 return Stall(name(gens[0]), f"{quiet}: generation answered no observation for {idle[gens[0]]:.0f} s")
             return Stall(name(sims[0]), f"{quiet} while generation answers")
         for key in stuck("train"):
             received = self.moved.get((key, "train/segments_received"))
             if waits(key) and received is not None and received[1] > self.moved[(key, PROGRESS["train"])][1]:
-                return Stall(name(key), f"no update for {idle[key]:.0f} s while segments came in, and next to no CPU "
-                                        "used: it waits on something that does not come")
+                return Stall(name(key), f"no update for {idle[key]:.0f} s with a full batch while segments came in, "
+                                        "and next to no CPU used: it waits on something that does not come")
         return None
 
     def note(self) -> str | None:

@@ -35,7 +35,7 @@ class Reports:
             ("sim", 0): {"sim/env_steps": 0.0},
             ("gen", 0): {"gen/envs_served": 0.0, "gen/obs_waiting_for_policy": 0.0},
             ("train", 0): {"train/updates": 0.0, "train/segments_received": 0.0, "train/update_s": 0.5,
-                           "proc/cpu_percent": 80.0},
+                           "train/batch_ready": 1.0, "proc/cpu_percent": 80.0},
         }
 
     def send(self, *silent: str) -> None:
@@ -100,9 +100,12 @@ def test_no_env_steps_is_blamed_on_the_stage_that_holds_them_up():
     reports.metrics[("gen", 0)]["gen/obs_waiting_for_policy"] = 2.0  # gen waits for weights that never come
     reports.metrics[("train", 0)]["proc/cpu_percent"] = 80.0  # ... while train computes a long update: no stall
     assert run_for(watch, clock, reports, 30) is None
-    reports.metrics[("train", 0)]["proc/cpu_percent"] = 0.5  # ... while train computes nothing
+    reports.metrics[("train", 0)]["proc/cpu_percent"] = 0.5  # ... while train, with a full batch, computes nothing
     found = run_for(watch, clock, reports, 5)
     assert found.service == "train/0" and "holds 2 observation(s) for a newer policy" in found.reason
+    reports.metrics[("train", 0)]["train/batch_ready"] = 0.0  # ... while train has no batch: segments are lost
+    found = run_for(watch, clock, reports, 5)
+    assert found.service == "sim/0" and "the segments do not reach it" in found.reason
 
 
 def test_a_train_that_waits_while_segments_come_in_is_a_stall_and_a_second_one_fails_the_run():
@@ -110,6 +113,9 @@ def test_a_train_that_waits_while_segments_come_in_is_a_stall_and_a_second_one_f
     watch = StallWatch(10.0, clock)
     run_for(watch, clock, reports, 3, moving=("sim", "gen", "train"))
     reports.metrics[("train", 0)]["proc/cpu_percent"] = 1.0
+    reports.metrics[("train", 0)]["train/batch_ready"] = 0.0  # no full batch yet (a forgery keeps it from filling)
+    assert run_for(watch, clock, reports, 30, moving=("sim", "gen")) is None
+    reports.metrics[("train", 0)]["train/batch_ready"] = 1.0
     found = run_for(watch, clock, reports, 30, moving=("sim", "gen"))
     assert found.service == "train/0" and "while segments came in" in found.reason
     assert watch.acting(found) and watch.note() == "STALLED train/0, restarted"

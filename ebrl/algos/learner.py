@@ -160,8 +160,7 @@ class Learner:
 
     def empty_batch(self) -> Batch:
         """Zeros shaped like a batch of ``algo.minibatches`` decisions (for ``scale = 0`` steps)."""
-        n = self.cfg.algo.minibatches
-        zeros = torch.zeros(n)
+        n, zeros = self.cfg.algo.minibatches, torch.zeros(self.cfg.algo.minibatches)
         return Batch(obs=torch.zeros(n, *self.obs_shape), actions=torch.zeros(n, *self.action_shape),
                      latents=torch.zeros(n, *self.latent_shape), logprobs=zeros, advantages=zeros, returns=zeros,
                      values=zeros, versions=np.full(n, self.version)).to(self.device)
@@ -247,7 +246,8 @@ class Learner:
         out = {"train/policy_version": float(self.version)}
         if self.rank > 0:
             return out
-        out["train/pending_steps"] = float(self.collector.pending_steps)
+        out.update({"train/pending_steps": float(self.collector.pending_steps),
+                    "train/batch_ready": float(self.ready)})  # a full batch waits: the stall watch reads it (ebrl.stall)
         if self.returns:
             out["train/episode_return_mean"] = float(np.mean(self.returns))
         for lag, n in enumerate(self.staleness_hist):

@@ -28,6 +28,10 @@
 #               vs one group of 2048 (mjwarp_groups);
 #               Warp's compiled kernels come back as $OUT/warp-cache.tgz.0, .1, ... (put them in .whl-mjw/cache
 #               here and re-run prepare_mjwarp.sh: the next machine loads them instead of compiling)
+#   mjwarp_variants  (after mjwarp_tests, in a later call) what closes the gap to the peer (issue 33): ebrl up
+#               configs/mjwarp_pickcube.toml to 90 %, VARIANT_SECONDS (150) at most each, as one env step per
+#               decision without MPS, one group of 4096 worlds, and the defaults under an MPS daemon started and
+#               quit around the run (parts mjwarp_chunk1, mjwarp_group4096, mjwarp_mps)
 # Everything lands in $OUT (default ./gpu-out): summary.txt, gpu.txt and results.tgz (JSON results, logs).
 set -uo pipefail
 cd "$(dirname "$0")/../.."
@@ -37,6 +41,7 @@ DURATION="${DURATION:-15}"
 W3_SECONDS="${W3_SECONDS:-120}"
 SHARES_SECONDS="${SHARES_SECONDS:-8}"
 RACE_SECONDS="${RACE_SECONDS:-240}"
+VARIANT_SECONDS="${VARIANT_SECONDS:-150}"
 RES=/tmp/ebrl-gpu-results
 mkdir -p "$OUT" "$RES"
 PARTS=("$@")
@@ -95,6 +100,14 @@ part() {  # part NAME LIMIT_S COMMAND...: runs it with a time limit, logs to $RE
     local rc=$?
     tail -n 15 "$RES/$name.log"
     echo "$name: exit $rc in $(($(date +%s) - t))s" | tee -a "$SUMMARY"
+}
+
+variant() {  # variant NAME KEY=VALUE...: ebrl up configs/mjwarp_pickcube.toml to 90 %, VARIANT_SECONDS at most
+    local name=$1; shift
+    local sets=(--set 'viz.rerun="off"' --set "run.output_dir=\"$RES/variant-$name\"")
+    for kv; do sets+=(--set "$kv"); done
+    part "mjwarp_$name" $((VARIANT_SECONDS + 60)) timeout "$VARIANT_SECONDS" python3 -m ebrl.cli up \
+        configs/mjwarp_pickcube.toml "${sets[@]}"
 }
 
 # ebrl bench CONFIG: the four modes, interleaved, one window of DURATION seconds each
@@ -157,6 +170,13 @@ while [ $i -lt ${#PARTS[@]} ]; do
                      configs/mjwarp_pickcube.toml --set 'viz.rerun="off"' --set "run.output_dir=\"$RES/mjwarp-race\""
                  part mjwarp_peer $((RACE_SECONDS + 90)) python3 benchmarks/peers/mjwarp_ppo.py \
                      --max-seconds "$RACE_SECONDS" --json "$RES/peer_mjwarp_ppo.json" ;;
+    mjwarp_variants) set -- mjwarp_chunk1 mjwarp_group4096 mjwarp_mps; for b; do PARTS+=("$b"); done ;;
+    mjwarp_chunk1) variant chunk1 policy.chunk=1 train.batch_size=65536 train.max_pending=131072 sim.segment_length=32 ;;
+    mjwarp_group4096) variant group4096 sim.groups=1 sim.envs_per_group=4096 train.batch_size=32768 \
+                          train.max_pending=65536 ;;
+    mjwarp_mps) had=0; mps_up && had=1; [ $had = 1 ] || nvidia-cuda-mps-control -d
+                variant mps
+                [ $had = 1 ] || { echo quit | nvidia-cuda-mps-control; } ;;
     # env steps/s of ebrl with 2 pipelined groups of 1024 worlds vs one group of 2048, side by side
     mjwarp_groups) part mjwarp_groups $((4 * DURATION + 240)) sh -c "
         python3 -m ebrl.cli bench configs/mjwarp_pickcube.toml --modes ebrl --raw-seconds 0 --duration $DURATION \

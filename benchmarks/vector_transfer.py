@@ -38,7 +38,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from ebrl.bus import Bus, BusOptions, keys  # noqa: E402
-from ebrl.envs.vector import VectorChunk  # noqa: E402
+from ebrl.envs.worker import VectorChunk  # noqa: E402
 from ebrl.messages import ActionChunk, Observation, encode_message  # noqa: E402
 from ebrl.sched.rollout import SegmentBuilder  # noqa: E402
 from ebrl.testing import free_port  # noqa: E402

@@ -20,6 +20,7 @@ from typing import Any, Literal
 import tomli_w
 
 from ebrl import devices, typecheck
+from ebrl.presets import PRESETS
 from ebrl.bus import keys
 
 
@@ -491,29 +492,13 @@ def _hosts(raw: dict[str, Any]) -> dict[str, HostEntry]:
     return hosts
 
 
-def gpu_physics(backend: str, kwargs: dict[str, Any]) -> bool:
-    """Whether the simulator steps on the GPU: ManiSkill under ``sim_backend = "physx_cuda[:N]"``, or ``"auto"``
-    where torch sees a CUDA GPU (ebrl.envs.maniskill.resolve_sim_backend); MuJoCo Warp on a CUDA
-    ``env.kwargs.device`` (``"auto"``, its default: where torch sees one)."""
-    if backend == "mjwarp":
-        return devices.is_cuda(str(kwargs.get("device", "auto")))
-    if backend != "maniskill":
-        return False
-    value = kwargs.get("sim_backend")
-    if value == "auto":
-        from ebrl.envs.maniskill import resolve_sim_backend
-
-        value = resolve_sim_backend(value)
-    return str(value or "").startswith("physx_cuda")
-
-
 def vectorized(cfg: Config) -> bool:
     """Whether each sim group is one vectorized process (``sim.vectorized``; "auto": where physics is on the GPU;
     always for MuJoCo Warp, whose group is one model of many worlds)."""
     if cfg.env.backend == "mjwarp":
         return True
     if cfg.sim.vectorized == "auto":
-        return gpu_physics(cfg.env.backend, cfg.env.kwargs)
+        return devices.gpu_physics(cfg.env.backend, cfg.env.kwargs)
     return bool(cfg.sim.vectorized)
 
 
@@ -583,8 +568,6 @@ def _check_semantics(cfg: Config) -> None:
         if cfg.algo.group_size < 2 or envs % cfg.algo.group_size:
             raise ConfigError(f"algo.group_size = {cfg.algo.group_size}: grpo needs at least 2 rollouts per group "
                               f"and the {envs} envs (sim.groups x sim.envs_per_group) to split into whole groups")
-        from ebrl.sched.modes import PRESETS
-
         if not (PRESETS[cfg.run.mode]["overlap"] if cfg.train.overlap is None else cfg.train.overlap):
             raise ConfigError(f"algo.name = \"grpo\" with run.mode = {cfg.run.mode!r}: grpo learns from whole "
                               "episodes, which a rollout -> train barrier of fixed length cannot wait for; use "

@@ -34,13 +34,38 @@ def check_syntax(value: str, field: str) -> None:
         raise DeviceError(f"{field} = {value!r}: expected \"auto\", \"cpu\", \"cuda\" or \"cuda:N\"")
 
 
+def cuda_available() -> bool:
+    """Whether torch sees a CUDA GPU here (imports torch)."""
+    import torch
+
+    return torch.cuda.is_available()
+
+
 def is_cuda(value: str) -> bool:
     """Whether ``value`` (auto, cpu, cuda, cuda:N) means a CUDA device here; ``auto``: where torch sees one."""
     if value == "auto":
-        import torch
-
-        return torch.cuda.is_available()
+        return cuda_available()
     return value.startswith("cuda")
+
+
+def physx_backend(value: str | None) -> str:
+    """The PhysX backend a ManiSkill ``sim_backend`` names here. Absent: ``physx_cpu`` (one env per worker
+    process, pinned to a core). ``"auto"``: ``physx_cuda`` where torch sees a CUDA GPU (each group then one
+    vectorized batch on it, ``sim.vectorized``), else ``physx_cpu``."""
+    if value == "auto":
+        return "physx_cuda" if cuda_available() else "physx_cpu"
+    return value or "physx_cpu"
+
+
+def gpu_physics(backend: str, kwargs: dict[str, Any]) -> bool:
+    """Whether the simulator steps on the GPU: ManiSkill under ``sim_backend = "physx_cuda[:N]"``, or ``"auto"``
+    where torch sees a CUDA GPU (:func:`physx_backend`); MuJoCo Warp on a CUDA ``env.kwargs.device``
+    (``"auto"``, its default: where torch sees one)."""
+    if backend == "mjwarp":
+        return is_cuda(str(kwargs.get("device", "auto")))
+    if backend != "maniskill":
+        return False
+    return physx_backend(kwargs.get("sim_backend")).startswith("physx_cuda")
 
 
 def resolve(value: str, field: str) -> Any:

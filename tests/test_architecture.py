@@ -42,8 +42,9 @@ def modules(root: Path = ROOT, package: str = PACKAGE) -> dict[str, Path]:
     return found
 
 
-def module_level_imports(tree: ast.Module) -> list[ast.Import | ast.ImportFrom]:
-    """The import statements that run when the module is imported (see the module docstring)."""
+def module_level_imports(tree: ast.Module, lazy: bool = False) -> list[ast.Import | ast.ImportFrom]:
+    """The import statements that run when the module is imported (see the module docstring); with ``lazy``,
+    the ones inside functions too (an import that waits for a call is still a dependency)."""
     found: list[ast.Import | ast.ImportFrom] = []
 
     def visit(statements: list[ast.stmt]) -> None:
@@ -51,6 +52,8 @@ def module_level_imports(tree: ast.Module) -> list[ast.Import | ast.ImportFrom]:
             if isinstance(node, (ast.Import, ast.ImportFrom)):
                 found.append(node)
             elif isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)):
+                if lazy:
+                    visit(node.body)
                 continue
             elif isinstance(node, ast.If) and (_type_checking(node.test) or _main_guard(node.test)):
                 visit(node.orelse)
@@ -75,15 +78,16 @@ def _main_guard(test: ast.expr) -> bool:
             and any(isinstance(c, ast.Constant) and c.value == "__main__" for c in test.comparators))
 
 
-def import_graph(root: Path = ROOT, package: str = PACKAGE) -> dict[Edge, str]:
-    """Edges importer -> imported module within ``package``, each with where it comes from (``path:line``)."""
+def import_graph(root: Path = ROOT, package: str = PACKAGE, lazy: bool = False) -> dict[Edge, str]:
+    """Edges importer -> imported module within ``package``, each with where it comes from (``path:line``);
+    ``lazy``: imports inside functions count too."""
     known = modules(root, package)
     packages = {name for name, path in known.items() if path.name == "__init__.py"}
     edges: dict[Edge, str] = {}
     for importer, path in known.items():
         own_package = importer if importer in packages else importer.rpartition(".")[0]
         containing = {".".join(importer.split(".")[:i]) for i in range(1, importer.count(".") + 1)}
-        for node in module_level_imports(ast.parse(path.read_text(), str(path))):
+        for node in module_level_imports(ast.parse(path.read_text(), str(path)), lazy):
             if isinstance(node, ast.Import):
                 targets = [alias.name for alias in node.names]
             else:
@@ -201,6 +205,19 @@ def test_no_import_cycle_in_ebrl():
     found = cycles(edges)
     report = "\n\n".join(f"cycle among {', '.join(c)}:\n{one_cycle(c, edges)}" for c in found)
     assert not found, f"import cycles in ebrl/ (module-level imports):\n\n{report}"
+
+
+# The one cycle left through imports inside functions (issue 37): ebrl.messages imports ebrl.bus.codec and keys,
+# whose package lazily loads the session, which encodes messages; the session and auth load each other lazily.
+# Moving the codec and the keys out of the bus package removes it; until then no other cycle may appear.
+KNOWN_LAZY_CYCLES = [["ebrl.bus", "ebrl.bus.auth", "ebrl.bus.memory", "ebrl.bus.session", "ebrl.messages"]]
+
+
+def test_no_new_import_cycle_through_lazy_imports():
+    edges = import_graph(lazy=True)
+    found = [c for c in cycles(edges) if c not in KNOWN_LAZY_CYCLES]
+    report = "\n\n".join(f"cycle among {', '.join(c)}:\n{one_cycle(c, edges)}" for c in found)
+    assert not found, f"import cycles in ebrl/ through imports inside functions:\n\n{report}"
 
 
 # --- the shape the services and the library keep (issue 16) ---------------------------------------------

@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 import torch
 
-from ebrl import config
+from ebrl import config, devices
 from ebrl.envs import EnvSpec, EnvWorker, tokenize
 from ebrl.envs import maniskill
 from ebrl.envs import EnvError
@@ -52,7 +52,7 @@ def installed(monkeypatch):
     """ManiSkill counts as installed, SAPIEN's CPU-driver probe is never run for real, torch has no CUDA."""
     monkeypatch.setattr(maniskill, "mani_skill_installed", lambda: True)
     monkeypatch.setattr(maniskill, "probe_software_rendering", lambda environ: "RuntimeError: probe not faked")
-    monkeypatch.setattr(maniskill, "cuda_available", lambda: False)
+    monkeypatch.setattr(devices, "cuda_available", lambda: False)
 
 
 # --- preflight --------------------------------------------------------------------------------
@@ -150,7 +150,7 @@ PHYSX_ZIP = f"https://github.com/sapien-sim/physx-precompiled/releases/download/
 def gpu_physx(tmp_path, monkeypatch, installed):
     """A machine that passes every check before SAPIEN's GPU library: an NVIDIA GPU with its Vulkan driver, CUDA
     torch, SAPIEN 3.0.3; a home of its own, without the library; the download host unreachable (tests change it)."""
-    monkeypatch.setattr(maniskill, "cuda_available", lambda: True)
+    monkeypatch.setattr(devices, "cuda_available", lambda: True)
     monkeypatch.setattr(maniskill, "sapien_version", lambda: "3.0.3")
     monkeypatch.setattr(maniskill, "physx_host_reachable", lambda environ: False)
     monkeypatch.setattr(maniskill.platform, "machine", lambda: "x86_64")
@@ -297,7 +297,7 @@ class FakeManiSkill(gym.Env):
 @pytest.fixture
 def fake(monkeypatch):
     monkeypatch.setattr(maniskill, "_make_maniskill", lambda task, **kwargs: FakeManiSkill(**kwargs))
-    monkeypatch.setattr(maniskill, "cuda_available", lambda: False)
+    monkeypatch.setattr(devices, "cuda_available", lambda: False)
 
 
 def test_state_observations_are_one_flat_float32_vector(fake):

@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 import torch
 
-from ebrl import config
+from ebrl import config, devices
 from ebrl.config import ConfigError
 from ebrl.envs import EnvSpec, EnvWorker
 from ebrl.envs import maniskill
@@ -311,14 +311,14 @@ def test_the_maniskill_ppo_peer_runs_partial_resets_and_stops_at_the_target_succ
 
 def test_maniskill_configs_put_physics_on_the_gpu_where_cuda_is(monkeypatch):
     for name, envs in (("maniskill.toml", 512), ("maniskill_rgb.toml", 256)):
-        monkeypatch.setattr(maniskill, "cuda_available", lambda: True)
+        monkeypatch.setattr(devices, "cuda_available", lambda: True)
         cfg = config.load(str(ROOT / "configs" / name))
         assert cfg.env.kwargs["sim_backend"] == "auto" and cfg.num_envs == envs
         assert config.vectorized(cfg) and resolve(cfg).vectorized and cfg.run.target_success == 0.9
-        assert maniskill.resolve_sim_backend("auto") == "physx_cuda"
-        monkeypatch.setattr(maniskill, "cuda_available", lambda: False)  # no CUDA: CPU PhysX, a process per env
-        assert not config.vectorized(cfg) and maniskill.resolve_sim_backend("auto") == "physx_cpu"
-    assert maniskill.resolve_sim_backend(None) == "physx_cpu"
+        assert devices.physx_backend("auto") == "physx_cuda"
+        monkeypatch.setattr(devices, "cuda_available", lambda: False)  # no CUDA: CPU PhysX, a process per env
+        assert not config.vectorized(cfg) and devices.physx_backend("auto") == "physx_cpu"
+    assert devices.physx_backend(None) == "physx_cpu"
 
 
 def _no_gpu_maniskill() -> str:
@@ -358,13 +358,13 @@ def test_a_real_pickcube_batch_steps_on_gpu_physx_with_partial_resets():
 def test_a_gpu_sized_maniskill_config_on_cpu_physx_is_refused_before_anything_starts(monkeypatch):
     from ebrl.launch import too_many_processes
 
-    monkeypatch.setattr(maniskill, "cuda_available", lambda: False)  # "auto" falls back to CPU PhysX
+    monkeypatch.setattr(devices, "cuda_available", lambda: False)  # "auto" falls back to CPU PhysX
     cfg = config.load(str(ROOT / "configs" / "maniskill.toml"))
     problem = too_many_processes(cfg, cores=2)
     assert problem.startswith("sim.envs_per_group = 256: 512 ManiSkill envs on CPU PhysX")
     assert "--set sim.envs_per_group=8" in problem
     assert too_many_processes(config.load(str(ROOT / "configs" / "maniskill.toml"), ["sim.envs_per_group=8"]), 2) \
         is None
-    monkeypatch.setattr(maniskill, "cuda_available", lambda: True)  # GPU PhysX: one process per group
+    monkeypatch.setattr(devices, "cuda_available", lambda: True)  # GPU PhysX: one process per group
     assert too_many_processes(cfg, cores=2) is None
     assert too_many_processes(config.load(str(ROOT / "configs" / "quickstart.toml")), cores=2) is None

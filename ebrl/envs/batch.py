@@ -14,13 +14,12 @@ import numpy as np
 import torch
 from gymnasium.utils import seeding
 
-from ebrl.envs import guard
+import ebrl.envs.guard as guard
 from ebrl.envs.backends import make_env
 from ebrl.envs.mjtask import MjState, MjTask, make_task
 from ebrl.envs.mjwarp import resolve_device, split_kwargs
 from ebrl.envs.spec import EnvError, EnvSpec
-from ebrl.envs.vector import VectorChunk
-from ebrl.envs.worker import EPISODE_SEED_STRIDE
+from ebrl.envs.worker import EPISODE_SEED_STRIDE, VectorChunk
 
 log = logging.getLogger(__name__)
 

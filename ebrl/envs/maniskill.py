@@ -46,6 +46,7 @@ from typing import Any
 import gymnasium as gym
 import numpy as np
 
+from ebrl import devices
 from ebrl.envs.obs import ObsField, ObsLayout, tokenize
 from ebrl.envs.spec import EnvError, EnvSpec
 
@@ -95,7 +96,7 @@ def make_options(num_envs: int, max_episode_steps: int | None, obs: str, sim_bac
     own, passed on)."""
     check_kwargs({"obs": obs, "image_size": image_size, "sim_backend": sim_backend, **kwargs})
     options: dict[str, Any] = dict(num_envs=num_envs, obs_mode=obs, reward_mode="normalized_dense",
-                                   control_mode=control_mode, sim_backend=resolve_sim_backend(sim_backend))
+                                   control_mode=control_mode, sim_backend=devices.physx_backend(sim_backend))
     if max_episode_steps:
         options["max_episode_steps"] = int(max_episode_steps)  # else the task's registered limit
     kwargs = dict(kwargs)
@@ -264,21 +265,6 @@ def _info(info: Mapping[str, Any]) -> dict[str, Any]:
     return out
 
 
-def cuda_available() -> bool:
-    import torch
-
-    return torch.cuda.is_available()
-
-
-def resolve_sim_backend(value: str | None) -> str:
-    """The PhysX backend ``sim_backend`` names here. Absent: ``physx_cpu`` (one env per worker process, pinned to a
-    core). ``"auto"``: ``physx_cuda`` where torch sees a CUDA GPU (each group then one vectorized batch on it,
-    ``sim.vectorized``), else ``physx_cpu``."""
-    if value == "auto":
-        return "physx_cuda" if cuda_available() else "physx_cpu"
-    return value or "physx_cpu"
-
-
 def check_kwargs(kwargs: Mapping[str, Any]) -> None:
     """Reject ``env.kwargs`` the adapter cannot use, naming the key."""
     obs = kwargs.get("obs", "state")
@@ -345,10 +331,10 @@ def preflight(spec: EnvSpec, *, root: str | Path = "/", environ: Mapping[str, st
     if not installed:
         raise EnvError(f"{where}: ManiSkill is not installed; pip install -e '.[maniskill]'")
     need = _needs_cuda_torch(spec.kwargs, scan.nvidia)
-    if need and not cuda_available():
+    if need and not devices.cuda_available():
         raise EnvError(f"{where}: {need} needs torch with CUDA, and torch.cuda.is_available() is False here; "
                        "install a CUDA build of torch, or use obs = \"state\" with sim_backend = \"physx_cpu\"")
-    check_physx_gpu(resolve_sim_backend(spec.kwargs.get("sim_backend")), where, environ)
+    check_physx_gpu(devices.physx_backend(spec.kwargs.get("sim_backend")), where, environ)
 
 
 def _needs_cuda_torch(kwargs: Mapping[str, Any], nvidia: bool) -> str:

@@ -6,6 +6,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
+from ebrl import devices
 from ebrl.envs.obs import ObsLayout
 
 if TYPE_CHECKING:
@@ -34,9 +35,7 @@ class EnvSpec:
     def gpu_physics(self) -> bool:
         """Whether the simulator steps on the GPU (ManiSkill under ``sim_backend = "physx_cuda[:N]"``): a whole
         batch of envs per process, which ``sim.vectorized = "auto"`` turns on."""
-        from ebrl.config import gpu_physics
-
-        return gpu_physics(self.backend, self.kwargs)
+        return devices.gpu_physics(self.backend, self.kwargs)
 
     @classmethod
     def from_config(cls, env_cfg: Any) -> "EnvSpec":

@@ -13,7 +13,7 @@ default under GPU PhysX), each group is one :class:`VectorWorker` process holdin
 A chunk steps the whole batch ``K`` times (:class:`~ebrl.envs.batch.BatchRunner`). An environment whose episode ends at step j < K
 goes on being stepped with the chunk's remaining actions (a batch steps all of its environments or none); those
 steps are not counted, their results are dropped, and the environment is reset once the chunk is done. So each
-environment's :class:`ChunkResult` means what a worker process's does: the steps of one episode, up to its end,
+environment's :class:`~ebrl.envs.worker.ChunkResult` means what a worker process's does: the steps of one episode, up to its end,
 with the first observation of the next. Rewards, ends and the observations stay on the simulator's device until
 the chunk is done; then one copy brings them to the host: every environment's next observation, and the final
 observation of those whose episode ended (the only ones that differ from it).
@@ -22,58 +22,13 @@ observation of those whose episode ended (the only ones that differ from it).
 from __future__ import annotations
 
 import os
-from dataclasses import dataclass
 from multiprocessing.connection import Connection
 from typing import Any
 
 import numpy as np
 
-from ebrl.envs.guard import Guarded
 from ebrl.envs.spec import EnvError, EnvSpec
-from ebrl.envs.worker import ChunkResult, WorkerProcess, adopt, worker_context
-
-
-@dataclass
-class VectorChunk:
-    """What a batch did with one chunk, on the host: per env (``[N]``) and per env whose episode ended (``[E]``)."""
-
-    reward: np.ndarray  # [N] sum over the env's counted steps
-    steps: np.ndarray  # [N] steps counted (< K when its episode ended inside the chunk)
-    terminated: np.ndarray  # [N] bool
-    truncated: np.ndarray  # [N] bool
-    episode: np.ndarray  # [N] the episode the steps belong to
-    next_obs: np.ndarray | None  # [N, D] the observation for the next chunk (after the reset, where one ended)
-    ended: np.ndarray  # [E] the envs whose episode ended
-    final_obs: np.ndarray | None  # [E, D] their observation after their last step (before the reset)
-    # (next_obs and final_obs are None while they travel in shared memory: VectorWorker.chunk fills them in)
-    episode_return: np.ndarray  # [E]
-    episode_length: np.ndarray  # [E]
-    episode_success: np.ndarray  # [E] int8: 1, 0, or -1 where the task reports no success
-    busy_s: float  # CPU seconds of the chunk's steps (the whole batch)
-    step_s: tuple[float, ...]  # wall seconds of each batch step
-    rewards_clipped: np.ndarray | None = None  # [N] steps whose reward was clipped (ebrl.envs.guard)
-    rewards_nonfinite: np.ndarray | None = None  # [N] steps whose reward was not finite
-    obs_nonfinite: np.ndarray | None = None  # [N] steps whose observation was not finite (its episode ended)
-
-    def results(self) -> list[ChunkResult]:
-        """One :class:`ChunkResult` per env, as a worker process would have answered; each env's share of the
-        batch's CPU time as its ``busy_s``."""
-        n = len(self.reward)
-        row = {int(env): j for j, env in enumerate(self.ended)}
-        out = []
-        for i in range(n):
-            j = row.get(i)
-            success = None if j is None or self.episode_success[j] < 0 else bool(self.episode_success[j])
-            out.append(ChunkResult(
-                reward=float(self.reward[i]), steps=int(self.steps[i]), terminated=bool(self.terminated[i]),
-                truncated=bool(self.truncated[i]), final_obs=self.next_obs[i] if j is None else self.final_obs[j],
-                next_obs=self.next_obs[i], episode_return=None if j is None else float(self.episode_return[j]),
-                episode_length=None if j is None else int(self.episode_length[j]), episode_success=success,
-                busy_s=self.busy_s / n, episode=int(self.episode[i]), guarded=Guarded(
-                    0 if self.rewards_clipped is None else int(self.rewards_clipped[i]),
-                    0 if self.rewards_nonfinite is None else int(self.rewards_nonfinite[i]),
-                    0 if self.obs_nonfinite is None else int(self.obs_nonfinite[i]))))
-        return out
+from ebrl.envs.worker import VectorChunk, WorkerProcess, adopt, worker_context
 
 
 def _vector_main(conn: Connection, spec: EnvSpec, seeds: list[int], shared: Any = None,

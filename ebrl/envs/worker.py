@@ -25,7 +25,7 @@ from typing import Any, Callable, Iterable
 
 import numpy as np
 
-from ebrl.envs import guard
+import ebrl.envs.guard as guard
 from ebrl.envs.backends import backend, make_env
 from ebrl.envs.guard import Guarded
 from ebrl.envs.render import ensure_gl_for
@@ -240,6 +240,49 @@ def _serve(conn: Connection, spec: EnvSpec, seed: int, claim: CoreClaim | None) 
 
 def _cores(core: int | tuple[int, ...]) -> tuple[int, ...]:
     return (int(core),) if isinstance(core, (int, np.integer)) else tuple(int(c) for c in core)
+
+
+@dataclass
+class VectorChunk:
+    """What a batch did with one chunk, on the host: per env (``[N]``) and per env whose episode ended (``[E]``)."""
+
+    reward: np.ndarray  # [N] sum over the env's counted steps
+    steps: np.ndarray  # [N] steps counted (< K when its episode ended inside the chunk)
+    terminated: np.ndarray  # [N] bool
+    truncated: np.ndarray  # [N] bool
+    episode: np.ndarray  # [N] the episode the steps belong to
+    next_obs: np.ndarray | None  # [N, D] the observation for the next chunk (after the reset, where one ended)
+    ended: np.ndarray  # [E] the envs whose episode ended
+    final_obs: np.ndarray | None  # [E, D] their observation after their last step (before the reset)
+    # (next_obs and final_obs are None while they travel in shared memory: VectorWorker.chunk fills them in)
+    episode_return: np.ndarray  # [E]
+    episode_length: np.ndarray  # [E]
+    episode_success: np.ndarray  # [E] int8: 1, 0, or -1 where the task reports no success
+    busy_s: float  # CPU seconds of the chunk's steps (the whole batch)
+    step_s: tuple[float, ...]  # wall seconds of each batch step
+    rewards_clipped: np.ndarray | None = None  # [N] steps whose reward was clipped (ebrl.envs.guard)
+    rewards_nonfinite: np.ndarray | None = None  # [N] steps whose reward was not finite
+    obs_nonfinite: np.ndarray | None = None  # [N] steps whose observation was not finite (its episode ended)
+
+    def results(self) -> list[ChunkResult]:
+        """One :class:`ChunkResult` per env, as a worker process would have answered; each env's share of the
+        batch's CPU time as its ``busy_s``."""
+        n = len(self.reward)
+        row = {int(env): j for j, env in enumerate(self.ended)}
+        out = []
+        for i in range(n):
+            j = row.get(i)
+            success = None if j is None or self.episode_success[j] < 0 else bool(self.episode_success[j])
+            out.append(ChunkResult(
+                reward=float(self.reward[i]), steps=int(self.steps[i]), terminated=bool(self.terminated[i]),
+                truncated=bool(self.truncated[i]), final_obs=self.next_obs[i] if j is None else self.final_obs[j],
+                next_obs=self.next_obs[i], episode_return=None if j is None else float(self.episode_return[j]),
+                episode_length=None if j is None else int(self.episode_length[j]), episode_success=success,
+                busy_s=self.busy_s / n, episode=int(self.episode[i]), guarded=Guarded(
+                    0 if self.rewards_clipped is None else int(self.rewards_clipped[i]),
+                    0 if self.rewards_nonfinite is None else int(self.rewards_nonfinite[i]),
+                    0 if self.obs_nonfinite is None else int(self.obs_nonfinite[i]))))
+        return out
 
 
 class WorkerFailed(RuntimeError):

@@ -20,13 +20,8 @@ from dataclasses import dataclass
 from typing import Any
 
 from ebrl.config import vectorized
+from ebrl.presets import PRESETS
 
-PRESETS: dict[str, dict[str, Any]] = {
-    "ebrl": dict(group_pipeline=True, stepping="async", core_rebinding="auto", overlap=True, disjoint=False),
-    "colocated": dict(group_pipeline=False, stepping="batch", core_rebinding=False, overlap=False, disjoint=False),
-    "hybrid": dict(group_pipeline=True, stepping="batch", core_rebinding=False, overlap=False, disjoint=False),
-    "async": dict(group_pipeline=False, stepping="batch", core_rebinding=False, overlap=True, disjoint=True),
-}
 
 
 @dataclass(frozen=True)

@@ -44,7 +44,7 @@ class GenService(Service):
         self.actor = Actor(self.policy, cfg.gen.compile, cfg.policy.dtype)  # eager, or CUDA graphs per batch size
         torch.manual_seed(meta.gen_seed(cfg.run.seed, self.instance))  # the actions' sampling (every device)
         self.staging = devices.Staging(self.device)  # observations in through a pinned buffer on a GPU
-        self.version, self.lead = -1, 0  # lead: versions gen went back by, which the sims' iterations ran ahead
+        self.version = -1
         self.batch_groups = cfg.gen.max_batch_groups  # 0: every group of every live sim host
         self.sims = LivePeers(self.bus, self.run_name, "sim", warn=lambda: False)
         self.waiting = ObservationQueue(self.schedule, info.obs_shape)  # those whose iteration needs a newer policy
@@ -71,7 +71,7 @@ class GenService(Service):
             self.wake.clear()
             await self.apply_latest_weights()
             self.waiting.extend([m for _, m in self.obs.drain()])
-            batch = self.waiting.take(self.version + self.lead, self.sims.count("sim"), self.max_groups)
+            batch = self.waiting.take(self.version, self.sims.count("sim"), self.max_groups)
             if not batch:
                 if len(self.waiting):
                     self.count("gen/throttled")
@@ -133,8 +133,8 @@ class GenService(Service):
             self.bus.count_malformed(keys.weights(self.run_name), exc)
             self.weights.reject(weights, self.version)
             return
-        if weights.version < self.version:  # back to train's from a version no trainer made (ebrl.weights): the
-            self.lead += self.version - weights.version  # iterations the sims ran with it are not waited for again
+        if weights.version < self.version:  # back to train's from a version no trainer made (ebrl.weights)
+            self.waiting.went_back(self.version, weights.version)
         self.version = weights.version
         self.count("gen/weights_applied")
 

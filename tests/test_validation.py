@@ -263,3 +263,15 @@ def test_generation_drops_an_observation_that_does_not_fit_its_policy_and_counts
                   obs(3, np.array([[0.0, np.nan, 0.0, 0.0]]))])  # a wrong width, a wrong rank, a NaN
     assert [m.group for m in queue.take(version=0, sim_hosts=1, max_groups=10)] == [0]
     assert queue.counters() == {"obs_waiting_for_policy": 0, "obs_waiting_dropped": 0, "obs_dropped": 3}
+
+
+def test_generation_that_went_back_from_a_forged_version_keeps_the_bound_from_where_the_sims_are():
+    cfg = config.load(ROOT / "configs/quickstart.toml", [])
+    schedule = resolve(cfg)
+    queue = ObservationQueue(schedule, obs_shape=(4,))
+    ahead = Observation(group=0, seq=70 * schedule.length(), env_ids=np.arange(1), obs=np.zeros((1, 4), np.float32),
+                        sent_at=0.0)  # iteration 70: the sims ran ahead while generation acted with a forged v70
+    queue.extend([ahead])
+    assert queue.take(version=9, sim_hosts=1, max_groups=10) == []  # train's v9 can never reach iteration 69
+    queue.went_back(70, 9)
+    assert queue.take(version=9, sim_hosts=1, max_groups=10) == [ahead]

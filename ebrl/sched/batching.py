@@ -28,6 +28,7 @@ class ObservationQueue:
         self.replaced = 0
         self.dropped = 0
         self.bad = 0
+        self.lead = 0  # versions generation went back by (went_back): iterations the sims ran ahead meanwhile
 
     def __len__(self) -> int:
         return len(self.waiting)
@@ -50,8 +51,15 @@ class ObservationQueue:
         bad (shape, values)."""
         return {"obs_waiting_for_policy": len(self.waiting), "obs_waiting_dropped": self.dropped, "obs_dropped": self.bad}
 
+    def went_back(self, old: int, new: int) -> None:
+        """Generation went back from version ``old`` to ``new`` (it was ahead of training: a forged version,
+        ``ebrl.weights``). The sims' iterations ran ahead with ``old``; the bound is kept from there on rather
+        than waited out, which training, behind them, could never do."""
+        self.lead += old - new
+
     def take(self, version: int, sim_hosts: int, max_groups: int) -> list[Observation]:
         """The next batch that policy ``version`` may answer: at most ``max_groups`` groups, oldest first."""
+        version += self.lead
         batch = [m for m in self.waiting.values() if version >= self.schedule.min_version(m.seq, sim_hosts)]
         batch = batch[:max_groups]
         for m in batch:

@@ -27,7 +27,6 @@ import numpy as np
 
 import ebrl.envs.guard as guard
 from ebrl.envs.backends import backend, make_env
-from ebrl.envs.guard import Guarded
 from ebrl.envs.render import ensure_gl_for
 from ebrl.envs.spec import EnvSpec
 from ebrl.sched.corepool import CoreClaim, CorePool, ParentGone, pin_threads
@@ -71,7 +70,7 @@ class ChunkResult:
     step_cpu_s: tuple[float, ...] = ()  # CPU seconds of each env.step (the env's own cost, whoever shares the core)
     cores: tuple[int, ...] = ()  # the core each step ran on (rebinding: the core it was granted; else empty)
     helper_cpu_s: float = 0.0  # CPU seconds the env's other threads used during the chunk (a multi-threaded simulator)
-    guarded: Guarded = field(default_factory=Guarded)  # rewards and observations the checks changed (ebrl.envs.guard)
+    guarded: guard.Guarded = field(default_factory=guard.Guarded)  # what the checks changed (ebrl.envs.guard)
 
     def stepped(self) -> tuple[float, float]:
         """(CPU seconds of its steps, its other threads' included; wall seconds of its steps)."""
@@ -182,10 +181,10 @@ def _serve(conn: Connection, spec: EnvSpec, seed: int, claim: CoreClaim | None) 
                 episodes = int(arg or 0)
                 obs, _ = env.reset(seed=seed + EPISODE_SEED_STRIDE * episodes)
                 episode_return, episode_length, success = 0.0, 0, None
-                conn.send(guard.observation(as_obs(obs), Guarded())[0])
+                conn.send(guard.observation(as_obs(obs), guard.Guarded())[0])
             elif cmd == "chunk":
                 total, steps, terminated, truncated = 0.0, 0, False, False
-                seen = Guarded()
+                seen = guard.Guarded()
                 started = time.thread_time()  # CPU time: a descheduled worker is not busy
                 process_started = time.process_time()  # every thread's: the env's own threads too
                 actions, observe = arg
@@ -278,7 +277,7 @@ class VectorChunk:
                 truncated=bool(self.truncated[i]), final_obs=self.next_obs[i] if j is None else self.final_obs[j],
                 next_obs=self.next_obs[i], episode_return=None if j is None else float(self.episode_return[j]),
                 episode_length=None if j is None else int(self.episode_length[j]), episode_success=success,
-                busy_s=self.busy_s / n, episode=int(self.episode[i]), guarded=Guarded(
+                busy_s=self.busy_s / n, episode=int(self.episode[i]), guarded=guard.Guarded(
                     0 if self.rewards_clipped is None else int(self.rewards_clipped[i]),
                     0 if self.rewards_nonfinite is None else int(self.rewards_nonfinite[i]),
                     0 if self.obs_nonfinite is None else int(self.obs_nonfinite[i]))))

@@ -41,8 +41,8 @@ class RunView:
 
     Only reports of the run's own instances count: ``instances(role, instance)`` says whether the run has that
     instance (the launcher: the ones started, or live on another host); a report on another key than its
-    own, from an instance the run does not have, or of a value that is not finite (that value) is dropped and
-    counted in ``refused``; so is a training report whose policy version runs implausibly far ahead of the
+    own, from an instance the run does not have, or of a value that is not finite (that value; the whole report
+    where no value is left) is dropped and counted in ``refused``; so is a training report whose policy version runs implausibly far ahead of the
     last one (:func:`ebrl.weights.plausible`), so a forged report can neither end the run nor move its
     progress."""
 
@@ -55,6 +55,7 @@ class RunView:
         self.refused = 0  # reports (or values) not taken
         self._train_version: dict[str, tuple[float, float]] = {}  # train key -> (version, monotonic time)
         self.stats: dict[str, StatsReport] = {}  # key -> latest report
+        self.received: dict[str, int] = {}  # key -> reports taken from it (the stall watch: did one arrive?)
         # the eval service's latest result: its periodic reports (eval/busy, ...) do not repeat it
         self.last_eval_metrics: dict[str, float] | None = None
         self.best_return: float | None = None
@@ -70,6 +71,8 @@ class RunView:
         finite = {name: value for name, value in report.metrics.items() if math.isfinite(value)}
         if len(finite) < len(report.metrics):
             self.refused += 1
+            if not finite:  # nothing left to take: it must not stand in for the instance's last real report
+                return
             report = dataclasses.replace(report, metrics=finite)
         if report.service == "train" and "train/policy_version" in finite:
             version, now = finite["train/policy_version"], time.monotonic()
@@ -79,6 +82,7 @@ class RunView:
                 return
             self._train_version[key] = (version, now)
         self.stats[key] = report
+        self.received[key] = self.received.get(key, 0) + 1
         if report.service == "eval" and "eval/version" in report.metrics:
             self.last_eval_metrics = report.metrics
         ret = self.metric(RETURN, "mean")

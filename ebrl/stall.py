@@ -55,7 +55,7 @@ class StallWatch:
         self.moved: dict[tuple[str, str], tuple[float, float]] = {}  # (report key, counter) -> (value, changed at)
         self.first: dict[tuple[str, str], float] = {}  # (report key, counter) -> its value before it ever changed
         self.arrived: dict[str, float] = {}  # report key -> when its latest report arrived
-        self.seen: dict[str, int] = {}  # report key -> the seq of its latest report
+        self.seen: dict[str, int] = {}  # report key -> how many reports the view had taken from it (``received``)
         self.quiet_until = 0.0  # after an action: the restarted service's start is not a stall
         self.acted: dict[str, float] = {}  # service -> when the watch last restarted it
         self.shown: Stall | None = None  # the stall acted on, until env steps move again
@@ -137,8 +137,11 @@ class StallWatch:
         for key, report in view.stats.items():
             if report.service not in WATCHED:
                 continue
-            if self.seen.get(key) != report.seq or key not in self.arrived:
-                self.seen[key], self.arrived[key] = report.seq, now
+            # a count, not the report's seq: on an open bus a forged report may stand in for the real one at the
+            # moment of a look, and one with the same seq every time would hide the real ones that came between
+            received = view.received.get(key, 0)
+            if self.seen.get(key) != received or key not in self.arrived:
+                self.seen[key], self.arrived[key] = received, now
             for counter in (PROGRESS[report.service], "train/segments_received"):
                 value = report.metrics.get(counter)
                 if value is None:

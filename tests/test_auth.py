@@ -316,7 +316,7 @@ def test_on_an_open_bus_crafted_payloads_on_every_key_are_refused_and_the_run_fi
     assert last("train/0", "train/reward_bound_dropped") > 0  # the 3e38 rewards: dropped, no update saw them
     assert last("gen/0", "gen/version_resets") > 0  # put ahead by the forged version + 60, gen went back to train's
     summary = json.loads((run.run_dir / "summary.json").read_text())
-    assert summary["restarts"] == {}, summary  # nothing crashed
+    assert summary["restarts"] == {}, run.output[-4000:]  # nothing crashed, no stall was seen
     assert stats.latest("launcher/0", "launcher/stats_refused") > 0  # the forged train/0 reports
     for service, rss in before.items():
         if rss is not None:  # the launcher reports no memory

@@ -124,6 +124,29 @@ def test_a_train_that_waits_while_segments_come_in_is_a_stall_and_a_second_one_f
     assert again.service == "train/0" and not watch.acting(again)  # the restart did not help: the run fails
 
 
+def test_forged_reports_standing_in_for_an_instance_at_every_look_hide_no_real_report():
+    """On an open bus a peer sent, right after each of train's reports, one of its own on train's key with the
+    same seq every time (the crafted-payload test; on a loaded CI machine the watch then saw only the forgery
+    and restarted a train that reported every half second): arrivals are counted, not told by seq."""
+    clock, reports = Clock(), Reports()
+    watch = StallWatch(10.0, clock)
+    key = keys.stats(RUN, "train", 0)
+    for _ in range(40):
+        clock.now += 1.0
+        reports.move("sim", "gen", "train")
+        reports.send()
+        reports.view.on_report(key, StatsReport(run=RUN, service="train", instance=0, time=0.0, seq=0,
+                                                metrics={"train/iteration": 1.0}))
+        assert reports.view.stats[key].seq == 0  # the forgery is what the watch sees at its look
+        assert watch.check(reports.view) is None
+    # a report with nothing finite in it is refused whole: it never stands in for the instance's real one
+    reports.send()
+    real = reports.view.stats[key]
+    reports.view.on_report(key, StatsReport(run=RUN, service="train", instance=0, time=0.0, seq=0,
+                                            metrics={"train/policy_version": float("nan")}))
+    assert reports.view.stats[key] is real
+
+
 def test_zero_turns_it_off():
     clock, reports = Clock(), Reports()
     watch = StallWatch(0.0, clock)

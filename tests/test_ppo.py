@@ -251,3 +251,104 @@ def test_an_update_skips_a_step_that_is_not_finite_drops_its_data_and_keeps_the_
     assert all(np.isfinite(a).all() for a in after.values())
     assert any(not np.array_equal(before[k], after[k]) for k in before)  # the other steps were taken
     assert all(np.isfinite(v) for k, v in out.items())
+
+
+def skip_batch(model, n=64):
+    """A batch whose decision 5 has a finite return whose squared error is not (tests below)."""
+    obs = np.random.default_rng(0).normal(size=(n, 4)).astype(np.float32)
+    actions, logprobs, values, latents = model.act(obs)
+    returns = torch.randn(n, generator=torch.Generator().manual_seed(1))
+    returns[5] = 3.0e38
+    return Batch(obs=torch.as_tensor(obs), actions=torch.as_tensor(actions), latents=torch.as_tensor(latents),
+                 logprobs=torch.as_tensor(logprobs), advantages=torch.randn(n, generator=torch.Generator().manual_seed(2)),
+                 returns=returns, values=torch.as_tensor(values), versions=np.zeros(n, np.int64))
+
+
+def test_a_fused_adam_skips_on_the_device_as_the_host_checked_path_does():
+    """The fused Adam skips a bad step through ``found_inf`` (no read back to the host); an unfused one (a
+    checkpoint of an older run restores ``fused = None``) is checked on the host: the same steps skipped, the
+    same data dropped, the same numbers and weights."""
+    from ebrl.algos.ppo import skips_on_device
+
+    outs, weights = [], []
+    for fused in (True, False):
+        torch.manual_seed(3)
+        model = make_policy(POLICY, ObsLayout.vector(4), 1)
+        ppo = PPO(model, ALGO, lr=1e-2)
+        if not fused:
+            ppo.optimizer = torch.optim.Adam(model.parameters(), lr=1e-2, eps=1e-5)
+        assert skips_on_device(ppo.optimizer) == fused
+        outs.append(ppo.update(skip_batch(model)))
+        weights.append(state_arrays(model))
+    assert outs[0]["steps_skipped"] == outs[1]["steps_skipped"] == 1
+    assert outs[0]["decisions_dropped"] == outs[1]["decisions_dropped"] == 1
+    assert outs[0].keys() == outs[1].keys()
+    for k in outs[0]:
+        assert outs[0][k] == pytest.approx(outs[1][k], rel=1e-4, abs=1e-6), k
+    for k in weights[0]:
+        np.testing.assert_allclose(weights[0][k], weights[1][k], rtol=1e-4, atol=1e-6)
+
+
+@pytest.mark.parametrize("decoupled, prox_logp", [(False, "recompute"), (True, "recompute"), (True, "interpolate")])
+def test_the_host_reads_the_device_once_per_epoch_not_once_per_minibatch(monkeypatch, decoupled, prox_logp):
+    """No host synchronisation in the inner loop (issue 35): the reads of a tensor's value by the host (what
+    waits for a GPU) do not grow with the number of minibatches -- the statistics add up on the device and the
+    bad-step verdicts are read once per epoch."""
+    reads = {"n": 0}
+    for name in ("item", "tolist", "cpu", "numpy", "__bool__", "__float__", "__int__"):
+        original = getattr(torch.Tensor, name)
+
+        def counted(self, *args, _original=original, **kwargs):
+            reads["n"] += 1
+            return _original(self, *args, **kwargs)
+
+        monkeypatch.setattr(torch.Tensor, name, counted)
+
+    def reads_for(minibatches: int) -> int:
+        torch.manual_seed(3)
+        model = make_policy(POLICY, ObsLayout.vector(4), 1)
+        algo = SimpleNamespace(**{**vars(ALGO), "minibatches": minibatches, "decoupled": decoupled,
+                                  "prox_logp": prox_logp, "behave_weight_cap": 5.0})
+        batch = skip_batch(model)
+        ppo = PPO(model, algo, lr=1e-3)
+        ppo.prepare()
+        reads["n"] = 0
+        ppo.update(dataclasses.replace(batch, returns=torch.randn(len(batch))))
+        return reads["n"]
+
+    few, many = reads_for(2), reads_for(16)
+    assert few == many and few <= 2 * ALGO.epochs + 6, (few, many)  # 2 per epoch; the batch's numbers; the end
+
+
+@pytest.mark.gpu
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device (benchmarks/gpu/check.sh runs it on a "
+                                                           "GPU machine)")
+@pytest.mark.parametrize("dtype", ["float32", "bfloat16"])
+def test_on_a_gpu_an_update_waits_for_the_device_once_per_epoch_and_skips_a_bad_step_there(dtype):
+    """On CUDA, under torch's synchronisation debugging (each wait of the host for the device warns): the waits
+    do not grow with the minibatches, and the bad step is skipped by the fused Adam with the weights finite."""
+    import warnings
+
+    from ebrl import devices
+
+    def update(minibatches: int) -> tuple[int, dict[str, float]]:
+        torch.manual_seed(3)
+        model = make_policy(POLICY, ObsLayout.vector(4), 1).cuda()
+        batch = skip_batch(model).to(torch.device("cuda"))
+        ppo = PPO(model, SimpleNamespace(**{**vars(ALGO), "minibatches": minibatches}), lr=1e-2)
+        ppo.prepare()
+        ppo.update(dataclasses.replace(batch, returns=torch.randn(len(batch), device="cuda")))  # warm-up
+        torch.cuda.synchronize()
+        with warnings.catch_warnings(record=True) as caught, devices.autocast(torch.device("cuda"), dtype):
+            warnings.simplefilter("always")
+            torch.cuda.set_sync_debug_mode("warn")
+            try:
+                out = ppo.update(batch)
+            finally:
+                torch.cuda.set_sync_debug_mode("default")
+        assert all(np.isfinite(a).all() for a in state_arrays(model).values())
+        return sum("synchroniz" in str(w.message) for w in caught), out
+
+    (few, out), (many, _) = update(2), update(16)
+    assert out["steps_skipped"] == 1 and out["decisions_dropped"] == 1
+    assert few == many and few <= 2 * ALGO.epochs + 8, (few, many)

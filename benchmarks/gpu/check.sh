@@ -6,7 +6,9 @@
 # own). DURATION (seconds, default 15) is each benchmark window; longer windows give the numbers in
 # BENCHMARKS.md (`DURATION=45 bash benchmarks/gpu/check.sh bench` in a call of its own).
 #   tests       the tests marked gpu (policy and learner on CUDA, the memory cap, CUDA graphs, gen + train
-#               sharing the GPU over the in-memory bus) and the fast device/pipeline/MPS tests
+#               sharing the GPU over the in-memory bus, PPO's update waiting for the device once per epoch) and
+#               the fast device/pipeline/MPS/PPO tests
+#   train_rate  training's decisions/s on W2 and W3: the fused on-device step skip vs a host check per step
 #   forward     generation's forward pass: CPU vs GPU, float32 vs bfloat16, eager vs CUDA graphs, up to W3
 #   quickstart  a real `ebrl up` of the quickstart with gen and train on the GPU (device, memory, rates)
 #   mps         the same with the allocator's MPS shares: the launcher starts an MPS control daemon for the run
@@ -118,7 +120,9 @@ while [ $i -lt ${#PARTS[@]} ]; do
     p=${PARTS[$i]}; i=$((i + 1))
     case $p in
     tests) part tests 120 python3 -m pytest -q -rs -p no:cacheprovider -o addopts="" --timeout 60 -m "gpu or not slow" \
-               tests/test_devices.py tests/test_pipeline.py tests/test_mps.py ;;
+               tests/test_devices.py tests/test_pipeline.py tests/test_mps.py tests/test_ppo.py ;;
+    train_rate) part train_rate 200 python3 benchmarks/train_rate.py --configs configs/bench_w2_gpu.toml \
+                    configs/bench_w3.toml --seconds 3 --rounds 2 --out "$RES/train_rate.json" ;;
     forward) part forward 120 python3 benchmarks/gpu/forward.py --seconds 0.5 --out "$RES/forward.json" ;;
     quickstart) part quickstart 90 python3 benchmarks/gpu/quickstart.py --out "$RES/quickstart.json" ;;
     mps) part mps 120 python3 -m ebrl.cli up configs/quickstart.toml --set alloc.enabled=true \

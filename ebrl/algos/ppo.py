@@ -179,6 +179,27 @@ def policy_loss(logp: torch.Tensor, prox_logp: torch.Tensor, behave_logp: torch.
     return loss, weight, ratio
 
 
+def make_adam(params: Any, lr: float) -> torch.optim.Optimizer:
+    """Adam, fused where torch has a fused kernel for these parameters (one kernel per step instead of several
+    per tensor; on CUDA, and on the CPU since torch 2.4): a fused Adam also takes ``found_inf`` and skips a
+    step on the device, with no read back to the host (:meth:`PPO.update`)."""
+    params = list(params)
+    try:
+        return torch.optim.Adam(params, lr=lr, eps=1e-5, fused=True)
+    except (RuntimeError, TypeError):  # a device or dtype the fused kernel does not take
+        return torch.optim.Adam(params, lr=lr, eps=1e-5)
+
+
+def skips_on_device(optimizer: torch.optim.Optimizer) -> bool:
+    """Whether ``optimizer.step`` honours ``optimizer.found_inf`` (torch's fused Adam: AMP's grad scaler sets
+    it), so that a bad step is skipped without the host reading whether it was bad. A checkpoint made by an
+    unfused optimizer restores ``fused = None``: such an optimizer checks on the host, each step."""
+    return isinstance(optimizer, torch.optim.Adam) and all(g.get("fused") for g in optimizer.param_groups)
+
+
+STEP_STATS = ("policy_loss", "value_loss", "entropy", "approx_kl", "clipfrac")  # means over the steps taken
+
+
 class PPO:
     """Clipped-surrogate PPO updates of a policy with ``evaluate(obs, actions)``."""
 
@@ -193,11 +214,11 @@ class PPO:
 
     @property
     def optimizer(self) -> torch.optim.Optimizer:
-        """Adam over the model's parameters, made on first use: torch's first optimizer imports torch._dynamo,
-        most of a second of CPU, which a new run spends after its first weights are out (``prepare``) rather
-        than before generation can act."""
+        """Adam over the model's parameters (:func:`make_adam`), made on first use: torch's first optimizer
+        imports torch._dynamo, most of a second of CPU, which a new run spends after its first weights are out
+        (``prepare``) rather than before generation can act."""
         if self._optimizer is None:
-            self._optimizer = torch.optim.Adam(self.model.parameters(), lr=self.lr, eps=1e-5)
+            self._optimizer = make_adam(self.model.parameters(), self.lr)
         return self._optimizer
 
     @optimizer.setter
@@ -211,88 +232,126 @@ class PPO:
     def update(self, batch: Batch, scale: float = 1.0, version: int | None = None) -> dict[str, float]:
         """``epochs`` x ``minibatches`` gradient steps, always exactly that many (data-parallel ranks step in
         lockstep); ``scale = 0`` takes the steps with zero gradients (a rank that got no data this time).
-        ``version``: the policy version being updated (default: the newest in the batch), for interpolation."""
-        cfg, n = self.cfg, len(batch)
-        stats: dict[str, list[float]] = {k: [] for k in ("policy_loss", "value_loss", "entropy", "approx_kl", "clipfrac")}
+        ``version``: the policy version being updated (default: the newest in the batch), for interpolation.
+
+        A step whose loss or gradient norm is not finite is skipped (AMP's answer to a bad step) and the
+        decisions that made it leave the batch: those whose own log-prob, value or loss term is not finite,
+        else the whole minibatch. On a GPU the host waits for the device only once per epoch: the statistics
+        add up on the device, a fused Adam skips a bad step by itself (``found_inf``), and which steps were bad
+        is read at the epoch's end -- each decision is in one minibatch per epoch, so dropping its data then
+        is as soon as it matters. An optimizer that cannot skip on the device is checked after each step."""
+        cfg, n, device = self.cfg, len(batch), batch.obs.device
         decoupled = getattr(cfg, "decoupled", False)
         interpolate = decoupled and getattr(cfg, "prox_logp", "recompute") == "interpolate"
         cap = getattr(cfg, "behave_weight_cap", math.inf)
+        means: dict[str, list[torch.Tensor]] = {}  # per-step values on the device, averaged and read at the end
         if interpolate:
             lag = torch.as_tensor((version if version is not None else batch.versions.max()) - batch.versions,
-                                  dtype=torch.float32, device=batch.obs.device).clamp(min=0)
+                                  dtype=torch.float32, device=device).clamp(min=0)
             alpha = lag / (lag + 1)  # log pi_prox and the weights: per minibatch step, below
         elif decoupled:
             with torch.no_grad():
                 prox = self.net("evaluate", batch.obs, batch.actions, batch.latents)[0]  # log pi_prox, once per update
-            self._behaviour_stats(stats, prox - batch.logprobs, cap)
+            self._behaviour_stats(means, prox - batch.logprobs, cap)
         else:
             prox = batch.logprobs  # pi_prox = pi_behave: weight 1, plain PPO
-        weights: list[float] = [] if interpolate else [
-            (prox - batch.logprobs).exp().clamp(max=cap).mean().item()]
+        if not interpolate:
+            means["behave_weight_mean"] = [(prox - batch.logprobs).exp().clamp(max=cap).mean()]
+        taken = torch.zeros(len(STEP_STATS) + 1, dtype=torch.float64, device=device)  # sums of STEP_STATS, steps
+        on_device = skips_on_device(self.optimizer)
         keep = torch.ones(n, dtype=torch.bool)  # decisions still in the batch (a bad step drops its data)
         skipped = dropped = 0
         for _ in range(cfg.epochs):
             order = torch.randperm(n, generator=self.generator)
-            for idx in torch.tensor_split(order, cfg.minibatches):
-                idx = idx[keep[idx]]
-                step_scale = scale if len(idx) else 0.0
-                idx = idx if len(idx) else order[:1]
-                newlogprob, entropy, newvalue = self.net("evaluate", batch.obs[idx], batch.actions[idx],
-                                                         batch.latents[idx])
-                behave = batch.logprobs[idx]
+            parts = [idx[keep[idx]] for idx in torch.tensor_split(order, cfg.minibatches)]
+            scales = [scale if len(idx) else 0.0 for idx in parts]
+            parts = [idx if len(idx) else order[:1] for idx in parts]  # nothing left: a step with zero gradients
+            moved = torch.cat(parts)  # the epoch's indices to the device in one copy that the host does not wait on
+            moved = (moved.pin_memory() if device.type == "cuda" else moved).to(device, non_blocking=True)
+            steps: list[tuple[torch.Tensor, torch.Tensor, torch.Tensor]] = []  # (indices, step fine, own fine)
+            for idx, on, step_scale in zip(parts, torch.split(moved, [len(i) for i in parts]), scales):
+                newlogprob, entropy, newvalue = self.net("evaluate", batch.obs[on], batch.actions[on],
+                                                         batch.latents[on])
+                behave = batch.logprobs[on]
                 if interpolate:
-                    prox_mb = behave + alpha[idx] * (newlogprob.detach() - behave)
-                    self._behaviour_stats(stats, prox_mb - behave, cap)
+                    prox_mb = behave + alpha[on] * (newlogprob.detach() - behave)
+                    self._behaviour_stats(means, prox_mb - behave, cap)
                 else:
-                    prox_mb = prox[idx]
-                adv = batch.advantages[idx]
+                    prox_mb = prox[on]
+                adv = batch.advantages[on]
                 if batch.normalize_advantages and len(idx) > 1:
                     adv = (adv - adv.mean()) / (adv.std() + 1e-8)
                 pg_loss, weight_mb, ratio = policy_loss(newlogprob, prox_mb, behave, adv, cfg.clip, cap)
                 logratio = newlogprob - prox_mb
                 if interpolate:
-                    weights.append(weight_mb.mean().item())
+                    means.setdefault("behave_weight_mean", []).append(weight_mb.mean())
                 if batch.returns is None:
-                    v_loss = torch.zeros((), device=batch.obs.device)
+                    v_loss = torch.zeros((), device=device)
                 else:
-                    v_loss = 0.5 * ((newvalue - batch.returns[idx]) ** 2).mean()
+                    v_loss = 0.5 * ((newvalue - batch.returns[on]) ** 2).mean()
                 ent = entropy.mean()
                 loss = step_scale * (pg_loss - cfg.ent_coef * ent + cfg.vf_coef * v_loss)
                 self.optimizer.zero_grad()
                 loss.backward()
                 norm = nn.utils.clip_grad_norm_(self.model.parameters(), cfg.max_grad_norm)
-                if not bool(torch.isfinite(loss) & torch.isfinite(norm)):
-                    # AMP's answer to a bad step: skip it and go on. The decisions that made it leave the batch
-                    # (those whose own log-prob or value is not finite, else the whole minibatch)
-                    self.optimizer.zero_grad()
-                    own = torch.isfinite(newlogprob) & torch.isfinite(newvalue) & torch.isfinite(ratio * adv)
-                    if batch.returns is not None:
-                        own &= torch.isfinite((newvalue - batch.returns[idx]) ** 2)
-                    bad = idx[~own.cpu()] if not bool(own.all()) else idx
-                    keep[bad] = False
-                    skipped, dropped = skipped + 1, dropped + len(bad)
-                    continue
-                self.optimizer.step()
+                norm = norm.full_tensor() if hasattr(norm, "full_tensor") else norm  # sharded (fsdp): a DTensor
+                fine = torch.isfinite(loss) & torch.isfinite(norm)
+                own = torch.isfinite(newlogprob) & torch.isfinite(newvalue) & torch.isfinite(ratio * adv)
+                if batch.returns is not None:
+                    own &= torch.isfinite((newvalue - batch.returns[on]) ** 2)
+                if on_device:
+                    self.optimizer.found_inf = (~fine).float()  # fused Adam: a bad step leaves weights and state
+                    try:
+                        self.optimizer.step()
+                    finally:
+                        del self.optimizer.found_inf
+                elif bool(fine):
+                    self.optimizer.step()
+                steps.append((idx, fine, own.detach()))
                 with torch.no_grad():
-                    stats["policy_loss"].append(pg_loss.item())
-                    stats["value_loss"].append(v_loss.item())
-                    stats["entropy"].append(ent.item())
-                    stats["approx_kl"].append(((ratio - 1) - logratio).mean().item())
-                    stats["clipfrac"].append(((ratio - 1.0).abs() > cfg.clip).float().mean().item())
-        stats["behave_weight_mean"] = weights
-        out = {k: float(np.mean(v)) for k, v in stats.items() if v}
-        return {**out, **self.batch_stats(batch), "steps_skipped": float(skipped), "decisions_dropped": float(dropped)}
+                    values = torch.stack([t.double() for t in (
+                        pg_loss, v_loss, ent, ((ratio - 1) - logratio).mean(),
+                        ((ratio - 1.0).abs() > cfg.clip).float().mean(), torch.ones((), device=device))])
+                    taken += torch.where(fine, values, 0.0)  # a skipped step's numbers are not averaged
+            for idx, own in self._bad(steps):  # this epoch's verdicts: one read of the device
+                bad = idx[~own] if not bool(own.all()) else idx
+                keep[bad] = False
+                skipped, dropped = skipped + 1, dropped + len(bad)
+        return {**self._read(taken, means), **self.batch_stats(batch), "steps_skipped": float(skipped),
+                "decisions_dropped": float(dropped)}
 
     @staticmethod
-    def _behaviour_stats(stats: dict[str, list[float]], log_w: torch.Tensor, cap: float) -> None:
+    def _bad(steps: list[tuple[torch.Tensor, torch.Tensor, torch.Tensor]]) -> list[tuple[torch.Tensor, torch.Tensor]]:
+        """(indices, ``own`` mask on the host) of the steps that were not finite (one read of the device, and
+        one more for each bad step: rare)."""
+        if not steps:
+            return []
+        fine = torch.stack([f for _, f, _ in steps]).cpu()
+        return [(idx, own.cpu()) for (idx, _, own), ok in zip(steps, fine.tolist()) if not ok]
+
+    @staticmethod
+    def _read(taken: torch.Tensor, means: dict[str, list[torch.Tensor]]) -> dict[str, float]:
+        """The update's statistics, read from the device at once: each of ``STEP_STATS`` averaged over the steps
+        taken (absent where none was), each of ``means`` over its values."""
+        names = list(means)
+        tensors = [taken] + [torch.stack([t.double() for t in means[k]]).mean().reshape(1) for k in names]
+        values = torch.cat(tensors).tolist()
+        count, out = values[len(STEP_STATS)], {}
+        if count:
+            out = {name: values[i] / count for i, name in enumerate(STEP_STATS)}
+        out.update(zip(names, values[len(STEP_STATS) + 1:]))
+        return out
+
+    @staticmethod
+    def _behaviour_stats(means: dict[str, list[torch.Tensor]], log_w: torch.Tensor, cap: float) -> None:
         """How far the behaviour policy is from pi_prox, over decisions: KL(pi_behave || pi_prox) by the k3
         estimator (mean of w - 1 - log w, w = pi_prox / pi_behave, >= 0, 0 on-policy), the share of weights
-        above the cap, the largest weight."""
-        log_w = log_w.float()
+        above the cap, the largest weight (device tensors, read with the update's other numbers)."""
+        log_w = log_w.detach().float()
         w = log_w.exp()
-        stats.setdefault("behave_kl", []).append((w - 1 - log_w).mean().item())
-        stats.setdefault("behave_weight_capped", []).append((w > cap).float().mean().item())
-        stats.setdefault("behave_weight_max", []).append(w.max().item())
+        means.setdefault("behave_kl", []).append((w - 1 - log_w).mean())
+        means.setdefault("behave_weight_capped", []).append((w > cap).float().mean())
+        means.setdefault("behave_weight_max", []).append(w.max())
 
     @staticmethod
     def batch_stats(batch: Batch) -> dict[str, float]:

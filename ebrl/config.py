@@ -164,9 +164,11 @@ class PolicySection:
     depth: int = doc("transformer backbone: layers (about 12 * width^2 parameters each)", 4)
     heads: int = doc("transformer backbone: attention heads (a divisor of width)", 8)
     patch: int = doc("transformer backbone: image patch side in pixels (a divisor of the image size)", 8)
-    dtype: Literal["float32", "bfloat16"] = doc(
-        "precision of generation's forward passes and training's: float32, or bfloat16 autocast (matrix products "
-        "in bfloat16, reductions and the losses in float32; on GPUs with bfloat16 units)", "float32")
+    dtype: Literal["auto", "float32", "bfloat16"] = doc(
+        "precision of generation's forward passes and training's: float32, bfloat16 autocast (matrix products "
+        "in bfloat16, reductions and the losses in float32; on GPUs with bfloat16 units), or auto: bfloat16 where "
+        "generation and training run on a GPU that has it and it measured faster for this policy at the run's "
+        "batch sizes, else float32 (decided at start, ebrl.autotune)", "auto")
     normalize_obs: bool = doc("standardise the vector fields of the observation by running mean and variance "
                               "(kept in the policy, updated by training from each batch, shipped with the "
                               "weights); images and tokens pass unchanged", False)
@@ -179,11 +181,13 @@ class GenSection:
     max_batch_groups: int = doc("most groups served by one forward pass; 0 means all groups", 0)
     cores: list[int] = doc("cores for the generation process; empty: the mode's choice", factory=list)
     threads: int = doc("torch threads of the generation process", 1)
-    device: str = doc("torch device of the policy's forward passes: auto (the GPU this process is bound to when "
-                      "torch sees one, else the CPU), cpu, cuda or cuda:N", "auto")
-    compile: Literal["off", "cudagraphs"] = doc(
-        "how the chunk forward runs on a GPU: off (eagerly), or cudagraphs (captured once per batch size and "
-        "replayed: one launch per batch; for small policies, whose passes are launch-bound)", "off")
+    device: str = doc("torch device of the policy's forward passes: auto (of the GPU this process is bound to and "
+                      "the CPU, the one that measured faster for this policy, precision and batch at start: "
+                      "ebrl.autotune; the GPU when nothing measured it), cpu, cuda or cuda:N", "auto")
+    compile: Literal["auto", "off", "cudagraphs"] = doc(
+        "how the chunk forward runs on a GPU: off (eagerly), cudagraphs (captured once per batch size and "
+        "replayed: one launch per batch; for small policies, whose passes are launch-bound), or auto: CUDA graphs "
+        "where the capture works and measured faster, else eagerly (decided at start, ebrl.autotune)", "auto")
 
 
 @dataclass

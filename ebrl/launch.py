@@ -30,7 +30,7 @@ import time
 from pathlib import Path
 from typing import Callable
 
-from ebrl import config as config_mod, devices, meta, procenv, stall, tracking
+from ebrl import autotune, config as config_mod, devices, meta, procenv, stall, tracking
 from ebrl.bus import Bus, BusOptions, auth, keys
 from ebrl.bus.endpoints import config_file_listen, listen_endpoint
 from ebrl.hosts import PRIMARY_LOST_S, HostPlan, Membership, enabled_roles, plan as plan_host
@@ -159,8 +159,9 @@ def run_instances(cfg: config_mod.Config, plan: HostPlan, members: Membership) -
 
 class Launcher:
     def __init__(self, cfg: config_mod.Config, run_dir: Path, out=sys.stdout, plan: HostPlan | None = None,
-                 gpu_env: dict[str, dict[str, str]] | None = None):
+                 gpu_env: dict[str, dict[str, str]] | None = None, notes: list[tuple[str, str]] | None = None):
         self.cfg, self.run_dir, self.run_name = cfg, run_dir, cfg.run.name
+        self.notes = notes or []  # (kind, text): start-up events (what "auto" became), sent once services are live
         self.plan = plan or HostPlan(enabled_roles(cfg))
         self.roles = enabled_roles(cfg)  # every service of the run, on any host
         self.console = Console(out)
@@ -258,6 +259,8 @@ class Launcher:
         names = ", ".join(c.name for c in children)
         self.console.say(f"all services live after {self.elapsed():.1f} s: {names}")
         self.link.event("live", f"{names} live after {self.elapsed():.1f} s")
+        for kind, text in self.notes:
+            self.link.event(kind, text)
         if later := [c.name for c in self.supervisor.children
                      if c.role in OPTIONAL_ROLES and not self.members.is_live(c.role, c.instance)]:
             self.console.say(f"{', '.join(later)} still starting (optional: the run does not wait for it)")
@@ -432,6 +435,10 @@ def up(config_path: str, overrides: list[str], viz: str | None = None, resume: s
     if problem:
         print(f"ebrl: {problem}", file=sys.stderr)
         return 2
+    earlier = meta.read(resume).get("auto", {}).get("settings") if resume else None  # a resumed run keeps its own
+    cfg, decision = autotune.settle(cfg, tuple(plan.roles), plan.multi, earlier)  # policy.dtype, gen.compile, ...
+    if decision is not None and decision.line:
+        print(decision.line, flush=True)
     gpu_env: dict[str, dict[str, str]] = {}
     mps = None  # an MPS control daemon this run started, quit when it ends
     if "alloc" in plan.roles:  # profile (or reuse a profile) and start every service inside Algorithm 1's plan
@@ -469,10 +476,12 @@ def up(config_path: str, overrides: list[str], viz: str | None = None, resume: s
         return 2
     (run_dir / "config.toml").write_text(config_mod.dump_toml(cfg))
     # a resumed run's env steps go on from where its tracking stopped
-    meta.write(cfg, run_dir, extra={"env_steps_before": tracking.steps_so_far(run_dir)} if resume else None)
+    extra = {"env_steps_before": tracking.steps_so_far(run_dir)} if resume else {}
+    meta.write(cfg, run_dir, extra={**extra, "auto": decision.to_dict()} if decision is not None else extra or None)
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
     try:
-        return asyncio.run(Launcher(cfg, run_dir, plan=plan, gpu_env=gpu_env).main())
+        notes = [("auto", decision.line)] if decision is not None and decision.line else []
+        return asyncio.run(Launcher(cfg, run_dir, plan=plan, gpu_env=gpu_env, notes=notes).main())
     finally:
         if mps is not None:  # after every service (an MPS client) has exited
             print("ebrl: MPS control daemon " + ("quit" if mps.quit() else f"did not quit ({mps.pipe_dir})"),

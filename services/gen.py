@@ -98,9 +98,8 @@ class GenService(Service):
                                 values=values[row:row + n], latents=latents[row:row + n])
             await self.bus.put(keys.act(self.run_name, m.group), chunk, express=True)
             row += n
-        self.count("gen/batches")
-        self.count("gen/groups_served", len(batch))
-        self.count("gen/envs_served", row)
+        for name, n in (("gen/batches", 1), ("gen/groups_served", len(batch)), ("gen/envs_served", row)):
+            self.count(name, n)
 
     def inline(self) -> bool:
         """Run the next pass on the event loop: on the CPU, while passes take under ``INLINE_MAX_S``. The loop
@@ -146,7 +145,8 @@ class GenService(Service):
 
     def metrics(self) -> dict[str, float]:
         return {"gen/policy_version": float(self.version), "gen/obs_queue": float(len(self.obs)),
-                **{f"gen/{k}": float(v) for k, v in {**self.waiting.counters(), **self.weights.counters()}.items()}}
+                **{f"gen/{k}": float(v) for k, v in {**self.waiting.counters(), **self.weights.counters(),
+                                                     **self.actor.counters()}.items()}}
 
     async def teardown(self) -> None:
         self.pool.shutdown(wait=False, cancel_futures=True)

@@ -10,7 +10,7 @@ import pytest
 import json
 import time
 
-from ebrl import config
+from ebrl import autotune, config
 from ebrl.alloc.algorithm import Profiles
 from ebrl.alloc.profile import fingerprint, save
 from ebrl.alloc.runtime import capacities
@@ -37,6 +37,7 @@ def test_up_with_the_allocator_re_plans_from_measurements_and_services_apply_it(
                  'run.slowdown="train=6@0"']
     cfg = config.load(str(helpers.ROOT / "configs/quickstart.toml"),
                       overrides + [f"run.output_dir={json.dumps(str(out_dir))}"])
+    cfg, _ = autotune.settle(cfg, ("sim", "gen", "train", "alloc"), multi=False)  # as the launcher profiles it
     pool = ResourcePool(gpu_pool="none")
     n = len(pool.cores)
     # A profile taken before training got slow (run.slowdown: every update takes 6x as long): the simulator

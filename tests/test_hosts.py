@@ -182,6 +182,7 @@ def test_sim_on_another_host_trains_and_the_primary_ends_the_run(tmp_path):
 def test_the_allocator_on_a_host_without_a_simulator_counts_the_other_hosts(tmp_path):
     """alloc.enabled over two hosts: host 0 (gen, train and the allocator) gives every core to generation and
     training and reads host 1's simulator stats as the rollout capacity it plans with."""
+    from ebrl import autotune
     from ebrl.alloc.algorithm import Profiles
     from ebrl.alloc.profile import fingerprint, save
     from ebrl.resources.pool import ResourcePool
@@ -192,6 +193,7 @@ def test_the_allocator_on_a_host_without_a_simulator_counts_the_other_hosts(tmp_
     common = ["alloc.enabled=true", "alloc.window=3", "alloc.patience=2"]
     primary_sets = ['viz.rerun="off"', "run.iterations=10", *common]
     cfg = config.load(QUICK, up_sets(tmp_path / "p", port, "multialloc", overrides=primary_sets))  # as the run's
+    cfg, _ = autotune.settle(cfg, ("gen", "train", "alloc"), multi=True)  # ... with "auto" decided as there
     pool = ResourcePool(gpu_pool="none")
     n = len(pool.cores)
     profiles = Profiles(sim={(1, e, e): 1000.0 * e for e in range(1, n + 1)},

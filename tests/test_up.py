@@ -37,6 +37,7 @@ def test_two_iterations_train_and_the_readme_subscriber_sees_stats(tmp_path):
     assert printed.count("ebrl/stats/e2e/") == 3 and "proc/rss_mb=" in printed  # `ebrl stats` decoded them
     assert code == 0, out
     assert "all services live" in out and "run e2e finished: 2 iterations" in out
+    assert "auto: policy.dtype = 'float32', gen.compile = 'off' (no GPU on this host)" in out
     summary = json.loads((run.run_dir / "summary.json").read_text())
     assert summary["iterations"] == 2 and summary["segments"] > 0 and summary["env_steps"] > 0
     assert "e2e:" in lines and "env steps/s" in lines  # decoded stats reached a plain zenoh script
@@ -61,6 +62,9 @@ def check_tracking_outputs(run_dir, summary) -> None:
     assert rows[0] == "step,wall_time,key,value" and sum(",episode/return," in r for r in rows) == len(returns)
     meta = json.loads((run_dir / "meta.json").read_text())
     assert meta["command"][:2] == ["ebrl", "up"] and meta["packages"]["torch"] and meta["seeds"]["run"] == 1
+    # no GPU here: "auto" became float32 and eager without a measurement, and the services ran what config.toml says
+    assert meta["auto"]["settings"] == {"policy.dtype": "float32", "gen.compile": "off"}, meta["auto"]
+    assert 'dtype = "float32"' in (run_dir / "config.toml").read_text()
     assert (run_dir / "report" / "learning.png").stat().st_size > 20_000
 
 
@@ -70,6 +74,8 @@ def test_weights_versions_advance_and_trajectories_flow(tmp_path):
     assert code == 0, out
     gen_versions = [m["gen/policy_version"] for m in seen["gen/0"]]
     assert gen_versions == sorted(gen_versions) and gen_versions[-1] >= 2  # gen applied new weights
+    assert (seen["gen/0"][-1]["gen/dtype"], seen["gen/0"][-1]["gen/compiled"], seen["train/0"][-1]["train/dtype"]) \
+        == (32.0, 0.0, 32.0)  # what "auto" became here (ebrl.autotune), in the stats
     train = seen["train/0"][-1]
     assert train["train/policy_version"] == 3 and train["train/segments_received"] > 0
     sim = seen["sim/0"][-1]

@@ -9,6 +9,12 @@
 #               sharing the GPU over the in-memory bus, PPO's update waiting for the device once per epoch) and
 #               the fast device/pipeline/MPS/PPO tests
 #   train_rate  training's decisions/s on W2 and W3: the fused on-device step skip vs a host check per step
+#   auto        what "auto" (policy.dtype, gen.compile, gen.device) decides for the quickstart, W2 and W3, with
+#               the numbers behind it (python -m ebrl.autotune CONFIG; kept in the machine's cache for the
+#               parts after it)
+#   quickstart_auto  the quickstart with no flags vs gen.device = "cpu", back to back (ebrl bench, 20 s each)
+#   w3_accept   issue 35's acceptance: W3 with no flags, ebrl vs colocated (the best baseline of every W3
+#               record), REPEAT (3) interleaved rounds of DURATION (30 here) seconds
 #   forward     generation's forward pass: CPU vs GPU, float32 vs bfloat16, eager vs CUDA graphs, up to W3
 #   quickstart  a real `ebrl up` of the quickstart with gen and train on the GPU (device, memory, rates)
 #   mps         the same with the allocator's MPS shares: the launcher starts an MPS control daemon for the run
@@ -113,7 +119,8 @@ variant() {  # variant NAME KEY=VALUE...: ebrl up configs/mjwarp_pickcube.toml t
 }
 
 # ebrl bench CONFIG: the four modes, interleaved, one window of DURATION seconds each
-BENCH=(python3 -m ebrl.cli bench --modes ebrl,colocated,hybrid,async --raw-seconds 0 --set 'viz.rerun="off"')
+BENCH_BASE=(python3 -m ebrl.cli bench --raw-seconds 0 --set 'viz.rerun="off"')
+BENCH=("${BENCH_BASE[@]}" --modes ebrl,colocated,hybrid,async)
 
 i=0
 while [ $i -lt ${#PARTS[@]} ]; do
@@ -121,6 +128,16 @@ while [ $i -lt ${#PARTS[@]} ]; do
     case $p in
     tests) part tests 120 python3 -m pytest -q -rs -p no:cacheprovider -o addopts="" --timeout 60 -m "gpu or not slow" \
                tests/test_devices.py tests/test_pipeline.py tests/test_mps.py tests/test_ppo.py ;;
+    auto) for c in quickstart bench_w2_gpu bench_w3; do
+              part "auto_$c" 240 python3 -m ebrl.autotune "configs/$c.toml"
+              tail -n 1 "$RES/auto_$c.log" >> "$RES/auto.jsonl"
+          done ;;
+    quickstart_auto) part quickstart_auto 150 "${BENCH_BASE[@]}" --modes ebrl \
+                         configs/quickstart.toml --variant 'ebrl+gen_cpu=gen.device="cpu"' --duration 20 \
+                         --json "$RES/quickstart_auto.json" ;;
+    w3_accept) part w3_accept 590 "${BENCH_BASE[@]}" --modes ebrl,colocated \
+                   configs/bench_w3.toml --duration "${DURATION_ACCEPT:-30}" --repeat "${REPEAT:-3}" \
+                   --json "$RES/bench_w3_accept.json" ;;
     train_rate) part train_rate 200 python3 benchmarks/train_rate.py --configs configs/bench_w2_gpu.toml \
                     configs/bench_w3.toml --seconds 3 --rounds 2 --out "$RES/train_rate.json" ;;
     forward) part forward 120 python3 benchmarks/gpu/forward.py --seconds 0.5 --out "$RES/forward.json" ;;

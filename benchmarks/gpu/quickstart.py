@@ -1,5 +1,6 @@
-"""A real ``ebrl up`` of the quickstart with generation and training on the GPU (``gen.device`` and
-``train.device`` left at "auto"): what each stage's stats say about its device and memory, and the run's rates.
+"""A real ``ebrl up`` of the quickstart with generation and training on the GPU (``gen.device = "cuda"``: its
+"auto" may measure the CPU faster for this small policy; ``train.device`` left at "auto"): what each stage's
+stats say about its device, precision and memory, and the run's rates.
 
     python benchmarks/gpu/quickstart.py --out quickstart.json      # on a GPU machine (check.sh runs it)
 
@@ -27,12 +28,12 @@ def main() -> None:
     parser.add_argument("--out", default="gpu_quickstart.json")
     args = parser.parse_args()
     with tempfile.TemporaryDirectory() as out, \
-            Run("configs/quickstart.toml", f"run.iterations={args.iterations}", 'viz.rerun="off"',
+            Run("configs/quickstart.toml", f"run.iterations={args.iterations}", 'viz.rerun="off"', 'gen.device="cuda"',
                 name="gpu-quickstart", out_dir=out) as run, StatsWatcher(run) as w:
         w.wait_for(lambda: (w.latest("train/0", "train/policy_version") or 0) >= args.iterations - 1, 80,
                    f"{args.iterations - 1} updates")
-        result = {"gen": {k: w.latest("gen/0", f"gen/{k}") for k in KEYS},
-                  "train": {k: w.latest("train/0", f"train/{k}") for k in KEYS},
+        result = {"gen": {k: w.latest("gen/0", f"gen/{k}") for k in (*KEYS, "dtype", "compiled")},
+                  "train": {k: w.latest("train/0", f"train/{k}") for k in (*KEYS, "dtype")},
                   "gpu0_sm_percent": w.latest("sim/0", "gpu/0_sm_percent"),
                   "gpu0_mem_used_mb": w.latest("sim/0", "gpu/0_mem_used_mb"),
                   "env_steps_per_s": w.latest("sim/0", "sim/env_steps_per_s"),

@@ -120,8 +120,9 @@ class SimSection:
         "absent: the mode's choice", None)
     core_rebinding: bool | Literal["auto"] | None = doc(
         "greedy core rebinding of single steps onto free cores (async stepping); false pins each env worker to "
-        "one core and runs whole chunks; \"auto\" (the ebrl mode's choice) measures both while the run goes and "
-        "keeps the faster, again whenever the step latencies shift; absent: the mode's choice", None)
+        "one core and runs whole chunks; \"auto\" (the ebrl mode's choice) measures the env steps/s each "
+        "delivers in the run's steady state, keeps the faster at 97.5 %, and measures again when the chosen one "
+        "falls behind, the step latencies shift, or every 5 minutes; absent: the mode's choice", None)
     cores_per_env: int = doc(
         "cores each env worker is pinned to, every thread of it: 1 for a single-threaded simulator; more for one "
         "that steps on several threads (the sim stats' sim/env_cores_used says how many it keeps busy), whose "

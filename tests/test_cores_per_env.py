@@ -151,11 +151,11 @@ def feed(choice: SteppingChoice, now: float, rate: dict[int, float], until: floa
 
 def test_a_multi_threaded_env_is_never_rebound():
     faster = {PINNED: 1000, REBIND: 1300}  # a trial alone would keep rebinding
-    single = SteppingChoice(now=0.0, warmup_s=0.0)
+    single = SteppingChoice(now=0.0, warmup_s=0.0, steady_version=0)
     feed(single, 0.0, faster, 60.0, used=0.98)
     assert single.mode == REBIND
 
-    multi = SteppingChoice(now=0.0, warmup_s=0.0)
+    multi = SteppingChoice(now=0.0, warmup_s=0.0, steady_version=0)
     _, decided = feed(multi, 0.0, faster, 60.0, used=2.1)
     assert multi.mode == PINNED and "keeps 2.1 cores busy" in decided and "sim.cores_per_env = 2" in decided
 

@@ -81,6 +81,11 @@ class EnvFleet:
         the :class:`WorkerFailed` of a worker to recover) and its chunk latency."""
         return await self.stepping.run_chunk([self.workers[g][i] for i in active], actions)
 
+    def saw_version(self, version: int) -> None:
+        """A chunk acted by policy ``version`` arrived: the stepping choice waits for training's steady state."""
+        if (rebinding := self.rebinding) is not None and rebinding.choice is not None:
+            rebinding.choice.saw_version(time.monotonic(), version)
+
     @property
     def rebinding(self) -> RebindingStepping | None:
         return self.stepping if isinstance(self.stepping, RebindingStepping) else None

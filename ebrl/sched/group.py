@@ -137,6 +137,7 @@ class GroupLoop:
             await episodes.moved()
             return obs
         chunk = await self.exchange.exchange(g, self.seq, self.env_ids, obs)
+        self.fleet.saw_version(chunk.policy_version)
         start = time.time()
         done, latency_of = await self.fleet.run_chunk(g, active, chunk.actions[active])
         self.telemetry.publish_span(f"sim.g{g}", "chunk", start, time.time())

@@ -1,20 +1,32 @@
-"""``sim.core_rebinding = "auto"``: step-level rebinding or whole chunks on pinned cores, chosen by measuring.
+"""``sim.core_rebinding = "auto"``: step-level rebinding or whole chunks on pinned cores, chosen by measuring
+what the run delivers, and chosen again while it runs.
 
 Whether rebinding single steps pays depends on the workload and the machine: it balances the cores when
 step latencies vary (a long step no longer holds up the envs pinned beside it), and costs a core hand-off
 (a wake-up and a migration, tens of µs on a VM) whenever a waiting env goes first. Neither a model of the
 step-latency distribution nor a measured hand-off cost alone says which wins once generation, training and
-the machine's other load share the cores, so the choice measures the thing itself: a **trial** runs the
-sim service's envs in both modes, alternating windows (P R R P P R: each mode as often first as second, so
-drift hits both alike), counts env steps per second in each window after a settling time, and keeps
-rebinding only if its median beats pinning's by ``margin`` (5 %), or by ``consistent`` (2 %) with every
-rebinding window faster than every pinning window (``keep_rebinding``). Ties go to pinning (no hand-offs, no
-migrations). The second rule is for heavy-tailed steps of a few ms: rebinding's gain there is real but near
-the margin (4 % in 60 s runs of the sweep's ``lat:4:1``), and the median alone kept pinning; when rebinding
-gains nothing, its three windows all come out ahead 1 time in 20. The step latencies of every chunk are
-watched (the CPU time of each step: the env's own cost, the same whichever mode runs it and whoever shares
-its core); a trial runs again when their median or
-their tail (p90 / p50) moved by half since the last decision, and every ``recheck_s`` seconds.
+the machine's other load share the cores, so the choice measures the thing itself: the env steps per second
+this sim service completes -- what the whole pipeline delivers, since an env waits for its next actions --
+in each mode, in the run's steady state:
+
+* **Not at start-up.** The first trial starts once chunks acted by policy version ``steady_version`` (2)
+  arrive (training runs, kernels and caches are warm; at c20bf78 a trial in the first seconds measured
+  rebinding 1.10x faster on W1 and the run that kept it delivered 29 % less), or after
+  ``steady_timeout_s`` where no such version comes.
+* **Paired windows, a confidence rule.** A trial runs pairs of windows, one in each mode, the order
+  alternating (P R, R P, P R, ...: drift hits both alike); a window spans at least ``window_s``, 8 chunks
+  after settling, and the interval between two policy updates (training's share of the cores comes and goes
+  with them). Each pair
+  gives the log of rebinding's rate over pinning's; after ``min_pairs`` (2) the trial decides as soon as the
+  one-sided 97.5 % bounds of their mean (Student's t) say rebinding is faster by more than ``WORTH`` (1 %:
+  rebinding), or cannot be (pinned), and after ``max_pairs`` (8) without that it keeps pinning (no
+  hand-offs, no migrations: the tie's side). A clear difference is told after two pairs (rebinding 29 %
+  slower, windows within 3 %), a small one takes more.
+* **Kept deciding.** After a decision the chosen mode's windows go on being measured; when the median of
+  the last three falls below the other mode's rate in the trial by ``drop`` (5 %), a new trial runs (the
+  choice is undone if the other mode now wins). A trial also runs again every ``recheck_s`` seconds and when
+  the step latencies (the CPU time of each step: the env's own cost, the same whichever mode runs it) moved:
+  their median or their tail (p90 / p50) by half since the last decision.
 
 Rebinding grants single cores, the paper's greedy algorithm being for single-core workers. An env that keeps
 more than one core busy while it steps (a multi-threaded simulator: ``cores_used``, its threads' CPU time over
@@ -22,7 +34,7 @@ its steps' wall time, the measure the allocator's profile takes too) is never re
 and says which ``sim.cores_per_env`` would give each env the cores it uses.
 
 Pure logic over a clock passed in: :class:`ebrl.sched.stepping.RebindingStepping` feeds it each chunk's
-results and applies the mode it returns to the core pool.
+results and applies the mode it returns to the core pool; the sim fleet tells it the policy versions.
 """
 
 from __future__ import annotations
@@ -38,29 +50,48 @@ from ebrl.sched.corepool import PINNED, REBIND
 
 NAMES = {PINNED: "pinned", REBIND: "rebind"}
 MULTI_THREADED = 1.25  # cores an env keeps busy while stepping above which it counts as multi-threaded
-TRIAL_ORDER = (PINNED, REBIND, REBIND, PINNED, PINNED, REBIND)
+# Student's t, one-sided 97.5 %, by degrees of freedom (pairs - 1); beyond the table, the normal's 1.96. A
+# trial looks after every pair: each look at 97.5 % keeps the chance that noise alone decides low over them
+T975 = {1: 12.706, 2: 4.303, 3: 3.182, 4: 2.776, 5: 2.571, 6: 2.447, 7: 2.365, 8: 2.306, 9: 2.262, 10: 2.228,
+        11: 2.201, 12: 2.179, 13: 2.160, 14: 2.145, 15: 2.131}
+WORTH = 0.01  # a gain of rebinding below 1 % is not worth its hand-offs: the indifference zone's width
 
 
-def keep_rebinding(pinned: list[float], rebind: list[float], margin: float, consistent: float) -> bool:
-    """A trial's verdict from its windows' env steps/s: rebinding's median beats pinning's by ``margin``, or by
-    ``consistent`` with every rebinding window ahead of every pinning window."""
-    gain = statistics.median(rebind) / statistics.median(pinned) if min(pinned, default=0) > 0 else 0.0
-    return gain >= 1 + margin or (gain >= 1 + consistent and min(rebind) > max(pinned))
+def interval(log_ratios: list[float]) -> tuple[float, float, float]:
+    """(mean, low, high) of rebinding's rate over pinning's, from the pairs' log ratios: the geometric mean
+    and its one-sided 97.5 % bounds."""
+    n = len(log_ratios)
+    mean = statistics.fmean(log_ratios)
+    half = T975.get(n - 1, 1.96) * statistics.stdev(log_ratios) / math.sqrt(n) if n > 1 else math.inf
+    return math.exp(mean), math.exp(mean - half), math.exp(mean + half)
+
+
+def verdict(log_ratios: list[float], min_pairs: int) -> int | None:
+    """REBIND when rebinding is faster by more than ``WORTH`` at 97.5 %, PINNED when it cannot be (its upper
+    bound below 1 + ``WORTH``), None while the pairs cannot tell."""
+    if len(log_ratios) < max(2, min_pairs):
+        return None
+    _, low, high = interval(log_ratios)
+    return REBIND if low > 1.0 + WORTH else PINNED if high < 1.0 + WORTH else None
 
 
 class SteppingChoice:
-    def __init__(self, now: float, window_s: float = 2.0, settle_s: float = 0.3, margin: float = 0.05,
-                 shift: float = 0.5, recheck_s: float = 300.0, warmup_s: float = 3.0, check_every_s: float = 1.0,
-                 consistent: float = 0.02):
-        self.window_s, self.settle_s, self.margin, self.consistent = window_s, settle_s, margin, consistent
-        self.shift, self.recheck_s = shift, recheck_s
+    def __init__(self, now: float, window_s: float = 2.0, settle_s: float = 0.3, shift: float = 0.5,
+                 recheck_s: float = 300.0, warmup_s: float = 3.0, check_every_s: float = 1.0,
+                 steady_version: int = 2, steady_timeout_s: float = 60.0, min_pairs: int = 2, max_pairs: int = 8,
+                 drop: float = 0.05):
+        self.window_s, self.settle_s, self.shift, self.recheck_s = window_s, settle_s, shift, recheck_s
+        self.min_pairs, self.max_pairs, self.drop = min_pairs, max_pairs, drop
         self.mode = PINNED
-        self.trial: list[int] = []  # modes of the windows still to run; empty: decided
-        self.rates: dict[int, list[float]] = {PINNED: [], REBIND: []}
-        self.window_start = now + warmup_s  # the first trial starts after start-up
-        self.window_steps = 0
+        self.trial = False  # a trial runs: windows alternate between the modes
+        self.pairs: list[tuple[float, float]] = []  # (pinned, rebind) env steps/s of the trial's pairs
+        self.pending: dict[int, float] = {}  # the current pair's window rates so far, by mode
+        self.window_mode = PINNED
+        self._new_window(now)
+        self.realized: collections.deque[float] = collections.deque(maxlen=3)  # the chosen mode's windows since
+        self.other_rate = math.nan  # the mode not chosen: its median rate in the last trial
         self.decided_at = -math.inf
-        self.gain = float("nan")  # rebinding's steps/s over pinning's in the last trial
+        self.gain = float("nan")  # rebinding's steps/s over pinning's in the last trial (geometric mean)
         self.decisions = 0
         self.latencies: collections.deque[float] = collections.deque(maxlen=4000)
         self.chunks: collections.deque[float] = collections.deque(maxlen=200)
@@ -68,9 +99,21 @@ class SteppingChoice:
         self.reference: tuple[float, float] | None = None  # (p50, p90/p50) at the last decision
         self.reason = "start-up"
         self.check_every_s, self._checked_at = check_every_s, -math.inf  # how often to look for a shift
-        self._start_trial(now + warmup_s)
+        # steady state: chunks of policy version >= steady_version, or steady_timeout_s after start
+        self.steady_version, self.version, self.version_times = steady_version, -1, collections.deque(maxlen=6)
+        self.steady_at = now + steady_timeout_s if steady_version > 0 else now + warmup_s
+        self.earliest = now + warmup_s
 
     # --- measurements ---------------------------------------------------------------------------------------
+
+    def saw_version(self, now: float, version: int) -> None:
+        """Chunks acted by policy ``version`` arrive (the sim's groups; any order)."""
+        if version <= self.version:
+            return
+        self.version = version
+        self.version_times.append(now)
+        if version >= self.steady_version:
+            self.steady_at = min(self.steady_at, now)
 
     def observe(self, now: float, steps: int, step_s: Iterable[float], chunk_s: float,
                 cores_used: float = math.nan) -> None:
@@ -80,17 +123,27 @@ class SteppingChoice:
         self.chunks.append(chunk_s)
         if math.isfinite(cores_used):
             self.env_cores.append(cores_used)
-        if self.trial and now >= self.window_start + self.settle():
-            self.window_steps += steps
+        if now >= self.window_start + self.settle():  # the rate: steps after the first counted chunk, over
+            if self.window_first is None:            # the time since it (no bias from where a window ends)
+                self.window_first = now
+            else:
+                self.window_steps, self.window_last = self.window_steps + steps, now
 
     def settle(self) -> float:
         """Seconds after a switch before steps count (chunks started in the old mode end): a chunk's p50."""
         return max(self.settle_s, statistics.median(self.chunks) if self.chunks else 0.0)
 
+    def update_interval(self) -> float:
+        """Recent seconds between policy versions (0 before two were seen)."""
+        times = list(self.version_times)
+        return statistics.median(b - a for a, b in zip(times, times[1:])) if len(times) >= 3 else 0.0
+
     def window(self) -> float:
         """A window holds at least 8 chunks of every env after settling (slow envs: longer windows; with 4, a
-        trial on 16 ms steps measured noise)."""
-        return max(self.window_s, self.settle() + 8 * (statistics.median(self.chunks) if self.chunks else 0.0))
+        trial on 16 ms steps measured noise) and a policy update's interval (training's share of the cores
+        comes and goes with the updates: each window sees a whole cycle of it)."""
+        chunk = statistics.median(self.chunks) if self.chunks else 0.0
+        return max(self.window_s, self.settle() + 8 * chunk, self.settle() + self.update_interval())
 
     def distribution(self) -> tuple[float, float] | None:
         """(median step latency, p90 / median) of the recent steps; None before 500 were seen."""
@@ -115,53 +168,95 @@ class SteppingChoice:
     # --- decisions ----------------------------------------------------------------------------------------
 
     def tick(self, now: float) -> str | None:
-        """Advance the trial or watch for a shift; returns a sentence when the mode was decided (a new
-        decision, not a trial window), else None. ``self.mode`` is the mode chunks should run in now."""
-        if self.trial:
-            if now < self.window_start + self.window():
-                return None
-            measured = now - self.window_start - self.settle()
-            self.rates[self.trial.pop(0)].append(self.window_steps / measured)
-            self.window_start, self.window_steps = now, 0
+        """Close a window that is due and act on it, or watch for a shift; returns a sentence when the mode was
+        decided (a new decision, not a trial window), else None. ``self.mode`` is the mode chunks should run
+        in now."""
+        if not self.trial and self.decisions == 0:  # the first trial: once the run is in its steady state
+            if now >= max(self.steady_at, self.earliest) and not self.multi_threaded():
+                self._start_trial(now, "start-up")
+            return self._multi_threaded_check(now)
+        if now >= self.window_start + self.window():
+            span = self.window_last - self.window_first if self.window_first is not None else 0.0
+            rate, mode = (self.window_steps / span if span > 0 else 0.0), self.window_mode
+            self._new_window(now)
             if self.trial:
-                self.mode = self.trial[0]
-                return None
-            return self._decide(now)
-        if now - self._checked_at < self.check_every_s:  # the percentiles cost ~0.1 ms: not after every chunk
+                return self._trial_window(now, mode, rate)
+            if mode == self.mode:
+                self.realized.append(rate)
+        if self.trial or now - self._checked_at < self.check_every_s:  # the percentiles cost ~0.1 ms
             return None
         self._checked_at = now
-        if self.multi_threaded():  # no trial: rebinding is not for multi-threaded envs
-            if self.mode == REBIND:
-                self.mode, self.decided_at, self.decisions = PINNED, now, self.decisions + 1
-                return f"pinned: {self._multi_threaded_text()}"
-            return None
-        why = self._shifted(now)
-        if why:
+        if decided := self._multi_threaded_check(now):
+            return decided
+        if not self.multi_threaded() and (why := self._shifted(now)):
             self._start_trial(now, why)
         return None
 
-    def _start_trial(self, now: float, why: str = "start-up") -> None:
-        self.trial = list(TRIAL_ORDER)
-        self.rates = {PINNED: [], REBIND: []}
-        self.mode, self.window_start, self.window_steps, self.reason = self.trial[0], now, 0, why
+    def _multi_threaded_check(self, now: float) -> str | None:
+        """No trial for multi-threaded envs: rebinding is not for them; a rebinding choice becomes pinned."""
+        if not self.multi_threaded():
+            return None
+        if self.mode == REBIND or self.decisions == 0:
+            self.trial, self.mode, self.decided_at, self.decisions = False, PINNED, now, self.decisions + 1
+            self.window_mode = PINNED
+            return f"pinned: {self._multi_threaded_text()}"
+        return None
 
-    def _decide(self, now: float) -> str:
-        pinned, rebind = statistics.median(self.rates[PINNED]), statistics.median(self.rates[REBIND])
-        self.gain = rebind / pinned if pinned > 0 else float("nan")
-        multi = self.multi_threaded()
-        self.mode = REBIND if not multi and keep_rebinding(self.rates[PINNED], self.rates[REBIND], self.margin,
-                                                           self.consistent) else PINNED
+    def _new_window(self, now: float) -> None:
+        self.window_start, self.window_steps, self.window_first, self.window_last = now, 0, None, now
+
+    def _start_trial(self, now: float, why: str) -> None:
+        self.trial, self.pairs, self.pending, self.reason = True, [], {}, why
+        self.mode = self.window_mode = PINNED
+        self._new_window(now)
+
+    def _trial_window(self, now: float, mode: int, rate: float) -> str | None:
+        self.pending[mode] = rate
+        if len(self.pending) < 2:  # the pair's other window next
+            self.mode = self.window_mode = REBIND if mode == PINNED else PINNED
+            return None
+        if min(self.pending.values()) > 0:  # a window with no steps at all (everything waited) tells nothing
+            self.pairs.append((self.pending[PINNED], self.pending[REBIND]))
+        self.pending = {}
+        ratios = [math.log(r / p) for p, r in self.pairs]
+        chosen = verdict(ratios, self.min_pairs) if ratios else None
+        if chosen is None and len(self.pairs) < self.max_pairs:
+            # the next pair's first window: P R, R P, P R, ...: each mode as often first as second
+            self.mode = self.window_mode = REBIND if len(self.pairs) % 2 else PINNED
+            return None
+        return self._decide(now, chosen, ratios)
+
+    def _decide(self, now: float, chosen: int | None, ratios: list[float]) -> str:
+        multi = self.multi_threaded()  # seen during the trial: not for rebinding, whatever it measured
+        self.trial = False
+        self.mode = self.window_mode = chosen if chosen is not None and not multi else PINNED
+        pinned = statistics.median(p for p, _ in self.pairs) if self.pairs else 0.0
+        rebind = statistics.median(r for _, r in self.pairs) if self.pairs else 0.0
+        self.other_rate = rebind if self.mode == PINNED else pinned
+        self.realized.clear()
         self.decided_at, self.decisions = now, self.decisions + 1
+        self.reference = None  # taken from the next steps
         dist = self.distribution()
         dist_text = f"step latency p50 {dist[0] * 1e3:.2f} ms, p90/p50 {dist[1]:.2f}" if dist else "few steps seen"
-        self.reference = None  # taken from the next steps
-        return (f"{NAMES[self.mode]} ({self.reason}): rebinding ran {self.gain:.2f}x the env steps/s of pinned "
-                f"whole chunks ({rebind:.0f} vs {pinned:.0f}; {dist_text})"
-                + (f"; {self._multi_threaded_text()}" if multi else ""))
+        if ratios:
+            gain, low, high = interval(ratios)
+            self.gain = gain
+            told = "at 97.5 %" if chosen is not None else "no difference at 97.5 %, pinned kept"
+            measured = (f"rebinding ran {gain:.2f}x the env steps/s of pinned whole chunks (97.5 % bounds "
+                        f"{low:.2f}-{high:.2f}x; {told}) over {len(ratios)} pairs of {self.window():.1f} s windows "
+                        f"(rebind {rebind:.0f} vs pinned {pinned:.0f} steps/s)")
+        else:
+            measured = "no window completed steps in both modes: pinned kept"
+        return f"{NAMES[self.mode]} ({self.reason}): {measured}; {dist_text}" + (
+            f"; {self._multi_threaded_text()}" if multi else "")
 
     def _shifted(self, now: float) -> str:
         if now - self.decided_at >= self.recheck_s:
             return f"re-check after {self.recheck_s:.0f} s"
+        if len(self.realized) == self.realized.maxlen and math.isfinite(self.other_rate) \
+                and statistics.median(self.realized) < self.other_rate * (1 - self.drop):
+            return (f"{NAMES[self.mode]} delivered {statistics.median(self.realized):.0f} env steps/s, below the "
+                    f"{self.other_rate:.0f} of {NAMES[PINNED if self.mode == REBIND else REBIND]} in the last trial")
         current = self.distribution()
         if current is None:
             return ""
@@ -177,10 +272,12 @@ class SteppingChoice:
         return ""
 
     def metrics(self) -> dict[str, float]:
-        out = {"sim/core_rebinding": float(self.mode == REBIND), "sim/stepping_trial": float(bool(self.trial)),
+        out = {"sim/core_rebinding": float(self.mode == REBIND), "sim/stepping_trial": float(self.trial),
                "sim/stepping_decisions": float(self.decisions)}
         if not math.isnan(self.gain):
             out["sim/rebinding_gain"] = self.gain
+        if self.realized:
+            out["sim/stepping_rate"] = self.realized[-1]
         if (dist := self.distribution()) is not None:
             out["sim/step_latency_p50_ms"] = dist[0] * 1e3
             out["sim/step_latency_p90_ms"] = dist[0] * dist[1] * 1e3

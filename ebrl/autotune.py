@@ -197,11 +197,8 @@ def measure(cfg: Any, accelerator: Any = None) -> Decision:
     device standing in for the GPU, training's too (tests run the whole measurement on the CPU with it)."""
     import torch
 
-    from ebrl import devices, threads
-    from ebrl.algos.ppo import make_adam
+    from ebrl import devices
     from ebrl.envs import EnvSpec, describe
-    from ebrl.policies import make_policy
-    from ebrl.policies.graphs import Actor
 
     if accelerator is None:
         if not torch.cuda.is_available():
@@ -212,26 +209,46 @@ def measure(cfg: Any, accelerator: Any = None) -> Decision:
         gpu = train_device = torch.device(accelerator)
         bf16 = True
     train_on_gpu = train_device.type == gpu.type
-
-    def synced(device: Any):
-        return (lambda: torch.cuda.synchronize(device)) if device.type == "cuda" else (lambda: None)
     info = describe(EnvSpec.from_config(cfg.env))
-    policy_cfg = dataclasses.replace(cfg.policy, checkpoint="")
     torch.manual_seed(0)
-    cands = candidates(cfg, True, bf16, train_on_gpu)
-    batches = gen_batches(cfg)
-    gen_s: dict[Candidate, float] = {}
+    gen_s = _time_generation(cfg, info, candidates(cfg, True, bf16, train_on_gpu), gpu)
+    train_s: dict[str, float] = {}
+    if train_on_gpu:
+        train_s = _time_training(cfg, info, sorted({c.dtype for c in gen_s}) or ["float32"], train_device)
+        gen_s = {c: v for c, v in gen_s.items() if c.dtype in train_s}  # a precision training cannot run in
+    if not gen_s:
+        return static(cfg, "no candidate ran on this GPU")
+    return decide(cfg, gen_s, train_s, train_on_gpu)
+
+
+def _synced(device: Any):
+    """A function that waits for ``device``'s queued work (nothing to wait for on the CPU)."""
+    import torch
+
+    return (lambda: torch.cuda.synchronize(device)) if device.type == "cuda" else (lambda: None)
+
+
+def _time_generation(cfg: Any, info: Any, cands: list[Candidate], gpu: Any) -> dict[Candidate, float]:
+    """Seconds per decision of each candidate's chunk forward, averaged over the run's batch sizes; a
+    candidate that cannot run (out of memory, a failed capture) is left out."""
+    import torch
+
+    from ebrl import devices, threads
+    from ebrl.policies import make_policy
+    from ebrl.policies.graphs import Actor
+
+    batches, gen_s = gen_batches(cfg), {}
+    policy_cfg = dataclasses.replace(cfg.policy, checkpoint="")
     for device in sorted({c.device for c in cands}, reverse=True):  # the GPU's first: the CPU's can give up early
         where = gpu if device == "cuda" else torch.device("cpu")
         model = make_policy(policy_cfg, info.layout, info.action_dim).to(where).eval()
-        sync = synced(where)
         if device == "cpu":
             threads.set_threads(cfg.gen.threads)
         for c in (c for c in cands if c.device == device):
             actor, stage = Actor(model, c.compile, c.dtype), devices.Staging(where)
             give_up = 20 * max(batches) * min(gen_s.values()) if gen_s else float("inf")
             try:
-                per = [_timed(lambda: actor(stage(obs)), GEN_SECONDS, sync, give_up) / len(obs)
+                per = [_timed(lambda: actor(stage(obs)), GEN_SECONDS, _synced(where), give_up) / len(obs)
                        for obs in (_observations(info.layout, b) for b in batches)]
             except RuntimeError as exc:  # e.g. out of memory at the largest batch: not a candidate here
                 log.warning("auto: %s could not run (%s)", c, str(exc).splitlines()[0])
@@ -239,33 +256,40 @@ def measure(cfg: Any, accelerator: Any = None) -> Decision:
             if c.compile == "cudagraphs" and not actor.graphed:
                 continue  # the capture failed (Actor logged it): it ran eagerly, which is the other candidate
             gen_s[c] = sum(per) / len(per)
-        del model
-    train_s: dict[str, float] = {}
-    if train_on_gpu:
-        dtypes = sorted({c.dtype for c in gen_s}) or ["float32"]
-        model = make_policy(policy_cfg, info.layout, info.action_dim).to(train_device)
-        optimizer = make_adam(model.parameters(), 1e-6)
-        mb = max(1, cfg.train.batch_size // max(1, cfg.algo.minibatches))
-        obs = torch.as_tensor(_observations(info.layout, mb), dtype=torch.float32, device=train_device)
-        actions, _, _, latents = (torch.as_tensor(a, device=train_device) for a in model.act(obs))
+    return gen_s
 
-        def step() -> None:
-            logp, entropy, value = model.evaluate(obs, actions, latents)
-            loss = -logp.float().mean() - entropy.float().mean() + value.float().pow(2).mean()
-            optimizer.zero_grad()
-            loss.backward()
-            optimizer.step()
 
-        for dtype in dtypes:  # each decision takes part in algo.epochs gradient steps of a minibatch
-            try:
-                with devices.autocast(train_device, dtype):
-                    train_s[dtype] = _timed(step, TRAIN_SECONDS, synced(train_device)) * cfg.algo.epochs / mb
-            except RuntimeError as exc:  # e.g. out of memory: training cannot run so; neither can its generation
-                log.warning("auto: training in %s could not run (%s)", dtype, str(exc).splitlines()[0])
-                gen_s = {c: v for c, v in gen_s.items() if c.dtype != dtype}
-    if not gen_s:
-        return static(cfg, "no candidate ran on this GPU")
-    return decide(cfg, gen_s, train_s, train_on_gpu)
+def _time_training(cfg: Any, info: Any, dtypes: list[str], device: Any) -> dict[str, float]:
+    """Seconds per decision of training in each precision of ``dtypes``: a gradient step of a minibatch
+    (``train.batch_size / algo.minibatches``) times ``algo.epochs``, per decision; a precision that cannot
+    run (out of memory) is left out."""
+    import torch
+
+    from ebrl import devices
+    from ebrl.algos.ppo import make_adam
+    from ebrl.policies import make_policy
+
+    model = make_policy(dataclasses.replace(cfg.policy, checkpoint=""), info.layout, info.action_dim).to(device)
+    optimizer = make_adam(model.parameters(), 1e-6)
+    mb = max(1, cfg.train.batch_size // max(1, cfg.algo.minibatches))
+    obs = torch.as_tensor(_observations(info.layout, mb), dtype=torch.float32, device=device)
+    actions, _, _, latents = (torch.as_tensor(a, device=device) for a in model.act(obs))
+
+    def step() -> None:
+        logp, entropy, value = model.evaluate(obs, actions, latents)
+        loss = -logp.float().mean() - entropy.float().mean() + value.float().pow(2).mean()
+        optimizer.zero_grad()
+        loss.backward()
+        optimizer.step()
+
+    out = {}
+    for dtype in dtypes:
+        try:
+            with devices.autocast(device, dtype):
+                out[dtype] = _timed(step, TRAIN_SECONDS, _synced(device)) * cfg.algo.epochs / mb
+        except RuntimeError as exc:  # e.g. out of memory: training cannot run so; neither can its generation
+            log.warning("auto: training in %s could not run (%s)", dtype, str(exc).splitlines()[0])
+    return out
 
 
 # --- the launcher's side ---

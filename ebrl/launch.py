@@ -1,4 +1,5 @@
-"""``ebrl up``: validate the config, spawn every service as its own process, supervise, report, shut down.
+"""``ebrl up``: from the prepared run (``ebrl.prepare``: config, preflight, "auto", allocation, run directory),
+spawn every service as its own process, supervise, report, shut down.
 
 The launcher is a bus peer like the services: it listens on ``bus.listen``
 (services and scripts connect there), watches liveliness tokens to know who is
@@ -23,17 +24,16 @@ from __future__ import annotations
 import asyncio
 import json
 import logging
-import os
 import signal
 import sys
 import time
 from pathlib import Path
 from typing import Callable
 
-from ebrl import autotune, config as config_mod, devices, meta, procenv, stall, tracking
+from ebrl import config as config_mod, prepare, procenv, stall
 from ebrl.bus import Bus, BusOptions, auth, keys
 from ebrl.bus.endpoints import config_file_listen, listen_endpoint
-from ebrl.hosts import PRIMARY_LOST_S, HostPlan, Membership, enabled_roles, plan as plan_host
+from ebrl.hosts import PRIMARY_LOST_S, HostPlan, Membership, enabled_roles
 from ebrl.messages import Event, GpuShare, StatsReport, Stop
 from ebrl.weights import known_version
 from ebrl.runview import Console, RunView, write_report, write_summary
@@ -46,17 +46,6 @@ log = logging.getLogger("ebrl.launch")
 EVERY_HOST = "all"  # the instance chunk of the run-wide stop: ctl/<run>/launcher/all/stop
 PRIMARY_ENDED = "the primary host ended the run"
 OPTIONAL_ROLES = ("log", "eval")  # services no other one needs: a death that restarts do not mend never ends the run
-
-
-def make_run_dir(cfg: config_mod.Config) -> Path:
-    stamp = time.strftime("%Y%m%d-%H%M%S")
-    run_dir = Path(cfg.run.output_dir) / f"{cfg.run.name}-{stamp}"
-    suffix = 1
-    while run_dir.exists():
-        run_dir = Path(cfg.run.output_dir) / f"{cfg.run.name}-{stamp}-{suffix}"
-        suffix += 1
-    (run_dir / "logs").mkdir(parents=True)
-    return run_dir
 
 
 def service_argv(config_path: Path, endpoint: str) -> Argv:
@@ -369,137 +358,18 @@ class Launcher:
         self.link.event("host", what)
 
 
-def preflight(cfg: config_mod.Config, roles: tuple[str, ...] = ("gen", "train"), multi: bool = False) -> str | None:
-    """What would make the run fail at start, found before any process starts (None: nothing); ``roles``: the
-    services this host runs; ``multi``: one host of several."""
-    from ebrl.envs import EnvError, EnvSpec, preflight as env_preflight
-
-    try:
-        listen = config_file_listen(cfg.bus.config_file) or list(cfg.bus.listen)
-    except Exception as exc:  # zenoh.ZError: the file does not parse
-        return f"bus.config_file = {cfg.bus.config_file!r}: {exc}"
-    refused = auth.check_endpoints(listen + list(cfg.bus.connect), cfg.bus.insecure, "bus")
-    if refused:
-        return refused
-    if cfg.bus.insecure and auth.insecure_endpoints(listen + list(cfg.bus.connect)):
-        print(f"ebrl: warning: bus.insecure = true: {', '.join(auth.insecure_endpoints(listen + list(cfg.bus.connect)))} "
-              "carry the run's data unencrypted beyond this host", file=sys.stderr)
-    if multi and cfg.bus.auth and not cfg.bus.secret_file:
-        return ("a run over several hosts needs one secret on every host: create it with `ebrl secret PATH`, copy it "
-                "to each host (mode 0600) and set bus.secret_file = PATH (or bus.auth = false on a trusted network)")
-    if cfg.policy.checkpoint and not os.path.isfile(cfg.policy.checkpoint):
-        return f"policy.checkpoint = {cfg.policy.checkpoint!r}: no such file"
-    device_error = devices.preflight(cfg, roles)  # e.g. train.device = "cuda" on a machine without one
-    if device_error:
-        return device_error
-    if "log" in roles and (wandb_error := tracking.wandb_problem(cfg.log)):  # not installed, not logged in
-        return wandb_error
-    try:
-        env_preflight(EnvSpec.from_config(cfg.env))  # e.g. ManiSkill without a GPU; picks the GL backend for cameras
-    except EnvError as exc:
-        return str(exc)
-    if "sim" in roles:
-        return too_many_processes(cfg, len(os.sched_getaffinity(0)))
-    return None
-
-
-PROCESSES_PER_CORE = 8  # env worker processes per core beyond which a run is refused (ManiSkill on CPU PhysX)
-
-
-def too_many_processes(cfg: config_mod.Config, cores: int) -> str | None:
-    """ManiSkill configs are sized for GPU PhysX (hundreds of envs, one process per group); where CPU PhysX runs
-    them instead (``sim_backend = "auto"`` without CUDA torch), each env would be a process of its own."""
-    if cfg.env.backend != "maniskill" or config_mod.vectorized(cfg) or cfg.num_envs <= PROCESSES_PER_CORE * cores:
-        return None
-    return (f"sim.envs_per_group = {cfg.sim.envs_per_group}: {cfg.num_envs} ManiSkill envs on CPU PhysX "
-            f"(env.kwargs.sim_backend = {cfg.env.kwargs.get('sim_backend', 'physx_cpu')!r}: no GPU PhysX here) would "
-            f"start {cfg.num_envs} worker processes on {cores} cores; lower sim.envs_per_group (e.g. --set "
-            f"sim.envs_per_group={max(1, PROCESSES_PER_CORE * cores // max(1, cfg.sim.groups))}), or run where "
-            "torch sees a CUDA GPU")
-
-
 def up(config_path: str, overrides: list[str], viz: str | None = None, resume: str | None = None,
        only: str | None = None, host: str | None = None, instance: int | None = None) -> int:
-    """``ebrl up``: exit 2 on a config error (nothing started), else the run's exit code.
-    ``viz`` (``--viz``) sets ``viz.rerun``; ``resume`` (``--resume RUN_DIR``) continues that run;
-    ``only``/``instance`` or ``host`` start this host's part of a run over several hosts."""
-    if viz is not None:
-        overrides = [*overrides, f'viz.rerun="{viz}"']
+    """``ebrl up``: exit 2 where the run cannot start (a config error, a failed preflight: nothing started),
+    else the run's exit code. The options are :func:`ebrl.prepare.prepare`'s."""
     try:
-        cfg = config_mod.load(config_path, overrides)
-        cfg, plan = plan_host(cfg, only=only, host=host, instance=instance)
-    except config_mod.ConfigError as exc:
-        print(f"ebrl: config error: {exc}", file=sys.stderr)
-        return 2
-    problem = preflight(cfg, tuple(plan.roles), plan.multi)
-    if problem:
-        print(f"ebrl: {problem}", file=sys.stderr)
-        return 2
-    earlier = meta.read(resume).get("auto", {}).get("settings") if resume else None  # a resumed run keeps its own
-    cfg, decision = autotune.settle(cfg, tuple(plan.roles), plan.multi, earlier)  # policy.dtype, gen.compile, ...
-    if decision is not None and decision.line:
-        print(decision.line, flush=True)
-    gpu_env: dict[str, dict[str, str]] = {}
-    mps = None  # an MPS control daemon this run started, quit when it ends
-    if "alloc" in plan.roles:  # profile (or reuse a profile) and start every service inside Algorithm 1's plan
-        from ebrl.alloc.algorithm import InfeasibleError
-        from ebrl.alloc.runtime import initial_config
-        from ebrl.resources.pool import ResourceError
-
-        try:
-            mps = start_mps(cfg)
-            cfg, gpu_env, line = initial_config(cfg, local_sim="sim" in plan.roles)
-        except (InfeasibleError, ResourceError) as exc:
-            print(f"ebrl: allocator: {exc}", file=sys.stderr)
-            if mps is not None:
-                mps.quit()
-            return 2
-        print(line, flush=True)
-    if resume is not None:
-        from ebrl.algos import checkpoint
-
-        run_dir = Path(resume)
-        found = checkpoint.latest(run_dir)
-        if found is None:
-            print(f"ebrl: --resume {resume}: no checkpoint there ({run_dir / checkpoint.DIRNAME}/latest)",
-                  file=sys.stderr)
-            return 2
-        print(f"resuming {run_dir} from {found.name}", flush=True)
-    else:
-        run_dir = make_run_dir(cfg)
-    secret = auth.secret_path(cfg.bus, run_dir)
-    try:
-        if secret:
-            auth.ensure(secret)  # before the first line: a script that read RUN_DIR from it finds the secret
-    except (OSError, auth.AuthError) as exc:
+        run = prepare.prepare(config_path, overrides, viz=viz, resume=resume, only=only, host=host,
+                              instance=instance)
+    except prepare.NotStarted as exc:
         print(f"ebrl: {exc}", file=sys.stderr)
         return 2
-    (run_dir / "config.toml").write_text(config_mod.dump_toml(cfg))
-    # a resumed run's env steps go on from where its tracking stopped
-    extra = {"env_steps_before": tracking.steps_so_far(run_dir)} if resume else {}
-    meta.write(cfg, run_dir, extra={**extra, "auto": decision.to_dict()} if decision is not None else extra or None)
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
     try:
-        notes = [("auto", decision.line)] if decision is not None and decision.line else []
-        return asyncio.run(Launcher(cfg, run_dir, plan=plan, gpu_env=gpu_env, notes=notes).main())
+        return asyncio.run(Launcher(run.cfg, run.run_dir, plan=run.plan, gpu_env=run.gpu_env, notes=run.notes).main())
     finally:
-        if mps is not None:  # after every service (an MPS client) has exited
-            print("ebrl: MPS control daemon " + ("quit" if mps.quit() else f"did not quit ({mps.pipe_dir})"),
-                  file=sys.stderr)
-
-
-def start_mps(cfg: config_mod.Config):
-    """With ``alloc.gpu_pool = "mps"`` on a host with a GPU and no reachable MPS control daemon: start one for
-    this run (``ebrl.resources.mps``); None otherwise."""
-    if cfg.alloc.gpu_pool != "mps":
-        return None
-    from ebrl.resources.mps import MpsDaemon
-    from ebrl.resources.nvml import load_nvml
-    from ebrl.resources.pool import discover_gpus
-
-    if not discover_gpus(load_nvml(), None):
-        return None  # no GPU: the pool partitions cores only
-    daemon = MpsDaemon.ensure(log_dir=Path(cfg.run.output_dir).resolve() / "mps-log")
-    if daemon is not None:
-        print(f"ebrl: started an MPS control daemon for this run ({daemon.pipe_dir})", flush=True)
-    return daemon
+        run.close()

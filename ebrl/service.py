@@ -33,7 +33,7 @@ import psutil
 from ebrl import config as config_mod, devices, threads
 from ebrl.bus import Bus, BusOptions, auth, keys
 from ebrl.messages import Affinity, Event, Quota, SpanBatch, StatsReport, Stop, encode_message
-from ebrl.recorder import SPAN_BATCH_MAX, Recorder
+from ebrl.meter import SPAN_BATCH_MAX, Meter
 
 STOP_GRACE_S = 5.0
 EXIT_GRACE_S = 3.0  # after a service stopped, its process exits within this (service_main)
@@ -61,7 +61,7 @@ class Service:
         self.stopping: asyncio.Event = None  # type: ignore[assignment]
         self.stop_reason = ""
         service, factor, after_s = config_mod.parse_slowdown(cfg.run.slowdown) if cfg.run.slowdown else ("", 1, 0)
-        self.recorder = Recorder(
+        self.meter = Meter(
             spans=cfg.viz.spans, slowdown=(factor, after_s) if service == self.role and factor > 1 else None,
             on_slowdown=lambda f: self.event("slowdown", f"{self.role}/{self.instance}: injected slowdown x{f:g} "
                                                          "from now on"),
@@ -70,7 +70,7 @@ class Service:
         self._proc = psutil.Process()
         self.device: Any = None  # the torch device of gen and train (``use_device``)
         self.memory_cap: float | None = None  # the fraction of the GPU's memory this process may allocate
-        self.started_at = self.recorder.started_at
+        self.started_at = self.meter.started_at
         self._loop_lag = 0.0  # seconds: the event loop's longest lateness since the last stats report
 
     # --- to override ---------------------------------------------------------------
@@ -114,11 +114,11 @@ class Service:
         self.log.info("%s/%d on %s", self.role, self.instance, where)
         self.event("device", f"{self.role}/{self.instance} on {where}")
 
-    # --- telemetry (ebrl.recorder.Telemetry): for the service and the library code it drives -----
+    # --- telemetry (ebrl.meter.Telemetry): for the service and the library code it drives -----
 
     def count(self, name: str, n: float = 1) -> None:
         """Add ``n`` to counter ``name`` (thread-safe); reported as total and per-second rate."""
-        self.recorder.count(name, n)
+        self.meter.count(name, n)
 
     @contextlib.contextmanager
     def span(self, label: str, lane: str | None = None) -> Iterator[None]:
@@ -130,12 +130,12 @@ class Service:
             self.publish_span(lane or self.role, label, start, time.time())
 
     def publish_span(self, lane: str, label: str, start: float, end: float, busy: bool = True) -> None:
-        """Record a span for the next batch (see :meth:`Recorder.publish_span`)."""
-        self.recorder.publish_span(lane, label, start, end, busy)
+        """Record a span for the next batch (see :meth:`Meter.publish_span`)."""
+        self.meter.publish_span(lane, label, start, end, busy)
 
     def flush_spans(self) -> None:
         """Publish the spans recorded since the last flush, one ``SpanBatch`` per lane (any thread)."""
-        for lane, rows in self.recorder.take_spans().items():
+        for lane, rows in self.meter.take_spans().items():
             for at in range(0, len(rows), SPAN_BATCH_MAX):  # other threads may have added past the bound
                 starts, ends, labels = zip(*rows[at:at + SPAN_BATCH_MAX])
                 self.bus.put_nowait(keys.spans(self.run_name, lane), SpanBatch(
@@ -205,7 +205,7 @@ class Service:
             self.flush_spans()
 
     async def _stats_loop(self) -> None:
-        self.recorder.start_interval()
+        self.meter.start_interval()
         self._proc.cpu_percent()
         while True:
             await asyncio.sleep(self.cfg.run.stats_interval)
@@ -228,7 +228,7 @@ class Service:
         await self.bus.put(keys.stats(self.run_name, self.role, self.instance), report)
 
     def _report(self) -> StatsReport:
-        metrics = self.recorder.metrics()
+        metrics = self.meter.metrics()
         metrics["bus/malformed"] = float(sum(self.bus.malformed.values()))
         metrics["bus/oversized"] = float(sum(self.bus.oversized.values()))
         metrics["bus/sender_dropped"] = float(self.bus.sender_dropped)

@@ -5,14 +5,13 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
-import subprocess
 import time
 from pathlib import Path
 
 from ebrl.bus import Bus, BusOptions, MemoryBus, MemoryNetwork
-from ebrl.testing import Run, StatsWatcher, free_port, up_command, up_sets
+from ebrl.testing import Run, StatsWatcher, free_port
 
-__all__ = ["BUS_KINDS", "ROOT", "Run", "StatsWatcher", "bus_pair", "ebrl_up", "free_port", "loopback_bus",
+__all__ = ["BUS_KINDS", "ROOT", "Run", "StatsWatcher", "bus_pair", "free_port", "loopback_bus",
            "run_collecting_stats", "until", "up"]
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -76,15 +75,6 @@ async def until(predicate, timeout: float = 10.0, what: str = "condition") -> No
 def up(out_dir, config: str, *overrides: str, name: str, args=(), port: int | None = None) -> Run:
     """A real `ebrl up` of ``config`` (relative to the repository) as run ``name``, writing into ``out_dir``."""
     return Run(ROOT / config, *overrides, name=name, out_dir=out_dir, args=args, port=port, cwd=ROOT)
-
-
-def ebrl_up(out_dir, config: str, *overrides: str, port: int | None = None):
-    """Start a real `ebrl up` on a free loopback port for a test that drives the process itself; return
-    (Popen with text stdout, port). Prefer :func:`up` (an ebrl.testing.Run)."""
-    port = port or free_port()
-    cmd = up_command(ROOT / config, up_sets(out_dir, port, overrides=overrides))
-    proc = subprocess.Popen(cmd, cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
-    return proc, port
 
 
 def run_collecting_stats(out_dir, config: str, *overrides: str, run: str, timeout: float = 300):

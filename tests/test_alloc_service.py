@@ -108,7 +108,8 @@ LAUNCH_WITH_GPU_SHARES = """
 import asyncio, logging, sys
 from ebrl import config
 from ebrl.bus import auth
-from ebrl.launch import Launcher, make_run_dir
+from ebrl.launch import Launcher
+from ebrl.prepare import make_run_dir
 cfg = config.load(sys.argv[1], sys.argv[2:])
 run_dir = make_run_dir(cfg)
 if auth.secret_path(cfg.bus, run_dir):  # as `ebrl up` does before anything starts (bus.auth, the default)

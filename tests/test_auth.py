@@ -88,7 +88,7 @@ def test_ebrl_up_refuses_a_plain_listen_endpoint_on_every_interface(tmp_path):
 
 
 def test_a_run_over_several_hosts_needs_a_shared_secret():
-    from ebrl.launch import preflight
+    from ebrl.prepare import preflight
 
     cfg = config.load(ROOT / "configs/quickstart.toml", ["bus.auth=true"])
     assert "ebrl secret PATH" in preflight(cfg, ("sim",), multi=True)

@@ -85,8 +85,8 @@ def test_sim_gen_and_train_learn_together_in_one_process(tmp_path):
     assert {s.group for s in segments} == {0, 1} and {s.env_id for s in segments} == {0, 1, 2, 3}
     assert max(int(s.versions.max()) for s in segments) >= 1  # segments acted by weights trained here
     assert all(int(s.versions.max()) <= train.learner.version for s in segments)
-    assert train.recorder.total("train/segments_received") >= 8
-    assert sim.recorder.total("sim/segments") >= len(segments) > 0
+    assert train.meter.total("train/segments_received") >= 8
+    assert sim.meter.total("sim/segments") >= len(segments) > 0
     assert sum(sim.bus.malformed.values()) == sum(train.bus.malformed.values()) == 0
     assert (tmp_path / "policy.safetensors").is_file()  # the trained policy, saved at the stop
 

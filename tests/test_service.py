@@ -43,8 +43,8 @@ def test_lifecycle_stats_spans_control_and_stop():
         cores = sorted(os.sched_getaffinity(0))
         for version in (1, 1, 0):  # a repeated or older version is ignored
             await bus.put(keys.ctl("svc", "ticker", 0, "affinity"), Affinity(version=version, cores=cores[:1]))
-        await until(lambda: service.recorder.total("ctl/affinity_ignored") == 2, WAIT_S, "control messages")
-        assert service.recorder.total("ctl/affinity_applied") == 1
+        await until(lambda: service.meter.total("ctl/affinity_ignored") == 2, WAIT_S, "control messages")
+        assert service.meter.total("ctl/affinity_applied") == 1
         replies = await bus.get(keys.ctl("svc", "ticker", 0, "status"), timeout=WAIT_S)
         status = decode_message(StatsReport, replies[0][1])
         assert status.metrics["ticker/ticks"] > 0 and status.metrics["ctl/affinity_applied"] == 1

@@ -284,7 +284,7 @@ def test_sim_gen_and_train_learn_with_vectorized_groups(tmp_path):
     assert isinstance(sim.fleet, VectorFleet) and len(sim.fleet.vectors) == 2
     assert {s.env_id for s in seen["segments"]} == {0, 1, 2, 3} and train.learner.version >= 3
     assert max(int(s.versions.max()) for s in seen["segments"]) >= 1
-    assert sim.recorder.total("sim/env_steps") > 0 and sim.recorder.total("sim/episodes") > 0
+    assert sim.meter.total("sim/env_steps") > 0 and sim.meter.total("sim/episodes") > 0
 
 
 def test_the_maniskill_ppo_peer_runs_partial_resets_and_stops_at_the_target_success(tmp_path, monkeypatch):
@@ -356,7 +356,7 @@ def test_a_real_pickcube_batch_steps_on_gpu_physx_with_partial_resets():
 
 
 def test_a_gpu_sized_maniskill_config_on_cpu_physx_is_refused_before_anything_starts(monkeypatch):
-    from ebrl.launch import too_many_processes
+    from ebrl.prepare import too_many_processes
 
     monkeypatch.setattr(devices, "cuda_available", lambda: False)  # "auto" falls back to CPU PhysX
     cfg = config.load(str(ROOT / "configs" / "maniskill.toml"))

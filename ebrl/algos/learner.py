@@ -36,7 +36,7 @@ from ebrl.envs.guard import decision_bound
 from ebrl.messages import TrajectorySegment
 from ebrl.policies import load_arrays, make_policy, save_checkpoint, state_arrays
 from ebrl.policies.checkpoint import portable_metadata, remove_stale_temporaries
-from ebrl.recorder import Telemetry
+from ebrl.meter import Telemetry
 
 log = logging.getLogger(__name__)
 

@@ -197,12 +197,12 @@ class DataParallel:
         """Leave the process group. DDP's reducer (and its logger) are let go first, while the group is still
         registered: a process group whose last holder is the reducer is destroyed inside the reducer's
         deallocation, which holds the GIL while it joins gloo's worker threads, and a worker thread that is
-        freeing a finished work may need the GIL for it (a deadlock when the rank's objects go, seen in about
-        one run in three of the DDP test). Destroyed from the registry, the group is freed without the GIL.
+        freeing a finished work may need the GIL for it (a deadlock when the rank's objects go). Destroyed from
+        the registry, the group is freed without the GIL.
 
         The ranks first meet at a barrier: a rank that destroyed its group while another still finished the last
         collective (FSDP's gathers for weights and checkpoints) aborted that one in gloo ("terminate called
-        without an active exception", SIGABRT; 3 FSDP test runs in 14 without it, none in 24 with it). A dead
+        without an active exception", SIGABRT). A dead
         peer fails the barrier (or it times out after ``CLOSE_BARRIER_S``); the group goes anyway."""
         if isinstance(self.net, nn.parallel.DistributedDataParallel):
             for attr in ("logger", "reducer"):

@@ -245,20 +245,20 @@ class PPO:
         interpolate = decoupled and getattr(cfg, "prox_logp", "recompute") == "interpolate"
         cap = getattr(cfg, "behave_weight_cap", math.inf)
         means: dict[str, list[torch.Tensor]] = {}  # per-step values on the device, averaged and read at the end
+        prox = alpha = None
         if interpolate:
             lag = torch.as_tensor((version if version is not None else batch.versions.max()) - batch.versions,
                                   dtype=torch.float32, device=device).clamp(min=0)
-            alpha = lag / (lag + 1)  # log pi_prox and the weights: per minibatch step, below
+            alpha = lag / (lag + 1)  # log pi_prox and the weights: per minibatch step (_step)
         elif decoupled:
             with torch.no_grad():
                 prox = self.net("evaluate", batch.obs, batch.actions, batch.latents)[0]  # log pi_prox, once per update
             self._behaviour_stats(means, prox - batch.logprobs, cap)
         else:
             prox = batch.logprobs  # pi_prox = pi_behave: weight 1, plain PPO
-        if not interpolate:
+        if prox is not None:
             means["behave_weight_mean"] = [(prox - batch.logprobs).exp().clamp(max=cap).mean()]
         taken = torch.zeros(len(STEP_STATS) + 1, dtype=torch.float64, device=device)  # sums of STEP_STATS, steps
-        on_device = skips_on_device(self.optimizer)
         keep = torch.ones(n, dtype=torch.bool)  # decisions still in the batch (a bad step drops its data)
         skipped = dropped = 0
         for _ in range(cfg.epochs):
@@ -270,55 +270,63 @@ class PPO:
             moved = (moved.pin_memory() if device.type == "cuda" else moved).to(device, non_blocking=True)
             steps: list[tuple[torch.Tensor, torch.Tensor, torch.Tensor]] = []  # (indices, step fine, own fine)
             for idx, on, step_scale in zip(parts, torch.split(moved, [len(i) for i in parts]), scales):
-                newlogprob, entropy, newvalue = self.net("evaluate", batch.obs[on], batch.actions[on],
-                                                         batch.latents[on])
-                behave = batch.logprobs[on]
-                if interpolate:
-                    prox_mb = behave + alpha[on] * (newlogprob.detach() - behave)
-                    self._behaviour_stats(means, prox_mb - behave, cap)
-                else:
-                    prox_mb = prox[on]
-                adv = batch.advantages[on]
-                if batch.normalize_advantages and len(idx) > 1:
-                    adv = (adv - adv.mean()) / (adv.std() + 1e-8)
-                pg_loss, weight_mb, ratio = policy_loss(newlogprob, prox_mb, behave, adv, cfg.clip, cap)
-                logratio = newlogprob - prox_mb
-                if interpolate:
-                    means.setdefault("behave_weight_mean", []).append(weight_mb.mean())
-                if batch.returns is None:
-                    v_loss = torch.zeros((), device=device)
-                else:
-                    v_loss = 0.5 * ((newvalue - batch.returns[on]) ** 2).mean()
-                ent = entropy.mean()
-                loss = step_scale * (pg_loss - cfg.ent_coef * ent + cfg.vf_coef * v_loss)
-                self.optimizer.zero_grad()
-                loss.backward()
-                norm = nn.utils.clip_grad_norm_(self.model.parameters(), cfg.max_grad_norm)
-                norm = norm.full_tensor() if hasattr(norm, "full_tensor") else norm  # sharded (fsdp): a DTensor
-                fine = torch.isfinite(loss) & torch.isfinite(norm)
-                own = torch.isfinite(newlogprob) & torch.isfinite(newvalue) & torch.isfinite(ratio * adv)
-                if batch.returns is not None:
-                    own &= torch.isfinite((newvalue - batch.returns[on]) ** 2)
-                if on_device:
-                    self.optimizer.found_inf = (~fine).float()  # fused Adam: a bad step leaves weights and state
-                    try:
-                        self.optimizer.step()
-                    finally:
-                        del self.optimizer.found_inf
-                elif bool(fine):
-                    self.optimizer.step()
-                steps.append((idx, fine, own.detach()))
-                with torch.no_grad():
-                    values = torch.stack([t.double() for t in (
-                        pg_loss, v_loss, ent, ((ratio - 1) - logratio).mean(),
-                        ((ratio - 1.0).abs() > cfg.clip).float().mean(), torch.ones((), device=device))])
-                    taken += torch.where(fine, values, 0.0)  # a skipped step's numbers are not averaged
+                fine, own, values = self._step(batch, on, len(idx), step_scale, prox, alpha, cap, means)
+                steps.append((idx, fine, own))
+                taken += torch.where(fine, values, 0.0)  # a skipped step's numbers are not averaged
             for idx, own in self._bad(steps):  # this epoch's verdicts: one read of the device
                 bad = idx[~own] if not bool(own.all()) else idx
                 keep[bad] = False
                 skipped, dropped = skipped + 1, dropped + len(bad)
         return {**self._read(taken, means), **self.batch_stats(batch), "steps_skipped": float(skipped),
                 "decisions_dropped": float(dropped)}
+
+    def _step(self, batch: Batch, on: torch.Tensor, size: int, step_scale: float, prox: torch.Tensor | None,
+              alpha: torch.Tensor | None, cap: float, means: dict[str, list[torch.Tensor]]
+              ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """One gradient step on the decisions ``on`` (indices on the device, ``size`` of them): (step finite,
+        each decision's own terms finite, the step's ``STEP_STATS`` and a 1), all on the device. ``prox``: log
+        pi_prox of the batch; None: interpolated with ``alpha`` from this step's log-probs."""
+        cfg = self.cfg
+        newlogprob, entropy, newvalue = self.net("evaluate", batch.obs[on], batch.actions[on], batch.latents[on])
+        behave = batch.logprobs[on]
+        if prox is None:
+            prox_mb = behave + alpha[on] * (newlogprob.detach() - behave)
+            self._behaviour_stats(means, prox_mb - behave, cap)
+        else:
+            prox_mb = prox[on]
+        adv = batch.advantages[on]
+        if batch.normalize_advantages and size > 1:
+            adv = (adv - adv.mean()) / (adv.std() + 1e-8)
+        pg_loss, weight_mb, ratio = policy_loss(newlogprob, prox_mb, behave, adv, cfg.clip, cap)
+        if prox is None:
+            means.setdefault("behave_weight_mean", []).append(weight_mb.mean())
+        if batch.returns is None:
+            v_loss = torch.zeros((), device=on.device)
+        else:
+            v_loss = 0.5 * ((newvalue - batch.returns[on]) ** 2).mean()
+        ent = entropy.mean()
+        loss = step_scale * (pg_loss - cfg.ent_coef * ent + cfg.vf_coef * v_loss)
+        self.optimizer.zero_grad()
+        loss.backward()
+        norm = nn.utils.clip_grad_norm_(self.model.parameters(), cfg.max_grad_norm)
+        norm = norm.full_tensor() if hasattr(norm, "full_tensor") else norm  # sharded (fsdp): a DTensor
+        fine = torch.isfinite(loss) & torch.isfinite(norm)
+        own = torch.isfinite(newlogprob) & torch.isfinite(newvalue) & torch.isfinite(ratio * adv)
+        if batch.returns is not None:
+            own &= torch.isfinite((newvalue - batch.returns[on]) ** 2)
+        if skips_on_device(self.optimizer):
+            self.optimizer.found_inf = (~fine).float()  # fused Adam: a bad step leaves weights and state
+            try:
+                self.optimizer.step()
+            finally:
+                del self.optimizer.found_inf
+        elif bool(fine):
+            self.optimizer.step()
+        with torch.no_grad():
+            values = torch.stack([t.double() for t in (
+                pg_loss, v_loss, ent, ((ratio - 1) - (newlogprob - prox_mb)).mean(),
+                ((ratio - 1.0).abs() > cfg.clip).float().mean(), torch.ones((), device=on.device))])
+        return fine, own.detach(), values
 
     @staticmethod
     def _bad(steps: list[tuple[torch.Tensor, torch.Tensor, torch.Tensor]]) -> list[tuple[torch.Tensor, torch.Tensor]]:

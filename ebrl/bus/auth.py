@@ -171,8 +171,8 @@ def check_endpoints(endpoints: list[str], insecure: bool, where: str) -> str | N
     if not plain or insecure:
         return None
     return (f"{where}: {', '.join(plain)} would carry the run's data unencrypted beyond this host; use tls/... "
-            "endpoints with certificates in bus.config_file (README: Several hosts), or set bus.insecure = true "
-            "on a network you trust")
+            "endpoints with certificates in bus.config_file (README: \"Scaling out: several hosts, several "
+            "training ranks\"), or set bus.insecure = true on a network you trust")
 
 
 def secret_path(bus, run_dir: str | os.PathLike) -> str:

@@ -24,7 +24,7 @@ import numpy as np
 from ebrl.bus import keys
 from ebrl.envs.worker import WorkerFailed
 from ebrl.messages import ActionChunk, Observation, TrajectorySegment
-from ebrl.recorder import Telemetry
+from ebrl.meter import Telemetry
 from ebrl.sched.fleet import EnvFleet, RolloutStats
 from ebrl.sched.modes import Schedule
 from ebrl.sched.rollout import SegmentBuilder

@@ -75,6 +75,46 @@ def verdict(log_ratios: list[float], min_pairs: int) -> int | None:
     return REBIND if low > 1.0 + WORTH else PINNED if high < 1.0 + WORTH else None
 
 
+class StepWatch:
+    """The recent steps and chunks of a sim service's envs: their latency distribution, the cores an env keeps
+    busy while it steps, a chunk's typical time."""
+
+    def __init__(self):
+        self.latencies: collections.deque[float] = collections.deque(maxlen=4000)
+        self.chunks: collections.deque[float] = collections.deque(maxlen=200)
+        self.env_cores: collections.deque[float] = collections.deque(maxlen=200)  # cores_used per chunk
+
+    def add(self, step_s: Iterable[float], chunk_s: float, cores_used: float) -> None:
+        self.latencies.extend(step_s)
+        self.chunks.append(chunk_s)
+        if math.isfinite(cores_used):
+            self.env_cores.append(cores_used)
+
+    def chunk(self) -> float:
+        """A chunk's median seconds (0 before any was seen)."""
+        return statistics.median(self.chunks) if self.chunks else 0.0
+
+    def distribution(self) -> tuple[float, float] | None:
+        """(median step latency, p90 / median) of the recent steps; None before 500 were seen."""
+        if len(self.latencies) < 500:
+            return None
+        p50, p90 = np.percentile(np.fromiter(self.latencies, float), [50, 90])
+        return float(p50), float(p90 / max(p50, 1e-9))
+
+    def cores_used(self) -> float | None:
+        """Median cores an env keeps busy while it steps, over the recent chunks; None before 20 were seen."""
+        return statistics.median(self.env_cores) if len(self.env_cores) >= 20 else None
+
+    def multi_threaded(self) -> bool:
+        used = self.cores_used()
+        return used is not None and used > MULTI_THREADED
+
+    def multi_threaded_text(self) -> str:
+        used = self.cores_used() or 0.0
+        return (f"each env keeps {used:.1f} cores busy while it steps, and rebinding grants single cores; "
+                f"sim.cores_per_env = {max(2, round(used))} would pin each to that many")
+
+
 class SteppingChoice:
     def __init__(self, now: float, window_s: float = 2.0, settle_s: float = 0.3, shift: float = 0.5,
                  recheck_s: float = 300.0, warmup_s: float = 3.0, check_every_s: float = 1.0,
@@ -93,9 +133,7 @@ class SteppingChoice:
         self.decided_at = -math.inf
         self.gain = float("nan")  # rebinding's steps/s over pinning's in the last trial (geometric mean)
         self.decisions = 0
-        self.latencies: collections.deque[float] = collections.deque(maxlen=4000)
-        self.chunks: collections.deque[float] = collections.deque(maxlen=200)
-        self.env_cores: collections.deque[float] = collections.deque(maxlen=200)  # cores_used per chunk
+        self.steps = StepWatch()
         self.reference: tuple[float, float] | None = None  # (p50, p90/p50) at the last decision
         self.reason = "start-up"
         self.check_every_s, self._checked_at = check_every_s, -math.inf  # how often to look for a shift
@@ -119,10 +157,7 @@ class SteppingChoice:
                 cores_used: float = math.nan) -> None:
         """An env finished its chunk at ``now``: ``steps`` steps, each costing ``step_s`` seconds (CPU), in
         ``chunk_s`` seconds from the chunk's start, keeping ``cores_used`` cores busy while it stepped."""
-        self.latencies.extend(step_s)
-        self.chunks.append(chunk_s)
-        if math.isfinite(cores_used):
-            self.env_cores.append(cores_used)
+        self.steps.add(step_s, chunk_s, cores_used)
         if now >= self.window_start + self.settle():  # the rate: steps after the first counted chunk, over
             if self.window_first is None:            # the time since it (no bias from where a window ends)
                 self.window_first = now
@@ -131,7 +166,7 @@ class SteppingChoice:
 
     def settle(self) -> float:
         """Seconds after a switch before steps count (chunks started in the old mode end): a chunk's p50."""
-        return max(self.settle_s, statistics.median(self.chunks) if self.chunks else 0.0)
+        return max(self.settle_s, self.steps.chunk())
 
     def update_interval(self) -> float:
         """Recent seconds between policy versions (0 before two were seen)."""
@@ -142,28 +177,7 @@ class SteppingChoice:
         """A window holds at least 8 chunks of every env after settling (slow envs: longer windows; with 4, a
         trial on 16 ms steps measured noise) and a policy update's interval (training's share of the cores
         comes and goes with the updates: each window sees a whole cycle of it)."""
-        chunk = statistics.median(self.chunks) if self.chunks else 0.0
-        return max(self.window_s, self.settle() + 8 * chunk, self.settle() + self.update_interval())
-
-    def distribution(self) -> tuple[float, float] | None:
-        """(median step latency, p90 / median) of the recent steps; None before 500 were seen."""
-        if len(self.latencies) < 500:
-            return None
-        p50, p90 = np.percentile(np.fromiter(self.latencies, float), [50, 90])
-        return float(p50), float(p90 / max(p50, 1e-9))
-
-    def cores_used(self) -> float | None:
-        """Median cores an env keeps busy while it steps, over the recent chunks; None before 20 were seen."""
-        return statistics.median(self.env_cores) if len(self.env_cores) >= 20 else None
-
-    def multi_threaded(self) -> bool:
-        used = self.cores_used()
-        return used is not None and used > MULTI_THREADED
-
-    def _multi_threaded_text(self) -> str:
-        used = self.cores_used() or 0.0
-        return (f"each env keeps {used:.1f} cores busy while it steps, and rebinding grants single cores; "
-                f"sim.cores_per_env = {max(2, round(used))} would pin each to that many")
+        return max(self.window_s, self.settle() + 8 * self.steps.chunk(), self.settle() + self.update_interval())
 
     # --- decisions ----------------------------------------------------------------------------------------
 
@@ -172,7 +186,7 @@ class SteppingChoice:
         decided (a new decision, not a trial window), else None. ``self.mode`` is the mode chunks should run
         in now."""
         if not self.trial and self.decisions == 0:  # the first trial: once the run is in its steady state
-            if now >= max(self.steady_at, self.earliest) and not self.multi_threaded():
+            if now >= max(self.steady_at, self.earliest) and not self.steps.multi_threaded():
                 self._start_trial(now, "start-up")
             return self._multi_threaded_check(now)
         if now >= self.window_start + self.window():
@@ -188,18 +202,18 @@ class SteppingChoice:
         self._checked_at = now
         if decided := self._multi_threaded_check(now):
             return decided
-        if not self.multi_threaded() and (why := self._shifted(now)):
+        if not self.steps.multi_threaded() and (why := self._shifted(now)):
             self._start_trial(now, why)
         return None
 
     def _multi_threaded_check(self, now: float) -> str | None:
         """No trial for multi-threaded envs: rebinding is not for them; a rebinding choice becomes pinned."""
-        if not self.multi_threaded():
+        if not self.steps.multi_threaded():
             return None
         if self.mode == REBIND or self.decisions == 0:
             self.trial, self.mode, self.decided_at, self.decisions = False, PINNED, now, self.decisions + 1
             self.window_mode = PINNED
-            return f"pinned: {self._multi_threaded_text()}"
+            return f"pinned: {self.steps.multi_threaded_text()}"
         return None
 
     def _new_window(self, now: float) -> None:
@@ -227,7 +241,7 @@ class SteppingChoice:
         return self._decide(now, chosen, ratios)
 
     def _decide(self, now: float, chosen: int | None, ratios: list[float]) -> str:
-        multi = self.multi_threaded()  # seen during the trial: not for rebinding, whatever it measured
+        multi = self.steps.multi_threaded()  # seen during the trial: not for rebinding, whatever it measured
         self.trial = False
         self.mode = self.window_mode = chosen if chosen is not None and not multi else PINNED
         pinned = statistics.median(p for p, _ in self.pairs) if self.pairs else 0.0
@@ -236,7 +250,7 @@ class SteppingChoice:
         self.realized.clear()
         self.decided_at, self.decisions = now, self.decisions + 1
         self.reference = None  # taken from the next steps
-        dist = self.distribution()
+        dist = self.steps.distribution()
         dist_text = f"step latency p50 {dist[0] * 1e3:.2f} ms, p90/p50 {dist[1]:.2f}" if dist else "few steps seen"
         if ratios:
             gain, low, high = interval(ratios)
@@ -248,7 +262,7 @@ class SteppingChoice:
         else:
             measured = "no window completed steps in both modes: pinned kept"
         return f"{NAMES[self.mode]} ({self.reason}): {measured}; {dist_text}" + (
-            f"; {self._multi_threaded_text()}" if multi else "")
+            f"; {self.steps.multi_threaded_text()}" if multi else "")
 
     def _shifted(self, now: float) -> str:
         if now - self.decided_at >= self.recheck_s:
@@ -257,7 +271,7 @@ class SteppingChoice:
                 and statistics.median(self.realized) < self.other_rate * (1 - self.drop):
             return (f"{NAMES[self.mode]} delivered {statistics.median(self.realized):.0f} env steps/s, below the "
                     f"{self.other_rate:.0f} of {NAMES[PINNED if self.mode == REBIND else REBIND]} in the last trial")
-        current = self.distribution()
+        current = self.steps.distribution()
         if current is None:
             return ""
         if self.reference is None:
@@ -278,7 +292,7 @@ class SteppingChoice:
             out["sim/rebinding_gain"] = self.gain
         if self.realized:
             out["sim/stepping_rate"] = self.realized[-1]
-        if (dist := self.distribution()) is not None:
+        if (dist := self.steps.distribution()) is not None:
             out["sim/step_latency_p50_ms"] = dist[0] * 1e3
             out["sim/step_latency_p90_ms"] = dist[0] * dist[1] * 1e3
         return out

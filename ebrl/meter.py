@@ -1,7 +1,7 @@
 """What a service measures between two stats reports: counters, busy time per lane, timeline spans.
 
 Library code (the group loop, the learner) records through the small :class:`Telemetry`
-protocol, so it never needs a service or a bus; :class:`Recorder` is the implementation
+protocol, so it never needs a service or a bus; :class:`Meter` is the implementation
 every service owns, safe to call from any thread (forward passes and updates run on
 worker threads).
 """
@@ -26,7 +26,7 @@ class Telemetry(Protocol):
     def event(self, kind: str, text: str) -> None: ...
 
 
-class Recorder:
+class Meter:
     """Counters (reported as total and per-second rate), busy seconds per lane and pending spans.
 
     ``spans=False`` keeps only the busy seconds (``viz.spans = false``). ``slowdown = (factor, after_s)``

@@ -1,0 +1,196 @@
+"""Everything ``ebrl up`` does before the first process starts, as one value (:class:`PreparedRun`).
+
+In order: the config and this host's part of the run (``ebrl.hosts``), the preflight (what would make the run
+fail at start: a bus endpoint, a device, a missing policy file, an environment that cannot run here), what
+``"auto"`` becomes on this machine (``ebrl.autotune``), with the allocator an MPS control daemon and the
+initial plan (``ebrl.alloc.runtime``), the run directory (new, or ``--resume``'s), the bus secret, and the
+resolved ``config.toml`` and ``meta.json`` the services and reports read. Anything that stops the run here
+raises :class:`NotStarted` with the line to print: nothing was started (an MPS daemon started for the run is
+quit again). :mod:`ebrl.launch` then only wires the processes, the run's view and the hosts.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+from ebrl import autotune, config as config_mod, devices, meta, tracking
+from ebrl.bus import auth
+from ebrl.bus.endpoints import config_file_listen
+from ebrl.hosts import HostPlan, plan as plan_host
+
+
+class NotStarted(Exception):
+    """The run cannot start; the message is the line to print after ``ebrl: `` (exit code 2)."""
+
+
+@dataclasses.dataclass
+class PreparedRun:
+    """A run ready to start on this host: its resolved config, this host's part, its directory, each stage's
+    CUDA environment (the allocator's GPU shares), start-up events for the run's log, and an MPS control
+    daemon this run started (quit by :meth:`close`)."""
+
+    cfg: config_mod.Config
+    plan: HostPlan
+    run_dir: Path
+    gpu_env: dict[str, dict[str, str]]
+    notes: list[tuple[str, str]]
+    mps: Any = None
+
+    def close(self) -> None:
+        """After every service (an MPS client) has exited: quit the MPS daemon this run started."""
+        if self.mps is not None:
+            print("ebrl: MPS control daemon " + ("quit" if self.mps.quit() else f"did not quit ({self.mps.pipe_dir})"),
+                  file=sys.stderr)
+            self.mps = None
+
+
+def prepare(config_path: str, overrides: list[str], *, viz: str | None = None, resume: str | None = None,
+            only: str | None = None, host: str | None = None, instance: int | None = None) -> PreparedRun:
+    """The steps of the module docstring. ``viz`` (``--viz``) sets ``viz.rerun``; ``resume`` (``--resume
+    RUN_DIR``) continues that run; ``only``/``instance`` or ``host`` start this host's part of a run over
+    several hosts. Prints what the user should see on the way (the "auto" decision, the allocator's plan)."""
+    if viz is not None:
+        overrides = [*overrides, f'viz.rerun="{viz}"']
+    try:
+        cfg = config_mod.load(config_path, overrides)
+        cfg, plan = plan_host(cfg, only=only, host=host, instance=instance)
+    except config_mod.ConfigError as exc:
+        raise NotStarted(f"config error: {exc}") from None
+    if problem := preflight(cfg, tuple(plan.roles), plan.multi):
+        raise NotStarted(problem)
+    earlier = meta.read(resume).get("auto", {}).get("settings") if resume else None  # a resumed run keeps its own
+    cfg, decision = autotune.settle(cfg, tuple(plan.roles), plan.multi, earlier)  # policy.dtype, gen.compile, ...
+    if decision is not None and decision.line:
+        print(decision.line, flush=True)
+    notes = [("auto", decision.line)] if decision is not None and decision.line else []
+    run = PreparedRun(cfg, plan, Path(), {}, notes)
+    try:
+        if "alloc" in plan.roles:  # profile (or reuse a profile) and start every service inside Algorithm 1's plan
+            allocate(run)
+        run.run_dir = run_directory(run.cfg, resume)
+        if secret := auth.secret_path(run.cfg.bus, run.run_dir):
+            try:
+                auth.ensure(secret)  # before the first line: a script that read RUN_DIR from it finds the secret
+            except (OSError, auth.AuthError) as exc:
+                raise NotStarted(str(exc)) from None
+    except NotStarted:
+        run.close()
+        raise
+    (run.run_dir / "config.toml").write_text(config_mod.dump_toml(run.cfg))
+    # a resumed run's env steps go on from where its tracking stopped
+    extra = {"env_steps_before": tracking.steps_so_far(run.run_dir)} if resume else {}
+    meta.write(run.cfg, run.run_dir, extra={**extra, "auto": decision.to_dict()} if decision else extra or None)
+    return run
+
+
+def allocate(run: PreparedRun) -> None:
+    """With ``alloc.gpu_pool = "mps"``, an MPS daemon for the run; the allocator's initial plan written into
+    ``run.cfg``, and each stage's CUDA environment (the plan's line printed)."""
+    from ebrl.alloc.algorithm import InfeasibleError
+    from ebrl.alloc.runtime import initial_config
+    from ebrl.resources.pool import ResourceError
+
+    try:
+        run.mps = start_mps(run.cfg)
+        run.cfg, run.gpu_env, line = initial_config(run.cfg, local_sim="sim" in run.plan.roles)
+    except (InfeasibleError, ResourceError) as exc:
+        raise NotStarted(f"allocator: {exc}") from None
+    print(line, flush=True)
+
+
+def run_directory(cfg: config_mod.Config, resume: str | None) -> Path:
+    """A new run directory, or ``resume``'s when it holds a checkpoint to go on from."""
+    if resume is None:
+        return make_run_dir(cfg)
+    from ebrl.algos import checkpoint
+
+    run_dir = Path(resume)
+    found = checkpoint.latest(run_dir)
+    if found is None:
+        raise NotStarted(f"--resume {resume}: no checkpoint there ({run_dir / checkpoint.DIRNAME}/latest)")
+    print(f"resuming {run_dir} from {found.name}", flush=True)
+    return run_dir
+
+
+def make_run_dir(cfg: config_mod.Config) -> Path:
+    stamp = time.strftime("%Y%m%d-%H%M%S")
+    run_dir = Path(cfg.run.output_dir) / f"{cfg.run.name}-{stamp}"
+    suffix = 1
+    while run_dir.exists():
+        run_dir = Path(cfg.run.output_dir) / f"{cfg.run.name}-{stamp}-{suffix}"
+        suffix += 1
+    (run_dir / "logs").mkdir(parents=True)
+    return run_dir
+
+
+
+
+def preflight(cfg: config_mod.Config, roles: tuple[str, ...] = ("gen", "train"), multi: bool = False) -> str | None:
+    """What would make the run fail at start, found before any process starts (None: nothing); ``roles``: the
+    services this host runs; ``multi``: one host of several."""
+    from ebrl.envs import EnvError, EnvSpec, preflight as env_preflight
+
+    try:
+        listen = config_file_listen(cfg.bus.config_file) or list(cfg.bus.listen)
+    except Exception as exc:  # zenoh.ZError: the file does not parse
+        return f"bus.config_file = {cfg.bus.config_file!r}: {exc}"
+    refused = auth.check_endpoints(listen + list(cfg.bus.connect), cfg.bus.insecure, "bus")
+    if refused:
+        return refused
+    if cfg.bus.insecure and auth.insecure_endpoints(listen + list(cfg.bus.connect)):
+        print(f"ebrl: warning: bus.insecure = true: {', '.join(auth.insecure_endpoints(listen + list(cfg.bus.connect)))} "
+              "carry the run's data unencrypted beyond this host", file=sys.stderr)
+    if multi and cfg.bus.auth and not cfg.bus.secret_file:
+        return ("a run over several hosts needs one secret on every host: create it with `ebrl secret PATH`, copy it "
+                "to each host (mode 0600) and set bus.secret_file = PATH (or bus.auth = false on a trusted network)")
+    if cfg.policy.checkpoint and not os.path.isfile(cfg.policy.checkpoint):
+        return f"policy.checkpoint = {cfg.policy.checkpoint!r}: no such file"
+    device_error = devices.preflight(cfg, roles)  # e.g. train.device = "cuda" on a machine without one
+    if device_error:
+        return device_error
+    if "log" in roles and (wandb_error := tracking.wandb_problem(cfg.log)):  # not installed, not logged in
+        return wandb_error
+    try:
+        env_preflight(EnvSpec.from_config(cfg.env))  # e.g. ManiSkill without a GPU; picks the GL backend for cameras
+    except EnvError as exc:
+        return str(exc)
+    if "sim" in roles:
+        return too_many_processes(cfg, len(os.sched_getaffinity(0)))
+    return None
+
+
+PROCESSES_PER_CORE = 8  # env worker processes per core beyond which a run is refused (ManiSkill on CPU PhysX)
+
+
+def too_many_processes(cfg: config_mod.Config, cores: int) -> str | None:
+    """ManiSkill configs are sized for GPU PhysX (hundreds of envs, one process per group); where CPU PhysX runs
+    them instead (``sim_backend = "auto"`` without CUDA torch), each env would be a process of its own."""
+    if cfg.env.backend != "maniskill" or config_mod.vectorized(cfg) or cfg.num_envs <= PROCESSES_PER_CORE * cores:
+        return None
+    return (f"sim.envs_per_group = {cfg.sim.envs_per_group}: {cfg.num_envs} ManiSkill envs on CPU PhysX "
+            f"(env.kwargs.sim_backend = {cfg.env.kwargs.get('sim_backend', 'physx_cpu')!r}: no GPU PhysX here) would "
+            f"start {cfg.num_envs} worker processes on {cores} cores; lower sim.envs_per_group (e.g. --set "
+            f"sim.envs_per_group={max(1, PROCESSES_PER_CORE * cores // max(1, cfg.sim.groups))}), or run where "
+            "torch sees a CUDA GPU")
+
+
+def start_mps(cfg: config_mod.Config):
+    """With ``alloc.gpu_pool = "mps"`` on a host with a GPU and no reachable MPS control daemon: start one for
+    this run (``ebrl.resources.mps``); None otherwise."""
+    if cfg.alloc.gpu_pool != "mps":
+        return None
+    from ebrl.resources.mps import MpsDaemon
+    from ebrl.resources.nvml import load_nvml
+    from ebrl.resources.pool import discover_gpus
+
+    if not discover_gpus(load_nvml(), None):
+        return None  # no GPU: the pool partitions cores only
+    daemon = MpsDaemon.ensure(log_dir=Path(cfg.run.output_dir).resolve() / "mps-log")
+    if daemon is not None:
+        print(f"ebrl: started an MPS control daemon for this run ({daemon.pipe_dir})", flush=True)
+    return daemon

@@ -251,6 +251,15 @@ def vs_best(node: Node, mode: str) -> float:
     return traj[mode] / max(baselines)
 
 
+def per_repeat(node: Node, mode: str) -> list[float]:
+    """Trajectories/s of ``mode`` over the best baseline's of the same repeat, for each repeat of an ``ebrl
+    bench`` file (modes are interleaved: repeat r of every mode ran side by side)."""
+    results = node["results"]
+    baselines = [m for m in results if m in bench.BASELINES]
+    return [results[mode][r]["traj_per_s"] / max(results[m][r]["traj_per_s"] for m in baselines)
+            for r in range(len(results[mode]))]
+
+
 def extra_sets(command: str, base: str) -> str:
     """The ``--set`` overrides of ``command`` that ``base`` lacks, each in backticks."""
     def sets(text: str) -> list[str]:
@@ -282,7 +291,7 @@ FILTERS = {
 }
 GLOBALS = {
     "k": k, "rng": rng, "change": change, "pick": pick, "fail": fail, "modes_table": modes_table,
-    "vs_best": vs_best, "extra_sets": extra_sets, "ebrl_seed": ebrl_seed, "inf": float("inf"),
+    "vs_best": vs_best, "per_repeat": per_repeat, "extra_sets": extra_sets, "ebrl_seed": ebrl_seed, "inf": float("inf"),
 }
 
 

@@ -1,4 +1,4 @@
-"""``ebrl`` command line: up, eval, stats, profile, report, bench, router, secret, schemas, config."""
+"""``ebrl`` command line: up, eval, stats, profile, report, bench, router, secret, schemas, config, graph."""
 
 from __future__ import annotations
 
@@ -115,6 +115,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("config", nargs="?", help="config to validate and print resolved")
     p.add_argument("--set", action="append", default=[], dest="overrides", metavar="SECTION.KEY=VALUE")
 
+    p = sub.add_parser("graph", help="print the service graph: who publishes, subscribes to and queries what")
+    p.add_argument("--markdown", action="store_true", help="as docs/graph.md (a Mermaid chart and a table)")
+
     args = parser.parse_args(argv)
     if args.command == "up":
         from ebrl.launch import up
@@ -182,6 +185,11 @@ def main(argv: list[str] | None = None) -> int:
         except config.ConfigError as exc:
             print(f"ebrl: config error: {exc}", file=sys.stderr)
             return 2
+        return 0
+    if args.command == "graph":
+        from ebrl import graph
+
+        print(graph.markdown() if args.markdown else graph.text(), end="")
         return 0
     return 2
 

@@ -1,0 +1,191 @@
+"""The service graph: what each role publishes, subscribes to, queries and answers on the bus, in one place.
+
+Sample Factory's ``connect_components`` and dora-rs's dataflow file show at a glance who talks to whom; this
+is EBRL's. Each :class:`Flow` names a key pattern (built by ``ebrl.bus.keys``, so the keys themselves stay
+in one module) and the message it carries. From it:
+
+* a test records every key each service touches over a real run on the in-memory bus and fails when a role
+  uses a key its flows do not declare (``tests/test_graph.py``);
+* ``ebrl graph`` prints it, and ``docs/graph.md`` (the graph as a Mermaid chart and a table) is generated
+  from it (:func:`markdown`; the test checks it is current);
+* the bus's access rules can be generated from it (issue 39, least privilege: a role may publish only what
+  it declares).
+
+Patterns: ``{run}`` is the run's name, ``{role}`` and ``{instance}`` the service's own; ``*`` matches one
+key chunk, ``**`` any number (Zenoh's key expressions). Every service has :data:`SERVICE_FLOWS` (its stats,
+spans, events, liveliness and its control keys) besides its own.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Literal
+
+from ebrl.bus import keys
+
+Direction = Literal["put", "sub", "query", "answer", "token", "watch"]
+DIRECTIONS: tuple[Direction, ...] = ("put", "sub", "query", "answer", "token", "watch")
+VERBS = {"put": "publishes", "sub": "subscribes to", "query": "queries", "answer": "answers queries on",
+         "token": "holds the liveliness token", "watch": "watches liveliness on"}
+
+
+@dataclass(frozen=True)
+class Flow:
+    """One edge end: ``direction`` on keys matching ``pattern``, carrying ``message``."""
+
+    direction: Direction
+    pattern: str
+    message: str
+    why: str = ""
+    chart: bool = True  # drawn in the chart (a monitor that only counts what it hears is not)
+
+
+R, ROLE, I = "{run}", "{role}", "{instance}"
+
+SERVICE_FLOWS = (  # every service (ebrl.service.Service)
+    Flow("put", keys.stats(R, ROLE, I), "StatsReport", "its stats report, every run.stats_interval"),
+    Flow("put", keys.spans(R, "*"), "SpanBatch", "timeline spans of its lanes"),
+    Flow("put", keys.events(R, ROLE), "Event", "what happened: a restart, a decision, a device"),
+    Flow("sub", keys.ctl(R, ROLE, I, "*"), "Quota | Affinity | Stop", "the allocator's and launcher's control"),
+    Flow("answer", keys.ctl(R, ROLE, I, "status"), "StatsReport", "its latest numbers, on request"),
+    Flow("token", keys.live(R, ROLE, I), "-", "alive while the process runs"),
+)
+
+WEIGHTS_READER = (  # ebrl.weights.WeightsReceiver: new versions as published, and the newest on request
+    Flow("sub", keys.weights_all(R), "Weights | WeightsPart", "new policy versions"),
+    Flow("query", keys.weights_all(R), "Weights | WeightsPart", "the newest version, at start"),
+    Flow("sub", keys.stats(R, "train", 0), "StatsReport", "training's version (back from a forged one)"),
+)
+
+FLOWS: dict[str, tuple[Flow, ...]] = {
+    "sim": (
+        Flow("put", keys.obs(R), "Observation", "a group's observations, when its chunk ends"),
+        Flow("put", keys.traj(R), "TrajectorySegment", "finished segments"),
+        Flow("put", keys.episodes(R, ROLE), "EpisodeBatch", "finished episodes (returns, success)"),
+        Flow("sub", keys.act(R), "ActionChunk", "each group's next chunk"),
+        Flow("watch", keys.live_all(R), "-", "which gen and sim hosts are up (the iteration gate)"),
+    ),
+    "gen": (
+        Flow("sub", keys.obs(R), "Observation", "the groups' observations"),
+        Flow("put", keys.act(R), "ActionChunk", "a chunk per group"),
+        *WEIGHTS_READER,
+        Flow("watch", keys.live(R, "sim"), "-", "how many sim hosts serve (a batch's size)"),
+    ),
+    "train": (
+        Flow("sub", keys.traj(R), "TrajectorySegment", "segments to learn from"),
+        Flow("put", keys.weights(R), "Weights", "each new version (small policies)"),
+        Flow("put", keys.weights_parts(R), "WeightsPart", "each new version in parts (large policies)"),
+        Flow("answer", keys.weights_all(R), "Weights | WeightsPart", "the newest version, on request"),
+    ),
+    "eval": WEIGHTS_READER,
+    "alloc": (
+        Flow("sub", keys.stats(R, "sim", "*"), "StatsReport", "every simulator's rates and CPU use"),
+        Flow("sub", keys.stats(R, "gen", 0), "StatsReport", "generation's rates and CPU use"),
+        Flow("sub", keys.stats(R, "train", 0), "StatsReport", "training's rates and CPU use"),
+        *(Flow("put", keys.ctl(R, stage, "*", "quota"), "Quota", "threads, batch and GPU memory of a stage")
+          for stage in ("sim", "gen", "train")),
+        *(Flow("put", keys.ctl(R, stage, "*", "affinity"), "Affinity", "a stage's cores")
+          for stage in ("sim", "gen", "train")),
+        Flow("put", keys.gpu_share(R, "*"), "GpuShare", "a stage's new GPU share, for its host's launcher"),
+    ),
+    "log": (Flow("sub", keys.stats_all(R), "StatsReport | SpanBatch | Event | EpisodeBatch", "everything, for the sinks"),),
+    "viz": (Flow("sub", keys.stats_all(R), "StatsReport | SpanBatch | Event | EpisodeBatch", "everything, for rerun"),),
+    "launcher": (
+        Flow("sub", keys.stats_all(R), "StatsReport | SpanBatch | Event | EpisodeBatch", "the progress line, "
+             "the recording"),
+        Flow("put", keys.stats(R, "launcher", I), "StatsReport", "its own report"),
+        Flow("put", keys.events(R, "launcher"), "Event", "live, stall, auto, host, stopping"),
+        Flow("put", keys.ctl(R, "*", "*", "stop"), "Stop", "the end of the run, to every service"),
+        Flow("sub", keys.gpu_share(R, I), "GpuShare", "a stage of this host to restart with a new GPU share"),
+        Flow("sub", keys.ctl(R, "launcher", "*", "stop"), "Stop", "the primary host ended the run"),
+        Flow("sub", keys.ctl(R, "*", "*", "*"), "Quota | Affinity | Stop", "counts control for services the run "
+             "does not have", chart=False),
+        Flow("token", keys.live(R, "launcher", I), "-", "this host's launcher is up"),
+        Flow("watch", keys.live_all(R), "-", "which services and hosts are up"),
+    ),
+}
+SERVICES = ("sim", "gen", "train", "eval", "alloc", "log", "viz")  # roles that are ebrl.service.Service
+
+
+def flows(role: str) -> tuple[Flow, ...]:
+    """Every flow of ``role``: its own, and those every service has."""
+    return FLOWS[role] + (SERVICE_FLOWS if role in SERVICES else ())
+
+
+def _chunks_match(pattern: list[str], key: list[str]) -> bool:
+    if not pattern:
+        return not key
+    if pattern[0] == "**":
+        return any(_chunks_match(pattern[1:], key[i:]) for i in range(len(key) + 1))
+    return bool(key) and pattern[0] in ("*", key[0]) and _chunks_match(pattern[1:], key[1:])
+
+
+def covers(pattern: str, key: str) -> bool:
+    """Whether the key expression ``pattern`` includes every key of ``key`` (a key, or a pattern: a
+    subscription on ``ebrl/data/r/obs/*`` is covered by ``ebrl/data/r/obs/*`` and by ``ebrl/data/r/**``)."""
+    return _chunks_match(pattern.split("/"), key.split("/"))
+
+
+def allowed(role: str, instance: int | str, direction: Direction, key: str, run: str) -> bool:
+    """Whether ``role`` (its instance ``instance``) declares ``direction`` on ``key`` in run ``run``."""
+    for flow in flows(role):
+        if flow.direction != direction:
+            continue
+        pattern = flow.pattern.replace(R, run).replace(ROLE, role).replace(I, str(instance))
+        if covers(pattern, key):
+            return True
+    return False
+
+
+def text() -> str:
+    """The graph as plain lines, one per flow: ``gen  subscribes to  ebrl/data/{run}/obs/*  Observation``."""
+    rows = [(role, VERBS[f.direction], f.pattern, f.message) for role in FLOWS for f in flows(role)]
+    widths = [max(len(r[i]) for r in rows) for i in range(3)]
+    return "".join(f"{a:<{widths[0]}}  {b:<{widths[1]}}  {c:<{widths[2]}}  {d}\n" for a, b, c, d in rows)
+
+
+STATS_PLANE = ("StatsReport", "SpanBatch", "Event", "EpisodeBatch")  # every service's; drawn as one edge
+
+
+def markdown() -> str:
+    """``docs/graph.md``: the graph as a Mermaid chart (data and control between the roles) and every flow."""
+    lines, seen = ["```mermaid", "flowchart LR"], set()
+    for writer in FLOWS:
+        for put in (f for f in flows(writer) if f.direction == "put" and not f.message.startswith(STATS_PLANE)):
+            for reader in FLOWS:
+                for sub in flows(reader):
+                    edge = (writer, reader, put.message)
+                    if reader != writer and sub.direction == "sub" and sub.chart and edge not in seen \
+                            and intersects(_instance(put.pattern, writer), _instance(sub.pattern, reader)):
+                        seen.add(edge)
+                        lines.append(f"    {writer} -- {put.message} --> {reader}")
+    lines += ["    sim & gen & train & eval & alloc -. stats, spans, events, episodes .-> log & viz & launcher", "```"]
+    table = ["| role | direction | key | message | why |", "|---|---|---|---|---|"]
+    for role in FLOWS:
+        for flow in flows(role):
+            table.append(f"| {role} | {VERBS[flow.direction]} | `{flow.pattern}` | {flow.message} | {flow.why} |")
+    head = ("# The service graph\n\n<!-- generated by `ebrl graph --markdown` from ebrl/graph.py; do not edit by "
+            "hand. -->\n\nWho talks to whom on the bus (`ebrl/graph.py`; a test fails when a service uses a key "
+            "its role does not declare). Data and control between the roles; every service also publishes its "
+            "stats, spans and events, which the launcher, log and viz read:\n\n")
+    return head + "\n".join(lines) + "\n\nEvery flow, by role (`{run}`: the run's name, `{role}`/`{instance}`: " \
+        "the service's own; `*` one key chunk, `**` any number):\n\n" + "\n".join(table) + "\n"
+
+
+def _instance(pattern: str, role: str) -> str:
+    return pattern.replace(R, "r").replace(ROLE, role).replace(I, "*")
+
+
+def intersects(a: str, b: str) -> bool:
+    """Whether some key matches both key expressions ``a`` and ``b``."""
+    return _meet(a.split("/"), b.split("/"))
+
+
+def _meet(a: list[str], b: list[str]) -> bool:
+    if not a or not b:
+        return (not a or a == ["**"]) and (not b or b == ["**"])
+    if a[0] == "**":
+        return _meet(a[1:], b) or _meet(a, b[1:])
+    if b[0] == "**":
+        return _meet(a, b[1:]) or _meet(a[1:], b)
+    return (a[0] == "*" or b[0] == "*" or a[0] == b[0]) and _meet(a[1:], b[1:])

@@ -113,8 +113,8 @@ def candidates(cfg: Any, gpu: bool, bf16: bool, train_on_gpu: bool) -> list[Cand
     for c in PREFERENCE:
         if c.device == "cuda" and not (gpu and device != "cpu"):
             continue
-        if c.device == "cpu" and device not in ("auto", "cpu"):
-            continue
+        if c.device == "cpu" and (device not in ("auto", "cpu") or compile_ == "cudagraphs"):
+            continue  # (CUDA graphs asked for: generation stays on a GPU; config refuses them on the CPU)
         if dtype != "auto" and c.dtype != dtype or c.dtype == "bfloat16" and not (bf16 and train_on_gpu):
             continue
         if compile_ != "auto" and c.compile != compile_ and c.device == "cuda":
@@ -303,13 +303,13 @@ def settle(cfg: Any, roles: tuple[str, ...], multi: bool,
         return cfg, None
     kept, notes = {}, []
     if resumed := {k: v for k, v in (earlier or {}).items() if k in auto_fields(cfg)}:
-        kept.update(resumed)
+        kept.update(resumed)  # (gen.device "auto" kept as "auto": the GPU was chosen, wherever the run resumes)
         notes.append(f"{_shown(resumed)} (as this run decided at its start)")
     if multi and cfg.policy.dtype == "auto" and "policy.dtype" not in kept:  # hosts must agree: none measures it
         kept["policy.dtype"] = "float32"
         notes.append("policy.dtype = 'float32' (one precision on every host of the run)")
     cfg = apply(cfg, kept)
-    if not auto_fields(cfg):
+    if not [f for f in auto_fields(cfg) if f not in kept]:
         decision = Decision({}, "")
     elif cfg.gen.device == "cpu":  # one candidate: float32 (bfloat16 on a CPU is not faster), eager
         decision = static(cfg, "gen.device = 'cpu'")

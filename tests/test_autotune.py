@@ -50,6 +50,8 @@ def test_explicit_values_narrow_the_candidates():
                                train_on_gpu=True) == [GPU16, GPU16G]
     assert autotune.candidates(quickstart('gen.compile="off"'), gpu=True, bf16=True, train_on_gpu=True) == [
         GPU32, GPU16, CPU]
+    assert CPU not in autotune.candidates(quickstart('gen.compile="cudagraphs"'), gpu=True, bf16=True,
+                                          train_on_gpu=True)  # the config refuses CUDA graphs on the CPU
     # only the fields left "auto" are set
     cfg = quickstart('gen.compile="off"')
     d = autotune.decide(cfg, {GPU32: 1e-6}, {}, train_on_gpu=True)
@@ -68,6 +70,11 @@ def test_without_a_gpu_nothing_is_measured_and_nothing_changes(monkeypatch):
     cfg, d = autotune.settle(quickstart(), ("gen", "train"), multi=False,
                              earlier={"policy.dtype": "bfloat16", "gen.compile": "cudagraphs"})
     assert (cfg.policy.dtype, cfg.gen.compile) == ("bfloat16", "cudagraphs") and "as this run decided" in d.line
+    # a run resumed where its start put generation on the GPU ("auto") measures nothing again
+    cfg, d = autotune.settle(quickstart(), ("gen", "train"), multi=False,
+                             earlier={"policy.dtype": "bfloat16", "gen.compile": "cudagraphs", "gen.device": "auto"})
+    assert (cfg.policy.dtype, cfg.gen.compile, cfg.gen.device) == ("bfloat16", "cudagraphs", "auto")
+    assert d.line.endswith("(as this run decided at its start)"), d.line
     cfg, d = autotune.settle(quickstart(), ("sim",), multi=True)  # several hosts: one precision for all
     assert cfg.policy.dtype == "float32"
     with pytest.raises(config.ConfigError, match="policy.dtype"):

@@ -33,7 +33,7 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from ebrl.config import PolicySection  # noqa: E402
-from ebrl.envs.obs import ObsField, ObsLayout, tokenize  # noqa: E402
+from ebrl.envs.obs import ObsField, ObsLayout, sample_observations  # noqa: E402
 from ebrl.policies import make_policy  # noqa: E402
 
 RESULTS = Path(__file__).resolve().parent / "results"
@@ -44,13 +44,6 @@ LAYOUTS = {
                          ObsField("instruction", "tokens", (16,)))),
 }
 REFERENCE = {"state": "mlp", "vision": "cnn"}  # the Gaussian policy of each layout
-
-
-def observations(layout: ObsLayout, batch: int) -> np.ndarray:
-    rng = np.random.default_rng(0)
-    fill = {"image": lambda f: rng.uniform(0, 1, f.shape), "vector": lambda f: rng.normal(size=f.shape),
-            "tokens": lambda f: tokenize("lift the red cube", f.size)}
-    return np.stack([layout.pack({f.name: fill[f.kind](f) for f in layout.fields}) for _ in range(batch)])
 
 
 def median_ms(model: torch.nn.Module, obs: np.ndarray, warmup: int, seconds: float) -> tuple[float, int]:
@@ -82,7 +75,7 @@ def main() -> None:
     print(f"{'layout':7s} {'batch':>5s} {'policy':9s} {'ms/act':>8s} {'ms/chunk':>9s} {'x N=1':>10s} {'calls':>6s}")
     for layout_name, layout in LAYOUTS.items():
         for batch in args.batches:
-            obs = observations(layout, batch)
+            obs = sample_observations(layout, batch)
             variants = [(REFERENCE[layout_name], None)] + [("flow", n) for n in args.steps]
             base = None
             models = []

@@ -36,9 +36,9 @@ sys.path.insert(0, str(ROOT / "benchmarks" / "gpu"))
 
 from ebrl import config as config_mod, devices  # noqa: E402
 from ebrl.algos.ppo import PPO, Batch  # noqa: E402
-from ebrl.envs.obs import ObsLayout  # noqa: E402
+from ebrl.envs.obs import ObsLayout, sample_observations  # noqa: E402
 from ebrl.policies import make_policy  # noqa: E402
-from forward import LAYOUTS, observations  # noqa: E402
+from forward import LAYOUTS  # noqa: E402
 
 STATE_DIMS = {"Lift": 42, "InvertedPendulum-v5": 4}  # observation sizes of the state configs measured here
 ACTION_DIMS = {"Lift": 7, "InvertedPendulum-v5": 1}
@@ -52,7 +52,7 @@ def layout_of(cfg) -> tuple[ObsLayout, int]:
 
 
 def make_batch(model, layout: ObsLayout, n: int, device: torch.device, rng: np.random.Generator) -> Batch:
-    obs = observations(layout, n, rng)
+    obs = sample_observations(layout, n, rng)
     with torch.no_grad():
         actions, logprobs, values, latents = model.act(obs)
     f = {k: torch.as_tensor(v, device=device) for k, v in

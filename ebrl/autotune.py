@@ -153,17 +153,6 @@ def static(cfg: Any, why: str) -> Decision:
 
 # --- the measurement (the child process: imports torch) ---
 
-def _observations(layout: Any, n: int, seed: int = 0) -> Any:
-    import numpy as np
-
-    from ebrl.envs.obs import VOCAB_SIZE
-
-    rng = np.random.default_rng(seed)
-    fill = {"vector": lambda f: rng.normal(size=f.shape), "image": lambda f: rng.uniform(0.0, 1.0, f.shape),
-            "tokens": lambda f: rng.integers(1, VOCAB_SIZE, f.shape)}
-    return np.stack([layout.pack({f.name: fill[f.kind](f) for f in layout.fields}) for _ in range(n)])
-
-
 def _timed(step, seconds: float, sync, give_up_s: float = float("inf")) -> float:
     """Median seconds of one ``step()`` over rounds filling ``seconds`` (after 3 warm-up calls); a first call
     slower than ``give_up_s`` is all that is timed (a candidate that slow loses anyway: W3 on the CPU)."""
@@ -234,6 +223,7 @@ def _time_generation(cfg: Any, info: Any, cands: list[Candidate], gpu: Any) -> d
     import torch
 
     from ebrl import devices, threads
+    from ebrl.envs.obs import sample_observations
     from ebrl.policies import make_policy
     from ebrl.policies.graphs import Actor
 
@@ -249,7 +239,7 @@ def _time_generation(cfg: Any, info: Any, cands: list[Candidate], gpu: Any) -> d
             give_up = 20 * max(batches) * min(gen_s.values()) if gen_s else float("inf")
             try:
                 per = [_timed(lambda: actor(stage(obs)), GEN_SECONDS, _synced(where), give_up) / len(obs)
-                       for obs in (_observations(info.layout, b) for b in batches)]
+                       for obs in (sample_observations(info.layout, b) for b in batches)]
             except RuntimeError as exc:  # e.g. out of memory at the largest batch: not a candidate here
                 log.warning("auto: %s could not run (%s)", c, str(exc).splitlines()[0])
                 continue
@@ -267,12 +257,13 @@ def _time_training(cfg: Any, info: Any, dtypes: list[str], device: Any) -> dict[
 
     from ebrl import devices
     from ebrl.algos.ppo import make_adam
+    from ebrl.envs.obs import sample_observations
     from ebrl.policies import make_policy
 
     model = make_policy(dataclasses.replace(cfg.policy, checkpoint=""), info.layout, info.action_dim).to(device)
     optimizer = make_adam(model.parameters(), 1e-6)
     mb = max(1, cfg.train.batch_size // max(1, cfg.algo.minibatches))
-    obs = torch.as_tensor(_observations(info.layout, mb), dtype=torch.float32, device=device)
+    obs = torch.as_tensor(sample_observations(info.layout, mb), dtype=torch.float32, device=device)
     actions, _, _, latents = (torch.as_tensor(a, device=device) for a in model.act(obs))
 
     def step() -> None:

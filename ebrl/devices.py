@@ -153,6 +153,12 @@ def autocast(device: Any, dtype: str) -> Any:
     return contextlib.nullcontext()
 
 
+def dtype_bits(dtype: str) -> float:
+    """``policy.dtype`` as the bits of its matrix products, for the stats (``gen/dtype``, ``train/dtype``): 16
+    for bfloat16 autocast, 32 otherwise."""
+    return 16.0 if dtype == "bfloat16" else 32.0
+
+
 def describe(device: Any) -> str:
     """``cpu``, or ``cuda:0 (NVIDIA H100 80GB HBM3, 79.1 GiB)``: for the log and the run's events."""
     import torch

@@ -41,6 +41,7 @@ class Flow:
 
 
 R, ROLE, I = "{run}", "{role}", "{instance}"
+EVERY_STAT = "StatsReport | SpanBatch | Event | EpisodeBatch"  # what ebrl/stats/<run>/** carries
 
 SERVICE_FLOWS = (  # every service (ebrl.service.Service)
     Flow("put", keys.stats(R, ROLE, I), "StatsReport", "its stats report, every run.stats_interval"),
@@ -88,10 +89,10 @@ FLOWS: dict[str, tuple[Flow, ...]] = {
           for stage in ("sim", "gen", "train")),
         Flow("put", keys.gpu_share(R, "*"), "GpuShare", "a stage's new GPU share, for its host's launcher"),
     ),
-    "log": (Flow("sub", keys.stats_all(R), "StatsReport | SpanBatch | Event | EpisodeBatch", "everything, for the sinks"),),
-    "viz": (Flow("sub", keys.stats_all(R), "StatsReport | SpanBatch | Event | EpisodeBatch", "everything, for rerun"),),
+    "log": (Flow("sub", keys.stats_all(R), EVERY_STAT, "everything, for the sinks"),),
+    "viz": (Flow("sub", keys.stats_all(R), EVERY_STAT, "everything, for rerun"),),
     "launcher": (
-        Flow("sub", keys.stats_all(R), "StatsReport | SpanBatch | Event | EpisodeBatch", "the progress line, "
+        Flow("sub", keys.stats_all(R), EVERY_STAT, "the progress line, "
              "the recording"),
         Flow("put", keys.stats(R, "launcher", I), "StatsReport", "its own report"),
         Flow("put", keys.events(R, "launcher"), "Event", "live, stall, auto, host, stopping"),

@@ -42,9 +42,9 @@ class RunView:
     Only reports of the run's own instances count: ``instances(role, instance)`` says whether the run has that
     instance (the launcher: the ones started, or live on another host); a report on another key than its
     own, from an instance the run does not have, or of a value that is not finite (that value; the whole report
-    where no value is left) is dropped and counted in ``refused``; so is a training report whose policy version runs implausibly far ahead of the
-    last one (:func:`ebrl.weights.plausible`), so a forged report can neither end the run nor move its
-    progress."""
+    where no value is left) is dropped and counted in ``refused``; so is a training report whose policy version
+    runs implausibly far ahead of the last one (:func:`ebrl.weights.plausible`), so a forged report can neither
+    end the run nor move its progress."""
 
     def __init__(self, run: str, iterations: int = 0, target_return: float | None = None,
                  instances: Callable[[str, int], bool] | None = None, floor: int = 0,

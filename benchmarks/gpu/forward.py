@@ -30,7 +30,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent.parent))
 
 from ebrl import devices  # noqa: E402
 from ebrl.config import PolicySection  # noqa: E402
-from ebrl.envs.obs import ObsField, ObsLayout, tokenize  # noqa: E402
+from ebrl.envs.obs import ObsField, ObsLayout, sample_observations  # noqa: E402
 from ebrl.policies import make_policy  # noqa: E402
 from ebrl.policies.graphs import Actor  # noqa: E402
 
@@ -45,13 +45,6 @@ POLICIES = {"mlp-state": ("state", dict(kind="mlp", hidden=[64, 64])),
                                          patch=8, hidden=[1024, 1024], denoise_steps=10))}
 BATCHES = {"flow10-w3": [16, 64]}  # the W3 batch (4 groups of 4) and a larger one
 CPU_MAX = {"flow10-w3": 16}  # W3 on the CPU: one batch of 16 takes a second; larger ones are not measured
-
-
-def observations(layout: ObsLayout, batch: int, rng: np.random.Generator) -> np.ndarray:
-    fill = {"vector": lambda f: rng.normal(size=f.shape).astype(np.float32),
-            "image": lambda f: rng.uniform(0, 1, f.shape).astype(np.float32),
-            "tokens": lambda f: tokenize("lift the red cube", f.size)}
-    return np.stack([layout.pack({f.name: fill[f.kind](f) for f in layout.fields}) for _ in range(batch)])
 
 
 def chunks_per_s(actor: Actor, stage, obs: np.ndarray, seconds: float) -> float:
@@ -83,7 +76,7 @@ def main() -> None:
         cfg = PolicySection(chunk=CHUNK, **kwargs)
         models = {d: make_policy(cfg, layout, ACTION_DIM).to(d).eval() for d in {d for d, _, _ in targets}}
         for batch in BATCHES.get(name, args.batches):
-            obs = observations(layout, batch, rng)
+            obs = sample_observations(layout, batch, rng)
             here = [x for x in targets if not (x[0] == "cpu" and batch > CPU_MAX.get(name, batch))]
             actors = {x: Actor(models[x[0]], x[2], x[1]) for x in here}
             rates: dict[str, list[float]] = {"_".join(x): [] for x in here}

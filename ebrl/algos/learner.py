@@ -243,7 +243,7 @@ class Learner:
         return taken, handed
 
     def metrics(self) -> dict[str, float]:
-        out = {"train/policy_version": float(self.version), "train/dtype": 16.0 if self.cfg.policy.dtype == "bfloat16" else 32.0}
+        out = {"train/policy_version": float(self.version), "train/dtype": devices.dtype_bits(self.cfg.policy.dtype)}
         if self.rank > 0:
             return out
         out.update({"train/pending_steps": float(self.collector.pending_steps),

@@ -115,3 +115,13 @@ def tokenize(text: str, length: int = INSTRUCTION_TOKENS, vocab: int = VOCAB_SIZ
     out = np.zeros(length, dtype=np.int64)
     out[:len(ids)] = ids
     return out
+
+
+def sample_observations(layout: ObsLayout, n: int, rng: np.random.Generator | int = 0,
+                        instruction: str = "lift the red cube") -> np.ndarray:
+    """``n`` made-up flat observations of ``layout`` (timing a policy without its env: ``ebrl.autotune``, the
+    benchmarks): vectors standard normal, images uniform in [0, 1], tokens the ``instruction``'s."""
+    rng = np.random.default_rng(rng) if isinstance(rng, int) else rng
+    fill = {"vector": lambda f: rng.normal(size=f.shape), "image": lambda f: rng.uniform(0.0, 1.0, f.shape),
+            "tokens": lambda f: tokenize(instruction, f.size)}
+    return np.stack([layout.pack({f.name: fill[f.kind](f) for f in layout.fields}) for _ in range(n)])

@@ -44,7 +44,7 @@ class Actor:
     def counters(self) -> dict[str, float]:
         """``dtype``: the bits of the forward's matrix products (16: bfloat16 autocast, 32: float32);
         ``compiled``: 1 while the forward runs through CUDA graphs (0: eagerly, or after a failed capture)."""
-        return {"dtype": 16.0 if self.dtype == "bfloat16" else 32.0, "compiled": float(self.graphed)}
+        return {"dtype": devices.dtype_bits(self.dtype), "compiled": float(self.graphed)}
 
     def __call__(self, obs: torch.Tensor) -> tuple[np.ndarray, ...]:
         """Chunks for ``obs`` ([B, ...] float32 on the policy's device): actions, log-probs, values, latents."""

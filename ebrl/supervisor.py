@@ -253,9 +253,12 @@ class Supervisor:
         return {c.name: c.restarts for c in self.children if c.restarts}
 
     def metrics(self) -> dict[str, float]:
-        """``launcher/restarts`` and ``launcher/restarts_<role>``, for the launcher's stats report."""
+        """``launcher/restarts`` and ``launcher/restarts_<role>`` (summed over the role's instances), for the
+        launcher's stats report."""
         out = {"launcher/restarts": float(sum(c.restarts for c in self.children))}
-        out.update({f"launcher/restarts_{c.role}": float(c.restarts) for c in self.children})
+        for c in self.children:
+            key = f"launcher/restarts_{c.role}"
+            out[key] = out.get(key, 0.0) + c.restarts
         return out
 
     async def shutdown(self, ask_to_stop: Callable[[Child], Awaitable[None]], stop_grace_s: float = STOP_GRACE_S,

@@ -37,7 +37,8 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from ebrl.bus import Bus, BusOptions, keys  # noqa: E402
+from ebrl.bus import keys  # noqa: E402
+from ebrl.bus.session import Bus, BusOptions
 from ebrl.envs.worker import VectorChunk  # noqa: E402
 from ebrl.messages import ActionChunk, Observation, encode_message  # noqa: E402
 from ebrl.sched.rollout import SegmentBuilder  # noqa: E402

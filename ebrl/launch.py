@@ -31,7 +31,8 @@ from pathlib import Path
 from typing import Callable
 
 from ebrl import config as config_mod, prepare, procenv, stall
-from ebrl.bus import Bus, BusOptions, auth, keys
+from ebrl.bus import auth, keys
+from ebrl.bus.session import Bus, BusOptions
 from ebrl.bus.endpoints import config_file_listen, listen_endpoint
 from ebrl.hosts import PRIMARY_LOST_S, HostPlan, Membership, enabled_roles
 from ebrl.messages import Event, GpuShare, StatsReport, Stop

@@ -31,7 +31,8 @@ from typing import Any, Iterator
 import psutil
 
 from ebrl import config as config_mod, devices, threads
-from ebrl.bus import Bus, BusOptions, auth, keys
+from ebrl.bus import auth, keys
+from ebrl.bus.session import Bus, BusOptions
 from ebrl.messages import Affinity, Event, Quota, SpanBatch, StatsReport, Stop, encode_message
 from ebrl.meter import SPAN_BATCH_MAX, Meter
 

@@ -1,17 +1,37 @@
-"""``ebrl stats``: subscribe to ``ebrl/stats/**`` and print every decoded message."""
+"""Watching a run from a script: :func:`observer_config` (a Zenoh config signed in as an observer), and
+``ebrl stats``, which subscribes to ``ebrl/stats/**`` and prints every decoded message."""
 
 from __future__ import annotations
 
 import json
 import queue
 import signal
+import os
 import sys
+from pathlib import Path
 
 import zenoh
 
-from ebrl.bus import BusOptions, auth, codec, keys, zenoh_config
+from ebrl.bus import auth, codec, keys
+from ebrl.bus.session import BusOptions, zenoh_config
 
 DEFAULT_ENDPOINT = "tcp/127.0.0.1:7447"
+
+
+def observer_config(run: str | os.PathLike, connect: str | None = None):
+    """A ``zenoh.Config`` that watches the run in directory ``run`` (or whose secret file ``run`` is): signs in
+    as observer and connects to the run's launcher (from ``RUN_DIR/bus.json`` unless ``connect`` is given).
+    ``zenoh.open(observer_config("runs/quickstart-..."))`` then subscribe to ``ebrl/stats/**``."""
+    run = Path(run)
+    secret = run if run.is_file() else run / auth.FILENAME
+    signed = secret.exists() or run.is_file()  # a run with bus.auth = false has no secret: an open bus
+    if connect is None:
+        try:
+            connect = json.loads((secret.parent / "bus.json").read_text())["listen"][0]
+        except (OSError, ValueError, KeyError, IndexError):
+            connect = DEFAULT_ENDPOINT
+    return zenoh_config(BusOptions(mode="client", connect=[connect], listen=[],
+                                   secret_file=str(secret) if signed else "", role="observer"))
 
 
 def format_message(key: str, msg: dict) -> str:
@@ -30,7 +50,7 @@ def watch(connect: str | None, run: str | None, spans: bool = False, count: int 
     signal.signal(signal.SIGINT, lambda *_: inbox.put(None))
     try:
         if secret:
-            conf = auth.observer_config(secret, connect)
+            conf = observer_config(secret, connect)
         else:
             conf = zenoh_config(BusOptions(mode="client", connect=[connect or DEFAULT_ENDPOINT], listen=[]))
     except auth.AuthError as exc:

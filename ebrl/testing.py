@@ -24,7 +24,8 @@ from typing import Callable, Literal, Sequence
 import zenoh
 
 from ebrl import config as config_mod
-from ebrl.bus import BusOptions, auth, keys, zenoh_config
+from ebrl.bus import auth, keys
+from ebrl.bus.session import BusOptions, zenoh_config
 from ebrl.bus.endpoints import free_port
 from ebrl.messages import MessageError, StatsReport, decode_stats_sample
 

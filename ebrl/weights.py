@@ -6,7 +6,7 @@ Parts fit Zenoh's shared-memory pool (16 MiB by default; on one host every put o
 through it) and no single part holds the GIL for long on either side: a 500 MB message would stall the
 receiving event loop for as long as one copy of it takes.
 
-Both sides use only the bus API (:class:`~ebrl.bus.BusBase`: Zenoh, or the in-memory bus in tests) and
+Both sides use only the bus API (:class:`~ebrl.bus.session.BusBase`: Zenoh, or the in-memory bus in tests) and
 keep its blocking calls off the event loop. The publisher has one thread that packs and
 sends versions and answers late joiners' queries in order, so a query never sees the send buffer being
 rewritten; a version still waiting while a newer one is published is skipped (keep-latest). Parts go
@@ -40,7 +40,8 @@ from typing import Callable, Literal
 
 import numpy as np
 
-from ebrl.bus import BusBase, Query, keys
+from ebrl.bus import keys
+from ebrl.bus.session import BusBase, Query
 from ebrl.messages import MessageError, StatsReport, Weights, WeightsPart, decode_message, encode_message
 
 log = logging.getLogger("ebrl.weights")

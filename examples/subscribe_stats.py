@@ -1,6 +1,6 @@
 """Print live throughput of a running EBRL run: python subscribe_stats.py RUN_DIR [SECONDS]."""
 import sys, time, msgpack, zenoh
-from ebrl.bus.auth import observer_config  # signs in with RUN_DIR/bus.secret; connects to the run's launcher
+from ebrl.stats import observer_config  # signs in with RUN_DIR/bus.secret; connects to the run's launcher
 
 def show(sample):
     m = msgpack.unpackb(sample.payload.to_bytes())

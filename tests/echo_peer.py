@@ -3,7 +3,8 @@
 import asyncio
 import sys
 
-from ebrl.bus import Bus, BusOptions, keys
+from ebrl.bus import keys
+from ebrl.bus.session import Bus, BusOptions
 from ebrl.messages import Observation
 
 

@@ -8,7 +8,8 @@ import contextlib
 import time
 from pathlib import Path
 
-from ebrl.bus import Bus, BusOptions, MemoryBus, MemoryNetwork
+from ebrl.bus.memory import MemoryBus, MemoryNetwork
+from ebrl.bus.session import Bus, BusOptions
 from ebrl.testing import Run, StatsWatcher, free_port
 
 __all__ = ["BUS_KINDS", "ROOT", "Run", "StatsWatcher", "bus_pair", "free_port", "loopback_bus",

@@ -23,7 +23,8 @@ import time
 
 import zenoh
 
-from ebrl.bus import BusOptions, auth, keys, zenoh_config
+from ebrl.bus import auth, keys
+from ebrl.bus.session import BusOptions, zenoh_config
 from ebrl.messages import StatsReport, Stop, Weights, encode_message
 
 

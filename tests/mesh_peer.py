@@ -8,7 +8,7 @@ import time
 
 import zenoh
 
-from ebrl.bus import BusOptions, zenoh_config
+from ebrl.bus.session import BusOptions, zenoh_config
 
 
 def main(endpoint: str, secret: str, name: str, names: list[str]) -> None:

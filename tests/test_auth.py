@@ -14,7 +14,9 @@ import pytest
 import zenoh
 
 from ebrl import config
-from ebrl.bus import BusOptions, auth, keys, zenoh_config
+from ebrl import stats as stats_mod
+from ebrl.bus import auth, keys
+from ebrl.bus.session import BusOptions, zenoh_config
 from ebrl.testing import StatsWatcher
 from helpers import ROOT, free_port, up
 
@@ -179,7 +181,7 @@ def test_without_the_secret_a_peer_gets_nothing_in_or_out_and_an_observer_only_r
     service = _open(port, secret)
     outsider = _open(port)
     impostor = _open(port, auth.create(tmp_path / "other.secret"))  # a valid-looking secret of another run
-    observer = zenoh.open(auth.observer_config(secret, f"tcp/127.0.0.1:{port}"))
+    observer = zenoh.open(stats_mod.observer_config(secret, f"tcp/127.0.0.1:{port}"))
     sessions = [launcher, service, outsider, impostor, observer]
     forged = [keys.ctl("r", "train", 0, "stop"), keys.traj("r", 0), keys.stats("r", "train", 9)]
     try:

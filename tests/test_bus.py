@@ -15,7 +15,7 @@ import pytest
 
 from ebrl.bus import keys
 from ebrl.messages import Event, Observation, StatsReport
-from ebrl.bus import BusOptions
+from ebrl.bus.session import BusOptions
 from helpers import BUS_KINDS, bus_pair, free_port, loopback_bus, until
 
 HERE = pathlib.Path(__file__).resolve().parent

@@ -10,7 +10,8 @@ from pathlib import Path
 import pytest
 
 from ebrl import graph
-from ebrl.bus import MemoryBus, MemoryNetwork, keys
+from ebrl.bus import keys
+from ebrl.bus.memory import MemoryBus, MemoryNetwork
 from ebrl.messages import StatsReport
 from test_pipeline import service_class, small_config
 

@@ -9,7 +9,8 @@ import time
 import pytest
 import zenoh
 
-from ebrl.bus import MemoryBus, MemoryNetwork, session
+from ebrl.bus import session
+from ebrl.bus.memory import MemoryBus, MemoryNetwork
 from ebrl.messages import Event
 from helpers import until
 

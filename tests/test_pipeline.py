@@ -16,7 +16,8 @@ import numpy as np
 import pytest
 
 from ebrl import config
-from ebrl.bus import MemoryBus, MemoryNetwork, keys
+from ebrl.bus import keys
+from ebrl.bus.memory import MemoryBus, MemoryNetwork
 from ebrl.messages import ActionChunk, StatsReport, TrajectorySegment
 from ebrl.sched.modes import resolve
 

@@ -350,7 +350,7 @@ def test_generation_samples_from_a_seed_fixed_per_instance():
     two instances (or two seeds) differ."""
     import torch
 
-    from ebrl.bus import MemoryBus, MemoryNetwork
+    from ebrl.bus.memory import MemoryBus, MemoryNetwork
     from ebrl.policies import load_arrays
     from services.gen import GenService
 

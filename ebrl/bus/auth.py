@@ -126,24 +126,6 @@ def zenoh_settings(credentials: Credentials, role: Role) -> dict[str, object]:
     return {"transport/auth/usrpwd": usrpwd}
 
 
-def observer_config(run: str | os.PathLike, connect: str | None = None):
-    """A ``zenoh.Config`` that watches the run in directory ``run`` (or whose secret file ``run`` is): signs in
-    as observer and connects to the run's launcher (from ``RUN_DIR/bus.json`` unless ``connect`` is given).
-    ``zenoh.open(observer_config("runs/quickstart-..."))`` then subscribe to ``ebrl/stats/**``."""
-    from ebrl.bus.session import BusOptions, zenoh_config
-
-    run = Path(run)
-    secret = run if run.is_file() else run / FILENAME
-    signed = secret.exists() or run.is_file()  # a run with bus.auth = false has no secret: an open bus
-    if connect is None:
-        try:
-            connect = json.loads((secret.parent / "bus.json").read_text())["listen"][0]
-        except (OSError, ValueError, KeyError, IndexError):
-            connect = "tcp/127.0.0.1:7447"
-    return zenoh_config(BusOptions(mode="client", connect=[connect], listen=[],
-                                   secret_file=str(secret) if signed else "", role="observer"))
-
-
 # --- endpoints ---------------------------------------------------------------------------------------------
 
 _ENCRYPTED = ("tls", "quic")

@@ -1,4 +1,4 @@
-"""An in-memory bus with the API of :class:`ebrl.bus.Bus`, for tests that run several services in one process.
+"""An in-memory bus with the API of :class:`ebrl.bus.session.Bus`, for tests that run several services in one process.
 
 Like dora-rs's ``MockNode`` or FastStream's in-memory broker, but with the bus's real semantics::
 
@@ -6,7 +6,7 @@ Like dora-rs's ``MockNode`` or FastStream's in-memory broker, but with the bus's
     train_bus = MemoryBus(network)                 # one per service, created inside the running loop
     gen_bus = MemoryBus(network, BusOptions(max_message_bytes=1 << 20))
 
-Code written against the bus API (:class:`~ebrl.bus.BusBase`: services, ``ebrl.weights``) runs unchanged
+Code written against the bus API (:class:`~ebrl.bus.session.BusBase`: services, ``ebrl.weights``) runs unchanged
 on it; all buses of a network share one event loop in a test, though nothing requires it.
 
 Every bus on a network sees the samples, liveliness tokens and queryables of every bus on it, its own
@@ -99,7 +99,7 @@ class MemoryNetwork:
 
 
 class MemoryBus(BusBase):
-    """A bus on a :class:`MemoryNetwork`, with :class:`~ebrl.bus.Bus`'s API. Create it inside the running loop."""
+    """A bus on a :class:`MemoryNetwork`, with :class:`~ebrl.bus.session.Bus`'s API. Create it inside the running loop."""
 
     _FLUSH_SETTLE_S = 0.0  # no socket: once the sender queue is empty, every sample is delivered
 

@@ -17,7 +17,8 @@ import time
 
 import zenoh
 
-from ebrl.bus import BusOptions, auth, keys
+from ebrl.bus import auth, keys
+from ebrl.bus.session import BusOptions
 from ebrl.bus.endpoints import config_file_listen
 from ebrl.bus.session import zenoh_config
 

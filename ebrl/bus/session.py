@@ -35,6 +35,7 @@ from typing import Any, AsyncIterator, Awaitable, Callable, Generic, Literal, Ty
 import zenoh
 
 from ebrl import messages  # module import: messages itself imports ebrl.bus.codec
+from ebrl.bus import auth
 
 log = logging.getLogger("ebrl.bus")
 T = TypeVar("T")
@@ -89,8 +90,6 @@ def zenoh_config(options: BusOptions) -> zenoh.Config:
     connect to (the launcher's), so services talk directly, without a relay. Of two peers that learn of each
     other, only the one with the greater Zenoh id connects (:data:`AUTOCONNECT_STRATEGY`).
     """
-    from ebrl.bus import auth
-
     conf = zenoh.Config.from_file(options.config_file) if options.config_file else zenoh.Config()
     conf.insert_json5("mode", json.dumps(options.mode))
     conf.insert_json5("scouting/multicast/enabled", "false")

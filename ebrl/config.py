@@ -1,8 +1,9 @@
 """TOML config -> validated, typed config. Errors name the field; unknown keys are errors.
 
-Each section is a dataclass; every field has a docstring (``doc``), shown by
-``ebrl config --help-fields`` and README. Values derived from several fields are
-computed in one place (properties of :class:`Config`).
+Each section is a dataclass that checks what its own values mean (:meth:`Section.check`); the few rules
+that tie sections together are :func:`_check_across`. Every field has a docstring (``doc``), shown by
+``ebrl config --help-fields`` and README. Values derived from several fields are computed in one place
+(properties of :class:`Config`).
 """
 
 from __future__ import annotations
@@ -15,7 +16,7 @@ import types
 import typing
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Literal
+from typing import Any, ClassVar, Literal
 
 import tomli_w
 
@@ -34,8 +35,30 @@ def doc(text: str, default: Any = dataclasses.MISSING, factory: Any = dataclasse
     return field(default=default, metadata={"doc": text})
 
 
+class Section:
+    """A ``[section]`` of the config. Its types are checked as it is read; :meth:`check` then checks what its
+    values mean, each section its own rules (:attr:`POSITIVE` fields and :meth:`_check`); the few rules that
+    tie sections together are :func:`_check_across`."""
+
+    NAME: ClassVar[str] = ""
+    POSITIVE: ClassVar[tuple[str, ...]] = ()  # fields that must be > 0
+
+    def check(self) -> None:
+        for key in self.POSITIVE:
+            value = getattr(self, key)
+            if not value > 0:  # NaN too
+                raise ConfigError(f"{self.NAME}.{key} = {value}: must be > 0")
+        self._check()
+
+    def _check(self) -> None:
+        """The section's rules beyond its positive fields."""
+
+
 @dataclass
-class RunSection:
+class RunSection(Section):
+    NAME = "run"
+    POSITIVE = ("stats_interval",)
+
     name: str = doc("run name; part of every bus key, so two runs never see each other", "quickstart")
     mode: Literal["ebrl", "colocated", "hybrid", "async"] = doc(
         "ebrl: every mechanism; colocated: all envs step together, then train; hybrid: sim/gen pipelined "
@@ -64,9 +87,27 @@ class RunSection:
         "or the run stops (never)", "on-failure")
     max_restarts: int = doc("most restarts of one service before the run stops", 3)
 
+    def _check(self) -> None:
+        try:
+            keys.check_chunk(self.name, "run.name")
+        except ValueError as exc:
+            raise ConfigError(str(exc)) from None
+        if self.target_success is not None and not 0.0 < self.target_success <= 1.0:
+            raise ConfigError(f"run.target_success = {self.target_success}: a fraction in (0, 1] (0.9: 90 %)")
+        if self.iterations < 0 or self.max_restarts < 0:
+            raise ConfigError(f"run.iterations ({self.iterations}) and run.max_restarts ({self.max_restarts}) must "
+                              "be >= 0")
+        if self.slowdown:
+            try:
+                parse_slowdown(self.slowdown)
+            except ValueError as exc:
+                raise ConfigError(f"run.slowdown = {self.slowdown!r}: {exc}") from None
+
 
 @dataclass
-class BusSection:
+class BusSection(Section):
+    NAME = "bus"
+
     mode: Literal["peer", "client"] = doc("Zenoh session mode of every service", "peer")
     listen: list[str] = doc(
         "endpoints the launcher listens on; services and scripts connect here (a busy port falls back to a free one)",
@@ -86,9 +127,15 @@ class BusSection:
     insecure: bool = doc("allow plain (unencrypted) endpoints that leave this host in bus.listen / bus.connect; "
                          "without it such an endpoint is refused: use tls/... with bus.config_file", False)
 
+    def _check(self) -> None:
+        if not self.listen and not self.connect:
+            raise ConfigError("bus.listen and bus.connect are both empty: services could not find each other")
+
 
 @dataclass
-class EnvSection:
+class EnvSection(Section):
+    NAME = "env"
+
     backend: Literal["gymnasium", "robosuite", "maniskill", "mjwarp"] = doc(
         "simulator adapter (maniskill: the optional extra, `pip install -e '.[maniskill]'`, needs a Vulkan GPU; "
         "mjwarp: MuJoCo Warp, `pip install -e '.[mjwarp]'`, each group one batch of envs_per_group worlds on the GPU "
@@ -109,9 +156,16 @@ class EnvSection:
         "non-finite one counts as 0 (counted: sim/rewards_clipped, sim/rewards_nonfinite), and train drops a "
         "segment that carries more (train/reward_bound_dropped); inf: no bound", 1e6)
 
+    def _check(self) -> None:
+        if not self.max_abs_reward > 0:  # NaN too
+            raise ConfigError(f"env.max_abs_reward = {self.max_abs_reward}: must be > 0 (inf: no bound)")
+
 
 @dataclass
-class SimSection:
+class SimSection(Section):
+    NAME = "sim"
+    POSITIVE = ("groups", "envs_per_group", "cores_per_env", "segment_length")
+
     groups: int = doc("environment groups; each publishes its observations on its own key", 2)
     envs_per_group: int = doc("environments per group (one worker process each)", 4)
     cores: list[int] = doc("CPU cores of the simulation budget; empty: every core this process may use", factory=list)
@@ -143,7 +197,10 @@ class SimSection:
 
 
 @dataclass
-class PolicySection:
+class PolicySection(Section):
+    NAME = "policy"
+    POSITIVE = ("chunk", "embed_dim", "denoise_steps", "width", "depth", "heads", "patch")
+
     kind: Literal["mlp", "cnn", "flow"] = doc(
         "policy model: mlp (Gaussian chunk from a flat observation), cnn (conv image encoder + proprioception + "
         "instruction embedding, Gaussian chunk), flow (flow-matching action head: the chunk by denoising)", "mlp")
@@ -176,9 +233,18 @@ class PolicySection:
     checkpoint: str = doc("safetensors policy checkpoint to start training from (relative to the working "
                           "directory); empty: fresh weights", "")
 
+    def _check(self) -> None:
+        if self.backbone == "transformer" and self.kind != "flow":
+            raise ConfigError(f"policy.backbone = 'transformer' is the flow policy's; policy.kind is {self.kind!r}")
+        if self.width % self.heads:
+            raise ConfigError(f"policy.width = {self.width}: must be a multiple of policy.heads = {self.heads}")
+
 
 @dataclass
-class GenSection:
+class GenSection(Section):
+    NAME = "gen"
+    POSITIVE = ("threads",)
+
     max_batch_groups: int = doc("most groups served by one forward pass; 0 means all groups", 0)
     cores: list[int] = doc("cores for the generation process; empty: the mode's choice", factory=list)
     threads: int = doc("torch threads of the generation process", 1)
@@ -190,9 +256,18 @@ class GenSection:
         "replayed: one launch per batch; for small policies, whose passes are launch-bound), or auto: CUDA graphs "
         "where the capture works and measured faster, else eagerly (decided at start, ebrl.autotune)", "auto")
 
+    def _check(self) -> None:
+        _device(self.device, "gen.device")
+        if self.compile == "cudagraphs" and self.device == "cpu":
+            raise ConfigError("gen.compile = 'cudagraphs' captures CUDA graphs; gen.device is 'cpu' (use \"auto\" or "
+                              "a CUDA device, or gen.compile = 'off')")
+
 
 @dataclass
-class AlgoSection:
+class AlgoSection(Section):
+    NAME = "algo"
+    POSITIVE = ("epochs", "minibatches")
+
     name: Literal["ppo", "grpo"] = doc(
         "learning algorithm: ppo (GAE with a critic) or grpo (group-relative advantages over group_size "
         "rollouts from the same initial state, no critic)", "ppo")
@@ -218,9 +293,18 @@ class AlgoSection:
     vf_coef: float = doc("value loss coefficient", 0.5)
     max_grad_norm: float = doc("gradient clipping norm", 0.5)
 
+    def _check(self) -> None:
+        if not 0 < self.gamma <= 1:
+            raise ConfigError(f"algo.gamma = {self.gamma}: must be in (0, 1]")
+        if self.max_staleness < 0:
+            raise ConfigError(f"algo.max_staleness = {self.max_staleness}: must be >= 0")
+
 
 @dataclass
-class TrainSection:
+class TrainSection(Section):
+    NAME = "train"
+    POSITIVE = ("batch_size", "lr", "threads", "world_size", "max_pending")
+
     batch_size: int = doc("chunk decisions per update", 1024)
     lr: float = doc("Adam learning rate", 3e-4)
     device: str = doc("torch device of the updates: auto (the GPU this process is bound to when torch sees one, "
@@ -238,9 +322,19 @@ class TrainSection:
     checkpoint_every: int = doc("write a checkpoint (policy, optimizer, version, random state) every this many "
                                 "updates, and always at the end; 0: only at the end", 10)
 
+    def _check(self) -> None:
+        _device(self.device, "train.device")
+        if self.checkpoint_every < 0:
+            raise ConfigError(f"train.checkpoint_every = {self.checkpoint_every}: must be >= 0")
+        if self.max_pending < self.batch_size:
+            raise ConfigError(f"train.max_pending = {self.max_pending}: must be >= train.batch_size ({self.batch_size})")
+
 
 @dataclass
-class AllocSection:
+class AllocSection(Section):
+    NAME = "alloc"
+    POSITIVE = ("window", "patience", "gap", "min_gen_cores", "min_train_cores", "profile_seconds")
+
     enabled: bool = doc("profile the stages, pick core quotas with Algorithm 1 at start, and re-balance them while "
                         "the run goes on (the allocator service); false keeps the mode's static cores", False)
     gpu_pool: Literal["mps", "mig", "none"] = doc("how GPU shares are enforced: MPS quotas, MIG instances, whole GPUs",
@@ -259,7 +353,10 @@ class AllocSection:
 
 
 @dataclass
-class VizSection:
+class VizSection(Section):
+    NAME = "viz"
+    POSITIVE = ("window_s", "port")
+
     rerun: Literal["spawn", "serve", "save", "off"] = doc(
         "live timeline in rerun: spawn a viewer, serve over gRPC for a viewer to connect (even late), save only, "
         "or off (no viz service); every mode but off also writes RUN_DIR/timeline.rrd", "off")
@@ -273,7 +370,10 @@ class VizSection:
 
 
 @dataclass
-class LogSection:
+class LogSection(Section):
+    NAME = "log"
+    POSITIVE = ("flush_s",)
+
     tensorboard: bool = doc("write RUN_DIR/tb/: TensorBoard event files of every metric, every episode's return and "
                             "success, eval results, the config (hparams) and the run's metadata, keyed by env steps "
                             "(open with `tensorboard --logdir runs/`)", True)
@@ -294,7 +394,9 @@ class LogSection:
 
 
 @dataclass
-class EvalSection:
+class EvalSection(Section):
+    NAME = "eval"
+
     every: int = doc("evaluate every this many policy versions (v = every, 2 x every, ..., and the final version "
                      "of run.iterations) in the eval service; 0: no eval service. A version published while an "
                      "evaluation runs waits; a newer one replaces it (eval/versions_skipped)", 0)
@@ -312,6 +414,14 @@ class EvalSection:
     final_timeout: float = doc("seconds the launcher waits, once run.iterations are done, for the evaluation of "
                                "the final version (the other services idle meanwhile); 0: it does not wait", 300.0)
 
+    def _check(self) -> None:
+        if self.every < 0 or self.episodes < 1 or self.video_episodes < 0 or self.final_timeout < 0:
+            raise ConfigError(f"[eval]: every ({self.every}), video_episodes ({self.video_episodes}) and "
+                              f"final_timeout ({self.final_timeout}) must be >= 0 and episodes ({self.episodes}) >= 1")
+        if not 0 <= self.seeds <= 2**32 - 1 - self.episodes:
+            raise ConfigError(f"eval.seeds = {self.seeds}: must be in [0, 2^32 - 1 - eval.episodes] (simulators "
+                              "take 32-bit seeds)")
+
 
 ROLES = ("viz", "log", "train", "gen", "sim", "eval", "alloc")  # every service a host can run, in start order
 
@@ -328,20 +438,9 @@ class HostEntry:
     cores: list[int] = doc("sim.cores on this host; empty: the config's sim.cores", factory=list)
 
 
-SECTIONS: dict[str, type] = {
-    "run": RunSection,
-    "bus": BusSection,
-    "env": EnvSection,
-    "sim": SimSection,
-    "policy": PolicySection,
-    "gen": GenSection,
-    "algo": AlgoSection,
-    "train": TrainSection,
-    "alloc": AllocSection,
-    "viz": VizSection,
-    "log": LogSection,
-    "eval": EvalSection,
-}
+SECTIONS: dict[str, type[Section]] = {cls.NAME: cls for cls in (
+    RunSection, BusSection, EnvSection, SimSection, PolicySection, GenSection, AlgoSection, TrainSection,
+    AllocSection, VizSection, LogSection, EvalSection)}
 
 
 @dataclass
@@ -461,7 +560,9 @@ def from_dict(raw: dict[str, Any]) -> Config:
         else:
             sections[name] = _section(name, SECTIONS[name], value)
     cfg = Config(**sections)
-    _check_semantics(cfg)
+    for name in SECTIONS:
+        getattr(cfg, name).check()
+    _check_across(cfg)
     return cfg
 
 
@@ -489,6 +590,8 @@ def _hosts(raw: dict[str, Any]) -> dict[str, HostEntry]:
         for role in entry.services:
             if role not in ROLES:
                 raise ConfigError(f"hosts.{name}.services: unknown service {role!r}; services are {', '.join(ROLES)}")
+    if hosts and not any("sim" in entry.services for entry in hosts.values()):
+        raise ConfigError("[hosts]: no host runs sim")
     for role in ("train", "gen"):
         owners = [name for name, entry in hosts.items() if role in entry.services]
         if hosts and len(owners) != 1:
@@ -507,69 +610,23 @@ def vectorized(cfg: Config) -> bool:
     return bool(cfg.sim.vectorized)
 
 
-def _check_semantics(cfg: Config) -> None:
-    def positive(path: str, value: float) -> None:
-        if value <= 0:
-            raise ConfigError(f"{path} = {value}: must be > 0")
-
+def _device(text: str, path: str) -> None:
     try:
-        keys.check_chunk(cfg.run.name, "run.name")
-        devices.check_syntax(cfg.gen.device, "gen.device")
-        devices.check_syntax(cfg.train.device, "train.device")
+        devices.check_syntax(text, path)
     except ValueError as exc:
         raise ConfigError(str(exc)) from None
-    if cfg.run.target_success is not None and not 0.0 < cfg.run.target_success <= 1.0:
-        raise ConfigError(f"run.target_success = {cfg.run.target_success}: a fraction in (0, 1] (0.9: 90 %)")
-    if cfg.env.backend == "mjwarp" and cfg.sim.vectorized is False:
-        raise ConfigError("sim.vectorized = false: an mjwarp group is one MuJoCo Warp model of envs_per_group worlds; "
-                          "for one CPU MuJoCo env per worker process use env.backend = \"gymnasium\" with "
-                          "env.id = \"ebrl.envs.tasks:PandaPickCube-v0\" (or your task through "
-                          "ebrl.envs.mjtask.MjTaskEnv)")
-    if cfg.alloc.enabled and vectorized(cfg):
-        raise ConfigError("alloc.enabled: the allocator profiles the simulator as one env per worker process, and "
-                          "sim.vectorized runs a group's envs as one batch (GPU PhysX groups are vectorized by "
-                          "default); set alloc.enabled = false, or sim.vectorized = false")
-    if cfg.sim.cores_per_env > 1 and (cfg.sim.core_rebinding is True or vectorized(cfg)):
-        what = "sim.core_rebinding = true" if cfg.sim.core_rebinding is True else "sim.vectorized"
+
+
+def _check_across(cfg: Config) -> None:
+    """The rules that tie sections together (each section checked its own: :meth:`Section.check`)."""
+    _check_batching(cfg)
+    _check_vectorized(cfg)
+    if cfg.sim.cores_per_env > 1 and cfg.sim.core_rebinding is True:
         raise ConfigError(f"sim.cores_per_env = {cfg.sim.cores_per_env}: pins each env worker to a set of cores, "
-                          f"which {what} does not use (rebinding hands out single cores; a vectorized group runs "
-                          "on the whole budget); set sim.cores_per_env = 1, or leave sim.core_rebinding to the mode")
-    if cfg.algo.name == "grpo" and vectorized(cfg):
-        raise ConfigError("sim.vectorized: grpo needs group-mates reset to the same initial state, which a "
-                          "vectorized batch's partial resets cannot promise; set sim.vectorized = false (GPU PhysX "
-                          "groups are vectorized by default)")
-    if cfg.gen.compile == "cudagraphs" and cfg.gen.device == "cpu":
-        raise ConfigError("gen.compile = 'cudagraphs' captures CUDA graphs; gen.device is 'cpu' (use \"auto\" or "
-                          "a CUDA device, or gen.compile = 'off')")
-    if cfg.train.checkpoint_every < 0 or cfg.run.max_restarts < 0:
-        raise ConfigError("train.checkpoint_every and run.max_restarts must be >= 0")
-    if cfg.run.iterations < 0:
-        raise ConfigError(f"run.iterations = {cfg.run.iterations}: must be >= 0")
-    if cfg.policy.backbone == "transformer" and cfg.policy.kind != "flow":
-        raise ConfigError(f"policy.backbone = 'transformer' is the flow policy's; policy.kind is {cfg.policy.kind!r}")
-    if cfg.policy.width % max(cfg.policy.heads, 1):
-        raise ConfigError(f"policy.width = {cfg.policy.width}: must be a multiple of policy.heads = {cfg.policy.heads}")
-    if cfg.hosts and not any("sim" in entry.services for entry in cfg.hosts.values()):
-        raise ConfigError("[hosts]: no host runs sim")
-    for path in ("log.flush_s", "sim.groups", "sim.envs_per_group", "sim.cores_per_env", "sim.segment_length",
-                 "policy.chunk", "algo.epochs", "algo.minibatches", "train.batch_size", "train.lr", "train.threads",
-                 "train.world_size", "gen.threads",
-                 "run.stats_interval", "train.max_pending", "viz.window_s", "viz.port", "policy.embed_dim",
-                 "policy.denoise_steps", "policy.width", "policy.depth", "policy.heads", "policy.patch"):
-        section, key = path.split(".")
-        positive(path, getattr(getattr(cfg, section), key))
-    if not 0 < cfg.algo.gamma <= 1:
-        raise ConfigError(f"algo.gamma = {cfg.algo.gamma}: must be in (0, 1]")
-    if not cfg.env.max_abs_reward > 0:  # NaN too
-        raise ConfigError(f"env.max_abs_reward = {cfg.env.max_abs_reward}: must be > 0 (inf: no bound)")
-    if not cfg.bus.listen and not cfg.bus.connect:
-        raise ConfigError("bus.listen and bus.connect are both empty: services could not find each other")
-    if cfg.train.batch_size % cfg.num_envs:
-        raise ConfigError(f"train.batch_size = {cfg.train.batch_size}: must be a multiple of the number of envs "
-                          f"(sim.groups x sim.envs_per_group = {cfg.num_envs}); each env runs batch_size / envs "
-                          "decisions per iteration")
+                          "which sim.core_rebinding = true does not use (rebinding hands out single cores); set "
+                          "sim.cores_per_env = 1, or leave sim.core_rebinding to the mode")
     if cfg.algo.name == "grpo":
-        envs = cfg.sim.groups * cfg.sim.envs_per_group
+        envs = cfg.num_envs
         if cfg.algo.group_size < 2 or envs % cfg.algo.group_size:
             raise ConfigError(f"algo.group_size = {cfg.algo.group_size}: grpo needs at least 2 rollouts per group "
                               f"and the {envs} envs (sim.groups x sim.envs_per_group) to split into whole groups")
@@ -577,29 +634,40 @@ def _check_semantics(cfg: Config) -> None:
             raise ConfigError(f"algo.name = \"grpo\" with run.mode = {cfg.run.mode!r}: grpo learns from whole "
                               "episodes, which a rollout -> train barrier of fixed length cannot wait for; use "
                               "run.mode = \"ebrl\" or \"async\" (or train.overlap = true)")
-    if cfg.eval.every < 0 or cfg.eval.episodes < 1 or cfg.eval.video_episodes < 0 or cfg.eval.final_timeout < 0:
-        raise ConfigError(f"[eval]: every ({cfg.eval.every}), video_episodes ({cfg.eval.video_episodes}) and "
-                          f"final_timeout ({cfg.eval.final_timeout}) must be >= 0 and episodes "
-                          f"({cfg.eval.episodes}) >= 1")
-    if not 0 <= cfg.eval.seeds <= 2**32 - 1 - cfg.eval.episodes:
-        raise ConfigError(f"eval.seeds = {cfg.eval.seeds}: must be in [0, 2^32 - 1 - eval.episodes] (simulators "
-                          "take 32-bit seeds)")
-    if cfg.algo.max_staleness < 0:
-        raise ConfigError(f"algo.max_staleness = {cfg.algo.max_staleness}: must be >= 0")
-    if cfg.run.slowdown:
-        try:
-            parse_slowdown(cfg.run.slowdown)
-        except ValueError as exc:
-            raise ConfigError(f"run.slowdown = {cfg.run.slowdown!r}: {exc}") from None
-    for path in ("alloc.window", "alloc.patience", "alloc.gap", "alloc.min_gen_cores", "alloc.min_train_cores",
-                 "alloc.profile_seconds"):
-        section, key = path.split(".")
-        positive(path, getattr(getattr(cfg, section), key))
+
+
+def _check_batching(cfg: Config) -> None:
+    """An update's batch against the envs that fill it and the ranks that split it."""
+    if cfg.train.batch_size % cfg.num_envs:
+        raise ConfigError(f"train.batch_size = {cfg.train.batch_size}: must be a multiple of the number of envs "
+                          f"(sim.groups x sim.envs_per_group = {cfg.num_envs}); each env runs batch_size / envs "
+                          "decisions per iteration")
     if cfg.train.world_size > 1 and cfg.train.batch_size // cfg.train.world_size < cfg.algo.minibatches:
         raise ConfigError(f"train.world_size = {cfg.train.world_size}: each rank's share of train.batch_size "
                           f"({cfg.train.batch_size}) must hold algo.minibatches ({cfg.algo.minibatches}) decisions")
-    if cfg.train.max_pending < cfg.train.batch_size:
-        raise ConfigError(f"train.max_pending = {cfg.train.max_pending}: must be >= train.batch_size ({cfg.train.batch_size})")
+
+
+def _check_vectorized(cfg: Config) -> None:
+    """What a vectorized group (one process stepping its envs as one batch) cannot do."""
+    if cfg.env.backend == "mjwarp" and cfg.sim.vectorized is False:
+        raise ConfigError("sim.vectorized = false: an mjwarp group is one MuJoCo Warp model of envs_per_group worlds; "
+                          "for one CPU MuJoCo env per worker process use env.backend = \"gymnasium\" with "
+                          "env.id = \"ebrl.envs.tasks:PandaPickCube-v0\" (or your task through "
+                          "ebrl.envs.mjtask.MjTaskEnv)")
+    if not vectorized(cfg):
+        return
+    if cfg.alloc.enabled:
+        raise ConfigError("alloc.enabled: the allocator profiles the simulator as one env per worker process, and "
+                          "sim.vectorized runs a group's envs as one batch (GPU PhysX groups are vectorized by "
+                          "default); set alloc.enabled = false, or sim.vectorized = false")
+    if cfg.sim.cores_per_env > 1:
+        raise ConfigError(f"sim.cores_per_env = {cfg.sim.cores_per_env}: pins each env worker to a set of cores, "
+                          "which sim.vectorized does not use (a vectorized group runs on the whole budget); set "
+                          "sim.cores_per_env = 1")
+    if cfg.algo.name == "grpo":
+        raise ConfigError("sim.vectorized: grpo needs group-mates reset to the same initial state, which a "
+                          "vectorized batch's partial resets cannot promise; set sim.vectorized = false (GPU PhysX "
+                          "groups are vectorized by default)")
 
 
 def parse_slowdown(text: str) -> tuple[str, float, float]:

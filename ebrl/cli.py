@@ -1,4 +1,7 @@
-"""``ebrl`` command line: up, eval, stats, profile, report, bench, router, secret, schemas, config, graph."""
+"""``ebrl`` command line: up, eval, stats, profile, report, bench, router, secret, schemas, config, graph.
+
+Each command is two functions, ``_args_<command>`` (its arguments) and ``_run_<command>`` (what it does,
+importing what it needs only then, so ``ebrl --help`` stays fast), listed once in :data:`COMMANDS`."""
 
 from __future__ import annotations
 
@@ -6,14 +9,7 @@ import argparse
 import sys
 
 
-def main(argv: list[str] | None = None) -> int:
-    from ebrl import __version__
-
-    parser = argparse.ArgumentParser(prog="ebrl", description="Asynchronous embodied RL over a Zenoh bus.")
-    parser.add_argument("--version", action="version", version=f"ebrl {__version__}")
-    sub = parser.add_subparsers(dest="command", required=True)
-
-    p = sub.add_parser("up", help="start a training run from a TOML config")
+def _args_up(p: argparse.ArgumentParser) -> None:
     p.add_argument("config", help="path to a config, e.g. configs/quickstart.toml")
     p.add_argument("--set", action="append", default=[], dest="overrides", metavar="SECTION.KEY=VALUE",
                    help="override one config value (TOML syntax), e.g. --set run.iterations=2")
@@ -31,7 +27,15 @@ def main(argv: list[str] | None = None) -> int:
                    help="continue a stopped run in its directory, from its latest checkpoint (policy, optimizer, "
                         "version); run.iterations counts from the run's start")
 
-    p = sub.add_parser("eval", help="evaluate a trained policy on held-out seeds: a table, eval.json, videos")
+
+def _run_up(args: argparse.Namespace) -> int:
+    from ebrl.launch import up
+
+    return up(args.config, args.overrides, viz=args.viz, resume=args.resume, only=args.only, host=args.host,
+              instance=args.instance)
+
+
+def _args_eval(p: argparse.ArgumentParser) -> None:
     p.add_argument("path", help="a run directory (its latest policy, or --best) or a .safetensors policy file")
     p.add_argument("--episodes", type=int, default=10, help="episodes to run (default 10)")
     p.add_argument("--seed", type=int, default=None,
@@ -50,7 +54,16 @@ def main(argv: list[str] | None = None) -> int:
                    help="where to write eval.json (default: RUN_DIR/eval.json for a run directory, ./eval.json "
                         "for a file)")
 
-    p = sub.add_parser("stats", help="print decoded ebrl/stats/** messages live")
+
+def _run_eval(args: argparse.Namespace) -> int:
+    from ebrl.evaluate import command
+
+    return command(args.path, episodes=args.episodes, seed=args.seed, video=args.video,
+                   video_episodes=args.video_episodes, stochastic=args.stochastic, best=args.best,
+                   config=args.config, out=args.out)
+
+
+def _args_stats(p: argparse.ArgumentParser) -> None:
     p.add_argument("run_dir", nargs="?", default="",
                    help="the run's directory (or its bus.secret file): signs in with the run's secret and connects "
                         "to its launcher; omit for a run with bus.auth = false")
@@ -61,7 +74,14 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--spans", action="store_true", help="also print timeline spans")
     p.add_argument("--count", type=int, default=0, help="exit after this many messages (0: until Ctrl-C)")
 
-    p = sub.add_parser("bench", help="run a config in several modes, interleaved, and compare throughput")
+
+def _run_stats(args: argparse.Namespace) -> int:
+    from ebrl.stats import watch
+
+    return watch(args.connect, args.run, spans=args.spans, count=args.count, secret=args.run_dir)
+
+
+def _args_bench(p: argparse.ArgumentParser) -> None:
     p.add_argument("config")
     p.add_argument("--modes", default="ebrl,colocated,hybrid,async", help="comma-separated modes")
     p.add_argument("--ablations", action="store_true", help="add ebrl with each mechanism (allocator, group_pipeline, overlap, core_rebinding) "
@@ -79,21 +99,50 @@ def main(argv: list[str] | None = None) -> int:
                    help="seconds to measure the raw simulator capacity (the physical limit; 0 skips it)")
     p.add_argument("--set", action="append", default=[], dest="overrides", metavar="SECTION.KEY=VALUE")
 
-    p = sub.add_parser("profile", help="profile each stage alone and print the tables and Algorithm 1's allocation")
+
+def _run_bench(args: argparse.Namespace) -> int:
+    from ebrl import bench
+
+    return bench.main(args.config, args.modes, args.ablations, args.duration, args.repeat, args.json,
+                      args.overrides, args.raw_seconds, args.trajectories, args.variant)
+
+
+def _args_profile(p: argparse.ArgumentParser) -> None:
     p.add_argument("config")
     p.add_argument("--force", action="store_true", help="measure even if a fresh profile of this machine exists")
     p.add_argument("--seconds", type=float, default=None, help="seconds per grid point (default alloc.profile_seconds)")
     p.add_argument("--out", default=None, help="profile file (default alloc.profile_path or runs/profiles/<name>.json)")
     p.add_argument("--set", action="append", default=[], dest="overrides", metavar="SECTION.KEY=VALUE")
 
-    p = sub.add_parser("report", help="write a run's Gantt PNG, throughput PNG and report.md from its recording")
+
+def _run_profile(args: argparse.Namespace) -> int:
+    from ebrl.alloc.cli import profile_command
+
+    return profile_command(args.config, args.overrides, force=args.force, seconds=args.seconds, out=args.out)
+
+
+def _args_report(p: argparse.ArgumentParser) -> None:
     p.add_argument("run_dir", help="a run directory (holds stats.msgpack)")
     p.add_argument("--start", type=float, default=None, help="window start, seconds after the run's first record")
     p.add_argument("--end", type=float, default=None, help="window end, seconds after the run's first record")
     p.add_argument("--last", type=float, default=None, help="window: the last S seconds of the run")
     p.add_argument("--out", default=None, help="output directory (default RUN_DIR/report)")
 
-    p = sub.add_parser("router", help="run a Zenoh router that the hosts of a multi-host run connect to")
+
+def _run_report(args: argparse.Namespace) -> int:
+    from ebrl.viz import report
+
+    try:
+        paths = report.write(args.run_dir, start=args.start, end=args.end, last=args.last, out=args.out)
+    except (OSError, ValueError) as exc:
+        print(f"ebrl: report: {exc}", file=sys.stderr)
+        return 2
+    for path in paths.values():
+        print(path)
+    return 0
+
+
+def _args_router(p: argparse.ArgumentParser) -> None:
     p.add_argument("--listen", action="append", default=[], metavar="ENDPOINT",
                    help="endpoint to listen on (repeatable; default tcp/127.0.0.1:7447; one other hosts can "
                         "reach must be tls/... unless --insecure)")
@@ -105,93 +154,101 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--insecure", action="store_true", help="allow plain tcp endpoints beyond this host (warns)")
     p.add_argument("--quiet", action="store_true", help="do not print services joining and leaving")
 
-    p = sub.add_parser("secret", help="create a secret file for a run over several hosts (bus.secret_file)")
+
+def _run_router(args: argparse.Namespace) -> int:
+    from ebrl.bus.router import serve
+
+    return serve(args.listen or ["tcp/127.0.0.1:7447"], args.connect, args.config, args.quiet,
+                 secret=args.secret, insecure=args.insecure)
+
+
+def _args_secret(p: argparse.ArgumentParser) -> None:
     p.add_argument("path", help="where to write it (mode 0600; an existing file is never replaced)")
 
-    p = sub.add_parser("schemas", help="write schemas/*.json from ebrl/messages.py")
+
+def _run_secret(args: argparse.Namespace) -> int:
+    from ebrl.bus import auth
+
+    try:
+        print(auth.create(args.path))
+    except OSError as exc:
+        print(f"ebrl secret: {args.path}: {exc.strerror or exc}", file=sys.stderr)
+        return 2
+    return 0
+
+
+def _args_schemas(p: argparse.ArgumentParser) -> None:
     p.add_argument("--dir", default="schemas")
 
-    p = sub.add_parser("config", help="check a config, or list every config key")
+
+def _run_schemas(args: argparse.Namespace) -> int:
+    from ebrl.messages import write_schemas
+
+    for path in write_schemas(args.dir):
+        print(path)
+    return 0
+
+
+def _args_config(p: argparse.ArgumentParser) -> None:
     p.add_argument("config", nargs="?", help="config to validate and print resolved")
     p.add_argument("--set", action="append", default=[], dest="overrides", metavar="SECTION.KEY=VALUE")
 
-    p = sub.add_parser("graph", help="print the service graph: who publishes, subscribes to and queries what")
+
+def _run_config(args: argparse.Namespace) -> int:
+    from ebrl import config
+
+    if not args.config:
+        print(config.describe())
+        return 0
+    try:
+        print(config.dump_toml(config.load(args.config, args.overrides)), end="")
+    except config.ConfigError as exc:
+        print(f"ebrl: config error: {exc}", file=sys.stderr)
+        return 2
+    return 0
+
+
+def _args_graph(p: argparse.ArgumentParser) -> None:
     p.add_argument("--markdown", action="store_true", help="as docs/graph.md (a Mermaid chart and a table)")
 
-    args = parser.parse_args(argv)
-    if args.command == "up":
-        from ebrl.launch import up
 
-        return up(args.config, args.overrides, viz=args.viz, resume=args.resume, only=args.only, host=args.host,
-                  instance=args.instance)
-    if args.command == "eval":
-        from ebrl.evaluate import command
+def _run_graph(args: argparse.Namespace) -> int:
+    from ebrl import graph
 
-        return command(args.path, episodes=args.episodes, seed=args.seed, video=args.video,
-                       video_episodes=args.video_episodes, stochastic=args.stochastic, best=args.best,
-                       config=args.config, out=args.out)
-    if args.command == "stats":
-        from ebrl.stats import watch
+    print(graph.markdown() if args.markdown else graph.text(), end="")
+    return 0
 
-        return watch(args.connect, args.run, spans=args.spans, count=args.count, secret=args.run_dir)
-    if args.command == "bench":
-        from ebrl import bench
 
-        return bench.main(args.config, args.modes, args.ablations, args.duration, args.repeat, args.json,
-                          args.overrides, args.raw_seconds, args.trajectories, args.variant)
-    if args.command == "profile":
-        from ebrl.alloc.cli import profile_command
+COMMANDS = {  # name: (help, its arguments, what it runs)
+    "up": ("start a training run from a TOML config", _args_up, _run_up),
+    "eval": ("evaluate a trained policy on held-out seeds: a table, eval.json, videos", _args_eval, _run_eval),
+    "stats": ("print decoded ebrl/stats/** messages live", _args_stats, _run_stats),
+    "bench": ("run a config in several modes, interleaved, and compare throughput", _args_bench, _run_bench),
+    "profile": ("profile each stage alone and print the tables and Algorithm 1's allocation", _args_profile, _run_profile),
+    "report": ("write a run's Gantt PNG, throughput PNG and report.md from its recording", _args_report, _run_report),
+    "router": ("run a Zenoh router that the hosts of a multi-host run connect to", _args_router, _run_router),
+    "secret": ("create a secret file for a run over several hosts (bus.secret_file)", _args_secret, _run_secret),
+    "schemas": ("write schemas/*.json from ebrl/messages.py", _args_schemas, _run_schemas),
+    "config": ("check a config, or list every config key", _args_config, _run_config),
+    "graph": ("print the service graph: who publishes, subscribes to and queries what", _args_graph, _run_graph),
+}
 
-        return profile_command(args.config, args.overrides, force=args.force, seconds=args.seconds, out=args.out)
-    if args.command == "report":
-        from ebrl.viz import report
 
-        try:
-            paths = report.write(args.run_dir, start=args.start, end=args.end, last=args.last, out=args.out)
-        except (OSError, ValueError) as exc:
-            print(f"ebrl: report: {exc}", file=sys.stderr)
-            return 2
-        for path in paths.values():
-            print(path)
-        return 0
-    if args.command == "router":
-        from ebrl.bus.router import serve
+def parser() -> argparse.ArgumentParser:
+    """``ebrl``'s argument parser: one sub-command per entry of :data:`COMMANDS`."""
+    from ebrl import __version__
 
-        return serve(args.listen or ["tcp/127.0.0.1:7447"], args.connect, args.config, args.quiet,
-                     secret=args.secret, insecure=args.insecure)
-    if args.command == "secret":
-        from ebrl.bus import auth
+    out = argparse.ArgumentParser(prog="ebrl", description="Asynchronous embodied RL over a Zenoh bus.")
+    out.add_argument("--version", action="version", version=f"ebrl {__version__}")
+    sub = out.add_subparsers(dest="command", required=True)
+    for name, (text, add_arguments, _) in COMMANDS.items():
+        add_arguments(sub.add_parser(name, help=text))
+    return out
 
-        try:
-            print(auth.create(args.path))
-        except OSError as exc:
-            print(f"ebrl secret: {args.path}: {exc.strerror or exc}", file=sys.stderr)
-            return 2
-        return 0
-    if args.command == "schemas":
-        from ebrl.messages import write_schemas
 
-        for path in write_schemas(args.dir):
-            print(path)
-        return 0
-    if args.command == "config":
-        from ebrl import config
-
-        if not args.config:
-            print(config.describe())
-            return 0
-        try:
-            print(config.dump_toml(config.load(args.config, args.overrides)), end="")
-        except config.ConfigError as exc:
-            print(f"ebrl: config error: {exc}", file=sys.stderr)
-            return 2
-        return 0
-    if args.command == "graph":
-        from ebrl import graph
-
-        print(graph.markdown() if args.markdown else graph.text(), end="")
-        return 0
-    return 2
+def main(argv: list[str] | None = None) -> int:
+    args = parser().parse_args(argv)
+    return COMMANDS[args.command][2](args)
 
 
 if __name__ == "__main__":

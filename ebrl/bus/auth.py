@@ -21,7 +21,6 @@ Signing in does not encrypt the session: on loopback that is enough; between hos
 
 from __future__ import annotations
 
-import json
 import os
 import secrets
 import stat

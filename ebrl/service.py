@@ -67,12 +67,9 @@ class Service:
             on_slowdown=lambda f: self.event("slowdown", f"{self.role}/{self.instance}: injected slowdown x{f:g} "
                                                          "from now on"),
             on_full=self.flush_spans)
-        self._stats_seq = 0
-        self._proc = psutil.Process()
+        self.reports = StatsReporter(self.run_name, self.role, instance, self.meter.started_at)
         self.device: Any = None  # the torch device of gen and train (``use_device``)
         self.memory_cap: float | None = None  # the fraction of the GPU's memory this process may allocate
-        self.started_at = self.meter.started_at
-        self._loop_lag = 0.0  # seconds: the event loop's longest lateness since the last stats report
 
     # --- to override ---------------------------------------------------------------
 
@@ -202,12 +199,12 @@ class Service:
             asleep = time.monotonic()
             await asyncio.sleep(SPAN_FLUSH_S)
             # how late the event loop woke: the longest it was held since the last report (proc/loop_lag_max_ms)
-            self._loop_lag = max(self._loop_lag, time.monotonic() - asleep - SPAN_FLUSH_S)
+            self.reports.loop_lag(time.monotonic() - asleep - SPAN_FLUSH_S)
             self.flush_spans()
 
     async def _stats_loop(self) -> None:
         self.meter.start_interval()
-        self._proc.cpu_percent()
+        self.reports.start()
         while True:
             await asyncio.sleep(self.cfg.run.stats_interval)
             await self._publish_stats()
@@ -215,10 +212,7 @@ class Service:
     async def publish_report(self, metrics: dict[str, float]) -> None:
         """Publish a stats report of just ``metrics`` now, on this service's stats key and numbered with the
         periodic ones: for a result that happens once (an evaluation), not every interval."""
-        report = StatsReport(run=self.run_name, service=self.role, instance=self.instance, time=time.time(),
-                             seq=self._stats_seq, metrics=dict(metrics))
-        self._stats_seq += 1
-        await self.bus.put(keys.stats(self.run_name, self.role, self.instance), report)
+        await self.bus.put(keys.stats(self.run_name, self.role, self.instance), self.reports.next(dict(metrics)))
 
     async def _publish_stats(self) -> None:
         try:
@@ -229,23 +223,52 @@ class Service:
         await self.bus.put(keys.stats(self.run_name, self.role, self.instance), report)
 
     def _report(self) -> StatsReport:
+        """The periodic report: the meter's counters and rates, what every process reports, the service's own."""
         metrics = self.meter.metrics()
-        metrics["bus/malformed"] = float(sum(self.bus.malformed.values()))
-        metrics["bus/oversized"] = float(sum(self.bus.oversized.values()))
-        metrics["bus/sender_dropped"] = float(self.bus.sender_dropped)
-        metrics["proc/cpu_percent"] = self._proc.cpu_percent()
-        metrics["proc/rss_mb"] = self._proc.memory_info().rss / 2**20
-        metrics["proc/uptime_s"] = time.time() - self.started_at
-        metrics["proc/loop_lag_max_ms"], self._loop_lag = 1000 * self._loop_lag, 0.0
+        metrics.update(self.reports.process_metrics(self.bus))
         metrics["quota/cores"] = float(len(self.cores_in_use()))
-        if "torch" in sys.modules:
-            metrics["quota/threads"] = float(sys.modules["torch"].get_num_threads())
         if self.device is not None:
             metrics.update(devices.metrics(self.role, self.device, self.memory_cap))
         metrics.update(self.metrics())
-        report = StatsReport(run=self.run_name, service=self.role, instance=self.instance, time=time.time(),
-                             seq=self._stats_seq, metrics=metrics)
-        self._stats_seq += 1
+        return self.reports.next(metrics)
+
+
+class StatsReporter:
+    """A service's stats reports: numbered in order (``seq``), with what every process reports about itself
+    (``bus/*`` drops, ``proc/*`` CPU, memory, uptime and event-loop lateness, ``quota/threads``)."""
+
+    def __init__(self, run: str, role: str, instance: int, started_at: float):
+        self.run, self.role, self.instance, self.started_at = run, role, instance, started_at
+        self.seq = 0
+        self._proc = psutil.Process()
+        self._loop_lag = 0.0  # seconds: the event loop's longest lateness since the last report
+
+    def start(self) -> None:
+        """Start the first interval of ``proc/cpu_percent``."""
+        self._proc.cpu_percent()
+
+    def loop_lag(self, seconds: float) -> None:
+        """The event loop woke ``seconds`` late; the longest since the last report is reported."""
+        self._loop_lag = max(self._loop_lag, seconds)
+
+    def process_metrics(self, bus: Any) -> dict[str, float]:
+        metrics = {"bus/malformed": float(sum(bus.malformed.values())),
+                   "bus/oversized": float(sum(bus.oversized.values())),
+                   "bus/sender_dropped": float(bus.sender_dropped),
+                   "proc/cpu_percent": self._proc.cpu_percent(),
+                   "proc/rss_mb": self._proc.memory_info().rss / 2**20,
+                   "proc/uptime_s": time.time() - self.started_at,
+                   "proc/loop_lag_max_ms": 1000 * self._loop_lag}
+        self._loop_lag = 0.0
+        if "torch" in sys.modules:
+            metrics["quota/threads"] = float(sys.modules["torch"].get_num_threads())
+        return metrics
+
+    def next(self, metrics: dict[str, float]) -> StatsReport:
+        """``metrics`` as the next report."""
+        report = StatsReport(run=self.run, service=self.role, instance=self.instance, time=time.time(),
+                             seq=self.seq, metrics=metrics)
+        self.seq += 1
         return report
 
 

@@ -19,6 +19,7 @@ left, and on a secondary host whether the primary is gone.
 
 from __future__ import annotations
 
+import asyncio
 import dataclasses
 import time
 from dataclasses import dataclass
@@ -157,6 +158,12 @@ class Membership:
 
     def is_live(self, role: str, instance: int | str) -> bool:
         return keys.live(self.run, role, instance) in self.live
+
+    async def number_taken(self, wait_s: float = 1.0) -> bool:
+        """Whether another host's launcher already has this host's number; the other hosts' tokens arrive once
+        the routers met, so it looks after ``wait_s``."""
+        await asyncio.sleep(wait_s)
+        return self.is_live("launcher", self.me)
 
     def services_live(self) -> int:
         """Live service processes (launchers not counted)."""

@@ -62,6 +62,13 @@ def banner(cfg: config_mod.Config, plan: HostPlan, run_dir: Path, endpoint: str)
     return f"run {cfg.run.name}: {run_dir}  ({where}bus {endpoint or ', '.join(cfg.bus.connect)})"
 
 
+def launcher_endpoint(cfg: config_mod.Config, plan: HostPlan) -> str:
+    """Where this host's launcher listens: the first of bus.listen (or of bus.config_file's, which are kept), a
+    free port if it is taken (not between hosts: ``strict``); empty when it only connects."""
+    listen = config_file_listen(cfg.bus.config_file) or cfg.bus.listen
+    return listen_endpoint(listen[0], strict=plan.multi) if listen else ""
+
+
 def viz_line(viz: config_mod.VizSection, run_dir: Path) -> str:
     return f"viz: rerun {viz.rerun} -> {run_dir / 'timeline.rrd'}" + (
         f" (viewer: rerun --connect rerun+http://127.0.0.1:{viz.port}/proxy)" if viz.rerun == "serve" else "")
@@ -82,6 +89,18 @@ class LauncherBus:
         if self.recorder is not None:
             self.bus.subscribe_raw(keys.stats_all(self.run), self.recorder.write)
         self._seq = 0
+        self.ctl_unknown = 0  # control messages for a service this run does not have
+
+    def count_unknown_controls(self, roles: tuple[str, ...] | list[str]) -> None:
+        """Count control messages for a service this run does not have (every service ignores them)."""
+        def on_control(key: str, payload: bytes) -> None:  # a Zenoh thread
+            role = keys.role_of(key)
+            if role != "launcher" and role not in roles:
+                if not self.ctl_unknown:
+                    log.warning("control message for an unknown service ignored: %s (further ones only counted)",
+                                key)
+                self.ctl_unknown += 1
+        self.bus.subscribe_raw(keys.ctl(self.run, "*", "*", "*"), on_control)
 
     def consume(self, key: str, cls: type, handler, capacity: int) -> asyncio.Task:
         """Call ``handler(key, message)`` on the event loop for each message on ``key`` (the latest
@@ -163,7 +182,7 @@ class Launcher:
         self.gpu_env = gpu_env or {}  # stage -> the CUDA variables it starts with (the allocator's first GPU share)
         self.failure: str | None = None
         self.stop_reason = ""
-        self.ctl_unknown, self.stalls = 0, stall.StallWatch(cfg.run.stall_timeout)
+        self.stalls = stall.StallWatch(cfg.run.stall_timeout)
         self.started = time.monotonic()
         self.final_eval = FinalEvaluation(cfg.eval.final_timeout, cfg.run.iterations, self.console.say)
 
@@ -172,8 +191,7 @@ class Launcher:
         for sig in (signal.SIGINT, signal.SIGTERM):
             asyncio.get_running_loop().add_signal_handler(sig, self._on_signal, sig)
         try:
-            listen = config_file_listen(self.cfg.bus.config_file) or self.cfg.bus.listen  # the file's are kept
-            endpoint = listen_endpoint(listen[0], strict=self.plan.multi) if listen else ""
+            endpoint = launcher_endpoint(self.cfg, self.plan)
         except OSError as exc:
             self.console.say(f"ebrl: {exc}")
             return 2
@@ -185,9 +203,11 @@ class Launcher:
             role_env={"alloc": procenv.service_env(local_sim="sim" in self.plan.roles)},  # it plans this host
             version_floor=self.view.version_floor, optional=OPTIONAL_ROLES)
         self.link.bus.watch_liveliness(keys.live_all(self.run_name), self._on_liveliness)
-        self.link.bus.subscribe_raw(keys.ctl(self.run_name, "*", "*", "*"), self._on_control)
+        self.link.count_unknown_controls(self.roles)
         self.console.say(banner(self.cfg, self.plan, self.run_dir, endpoint))
-        if self.plan.multi and not await self.host_number_free():
+        if self.plan.multi and await self.members.number_taken():
+            self.console.say(f"ebrl: host {self.plan.instance} of run {self.run_name} is already up elsewhere on the "
+                             "bus; give each host its own --instance (or --host)")
             await self.link.close()
             return 2
         self.link.bus.declare_token(keys.live(self.run_name, "launcher", self.plan.instance))
@@ -215,15 +235,6 @@ class Launcher:
         self.finish(code)
         return code
 
-    async def host_number_free(self) -> bool:
-        """The other hosts' tokens arrive once the routers met: is this host's number taken?"""
-        await asyncio.sleep(1.0)
-        if not self.members.is_live("launcher", self.plan.instance):
-            return True
-        self.console.say(f"ebrl: host {self.plan.instance} of run {self.run_name} is already up elsewhere on the "
-                         "bus; give each host its own --instance (or --host)")
-        return False
-
     def elapsed(self) -> float:
         return time.monotonic() - self.started
 
@@ -239,11 +250,7 @@ class Launcher:
             if self.failure is not None:
                 return False
             if time.monotonic() > deadline:
-                self.failure = (f"not up after {self.cfg.run.startup_timeout:.0f} s: "
-                                + ", ".join(sorted(c.name for c in missing)))
-                self.console.say("ebrl: " + self.failure)
-                for child in missing:
-                    self.console.say(f"--- last lines of {child.log_path}:\n{child.tail()}")
+                self.failure = self.supervisor.not_up(missing, self.cfg.run.startup_timeout)
                 return False
             await asyncio.sleep(0.05)
         names = ", ".join(c.name for c in children)
@@ -297,7 +304,7 @@ class Launcher:
 
     def publish_stats(self) -> None:
         """The launcher's own stats report: restarts per service, services up."""
-        metrics = {**self.supervisor.metrics(), "launcher/ctl_unknown_service": float(self.ctl_unknown),
+        metrics = {**self.supervisor.metrics(), "launcher/ctl_unknown_service": float(self.link.ctl_unknown),
                    "launcher/services_live": float(self.members.services_live()),
                    "launcher/stats_refused": float(self.view.refused)}
         self.link.publish_stats(metrics)
@@ -340,15 +347,6 @@ class Launcher:
 
     def _on_signal(self, sig: signal.Signals) -> None:
         self.stop(f"signal {sig.name}", f"\nebrl: {sig.name} received, stopping every service")
-
-    def _on_control(self, key: str, payload: bytes) -> None:
-        """(Zenoh thread) Control messages for a service this run does not have are ignored by everyone;
-        counted here."""
-        role = keys.role_of(key)
-        if role != "launcher" and role not in self.roles:
-            if not self.ctl_unknown:
-                log.warning("control message for an unknown service ignored: %s (further ones only counted)", key)
-            self.ctl_unknown += 1
 
     def _on_liveliness(self, key: str, alive: bool) -> None:
         change = self.members.update(key, alive)

@@ -248,6 +248,14 @@ class Supervisor:
             if child.name == name and child.running():
                 _kill_group(child)
 
+    def not_up(self, missing: list[Child], after_s: float) -> str:
+        """The failure of a start that timed out, said with the last lines of each missing child's log."""
+        failure = f"not up after {after_s:.0f} s: " + ", ".join(sorted(c.name for c in missing))
+        self.say("ebrl: " + failure)
+        for child in missing:
+            self.say(f"--- last lines of {child.log_path}:\n{child.tail()}")
+        return failure
+
     def restarts(self) -> dict[str, int]:
         """Restarts after a failure, per child that had any."""
         return {c.name: c.restarts for c in self.children if c.restarts}

@@ -3,6 +3,7 @@ on a real pseudo-terminal."""
 
 from __future__ import annotations
 
+import asyncio
 import fcntl
 import io
 import json
@@ -168,5 +169,12 @@ def test_membership_reports_hosts_joining_and_leaving_and_a_lost_primary():
     members.update(keys.live("r", "launcher", 2), True)
     members.ending = True
     assert members.update(keys.live("r", "launcher", 2), False) is None  # leaving while this host stops
+
+
+def test_a_host_number_is_taken_when_another_launcher_has_it_live():
+    members = Membership("r", me=1, multi=True)
+    assert not asyncio.run(members.number_taken(wait_s=0.0))
+    members.update(keys.live("r", "launcher", 1), True)  # a launcher elsewhere with this host's number
+    assert asyncio.run(members.number_taken(wait_s=0.0))
     one = Membership("r")
     assert one.update(keys.live("r", "launcher", 3), True) is None and one.hosts() == [0]  # a one-host run

@@ -52,7 +52,7 @@ def test_a_full_block_subscription_holds_the_publisher_back_and_loses_nothing(mo
 
         task = asyncio.create_task(publish())
         # 1 queued at the consumer, 1 held by the publisher's sender, 4 in its sender queue: the rest must wait.
-        await until(lambda: len(sub) == 1 and publisher._outbox.full(), 10, "the publisher to fill up")
+        await until(lambda: len(sub) == 1 and publisher.sender.queue.full(), 10, "the publisher to fill up")
         assert not task.done() and sub.received == 1
         got = []
         while len(got) < 10:
@@ -149,7 +149,7 @@ def test_a_crash_loses_what_was_not_sent_and_leaves_no_answerer():
         await until(lambda: len(sub) == 1, 5, "the first sample")
         doomed.crash()  # its sender holds at most one more sample, waiting for room
         got = [int(m.time) for _, m in sub.drain()]
-        await until(lambda: not doomed._sender.is_alive(), 10, "the dead bus's sender to stop")
+        await until(lambda: not doomed.sender.thread.is_alive(), 10, "the dead bus's sender to stop")
         got += [int(m.time) for _, m in sub.drain()]
         assert got in ([0], [0, 1])
         assert await consumer.get("test/who", timeout=5) == []

@@ -27,7 +27,6 @@ from __future__ import annotations
 
 import asyncio
 import logging
-import queue
 import threading
 from dataclasses import dataclass
 from typing import Any, Callable
@@ -158,13 +157,7 @@ class MemoryBus(BusBase):
         """Die like a killed process: what is still unsent is lost (a sample being delivered may still
         arrive), subscriptions stop, and tokens and queryables vanish at once (watchers see ``alive=False``)."""
         self._crashed = True
-        while True:
-            try:
-                self._outbox.get_nowait()
-                self._outbox.task_done()
-            except queue.Empty:
-                break
-        self._outbox.put_nowait(None)  # the sender thread ends
+        self.sender.drop_all()
         self._close_now()
 
     def _close_now(self) -> None:

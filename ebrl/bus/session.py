@@ -136,6 +136,72 @@ class Query:
         self._finish()
 
 
+class Sender:
+    """A bus's one sender thread: what is published, from the event loop or any thread, goes in order through
+    a bounded queue (``SENDER_QUEUE``) to the transport's blocking ``put``, so that no publisher waits on the
+    network; ``put`` waits for room, ``offer`` drops (counted) when there is none."""
+
+    def __init__(self, put: Callable[[str, bytes, bool], None], closed: Callable[[], bool], settle_s: float):
+        self._put, self._closed, self.settle_s = put, closed, settle_s
+        self.queue: queue.Queue = queue.Queue(maxsize=SENDER_QUEUE)
+        self.dropped = 0
+        self.thread = threading.Thread(target=self._loop, name="ebrl-bus-sender", daemon=True)
+        self.thread.start()
+
+    def offer(self, item: tuple[str, bytes, bool]) -> bool:
+        try:
+            self.queue.put_nowait(item)
+            return True
+        except queue.Full:
+            self.dropped += 1
+            return False
+
+    async def put(self, loop: asyncio.AbstractEventLoop, item: tuple[str, bytes, bool]) -> None:
+        try:
+            self.queue.put_nowait(item)
+        except queue.Full:
+            await loop.run_in_executor(None, self.queue.put, item)
+
+    def _loop(self) -> None:
+        while True:
+            item = self.queue.get()
+            if item is None:
+                return
+            key, payload, express = item
+            try:
+                self._put(key, payload, express)
+            except Exception as exc:  # a closed session at shutdown, mostly
+                if not self._closed():
+                    log.warning("put on %s failed: %s", key, exc)
+            finally:
+                self.queue.task_done()
+
+    async def flush(self, timeout: float) -> None:
+        """Wait until the queue is empty (best effort, bounded by ``timeout``), then ``settle_s`` for the last
+        put to leave the socket."""
+        deadline = time.monotonic() + timeout
+        while self.queue.unfinished_tasks:
+            if time.monotonic() > deadline:
+                return
+            await asyncio.sleep(0.005)
+        await asyncio.sleep(self.settle_s)
+
+    def drop_all(self) -> None:
+        """Lose what is still queued and end the thread (a bus that dies like a killed process)."""
+        while True:
+            try:
+                self.queue.get_nowait()
+                self.queue.task_done()
+            except queue.Empty:
+                break
+        self.queue.put_nowait(None)
+
+    async def stop(self, loop: asyncio.AbstractEventLoop) -> None:
+        """End the thread once it sent what is queued (at most 2 s more)."""
+        self.queue.put(None)
+        await loop.run_in_executor(None, self.thread.join, 2.0)
+
+
 class BusBase(abc.ABC):
     """The bus API, bridged to one asyncio loop: everything but the transport. Create it inside the running
     loop; ``loop`` is that loop. Declarations return a handle with ``undeclare()``."""
@@ -147,15 +213,17 @@ class BusBase(abc.ABC):
         self.loop = asyncio.get_running_loop()
         self.malformed: collections.Counter[str] = collections.Counter()
         self.oversized: collections.Counter[str] = collections.Counter()
-        self.sender_dropped = 0
         self._loop_thread = threading.get_ident()
         self._logged_keys: set[str] = set()
-        self._outbox: queue.Queue = queue.Queue(maxsize=SENDER_QUEUE)
         self._closed = False
         self._subscriptions: list[Subscription] = []
         self._tasks: set[asyncio.Future] = set()
-        self._sender = threading.Thread(target=self._send_loop, name="ebrl-bus-sender", daemon=True)
-        self._sender.start()
+        self.sender = Sender(self._put, lambda: self._closed, self._FLUSH_SETTLE_S)
+
+    @property
+    def sender_dropped(self) -> int:
+        """Messages published without waiting (``put_nowait``) and dropped because the sender queue was full."""
+        return self.sender.dropped
 
     # --- the transport --------------------------------------------------------------------
 
@@ -200,20 +268,11 @@ class BusBase(abc.ABC):
 
     async def put_bytes(self, key: str, payload: bytes, *, express: bool = False) -> None:
         """Publish an already encoded payload (encode once, send and serve many times)."""
-        item = (key, payload, express)
-        try:
-            self._outbox.put_nowait(item)
-        except queue.Full:
-            await self.loop.run_in_executor(None, self._outbox.put, item)
+        await self.sender.put(self.loop, (key, payload, express))
 
     def put_nowait(self, key: str, msg: Any, *, express: bool = False) -> bool:
         """Publish from any thread without waiting; a full sender queue drops it (counted)."""
-        try:
-            self._outbox.put_nowait((key, messages.encode_message(msg), express))
-            return True
-        except queue.Full:
-            self.sender_dropped += 1
-            return False
+        return self.sender.offer((key, messages.encode_message(msg), express))
 
     def put_bytes_blocking(self, key: str, payload: bytes) -> None:
         """Publish from a worker thread, past the sender queue (so unordered with ``put``): returns once the
@@ -223,28 +282,9 @@ class BusBase(abc.ABC):
             raise RuntimeError("put_bytes_blocking blocks its thread: call it from a worker thread")
         self._put(key, payload, False)
 
-    def _send_loop(self) -> None:
-        while True:
-            item = self._outbox.get()
-            if item is None:
-                return
-            key, payload, express = item
-            try:
-                self._put(key, payload, express)
-            except Exception as exc:  # a closed session at shutdown, mostly
-                if not self._closed:
-                    log.warning("put on %s failed: %s", key, exc)
-            finally:
-                self._outbox.task_done()
-
     async def flush(self, timeout: float = 2.0) -> None:
         """Wait until the sender queue is empty (best effort, bounded by ``timeout``)."""
-        deadline = time.monotonic() + timeout
-        while self._outbox.unfinished_tasks:
-            if time.monotonic() > deadline:
-                return
-            await asyncio.sleep(0.005)
-        await asyncio.sleep(self._FLUSH_SETTLE_S)
+        await self.sender.flush(timeout)
 
     # --- subscribing ------------------------------------------------------------------------
 
@@ -338,8 +378,7 @@ class BusBase(abc.ABC):
         self._closed = True
         for sub in self._subscriptions:
             sub.close()
-        self._outbox.put(None)
-        await self.loop.run_in_executor(None, self._sender.join, 2.0)
+        await self.sender.stop(self.loop)
         self._close_now()
 
 

@@ -1,15 +1,20 @@
-"""A real ``ebrl up`` and its stats stream, for tests, ``ebrl bench`` and benchmarks/.
+"""A real ``ebrl up`` and its stats stream, for tests, ``ebrl bench`` and benchmarks/; and any services of a run in
+one process, on the in-memory bus.
 
 :class:`Run` starts ``ebrl up CONFIG --set ...`` as a user would (a subprocess with its own bus on a
-free loopback port) and stops it with SIGINT, then SIGKILL; :class:`StatsWatcher` subscribes to the
-run's ``ebrl/stats/<run>/**`` on that port and keeps every :class:`~ebrl.messages.StatsReport`;
+free loopback port) and stops it with SIGINT, then SIGKILL; :class:`InProcessRun` runs the services of one
+run (any of sim, gen, train, eval, log, alloc, viz) as tasks of the caller's event loop over
+:mod:`ebrl.bus.memory`, so that a few iterations take seconds and every message can be watched;
+:class:`StatsWatcher` keeps every :class:`~ebrl.messages.StatsReport` of either kind of run;
 :class:`Output` keeps what a subprocess prints (a run's launcher, ``ebrl router``). Waiting is always
 for a condition with a deadline, never for a fixed time, and a wait that fails says what it waited for
-and how the process's output ended.
+and how the run ended.
 """
 
 from __future__ import annotations
 
+import asyncio
+import importlib
 import json
 import os
 import re
@@ -19,7 +24,7 @@ import sys
 import threading
 import time
 from pathlib import Path
-from typing import Callable, Literal, Sequence
+from typing import Any, Callable, Literal, Sequence
 
 import zenoh
 
@@ -27,9 +32,11 @@ from ebrl import config as config_mod
 from ebrl.bus import auth, keys
 from ebrl.bus.session import BusOptions, zenoh_config
 from ebrl.bus.endpoints import free_port
+from ebrl.bus.memory import MemoryBus, MemoryNetwork
 from ebrl.messages import MessageError, StatsReport, decode_stats_sample
 
-__all__ = ["Output", "Run", "RunError", "StatsWatcher", "free_port", "run_name", "source", "up_command", "up_sets"]
+__all__ = ["InProcessRun", "Output", "Run", "RunError", "StatsWatcher", "free_port", "run_name", "service_class",
+           "source", "up_command", "up_sets"]
 
 REPO = Path(__file__).resolve().parent.parent  # where `ebrl` and `services` are
 STOP_S = 30.0  # after SIGINT, before SIGKILL (the launcher itself stops every service within SHUTDOWN_S)
@@ -244,6 +251,83 @@ class Run:
         return self.proc.returncode
 
 
+def service_class(role: str) -> type:
+    """The service class of ``role``, from ``services/<role>.py`` (beside ``ebrl``, as the launcher runs them)."""
+    if str(REPO) not in sys.path:
+        sys.path.insert(0, str(REPO))
+    module = importlib.import_module(f"services.{role}")
+    return next(v for v in vars(module).values() if isinstance(v, type) and getattr(v, "role", None) == role)
+
+
+class InProcessRun:
+    """Services of one run as tasks of the running event loop, on one in-memory bus network: the real services
+    (``services/<role>.py``), models, env worker processes and protocols; only the transport is in memory.
+
+    ``roles``: ``"sim"`` or ``("sim", 1)`` (an instance other than 0). ``make_bus(network, role)`` gives each
+    service its bus (default: a :class:`~ebrl.bus.memory.MemoryBus`; a test may record what it sends).
+    :attr:`stats` watches every stats report, :attr:`watch` is a bus of the same network for anything else::
+
+        async with InProcessRun(cfg, ("train", "gen", "sim"), tmp_path) as run:
+            await run.stats.until(lambda: run.stats.latest("train/0", "train/policy_version", 0) >= 2, 120, "v2")
+
+    Leaving stops every service (as ``ctl/.../stop`` would) and raises :class:`RunError` unless each exited 0.
+    The services' CPU affinity controls pin this process's threads; leaving gives the caller's back."""
+
+    def __init__(self, cfg: config_mod.Config, roles: Sequence[str | tuple[str, int]], run_dir: str | os.PathLike,
+                 make_bus: Callable[[MemoryNetwork, str], Any] | None = None):
+        self.cfg, self.name, self.run_dir = cfg, cfg.run.name, Path(run_dir)
+        self.roles = [(r, 0) if isinstance(r, str) else r for r in roles]
+        self.make_bus = make_bus or (lambda network, role: MemoryBus(network))
+        self.services: list[Any] = []
+        self.tasks: list[asyncio.Task] = []
+        self.codes: list[Any] = []
+
+    async def __aenter__(self) -> "InProcessRun":
+        self._affinity = os.sched_getaffinity(0)
+        self.network = MemoryNetwork()
+        self.watch = MemoryBus(self.network)
+        self.stats = StatsWatcher(self)
+        for role, instance in self.roles:
+            service = service_class(role)(self.cfg, instance, run_dir=str(self.run_dir))
+            self.services.append(service)
+            self.tasks.append(asyncio.create_task(service.main(bus=self.make_bus(self.network, role), signals=False)))
+        return self
+
+    async def __aexit__(self, kind, exc, tb) -> None:
+        codes = await self.stop()
+        if kind is None and any(code != 0 for code in codes):
+            raise self.error("services did not exit 0")
+
+    async def stop(self, timeout: float = 60.0) -> list[Any]:
+        """Stop every service; their exit codes (an exception where one raised), in ``roles`` order."""
+        for service in self.services:
+            if service.stopping is not None:
+                service.request_stop("test over")
+        try:
+            self.codes = await asyncio.wait_for(asyncio.gather(*self.tasks, return_exceptions=True), timeout)
+        finally:
+            self.stats.close()
+            await self.watch.close()
+            os.sched_setaffinity(0, self._affinity)
+        return self.codes
+
+    def service(self, role: str, instance: int = 0) -> Any:
+        return next(s for s in self.services if s.role == role and s.instance == instance)
+
+    def ended(self) -> list[str]:
+        """``role/instance (code)`` of each service that has ended."""
+        return [f"{s.role}/{s.instance} ({t.exception() or t.result() if not t.cancelled() else 'cancelled'})"
+                for s, t in zip(self.services, self.tasks) if t.done()]
+
+    def check_running(self, what: str) -> None:
+        if ended := self.ended():
+            raise self.error(f"{', '.join(ended)} ended while waiting for {what}")
+
+    def error(self, what: str) -> RunError:
+        codes = ", ".join(f"{role}/{instance}: {code!r}" for (role, instance), code in zip(self.roles, self.codes))
+        return RunError(f"in-process run {self.name}: {what}" + (f" (exit codes {codes})" if codes else ""))
+
+
 def run_session_config(run: Run, endpoint: str | None = None,
                        role: Literal["observer", "service"] = "observer") -> zenoh.Config:
     """A Zenoh config that joins ``run``'s bus: signed in with the run's secret when it has one (``role``:
@@ -254,18 +338,25 @@ def run_session_config(run: Run, endpoint: str | None = None,
 
 
 class StatsWatcher:
-    """Every StatsReport of one run, as its bus delivers them: a Zenoh subscriber of
-    ``keys.stats_all(run.name)`` connected to the run's endpoint (thread-safe; filled by Zenoh's callback).
-    ``session`` is that Zenoh session, for a test that also publishes on the run's bus."""
+    """Every StatsReport of one run, as its bus delivers them, for either kind of run: of a :class:`Run`, a Zenoh
+    subscriber of ``keys.stats_all(run.name)`` connected to the run's endpoint (``session`` is that Zenoh
+    session, for a test that also publishes on the run's bus); of an :class:`InProcessRun`, a subscriber on its
+    in-memory network. Thread-safe: filled by the transport's callback."""
 
-    def __init__(self, run: Run, endpoint: str | None = None, role: Literal["observer", "service"] = "observer"):
+    def __init__(self, run: Run | InProcessRun, endpoint: str | None = None,
+                 role: Literal["observer", "service"] = "observer"):
         self.run = run
-        conf = run_session_config(run, endpoint, role)
         self._lock = threading.Lock()
         self._reports: list[StatsReport] = []
         self.malformed = 0
-        self.session = zenoh.open(conf)
-        self._subscriber = self.session.declare_subscriber(keys.stats_all(run.name), self._on_sample)
+        self.session: zenoh.Session | None = None
+        if isinstance(run, InProcessRun):
+            self._subscriber = run.watch.subscribe_raw(keys.stats_all(run.name), self._on_payload)
+        else:
+            self.session = zenoh.open(run_session_config(run, endpoint, role))
+            self._subscriber = self.session.declare_subscriber(
+                keys.stats_all(run.name), lambda sample: self._on_payload(str(sample.key_expr),
+                                                                          sample.payload.to_bytes()))
 
     def __enter__(self) -> "StatsWatcher":
         return self
@@ -278,11 +369,12 @@ class StatsWatcher:
         if self._subscriber is not None:
             self._subscriber.undeclare()
             self._subscriber = None
-            self.session.close()
+            if self.session is not None:
+                self.session.close()
 
-    def _on_sample(self, sample: zenoh.Sample) -> None:
+    def _on_payload(self, key: str, payload: bytes) -> None:
         try:
-            message = decode_stats_sample(str(sample.key_expr), sample.payload.to_bytes())
+            message = decode_stats_sample(key, payload)
         except MessageError:
             with self._lock:
                 self.malformed += 1
@@ -338,3 +430,12 @@ class StatsWatcher:
             if time.monotonic() > deadline:
                 raise self.run.error(f"gave up waiting for {what} after {timeout:g} s")
             time.sleep(0.2)
+
+    async def until(self, predicate: Callable[[], object], timeout: float, what: str) -> None:
+        """:meth:`wait_for` without blocking the event loop (an :class:`InProcessRun` runs on it)."""
+        deadline = time.monotonic() + timeout
+        while not predicate():
+            self.run.check_running(what)
+            if time.monotonic() > deadline:
+                raise self.run.error(f"gave up waiting for {what} after {timeout:g} s")
+            await asyncio.sleep(0.05)

@@ -1,4 +1,5 @@
-"""The middle layer: sim, gen and train services together in ONE process over the in-memory bus.
+"""The middle layer: sim, gen and train services together in ONE process over the in-memory bus
+(``ebrl.testing.InProcessRun``).
 
 Real env workers (InvertedPendulum), real torch models, the real group loop, learner and weights protocol;
 only the transport is in memory, so a few iterations take seconds and every message is inspectable.
@@ -8,8 +9,6 @@ from __future__ import annotations
 
 import asyncio
 import math
-import importlib
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -17,17 +16,11 @@ import pytest
 
 from ebrl import config
 from ebrl.bus import keys
-from ebrl.bus.memory import MemoryBus, MemoryNetwork
 from ebrl.messages import ActionChunk, StatsReport, TrajectorySegment
 from ebrl.sched.modes import resolve
+from ebrl.testing import InProcessRun
 
 ROOT = Path(__file__).resolve().parent.parent
-sys.path.insert(0, str(ROOT))  # `services` beside `ebrl`, as the launcher runs them
-
-
-def service_class(role: str) -> type:
-    module = importlib.import_module(f"services.{role}")
-    return next(v for v in vars(module).values() if isinstance(v, type) and getattr(v, "role", None) == role)
 
 
 def small_config(tmp_path: Path, **sections: dict) -> config.Config:
@@ -41,22 +34,11 @@ def small_config(tmp_path: Path, **sections: dict) -> config.Config:
 
 
 async def run_services(cfg: config.Config, tmp_path: Path, until, timeout: float = 120.0):
-    """Start sim, gen and train on one memory network; a watcher bus sees what they publish. ``until(watch)``
-    is awaited; then every service is stopped and must exit 0."""
-    network = MemoryNetwork()
-    watch = MemoryBus(network)
-    services = [service_class(role)(cfg, 0, run_dir=str(tmp_path)) for role in ("train", "gen", "sim")]
-    tasks = [asyncio.create_task(s.main(bus=MemoryBus(network), signals=False)) for s in services]
-    try:
-        await asyncio.wait_for(until(watch), timeout)
-    finally:
-        for service in services:
-            if service.stopping is not None:
-                service.request_stop("test over")
-        codes = await asyncio.wait_for(asyncio.gather(*tasks, return_exceptions=True), 60)
-        await watch.close()
-    assert codes == [0, 0, 0], codes
-    return services
+    """Start train, gen and sim in this process; ``until(watch)`` is awaited (``watch``: a bus that sees what
+    they publish); then every service is stopped and must exit 0. The services, in that order."""
+    async with InProcessRun(cfg, ("train", "gen", "sim"), tmp_path) as run:
+        await asyncio.wait_for(until(run.watch), timeout)
+    return run.services
 
 
 def segments_until_version(seen: dict, version: int = 3):

@@ -1,0 +1,74 @@
+"""Every kind of service in one process on the in-memory bus (``ebrl.testing.InProcessRun``): eval and log
+beside sim, gen and train, and the allocator re-planning a run; each uses only the keys its role declares in
+ebrl/graph.py (the recording bus of tests/test_graph.py)."""
+
+from __future__ import annotations
+
+import asyncio
+import csv
+
+from ebrl import autotune
+from ebrl.alloc.algorithm import Profiles
+from ebrl.alloc.profile import fingerprint, save
+from ebrl.bus import keys
+from ebrl.resources.pool import ResourcePool
+from ebrl.testing import InProcessRun
+from test_graph import recording, undeclared
+from test_pipeline import small_config
+
+
+def test_eval_and_log_evaluate_versions_and_write_every_metric_in_process(tmp_path):
+    cfg = small_config(tmp_path, eval={"every": 1, "episodes": 2, "video_episodes": 0},
+                       log={"tensorboard": True, "csv": True, "flush_s": 0.2})
+    used: dict[str, set[tuple[str, str]]] = {}
+
+    async def main():
+        async with InProcessRun(cfg, ("train", "gen", "sim", "eval", "log"), tmp_path, recording(used)) as run:
+            stats = run.stats
+            await stats.until(lambda: stats.latest("eval/0", "eval/version", 0) >= 1, 180, "an evaluation of v1")
+            await stats.until(lambda: stats.latest("log/0", "log/points", 0) > 0, 60, "log writing points")
+        return run
+
+    run = asyncio.run(main())
+    report = run.stats.latest_report("eval/0", "eval/return")
+    assert report.metrics["eval/episodes"] == 2 and report.metrics["eval/version"] >= 1
+    assert (tmp_path / "best.safetensors").is_file()  # the best evaluated version, kept by eval
+    with open(tmp_path / "metrics.csv", newline="") as fh:
+        written = {row["key"] for row in csv.DictReader(fh)}
+    assert {"train/policy_version", "gen/policy_version", "sim/env_steps", "eval/return"} <= written
+    assert any((tmp_path / "tb").rglob("events.out.tfevents.*"))
+    assert not undeclared(used), undeclared(used)
+    # and the run did use the data flows the graph draws
+    assert ("put", keys.obs("pipe", 0)) in used["sim"] and ("put", keys.weights("pipe")) in used["train"]
+    assert ("sub", keys.obs("pipe")) in used["gen"] and ("answer", keys.weights_all("pipe")) in used["train"]
+
+
+def test_the_allocator_observes_the_stages_re_plans_and_the_services_apply_it_in_process(tmp_path):
+    """The allocator's plumbing, in seconds (tests/test_alloc_service.py runs the real processes and checks the
+    plan it makes): it starts from the stored profile's plan, turns the stages' stats into capacities, re-plans
+    on an imbalance (alloc.gap tiny and alloc.patience 1: any will do) and pushes cores and quotas that sim, gen
+    and train apply. In one process every stage reports the same process CPU, so the capacities say nothing
+    about the stages here."""
+    cfg = small_config(tmp_path, alloc={"enabled": True, "window": 2, "patience": 1, "gap": 1e-3})
+    roles = ("train", "gen", "sim", "alloc")
+    cfg, _ = autotune.settle(cfg, roles, multi=False)
+    pool = ResourcePool(gpu_pool="none")
+    n = len(pool.cores)
+    profiles = Profiles(sim={(1, e, e): 1000.0 * 1.6 ** (e - 1) for e in range(1, n + 1)},
+                        gen={(c, b): 50_000.0 for c in range(1, n + 1) for b in (2, 4)},
+                        train={(c, 64): 50_000.0 for c in range(1, n + 1)})
+    save(tmp_path / "profiles" / "pipe.json", profiles, fingerprint(pool, cfg))
+    used: dict[str, set[tuple[str, str]]] = {}
+
+    async def main():
+        async with InProcessRun(cfg, roles, tmp_path, recording(used)) as run:
+            stats = run.stats
+            await stats.until(lambda: stats.latest("alloc/0", "alloc/reallocations", 0) >= 1, 180, "a re-allocation")
+            await stats.until(lambda: all(stats.latest(f"{s}/0", "ctl/affinity_applied", 0) for s in roles[:3]),
+                              60, "sim, gen and train applying the re-allocated cores")
+        return run
+
+    run = asyncio.run(main())
+    alloc = run.stats.latest_report("alloc/0", "alloc/plan_version").metrics
+    assert alloc["alloc/plan_version"] >= 2 and alloc["alloc/train_capacity"] > 0
+    assert not undeclared(used), undeclared(used)

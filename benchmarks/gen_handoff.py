@@ -13,7 +13,7 @@ actions), one torch thread as gen has it:
   ``--load`` other processes spinning on the cores (0 and 2 by default: an idle and a loaded 2-core machine).
   ``pool`` runs the pass on gen's forward thread (``ebrl.threads.TorchPool``, ``loop.run_in_executor``);
   ``inline`` runs it on the loop, which is what gen does on the CPU while passes are short
-  (``services/gen.py``, ``GenService.inline``).
+  (``ebrl/sched/forward.py``, ``Forward.inline``).
 
 Results go to benchmarks/results/gen_handoff.json.
 """

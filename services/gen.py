@@ -1,13 +1,13 @@
 """gen service: batches the groups whose observations are ready, answers each with an action chunk.
 
-Which observations a policy version may answer (the staleness bound) is ``ebrl.sched.batching``.
+Which observations a policy version may answer (the staleness bound) is ``ebrl.sched.batching``; where each
+forward pass runs (the event loop or the forward thread) and how it answers each group, ``ebrl.sched.forward``.
 """
 
 from __future__ import annotations
 
 import asyncio
 import os
-import time
 
 import numpy as np
 import torch
@@ -16,16 +16,14 @@ from ebrl import devices, meta, threads
 from ebrl.bus import keys
 from ebrl.bus.peers import LivePeers
 from ebrl.envs import EnvSpec, describe
-from ebrl.messages import ActionChunk, Observation, Quota
+from ebrl.messages import Observation, Quota
 from ebrl.policies import load_arrays, make_policy
 from ebrl.policies.graphs import Actor
 from ebrl.sched.batching import ObservationQueue
+from ebrl.sched.forward import Forward, answers
 from ebrl.sched.modes import resolve
 from ebrl.service import Service, service_main
 from ebrl.weights import WeightsLayout, WeightsReceiver, known_version
-
-
-INLINE_MAX_S = 0.002  # CPU forward passes shorter than this run on the event loop (``GenService.inline``)
 
 
 class GenService(Service):
@@ -43,15 +41,12 @@ class GenService(Service):
         self.policy.eval()
         self.actor = Actor(self.policy, cfg.gen.compile, cfg.policy.dtype)  # eager, or CUDA graphs per batch size
         torch.manual_seed(meta.gen_seed(cfg.run.seed, self.instance))  # the actions' sampling (every device)
-        self.staging = devices.Staging(self.device)  # observations in through a pinned buffer on a GPU
         self.version = -1
         self.batch_groups = cfg.gen.max_batch_groups  # 0: every group of every live sim host
         self.sims = LivePeers(self.bus, self.run_name, "sim", warn=lambda: False)
         self.waiting = ObservationQueue(self.schedule, info.obs_shape)  # those whose iteration needs a newer policy
-        # Forward passes run on one dedicated thread (with gen's torch threads); on the CPU, a pass shorter than
-        # the hand-off to that thread and back runs on the event loop itself (``inline``).
-        self.pool = threads.TorchPool("gen-forward")
-        self.forward_s = INLINE_MAX_S  # recent forward passes' seconds (an average); the first runs on the pool
+        self.pool = threads.TorchPool("gen-forward")  # passes and weight loads, with gen's torch threads
+        self.forward = Forward(self.actor, self.device, self.pool)  # short CPU passes on the loop itself
         self.wake = asyncio.Event()
         # A group has at most one observation in flight; room for the groups of many sim hosts.
         self.obs = self.bus.subscribe(keys.obs(self.run_name), Observation, capacity=4 * self.schedule.groups * 16,
@@ -80,37 +75,13 @@ class GenService(Service):
             await self.serve(batch)
 
     async def serve(self, batch: list[Observation]) -> None:
-        obs = np.concatenate([m.obs for m in batch])
-        start = time.time()
-        if self.inline():
-            actions, logprobs, values, latents = self.forward(obs)
-        else:
-            actions, logprobs, values, latents = await asyncio.get_running_loop().run_in_executor(
-                self.pool, self.forward, obs)
-        end = time.time()
-        self.forward_s += 0.1 * (end - start - self.forward_s)
+        outputs, start, end = await self.forward.timed(np.concatenate([m.obs for m in batch]))
         self.publish_span("gen", "forward", start, end)
-        row = 0
-        for m in batch:
-            n = len(m.env_ids)
-            chunk = ActionChunk(group=m.group, seq=m.seq, policy_version=self.version,
-                                actions=actions[row:row + n], logprobs=logprobs[row:row + n],
-                                values=values[row:row + n], latents=latents[row:row + n])
-            await self.bus.put(keys.act(self.run_name, m.group), chunk, express=True)
-            row += n
-        for name, n in (("gen/batches", 1), ("gen/groups_served", len(batch)), ("gen/envs_served", row)):
+        for chunk in answers(batch, self.version, outputs):
+            await self.bus.put(keys.act(self.run_name, chunk.group), chunk, express=True)
+        envs = sum(len(m.env_ids) for m in batch)
+        for name, n in (("gen/batches", 1), ("gen/groups_served", len(batch)), ("gen/envs_served", envs)):
             self.count(name, n)
-
-    def inline(self) -> bool:
-        """Run the next pass on the event loop: on the CPU, while passes take under ``INLINE_MAX_S``. The loop
-        awaits the pass either way, and the hand-off to the forward thread and back (a wake-up each way) costs
-        more than a small MLP's pass on loaded cores (``benchmarks/gen_handoff.py``)."""
-        return self.device.type == "cpu" and self.forward_s < INLINE_MAX_S
-
-    def forward(self, obs: np.ndarray) -> tuple[np.ndarray, ...]:
-        """One batch on the forward thread: observations in, the policy's chunks back (``policy.dtype``,
-        ``gen.compile``)."""
-        return self.actor(self.staging(obs))
 
     async def initial_weights(self) -> None:
         """Ask train for its newest weights (request-reply; a large version comes in parts), until one is here."""

@@ -1,7 +1,8 @@
 """train service: consumes trajectory segments continuously, runs PPO/GRPO updates, publishes versioned weights.
 
-The learning and its version rules are ``ebrl.algos.learner``; with ``train.world_size`` > 1 this is one rank
-of a data-parallel group (``ebrl.algos.ranks``): rank 0 talks to the run, the others learn from its shards.
+The learning and its version rules are ``ebrl.algos.learner``, when it learns and checkpoints
+``ebrl.algos.cycle``; with ``train.world_size`` > 1 this is one rank of a data-parallel group
+(``ebrl.algos.ranks``): rank 0 talks to the run, the others learn from its shards.
 """
 
 from __future__ import annotations
@@ -11,9 +12,10 @@ import os
 import time
 
 from ebrl import procenv, threads
+from ebrl.algos import saving
+from ebrl.algos.cycle import UpdateCycle, wind_down
 from ebrl.algos.handover import HANDOVER_FILE
 from ebrl.algos.learner import Learner
-from ebrl.algos.parallel import KEEPALIVE_S
 from ebrl.algos.ranks import Ranks
 from ebrl.bus import keys
 from ebrl.envs import EnvSpec, describe
@@ -48,7 +50,6 @@ class TrainService(Service):
             await loop.run_in_executor(None, learner.join)
             self.ranks = Ranks(learner, self.pool)
             self.log.info("rank %d of %d joined the training group (%s)", rank, world, cfg.train.parallel)
-        self.enough = asyncio.Event()
         self.last: dict[str, float] = {}
         if rank > 0:
             return
@@ -58,8 +59,7 @@ class TrainService(Service):
         taken, handed = learner.take_over(lambda exc: self.bus.count_malformed(handover, exc))
         if handed:
             self.log.info("took over %d of %d segments handed over", taken, handed)
-        if learner.ready:
-            self.enough.set()
+        self.cycle = UpdateCycle(learner, self.pool, self.ranks)
 
     async def run(self) -> None:
         if self.instance > 0:
@@ -72,24 +72,13 @@ class TrainService(Service):
             await self.publish_weights()
             await asyncio.get_running_loop().run_in_executor(self.pool, self.learner.ppo.prepare)
             while self.cfg.run.iterations == 0 or self.learner.version < self.cfg.run.iterations:
-                try:
-                    await asyncio.wait_for(self.enough.wait(), KEEPALIVE_S if self.ranks else None)
-                except asyncio.TimeoutError:
-                    await self.ranks.keepalive()
-                    continue
-                items = self.learner.take()
-                if not self.learner.ready:
-                    self.enough.clear()
-                if not items:  # everything pending was too stale
+                if not (items := await self.cycle.next_items()):  # too stale, or a keep-alive to the other ranks
                     continue
                 start = time.time()
                 losses = await asyncio.get_running_loop().run_in_executor(self.pool, self.learner.update, items)
                 self.learned(losses, start)
                 await self.publish_weights()
-                every = self.cfg.train.checkpoint_every
-                if every and self.learner.version % every == 0:
-                    await asyncio.get_running_loop().run_in_executor(self.pool, self.learner.save_checkpoint,
-                                                                     self.run_name)
+                await self.cycle.checkpoint(self.run_name)
             self.log.info("reached run.iterations = %d; idle until stopped", self.cfg.run.iterations)
             if self.ranks:
                 await self.ranks.stop()
@@ -111,8 +100,7 @@ class TrainService(Service):
             self.accept(key, seg)
 
     def accept(self, key: str, seg: TrajectorySegment) -> None:
-        if self.learner.accept(seg, lambda exc: self.bus.count_malformed(key, exc)) and self.learner.ready:
-            self.enough.set()
+        self.cycle.accept(seg, lambda exc: self.bus.count_malformed(key, exc))
 
     async def publish_weights(self) -> None:
         """Send the weights the update thread took; packing and sending run on the publisher's thread."""
@@ -129,13 +117,7 @@ class TrainService(Service):
         return out
 
     async def teardown(self) -> None:
-        if self.instance > 0 and self.ranks:
-            await self.ranks.drain()
-        await asyncio.to_thread(self.pool.shutdown, wait=True, cancel_futures=True)  # an update in flight ends
-        if self.ranks and self.instance == 0:
-            await self.ranks.stop()
-        if self.ranks:
-            self.learner.dp.close()
+        await wind_down(self.learner, self.pool, self.ranks)  # the other ranks released, an update in flight ended
         if self.instance > 0:
             return
         self.weights.close()
@@ -144,10 +126,8 @@ class TrainService(Service):
                 self.accept(key, seg)
             if n := self.learner.hand_over():
                 self.log.info("handed over %d segments not yet trained on (%s)", n, HANDOVER_FILE)
-        if self.learner.version > 0:
-            self.learner.save_checkpoint(self.run_name)
-            if path := self.learner.save_policy(self.run_name):
-                self.log.info("policy v%d saved to %s", self.learner.version, path)
+        if path := saving.save_at_end(self.learner, self.run_name):
+            self.log.info("policy v%d saved to %s", self.learner.version, path)
 
 
 def main() -> None:

@@ -213,8 +213,13 @@ def test_no_import_cycle_in_ebrl(lazy):
 
 # --- the shape the services and the library keep (issue 16) ---------------------------------------------
 
-SERVICE_LINES = 160  # a service is an adapter: subscribe, call ebrl.*, publish
-CLASS_LINES = 210  # a class that grows past this holds two concepts
+# Limits on a principle (issue 37), not at the day's maximum: a service is an adapter (subscribe, call ebrl.*,
+# publish) that reads on one screen or two; a class that grows past 200 lines holds two concepts; a function past
+# 60 lines (a screen) does several things. Each is met with room to spare, so a change that needs more splits
+# something instead of raising the limit.
+SERVICE_LINES = 150
+CLASS_LINES = 200
+FUNCTION_LINES = 60
 KEY_PREFIXES = ("ebrl/data", "ebrl/ctl", "ebrl/stats", "ebrl/live")
 
 
@@ -231,6 +236,18 @@ def test_no_class_in_ebrl_is_oversized():
             if isinstance(node, ast.ClassDef) and node.end_lineno - node.lineno + 1 > CLASS_LINES:
                 long[f"{name}.{node.name}"] = node.end_lineno - node.lineno + 1
     assert not long, f"classes over {CLASS_LINES} lines: {long}"
+
+
+def test_no_function_is_over_a_screen():
+    long = {}
+    paths = {**modules(),
+             **{f"services.{p.stem}": p for p in (ROOT / "services").glob("*.py")}}
+    for name, path in paths.items():
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)):
+                if (n := node.end_lineno - node.lineno + 1) > FUNCTION_LINES:
+                    long[f"{name}.{node.name}"] = n
+    assert not long, f"functions over {FUNCTION_LINES} lines (split them by what they do): {long}"
 
 
 def test_keys_are_built_and_parsed_only_in_the_key_module():

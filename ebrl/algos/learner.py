@@ -9,10 +9,12 @@ It holds the policy, PPO/GRPO and the bounded collector, and the rules that keep
 * a learner stopped to start again (a new GPU share) hands the segments it had not trained on over to
   the next one (``ebrl.algos.handover``), which takes them over once;
 * nothing that is not finite is learned from, published, saved or resumed from (``ebrl.algos.ppo`` skips a
-  bad gradient step, :meth:`Learner.finite_or_previous` undoes an update that made non-finite weights).
+  bad gradient step, :meth:`Learner.finite_or_previous` undoes an update that made non-finite weights,
+  ``ebrl.algos.saving`` refuses a checkpoint or policy file that is not finite).
 
-No bus and no event loop here: the train service (``services/train.py``) drives it, and with several
-ranks the choreography of ``ebrl.algos.parallel`` decides who learns from what.
+No bus and no event loop here: the train service (``services/train.py``) drives it through
+``ebrl.algos.cycle``, and with several ranks the choreography of ``ebrl.algos.parallel`` decides who learns
+from what.
 """
 
 from __future__ import annotations
@@ -20,27 +22,23 @@ from __future__ import annotations
 import collections
 import contextlib
 import logging
-import os
-import time
 from typing import Any, Callable
 
 import numpy as np
 import torch
 
 from ebrl import devices
-from ebrl.algos import checkpoint, handover
+from ebrl.algos import checkpoint, handover, saving
 from ebrl.algos.grpo import GroupCollector
 from ebrl.algos.parallel import Command, DataParallel, shards
 from ebrl.algos.ppo import PPO, BadBatch, Batch, SegmentCollector
 from ebrl.envs.guard import decision_bound
 from ebrl.messages import TrajectorySegment
-from ebrl.policies import load_arrays, make_policy, save_checkpoint, state_arrays
-from ebrl.policies.checkpoint import portable_metadata, remove_stale_temporaries
+from ebrl.policies import load_arrays, make_policy, state_arrays
+from ebrl.policies.checkpoint import portable_metadata
 from ebrl.meter import Telemetry
 
 log = logging.getLogger(__name__)
-
-POLICY_FILE = "policy.safetensors"  # the trained policy, for `--set policy.checkpoint=RUN_DIR/policy.safetensors`
 
 
 class Learner:
@@ -142,8 +140,7 @@ class Learner:
                 self.arrays = self.finite_or_previous(state_arrays(self.model))
             return
         self.arrays = self.dp.full_arrays()  # type: ignore[union-attr]
-        every = self.cfg.train.checkpoint_every
-        if every and version % every == 0:
+        if saving.checkpoint_due(self.cfg.train.checkpoint_every, version):
             self.train_state = (version, *self.dp.checkpoint_state())  # type: ignore[union-attr]
 
     def finite_or_previous(self, arrays: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
@@ -170,7 +167,7 @@ class Learner:
         saw before a restart, maybe past the checkpoint) and after every checkpoint on disk (an unreadable one
         was written after its version was published). Returns what happened, or None for a fresh start."""
         if self.rank == 0:  # the writer of checkpoints: what a kill in the middle of a write left goes
-            for stale in checkpoint.remove_stale(self.run_dir) + remove_stale_temporaries(self.policy_path):
+            for stale in saving.remove_interrupted(self.run_dir):
                 log.warning("removed %s, left by an interrupted write", stale)
         restored = checkpoint.restore_latest(self.run_dir, self.model, lambda: self.ppo.optimizer,
                                              {"ppo": self.ppo.generator})  # no checkpoint: no optimizer yet
@@ -194,43 +191,13 @@ class Learner:
                                                               else " with fresh weights")
 
     def save_checkpoint(self, run_name: str) -> bool:
-        """Write the training state (on the update thread, between updates); False if there was nothing new."""
-        if self.version == self.saved_version:
-            return False
-        start = time.time()
-        model_state, optimizer = None, self.ppo.optimizer
-        if self.sharded:  # what the ranks gathered (sync, and the stop)
-            if self.train_state is None or self.train_state[0] != self.version:
-                return False
-            _, model_state, optimizer = self.train_state
-        try:
-            checkpoint.save(self.run_dir, self.model, optimizer, self.version, {"ppo": self.ppo.generator},
-                            {"run": run_name, **self.portable}, model_state=model_state)
-        except checkpoint.NonFiniteState as exc:  # the newest good checkpoint stays the one a restart reads
-            log.error("%s", exc)
-            self.telemetry.count("train/checkpoints_refused")
-            return False
-        self.saved_version = self.version
-        self.telemetry.publish_span("train", "checkpoint", start, time.time())
-        self.telemetry.count("train/checkpoints")
-        return True
-
-    @property
-    def policy_path(self) -> str:
-        return os.path.join(self.run_dir, POLICY_FILE)
+        """Write the training state (:func:`ebrl.algos.saving.save_train_state`); False if there was nothing new."""
+        return saving.save_train_state(self, run_name)
 
     def save_policy(self, run_name: str) -> str | None:
-        """Write the newest published weights to ``RUN_DIR/policy.safetensors``; its path, or None where they
-        are not finite (then nothing is written, logged)."""
-        path = self.policy_path
-        weights = {name: torch.from_numpy(a) for name, a in self.arrays.items()}  # full, also when sharded
-        # the published weights, finite (finite_or_previous); a sharded run's gathered ones are checked here
-        if bad := checkpoint.nonfinite(weights):
-            log.error("%s not written: values that are not finite (%s)", path, ", ".join(bad[:3]))
-            return None
-        save_checkpoint(self.model, path, {"run": run_name, "version": str(self.version), **self.portable},
-                        state=weights)
-        return path
+        """Write the newest published weights to ``RUN_DIR/policy.safetensors``; its path, or None where they are
+        not finite (:func:`ebrl.algos.saving.save_policy`)."""
+        return saving.save_policy(self, run_name)
 
     def hand_over(self) -> int:
         """The segments not yet trained on, written for the next learner (:func:`ebrl.algos.handover.hand_over`)."""
@@ -246,8 +213,8 @@ class Learner:
         out = {"train/policy_version": float(self.version), "train/dtype": devices.dtype_bits(self.cfg.policy.dtype)}
         if self.rank > 0:
             return out
-        out.update({"train/pending_steps": float(self.collector.pending_steps),
-                    "train/batch_ready": float(self.ready)})  # a full batch waits: the stall watch reads it (ebrl.stall)
+        # batch_ready: a full batch waits, which the stall watch reads (ebrl.stall)
+        out.update({"train/pending_steps": float(self.collector.pending_steps), "train/batch_ready": float(self.ready)})
         if self.returns:
             out["train/episode_return_mean"] = float(np.mean(self.returns))
         for lag, n in enumerate(self.staleness_hist):

@@ -38,7 +38,7 @@ refuse (tests/test_codec.py). A msgpack timestamp (never written by
 from __future__ import annotations
 
 import struct
-from typing import Any
+from typing import Any, Callable
 
 import msgpack
 import numpy as np
@@ -138,38 +138,47 @@ def decode(payload: bytes | bytearray | memoryview, *, max_bytes: int | None = N
             if size > max_header_bytes:
                 raise DecodeError(f"{size} bytes of msgpack, over max_header_bytes = {max_header_bytes}")
             return unpack(buf, _no_ext)
-
-        if size < _HEAD.size:
-            raise DecodeError("truncated frame header")
-        _, header_len = _HEAD.unpack_from(buf)
-        header_end = _HEAD.size + header_len
-        if header_len > max_header_bytes:
-            raise DecodeError(f"frame header of {header_len} bytes, over max_header_bytes = {max_header_bytes}")
-        if header_end > size:
-            raise DecodeError("frame header longer than payload")
-        data = buf[_padded(header_end):]
-        end = 0  # where the next array starts in data: arrays lie end to end, in header order
-
-        def ext_hook(code: int, ref: bytes) -> np.ndarray:
-            nonlocal end
-            if code != ARRAY_EXT:
-                raise DecodeError(f"unknown extension type {code}")
-            counted(None)
-            dtype, shape, nbytes = _array_ref(ref, end)
-            if end + nbytes > len(data):
-                raise DecodeError("array buffer out of range")
-            array = np.ndarray(shape, dtype, buffer=data, offset=end)
-            end += _padded(nbytes)
-            return array
-
-        obj = unpack(buf[_HEAD.size:header_end], ext_hook)
-        if _padded(header_end) + end != size:
-            raise DecodeError(f"frame of {size} bytes, its header and arrays take {_padded(header_end) + end}")
-        return obj
+        return _decode_frame(buf, max_header_bytes, unpack, counted)
     except DecodeError:
         raise
     except Exception as exc:  # msgpack raises several unrelated types on garbage; numpy on impossible shapes
         raise DecodeError(f"{type(exc).__name__}: {exc}") from None
+
+
+def _decode_frame(buf: memoryview, max_header_bytes: int, unpack: Callable[[memoryview, Any], Any],
+                  counted: Callable[[Any], Any]) -> Any:
+    """The object in a frame (a payload whose first byte is ``FRAME_MAGIC``): its msgpack header unpacked by
+    ``unpack`` (:func:`decode`'s, with its limits), each array reference in it a view into the array data after
+    the header, counted by ``counted`` with the lists and maps. Runs inside :func:`decode`'s ``try``, which turns
+    any other error into a :class:`DecodeError`."""
+    size = len(buf)
+    if size < _HEAD.size:
+        raise DecodeError("truncated frame header")
+    _, header_len = _HEAD.unpack_from(buf)
+    header_end = _HEAD.size + header_len
+    if header_len > max_header_bytes:
+        raise DecodeError(f"frame header of {header_len} bytes, over max_header_bytes = {max_header_bytes}")
+    if header_end > size:
+        raise DecodeError("frame header longer than payload")
+    data = buf[_padded(header_end):]
+    end = 0  # where the next array starts in data: arrays lie end to end, in header order
+
+    def ext_hook(code: int, ref: bytes) -> np.ndarray:
+        nonlocal end
+        if code != ARRAY_EXT:
+            raise DecodeError(f"unknown extension type {code}")
+        counted(None)
+        dtype, shape, nbytes = _array_ref(ref, end)
+        if end + nbytes > len(data):
+            raise DecodeError("array buffer out of range")
+        array = np.ndarray(shape, dtype, buffer=data, offset=end)
+        end += _padded(nbytes)
+        return array
+
+    obj = unpack(buf[_HEAD.size:header_end], ext_hook)
+    if _padded(header_end) + end != size:
+        raise DecodeError(f"frame of {size} bytes, its header and arrays take {_padded(header_end) + end}")
+    return obj
 
 
 def _array_ref(ref: bytes, offset: int) -> tuple[np.dtype, tuple[int, ...], int]:

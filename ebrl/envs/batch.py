@@ -279,6 +279,33 @@ def make_batch(spec: EnvSpec, seeds: list[int]) -> EnvBatch | ManiSkillBatch | M
     return EnvBatch(spec, seeds)
 
 
+@dataclass
+class _ChunkSums:
+    """What a chunk's steps added up to, per env ([N], on the batch's device), each env's up to its episode's end
+    (:meth:`BatchRunner.chunk`)."""
+
+    reward: torch.Tensor  # float64: the checked rewards' sum
+    steps: torch.Tensor  # int64: the steps counted
+    terminated: torch.Tensor  # bool
+    truncated: torch.Tensor  # bool
+    success: torch.Tensor  # bool: success seen (stays False where the task reports none)
+    clipped: torch.Tensor  # int64: rewards clipped (ebrl.envs.guard)
+    nonfinite: torch.Tensor  # int64: rewards not finite
+    bad_obs: torch.Tensor  # int64: observations not finite
+    reports_success: bool = False  # whether the task reports success at all
+
+    @classmethod
+    def zeros(cls, n: int, device: torch.device) -> _ChunkSums:
+        """Nothing yet, for ``n`` envs."""
+
+        def zeros(dtype: torch.dtype) -> torch.Tensor:
+            return torch.zeros(n, dtype=dtype, device=device)
+
+        return cls(reward=zeros(torch.float64), steps=zeros(torch.int64), terminated=zeros(torch.bool),
+                   truncated=zeros(torch.bool), success=zeros(torch.bool), clipped=zeros(torch.int64),
+                   nonfinite=zeros(torch.int64), bad_obs=zeros(torch.int64))
+
+
 class BatchRunner:
     """Chunks on a batch, with each env's episode bookkeeping (return, length, success, episode index)."""
 
@@ -313,32 +340,53 @@ class BatchRunner:
         n, k_max = acts.shape[0], acts.shape[1]
         if n != batch.num_envs:
             raise ValueError(f"a chunk for {n} envs; this batch has {batch.num_envs}")
-        alive = torch.ones(n, dtype=torch.bool, device=device)
-        reward = torch.zeros(n, dtype=torch.float64, device=device)
-        clipped = torch.zeros(n, dtype=torch.int64, device=device)
-        nonfinite = torch.zeros(n, dtype=torch.int64, device=device)
-        bad_obs = torch.zeros(n, dtype=torch.int64, device=device)
-        steps = torch.zeros(n, dtype=torch.int64, device=device)
-        terminated = torch.zeros(n, dtype=torch.bool, device=device)
-        truncated = torch.zeros(n, dtype=torch.bool, device=device)
-        success = torch.zeros(n, dtype=torch.bool, device=device)
-        reports_success = False
+        sums = _ChunkSums.zeros(n, device)
         if self.obs is None:
             raise ValueError("a chunk before the first reset")
+        cpu0 = time.thread_time()
+        final, step_s = self._step(acts, k_max, sums)
+        done = sums.terminated | sums.truncated
+        self.ep_return += sums.reward
+        self.ep_length += sums.steps
+        self.ep_success |= sums.success
+        ended_idx = torch.nonzero(done).reshape(-1)
+        ended = ended_idx.cpu().numpy()
+        chunk_episode = self.episodes.copy()
+        ep_return = self.ep_return[ended_idx].cpu().numpy()
+        ep_length = self.ep_length[ended_idx].cpu().numpy()
+        ep_success = (self.ep_success[ended_idx].to(torch.int8) if sums.reports_success else
+                      torch.full((len(ended),), -1, dtype=torch.int8)).cpu().numpy()
+        final_obs = to_host(final[ended_idx], None if out is None else out[1, :len(ended)])
+        self._next_episodes(ended_idx, ended, final)
+        busy = time.thread_time() - cpu0
+        next_obs = to_host(self.obs, None if out is None else out[0])
+        return VectorChunk(sums.reward.cpu().numpy().astype(np.float32), sums.steps.cpu().numpy(),
+                           sums.terminated.cpu().numpy(), sums.truncated.cpu().numpy(), chunk_episode, next_obs,
+                           ended, final_obs, ep_return, ep_length, ep_success, busy, tuple(step_s),
+                           sums.clipped.cpu().numpy(), sums.nonfinite.cpu().numpy(), sums.bad_obs.cpu().numpy())
+
+    def _step(self, acts: torch.Tensor, k_max: int, sums: _ChunkSums) -> tuple[torch.Tensor, list[float]]:
+        """Step the chunk's ``k_max`` actions per env (``acts``: [N, K, A] on the batch's device), adding what each
+        env's steps did up to its episode's end into ``sums``; once every episode has ended the rest of the chunk is
+        dropped. Returns each env's observation after its last counted step ([N, D]) and each batch step's wall
+        seconds."""
+        batch, bound = self.batch, self.bound
+        reward, clipped, nonfinite, bad_obs = sums.reward, sums.clipped, sums.nonfinite, sums.bad_obs
+        steps, terminated, truncated, success = sums.steps, sums.terminated, sums.truncated, sums.success
+        alive = torch.ones_like(terminated)
         final = self.obs
         step_s = []
-        cpu0 = time.thread_time()
         for k in range(k_max):
             t0 = time.perf_counter()
             stepped = batch.step(acts[:, k], alive, observe=k == k_max - 1)
             step_s.append(time.perf_counter() - t0)
-            step_reward, was_clipped, was_nonfinite = guard.rewards(stepped.reward.double(), self.bound)
+            step_reward, was_clipped, was_nonfinite = guard.rewards(stepped.reward.double(), bound)
             reward += torch.where(alive, step_reward, 0.0)
             clipped += alive & was_clipped
             nonfinite += alive & was_nonfinite
             steps += alive.long()
             if stepped.success is not None:
-                reports_success = True
+                sums.reports_success = True
                 success |= alive & stepped.success
             step_obs, broken = guard.observations(stepped.obs)  # a non-finite state ends its episode, truncated
             bad_obs += alive & broken
@@ -350,32 +398,20 @@ class BatchRunner:
             alive &= ~ended
             if k < k_max - 1 and not bool(alive.any()):  # every episode ended: the rest of the chunk is dropped
                 break
-        done = terminated | truncated
-        self.ep_return += reward
-        self.ep_length += steps
-        self.ep_success |= success
-        ended_idx = torch.nonzero(done).reshape(-1)
-        ended = ended_idx.cpu().numpy()
-        chunk_episode = self.episodes.copy()
-        ep_return = self.ep_return[ended_idx].cpu().numpy()
-        ep_length = self.ep_length[ended_idx].cpu().numpy()
-        ep_success = (self.ep_success[ended_idx].to(torch.int8) if reports_success else
-                      torch.full((len(ended),), -1, dtype=torch.int8)).cpu().numpy()
-        final_obs = to_host(final[ended_idx], None if out is None else out[1, :len(ended)])
+        return final, step_s
+
+    def _next_episodes(self, ended_idx: torch.Tensor, ended: np.ndarray, final: torch.Tensor) -> None:
+        """Start the next episode of the envs in ``ended`` (``ended_idx``: the same on the batch's device), their
+        bookkeeping from zero; ``self.obs`` is then every env's observation for the next chunk (``final``, each
+        env's after the chunk, where no episode ended)."""
         if len(ended):
             self.episodes[ended] += 1
             self.ep_return[ended_idx] = 0.0
             self.ep_length[ended_idx] = 0
             self.ep_success[ended_idx] = False
-            self.obs = batch.reset(ended, self.episodes[ended])
+            self.obs = self.batch.reset(ended, self.episodes[ended])
         else:
             self.obs = final
-        busy = time.thread_time() - cpu0
-        next_obs = to_host(self.obs, None if out is None else out[0])
-        return VectorChunk(reward.cpu().numpy().astype(np.float32), steps.cpu().numpy(), terminated.cpu().numpy(),
-                           truncated.cpu().numpy(), chunk_episode, next_obs, ended, final_obs,
-                           ep_return, ep_length, ep_success, busy, tuple(step_s), clipped.cpu().numpy(),
-                           nonfinite.cpu().numpy(), bad_obs.cpu().numpy())
 
 
 def to_host(values: torch.Tensor, out: np.ndarray | None) -> np.ndarray | None:

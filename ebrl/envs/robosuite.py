@@ -73,29 +73,10 @@ class RobosuiteEnv(gym.Env):
             from ebrl.envs.render import choose_gl
 
             gl = choose_gl()  # before robosuite imports mujoco, whose GL backend is fixed on import
-        gl_before = os.environ.get("MUJOCO_GL")
-        try:
-            logging.getLogger("robosuite_logs").setLevel(logging.ERROR)
-            import robosuite
-            from robosuite import macros
-        except ImportError as exc:
-            raise ImportError(f"env.backend = 'robosuite' needs robosuite ({exc})") from exc
-        finally:  # robosuite's import sets MUJOCO_GL=egl for the whole process and every child it starts
-            if gl_before is None:
-                os.environ.pop("MUJOCO_GL", None)
-            else:
-                os.environ["MUJOCO_GL"] = gl_before
-        options = dict(robots="Panda", has_renderer=False, has_offscreen_renderer=False, use_camera_obs=False,
-                       reward_shaping=True, control_freq=20, horizon=horizon, ignore_done=True,
-                       hard_reset=False)  # a hard reset rebuilds the MuJoCo model: ~10x a step, every episode
+        robosuite, macros = _import_robosuite()
         if renders:
             _use_gl(gl)
-            options.update(has_offscreen_renderer=True)
-        if obs == "rgb":
-            options.update(has_offscreen_renderer=True, use_camera_obs=True, use_object_obs=False,
-                           camera_names=camera, camera_heights=image_size, camera_widths=image_size,
-                           camera_depths=False)
-        options.update(kwargs)
+        options = _make_options(horizon, obs, camera, image_size, renders, kwargs)
         try:
             self.env = robosuite.make(task, **options)
         except ValueError as exc:  # robosuite's word for an unknown camera is "invalid sensor"
@@ -178,6 +159,42 @@ class RobosuiteEnv(gym.Env):
 def build(spec: EnvSpec) -> RobosuiteEnv:
     """The backend's builder (ebrl/envs/backends.py): episodes end at ``max_episode_steps``, else DEFAULT_HORIZON."""
     return RobosuiteEnv(spec.id, horizon=spec.max_episode_steps or DEFAULT_HORIZON, **spec.kwargs)
+
+
+def _import_robosuite() -> tuple[Any, Any]:
+    """robosuite and its ``macros``, imported quietly (its logger at ERROR) and without the ``MUJOCO_GL=egl`` its
+    import sets for the whole process and every child it starts: the variable is put back as it was."""
+    gl_before = os.environ.get("MUJOCO_GL")
+    try:
+        logging.getLogger("robosuite_logs").setLevel(logging.ERROR)
+        import robosuite
+        from robosuite import macros
+    except ImportError as exc:
+        raise ImportError(f"env.backend = 'robosuite' needs robosuite ({exc})") from exc
+    finally:
+        if gl_before is None:
+            os.environ.pop("MUJOCO_GL", None)
+        else:
+            os.environ["MUJOCO_GL"] = gl_before
+    return robosuite, macros
+
+
+def _make_options(horizon: int, obs: str, camera: str, image_size: int, renders: bool,
+                  kwargs: dict[str, Any]) -> dict[str, Any]:
+    """``robosuite.make``'s options: a Panda, no on-screen viewer, shaped rewards at 20 Hz, episodes that never end
+    inside robosuite (the env truncates them at ``horizon``); an offscreen renderer where anything ``renders``, the
+    camera observable for ``obs = "rgb"``; then the user's ``kwargs``, which override any of them."""
+    options = dict(robots="Panda", has_renderer=False, has_offscreen_renderer=False, use_camera_obs=False,
+                   reward_shaping=True, control_freq=20, horizon=horizon, ignore_done=True,
+                   hard_reset=False)  # a hard reset rebuilds the MuJoCo model: ~10x a step, every episode
+    if renders:
+        options.update(has_offscreen_renderer=True)
+    if obs == "rgb":
+        options.update(has_offscreen_renderer=True, use_camera_obs=True, use_object_obs=False,
+                       camera_names=camera, camera_heights=image_size, camera_widths=image_size,
+                       camera_depths=False)
+    options.update(kwargs)
+    return options
 
 
 def _use_gl(backend: str) -> None:

@@ -164,13 +164,8 @@ def _worker_main(conn: Connection, spec: EnvSpec, seed: int, claim: CoreClaim | 
 
 
 def _serve(conn: Connection, spec: EnvSpec, seed: int, claim: CoreClaim | None) -> None:
-    env = make_env(spec, seed=seed)
-    low, high = env.action_space.low, env.action_space.high
-    bound = spec.max_abs_reward
-    base = env.unwrapped
-    lazy = callable(getattr(base, "observe", None)) and hasattr(base, "skip_observation")
-    episode_return, episode_length, episodes = 0.0, 0, 0
-    success: bool | None = None
+    """Answer the parent's requests on ``conn`` until it says "close" or the pipe closes."""
+    served = _ServedEnv(spec, seed, claim)
     try:
         while True:
             try:
@@ -178,63 +173,102 @@ def _serve(conn: Connection, spec: EnvSpec, seed: int, claim: CoreClaim | None) 
             except (EOFError, OSError):
                 return
             if cmd == "reset":  # arg: the index of the episode to start (a replaced worker carries on)
-                episodes = int(arg or 0)
-                obs, _ = env.reset(seed=seed + EPISODE_SEED_STRIDE * episodes)
-                episode_return, episode_length, success = 0.0, 0, None
-                conn.send(guard.observation(as_obs(obs), guard.Guarded())[0])
+                conn.send(served.start(int(arg or 0), guard.Guarded()))
             elif cmd == "chunk":
-                total, steps, terminated, truncated = 0.0, 0, False, False
-                seen = guard.Guarded()
-                started = time.thread_time()  # CPU time: a descheduled worker is not busy
-                process_started = time.process_time()  # every thread's: the env's own threads too
                 actions, observe = arg
-                step_s, step_cpu, cores = [], [], []
-                core = claim.acquire() if claim is not None else None
-                for k, action in enumerate(actions):
-                    if k and claim is not None:
-                        core = claim.next(core, step_s[-1])  # keep the core, or hand it on and wait
-                    if lazy:  # only the chunk's last observation is read: skip rendering the others
-                        base.skip_observation = k < len(actions) - 1 or not observe
-                    t0, c0 = time.perf_counter(), time.thread_time()
-                    obs, reward, terminated, truncated, info = env.step(np.clip(action, low, high))
-                    step_s.append(time.perf_counter() - t0)
-                    step_cpu.append(time.thread_time() - c0)
-                    if core is not None:
-                        cores.append(core)
-                    if "success" in info:
-                        success = bool(success) or bool(info["success"])
-                    total += guard.reward(reward, bound, seen)
-                    steps += 1
-                    if terminated or truncated:
-                        break
-                if lazy and base.skip_observation and (terminated or truncated):  # an episode's end is always read
-                    obs = base.observe()
-                obs, broken = guard.observation(as_obs(obs), seen)
-                truncated = truncated or (broken and not terminated)  # a non-finite state ends its episode
-                busy = time.thread_time() - started
-                helper = max(0.0, time.process_time() - process_started - busy)
-                episode_return += total
-                episode_length += steps
-                final_obs = as_obs(obs)
-                ep_ret = ep_len = ep_success = None
-                episode = episodes
-                if terminated or truncated:
-                    ep_ret, ep_len, ep_success = episode_return, episode_length, success
-                    episodes += 1
-                    obs, _ = env.reset(seed=seed + EPISODE_SEED_STRIDE * episodes)
-                    obs, _ = guard.observation(as_obs(obs), seen)
-                    episode_return, episode_length, success = 0.0, 0, None
-                if claim is not None:
-                    claim.release(core, step_s[-1] if step_s else 0.0)
-                conn.send(ChunkResult(total, steps, bool(terminated), bool(truncated), final_obs, as_obs(obs),
-                                      ep_ret, ep_len, ep_success, busy, episode, tuple(step_s), tuple(step_cpu),
-                                      tuple(cores), helper, seen))
+                conn.send(served.chunk(actions, observe))
             elif cmd == "close":
                 return
             else:
                 conn.send(ValueError(f"unknown worker command {cmd!r}"))
     finally:
-        env.close()
+        served.env.close()
+
+
+class _ServedEnv:
+    """A worker's environment and its episode bookkeeping (return, length, success, episode index), carried from
+    one request to the next (:func:`_serve`)."""
+
+    obs: Any  # the last observation (set by the first reset): what a chunk of no actions reports again
+
+    def __init__(self, spec: EnvSpec, seed: int, claim: CoreClaim | None):
+        self.env = env = make_env(spec, seed=seed)
+        self.seed, self.claim = seed, claim
+        self.low, self.high = env.action_space.low, env.action_space.high
+        self.bound = spec.max_abs_reward
+        self.base = base = env.unwrapped
+        self.lazy = callable(getattr(base, "observe", None)) and hasattr(base, "skip_observation")
+        self.episode_return, self.episode_length, self.episodes = 0.0, 0, 0
+        self.success: bool | None = None
+
+    def start(self, episode: int, seen: guard.Guarded) -> np.ndarray:
+        """Start episode ``episode`` from ``reset(seed=seed + 7919 * episode)``; its first observation, checked
+        (``seen`` counts a non-finite one)."""
+        self.episodes = episode
+        self.obs, _ = self.env.reset(seed=self.seed + EPISODE_SEED_STRIDE * episode)
+        self.episode_return, self.episode_length, self.success = 0.0, 0, None
+        return guard.observation(as_obs(self.obs), seen)[0]
+
+    def chunk(self, actions: np.ndarray, observe: bool) -> ChunkResult:
+        """Step ``actions`` until they run out or the episode ends, when the next episode starts (auto-reset).
+        ``observe``: whether the chunk's last observation is read (an episode's end always is)."""
+        seen = guard.Guarded()
+        started = time.thread_time()  # CPU time: a descheduled worker is not busy
+        process_started = time.process_time()  # every thread's: the env's own threads too
+        step_s, step_cpu, cores = [], [], []
+        claim = self.claim
+        core = claim.acquire() if claim is not None else None
+        obs, total, steps, terminated, truncated, core = self._step(actions, observe, seen, core, step_s, step_cpu,
+                                                                    cores)
+        obs, broken = guard.observation(as_obs(obs), seen)
+        truncated = truncated or (broken and not terminated)  # a non-finite state ends its episode
+        busy = time.thread_time() - started
+        helper = max(0.0, time.process_time() - process_started - busy)
+        self.episode_return += total
+        self.episode_length += steps
+        final_obs = as_obs(obs)
+        ep_ret = ep_len = ep_success = None
+        episode = self.episodes
+        if terminated or truncated:
+            ep_ret, ep_len, ep_success = self.episode_return, self.episode_length, self.success
+            obs = self.start(episode + 1, seen)
+        self.obs = obs
+        if claim is not None:
+            claim.release(core, step_s[-1] if step_s else 0.0)
+        return ChunkResult(total, steps, bool(terminated), bool(truncated), final_obs, as_obs(obs), ep_ret, ep_len,
+                           ep_success, busy, episode, tuple(step_s), tuple(step_cpu), tuple(cores), helper, seen)
+
+    def _step(self, actions: np.ndarray, observe: bool, seen: guard.Guarded, core: int | None, step_s: list[float],
+              step_cpu: list[float], cores: list[int]) -> tuple[Any, float, int, bool, bool, int | None]:
+        """The chunk's steps, each on a core claimed from the pool (``core``: the one held, with a claim), until
+        the actions run out or the episode ends. Appends each step's wall and CPU seconds and core to ``step_s``,
+        ``step_cpu`` and ``cores``; what the reward checks changed goes to ``seen``. Returns the last observation
+        (unchecked), the checked rewards' sum, the steps taken, terminated, truncated and the core held now."""
+        total, steps, terminated, truncated = 0.0, 0, False, False
+        if not len(actions):
+            return self.obs, total, steps, terminated, truncated, core
+        env, claim, base, lazy, low, high, bound = (self.env, self.claim, self.base, self.lazy, self.low, self.high,
+                                                    self.bound)
+        for k, action in enumerate(actions):
+            if k and claim is not None:
+                core = claim.next(core, step_s[-1])  # keep the core, or hand it on and wait
+            if lazy:  # only the chunk's last observation is read: skip rendering the others
+                base.skip_observation = k < len(actions) - 1 or not observe
+            t0, c0 = time.perf_counter(), time.thread_time()
+            obs, reward, terminated, truncated, info = env.step(np.clip(action, low, high))
+            step_s.append(time.perf_counter() - t0)
+            step_cpu.append(time.thread_time() - c0)
+            if core is not None:
+                cores.append(core)
+            if "success" in info:
+                self.success = bool(self.success) or bool(info["success"])
+            total += guard.reward(reward, bound, seen)
+            steps += 1
+            if terminated or truncated:
+                break
+        if lazy and base.skip_observation and (terminated or truncated):  # an episode's end is always read
+            obs = base.observe()
+        return obs, total, steps, terminated, truncated, core
 
 
 def _cores(core: int | tuple[int, ...]) -> tuple[int, ...]:

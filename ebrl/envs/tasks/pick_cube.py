@@ -114,23 +114,35 @@ def _mesh_assets(root: str) -> str:
     return "\n    ".join(lines)
 
 
-def panda_pick_cube_mjcf(full: bool = False) -> str:
-    """The task's MJCF: ``full`` with robosuite's meshes (visual and collision), else the simple model."""
-    arm = ""
+def _arm(full: bool, gripper: str) -> str:
+    """Links 1 to 7, each body inside its parent's (robot.xml's chain), with ``gripper`` inside link 7."""
+    arm = gripper
     for name, pos, quat, ipos, mass, inertia, jrange, damping in reversed(LINKS):
         joint = f'<joint name="joint{name[-1]}" range="{jrange}" damping="{damping}"/>'
         arm = (f'<body name="{name}" pos="{pos}" quat="{quat}" gravcomp="1">'
                f'<inertial pos="{ipos}" mass="{mass}" diaginertia="{inertia}"/>{joint}{_visuals(name, full)}'
-               f'{arm or "HAND"}</body>')
+               f'{arm}</body>')
+    return arm
+
+
+def _hand_geoms(full: bool) -> tuple[str, str]:
+    """The hand's geoms, and each finger's (``QUAT`` where the finger's orientation goes): robosuite's meshes in
+    the full model; in the simple one the hand's collision mesh as its oriented bounding box (MuJoCo's own fit of
+    the mesh, rounded) and no finger geoms but the pads."""
     if full:
         hand = ('<geom class="visual" mesh="hand_vis" quat="0.707107 0 0 0.707107"/>'
                 '<geom class="collision_mesh" mesh="hand" quat="0.707107 0 0 0.707107"/>')
         finger = ('<geom class="visual" mesh="finger_vis" QUAT/>'
                   '<geom class="finger_mesh" mesh="finger" QUAT/>')
-    else:  # the hand's collision mesh as its oriented bounding box (MuJoCo's own fit of the mesh, rounded)
-        hand = ('<geom name="hand_box" type="box" size="0.0316 0.0487 0.1039" pos="0.0006 0 0.0239" '
-                'quat="0.4935 0.5066 0.5062 0.4936" rgba="0.9 0.9 0.9 1"/>')
-        finger = ""
+        return hand, finger
+    hand = ('<geom name="hand_box" type="box" size="0.0316 0.0487 0.1039" pos="0.0006 0 0.0239" '
+            'quat="0.4935 0.5066 0.5062 0.4936" rgba="0.9 0.9 0.9 1"/>')
+    return hand, ""
+
+
+def _fingers(finger: str) -> str:
+    """The two sliding fingers, mirror images of each other, each with its pad (the box that grips the cube) on a
+    tip body; ``finger``: their geoms (:func:`_hand_geoms`)."""
     fingers = ""
     for side, sign in (("1", 1), ("2", -1)):
         joint_range = "0 0.04" if sign > 0 else "-0.04 0"
@@ -143,17 +155,22 @@ def panda_pick_cube_mjcf(full: bool = False) -> str:
             f'<body name="finger{side}_tip" pos="0 {sign * 0.0085} 0.056">'
             f'<inertial pos="0 0 0" mass="0.01" diaginertia="0.01 0.01 0.01"/>'
             f'<geom name="finger{side}_pad" class="pad" pos="0 {-sign * 0.005} -0.015"/></body></body>')
-    gripper = (
-        '<body name="hand" pos="0 0 0.1065" quat="0.924 0 0 -0.383" gravcomp="1">'
-        '<inertial pos="0 0 0" mass="0.5" diaginertia="0.05 0.05 0.05"/>'
-        '<body name="gripper" quat="0.707107 0 0 -0.707107" gravcomp="1">'
-        '<inertial pos="0 0 0.17" quat="0.707107 0.707107 0 0" mass="0.3" diaginertia="0.09 0.07 0.05"/>'
-        f'{hand}<site name="grip" pos="0 0 0.097" size="0.01" rgba="1 0 0 0.5" group="2"/>{fingers}</body></body>')
-    arm = arm.replace("HAND", gripper)
-    assets = _mesh_assets(robosuite_assets()) if full else ""
-    hx, hy, hz = HAND_HOME
-    return f"""<mujoco model="panda_pick_cube">
-  <compiler angle="radian" autolimits="true"/>
+    return fingers
+
+
+def _gripper(full: bool) -> str:
+    """The hand on link 7's flange, with the grip point (site ``grip``) and the two fingers."""
+    hand, finger = _hand_geoms(full)
+    return ('<body name="hand" pos="0 0 0.1065" quat="0.924 0 0 -0.383" gravcomp="1">'
+            '<inertial pos="0 0 0" mass="0.5" diaginertia="0.05 0.05 0.05"/>'
+            '<body name="gripper" quat="0.707107 0 0 -0.707107" gravcomp="1">'
+            '<inertial pos="0 0 0.17" quat="0.707107 0.707107 0 0" mass="0.3" diaginertia="0.09 0.07 0.05"/>'
+            f'{hand}<site name="grip" pos="0 0 0.097" size="0.01" rgba="1 0 0 0.5" group="2"/>{_fingers(finger)}'
+            '</body></body>')
+
+
+# the compiler, the physics options and the geoms' defaults (which of them collide with what), in both models
+_SETTINGS = """  <compiler angle="radian" autolimits="true"/>
   <option timestep="0.005" integrator="implicitfast" cone="pyramidal">
     <!-- MuJoCo's own box-box collider on both engines: MuJoCo Warp's native CCD gives one contact per finger pad
          on the cube (the pads then sink 1 cm into it under the grip), the dedicated collider four, as CPU MuJoCo -->
@@ -166,7 +183,38 @@ def panda_pick_cube_mjcf(full: bool = False) -> str:
     <default class="finger_mesh"><geom type="mesh" group="3" contype="0" conaffinity="1"/></default>
     <default class="pad"><geom type="box" size="0.008 0.004 0.008" contype="1" conaffinity="1" friction="2 0.05 0.0001"
       solref="0.01 1" rgba="0.3 0.3 0.3 1"/></default>
-  </default>
+  </default>"""
+
+# the hand welded to its mocap target (Cartesian control) and the fingers' position actuators
+_CONTROL = """  <equality>
+    <weld body1="hand_target" body2="hand" relpose="0 0 0 1 0 0 0" solref="0.02 1"/>
+  </equality>
+  <actuator>
+    <position name="finger1" joint="finger_joint1" ctrlrange="0 0.04" kp="1000" forcerange="-20 20"/>
+    <position name="finger2" joint="finger_joint2" ctrlrange="-0.04 0" kp="1000" forcerange="-20 20"/>
+  </actuator>"""
+
+
+def _task_bodies() -> str:
+    """The cube on the table, the green target it is to be held at, and the hand's mocap target at its home."""
+    hx, hy, hz = HAND_HOME
+    return f"""<body name="cube" pos="{CUBE_CENTRE[0]} {CUBE_CENTRE[1]} {CUBE_HALF}">
+      <freejoint name="cube"/>
+      <geom name="cube" type="box" size="{CUBE_HALF} {CUBE_HALF} {CUBE_HALF}" mass="0.064" contype="1" conaffinity="1"
+        friction="1 0.005 0.0001" solref="0.01 1" rgba="0.8 0.1 0.1 1"/>
+    </body>
+    <body name="target" mocap="true" pos="{CUBE_CENTRE[0]} {CUBE_CENTRE[1]} 0.2">
+      <geom type="sphere" size="0.01" rgba="0.1 0.8 0.1 0.6" group="2"/>
+    </body>
+    <body name="hand_target" mocap="true" pos="{hx} {hy} {hz}" quat="0 1 0 0"/>"""
+
+
+def panda_pick_cube_mjcf(full: bool = False) -> str:
+    """The task's MJCF: ``full`` with robosuite's meshes (visual and collision), else the simple model."""
+    arm = _arm(full, _gripper(full))
+    assets = _mesh_assets(robosuite_assets()) if full else ""
+    return f"""<mujoco model="panda_pick_cube">
+{_SETTINGS}
   <asset>
     <texture name="grid" type="2d" builtin="checker" rgb1="0.2 0.3 0.4" rgb2="0.1 0.2 0.3" width="256" height="256"/>
     <material name="grid" texture="grid" texrepeat="4 4"/>
@@ -184,23 +232,9 @@ def panda_pick_cube_mjcf(full: bool = False) -> str:
       {_visuals("link0", full)}
       {arm}
     </body>
-    <body name="cube" pos="{CUBE_CENTRE[0]} {CUBE_CENTRE[1]} {CUBE_HALF}">
-      <freejoint name="cube"/>
-      <geom name="cube" type="box" size="{CUBE_HALF} {CUBE_HALF} {CUBE_HALF}" mass="0.064" contype="1" conaffinity="1"
-        friction="1 0.005 0.0001" solref="0.01 1" rgba="0.8 0.1 0.1 1"/>
-    </body>
-    <body name="target" mocap="true" pos="{CUBE_CENTRE[0]} {CUBE_CENTRE[1]} 0.2">
-      <geom type="sphere" size="0.01" rgba="0.1 0.8 0.1 0.6" group="2"/>
-    </body>
-    <body name="hand_target" mocap="true" pos="{hx} {hy} {hz}" quat="0 1 0 0"/>
+    {_task_bodies()}
   </worldbody>
-  <equality>
-    <weld body1="hand_target" body2="hand" relpose="0 0 0 1 0 0 0" solref="0.02 1"/>
-  </equality>
-  <actuator>
-    <position name="finger1" joint="finger_joint1" ctrlrange="0 0.04" kp="1000" forcerange="-20 20"/>
-    <position name="finger2" joint="finger_joint2" ctrlrange="-0.04 0" kp="1000" forcerange="-20 20"/>
-  </actuator>
+{_CONTROL}
 </mujoco>"""
 
 

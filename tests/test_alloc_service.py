@@ -31,6 +31,8 @@ def test_capacities_are_decisions_per_cpu_second_times_cores():
     assert capacities(sim, idle, train, chunk=4, cores={"sim": 1, "gen": 2, "train": 2}, batch_size=1024) is None
 
 
+# slow: its plumbing runs in seconds in tests/test_in_process.py; this real run checks the plan it makes
+@pytest.mark.slow
 def test_up_with_the_allocator_re_plans_from_measurements_and_services_apply_it(tmp_path):
     out_dir = tmp_path / "runs"
     overrides = ["alloc.enabled=true", "alloc.window=4", "alloc.patience=3", "run.iterations=0", "run.name=alloc",

@@ -265,3 +265,19 @@ def test_keys_are_built_and_parsed_only_in_the_key_module():
                     and getattr(node.value.func.value, "id", "") == "keys":
                 offenders.append(f"{path.relative_to(ROOT)}:{node.lineno}: keys.parse(...)[i]")
     assert not offenders, "\n".join(offenders)
+
+
+def test_readme_headings_named_in_the_code_exist():
+    """A message or comment that sends the user to a README section (``README: "Heading"``) names one that is
+    there."""
+    import re
+
+    headings = [line.lstrip("#").strip() for line in (ROOT / "README.md").read_text().splitlines()
+                if line.startswith("#")]
+    missing = []
+    for path in sorted([*(ROOT / "ebrl").rglob("*.py"), *(ROOT / "services").glob("*.py")]):
+        for match in re.finditer(r'README: \\?"([^"\\]+)', path.read_text()):
+            if not any(h.startswith(match.group(1).strip()) for h in headings):
+                missing.append(f"{path.relative_to(ROOT)}: {match.group(1)!r}")
+    assert not missing, "README headings that do not exist:\n" + "\n".join(missing)
+

@@ -57,6 +57,7 @@ def test_up_with_eval_reports_each_version_records_videos_and_keeps_the_best_pol
     assert run_episodes(latest, 3).summary()["return"]["mean"] == scores[4]
 
 
+@pytest.mark.slow  # an optional service's death; eval itself runs in the fast suite (here and tests/test_in_process.py)
 def test_an_eval_service_that_dies_never_stops_the_run(tmp_path):
     with helpers.up(tmp_path / "runs", "configs/quickstart.toml", "run.iterations=5", "eval.every=1",
                     "eval.episodes=2", "eval.video_episodes=0", "run.max_restarts=0", name="evaldies") as run:

@@ -8,8 +8,10 @@ in one module) and the message it carries. From it:
   uses a key its flows do not declare (``tests/test_graph.py``);
 * ``ebrl graph`` prints it, and ``docs/graph.md`` (the graph as a Mermaid chart and a table) is generated
   from it (:func:`markdown`; the test checks it is current);
-* the bus's access rules can be generated from it (issue 39, least privilege: a role may publish only what
-  it declares).
+* the bus's access rules are generated from it (:func:`access_control`: Zenoh's ACL in which each role's
+  identity may send only what its flows declare, enforced where every sender's identity is known, a router;
+  a test runs it on one). Runs do not sign in one identity per role yet: the rules a run enforces today are
+  ``ebrl.bus.auth``'s (observers only read).
 
 Patterns: ``{run}`` is the run's name, ``{role}`` and ``{instance}`` the service's own; ``*`` matches one
 key chunk, ``**`` any number (Zenoh's key expressions). Every service has :data:`SERVICE_FLOWS` (its stats,
@@ -90,6 +92,9 @@ FLOWS: dict[str, tuple[Flow, ...]] = {
         Flow("put", keys.gpu_share(R, "*"), "GpuShare", "a stage's new GPU share, for its host's launcher"),
     ),
     "log": (Flow("sub", keys.stats_all(R), EVERY_STAT, "everything, for the sinks"),),
+    "observer": (  # a script or `ebrl stats` signed in as observer (ebrl.stats.observer_config): it reads only
+        Flow("sub", keys.stats_all(R), EVERY_STAT, "a run watched from any script", chart=False),
+    ),
     "viz": (Flow("sub", keys.stats_all(R), EVERY_STAT, "everything, for rerun"),),
     "launcher": (
         Flow("sub", keys.stats_all(R), EVERY_STAT, "the progress line, "
@@ -171,6 +176,49 @@ def markdown() -> str:
             "stats, spans and events, which the launcher, log and viz read:\n\n")
     return head + "\n".join(lines) + "\n\nEvery flow, by role (`{run}`: the run's name, `{role}`/`{instance}`: " \
         "the service's own; `*` one key chunk, `**` any number):\n\n" + "\n".join(table) + "\n"
+
+
+# What a peer of each direction sends on the keys of its flows, in Zenoh's ACL words: a publisher sends puts, a
+# subscriber its subscription's declaration, an asker queries, an answerer its queryable and the replies, a
+# token holder the token, a watcher its liveliness subscription and queries.
+ACL_MESSAGES: dict[Direction, tuple[str, ...]] = {
+    "put": ("put",), "sub": ("declare_subscriber",), "query": ("query",), "answer": ("declare_queryable", "reply"),
+    "token": ("liveliness_token",), "watch": ("declare_liveliness_subscriber", "liveliness_query")}
+ALL_ACL_MESSAGES = sorted({m for ms in ACL_MESSAGES.values() for m in ms} | {"delete"})
+
+
+def username(role: str) -> str:
+    """The Zenoh user name of ``role``'s identity (:func:`access_control`'s subjects)."""
+    return f"ebrl-{role}"
+
+
+def access_control(run: str, roles: tuple[str, ...] | None = None) -> dict[str, object]:
+    """Zenoh's ``access_control`` block for run ``run``, default deny: what a peer signed in as a role's identity
+    (:func:`username`) sends is taken in only where that role's flows declare it (each role's instance chunk
+    any instance's: one identity per role); what a session sends out is not filtered, since every receiver
+    checks what it takes in. ``roles``: the identities to admit (default: every role of the graph)."""
+    rules: list[dict[str, object]] = [{"id": "send", "permission": "allow", "flows": ["egress"],
+                                       "messages": ALL_ACL_MESSAGES, "key_exprs": ["**"]}]
+    subjects, policies = [], []
+    for role in roles or tuple(FLOWS):
+        ids = [""]
+        for direction in DIRECTIONS:
+            exprs = sorted({_concrete(f.pattern, run, role) for f in flows(role) if f.direction == direction})
+            if exprs:
+                ids.append(f"{role}-{direction}")
+                rules.append({"id": ids[-1], "permission": "allow", "flows": ["ingress"],
+                              "messages": list(ACL_MESSAGES[direction]), "key_exprs": exprs})
+        subjects.append({"id": role, "usernames": [username(role)]})
+        policies.append({"id": role, "rules": ids[1:], "subjects": [role]})
+    subjects.append({"id": "anyone"})  # no attribute: every peer
+    policies.append({"id": "send", "rules": ["send"], "subjects": ["anyone"]})
+    return {"enabled": True, "default_permission": "deny", "rules": rules, "subjects": subjects,
+            "policies": policies}
+
+
+def _concrete(pattern: str, run: str, role: str) -> str:
+    """A flow's pattern for one run and role, any instance."""
+    return pattern.replace(R, run).replace(ROLE, role).replace(I, "*")
 
 
 def _instance(pattern: str, role: str) -> str:

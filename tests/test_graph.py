@@ -82,3 +82,55 @@ def test_key_expressions_intersect_as_zenoh_matches_them():
 def test_docs_graph_md_is_generated_from_the_declaration():
     assert (ROOT / "docs" / "graph.md").read_text() == graph.markdown(), \
         "docs/graph.md is stale: python -m ebrl.cli graph --markdown > docs/graph.md"
+
+
+def test_the_generated_access_rules_let_each_role_send_only_what_it_declares(tmp_path):
+    """graph.access_control on a real Zenoh router that knows every client's identity (user names and passwords
+    in its dictionary): sim's weights are dropped where they enter, train's arrive; sim's observations arrive,
+    train's are dropped. Each sender's refused message goes first on its link, so once the allowed one after
+    it arrived, the refused one had its chance."""
+    import json
+    import secrets
+    import time
+
+    import zenoh
+
+    from ebrl.bus.endpoints import free_port
+
+    roles = ("launcher", "sim", "gen", "train")
+    passwords = {role: secrets.token_hex(16) for role in roles}
+    users = tmp_path / "users"
+    users.write_text("".join(f"{graph.username(r)}:{passwords[r]}\n" for r in roles))
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+
+    def config(role: str) -> zenoh.Config:
+        conf = zenoh.Config()
+        router = role == "launcher"
+        settings = {"mode": "router" if router else "client", "scouting/multicast/enabled": False,
+                    "listen/endpoints": [endpoint] if router else [], "connect/endpoints": [] if router else [endpoint],
+                    "transport/auth/usrpwd": {"user": graph.username(role), "password": passwords[role],
+                                              **({"dictionary_file": str(users)} if router else {})}}
+        if router:
+            settings["access_control"] = graph.access_control("r")
+        for path, value in settings.items():
+            conf.insert_json5(path, json.dumps(value))
+        return conf
+
+    got: list[tuple[str, bytes]] = []
+    sessions = [zenoh.open(config(role)) for role in roles]
+    try:
+        _, sim, gen, train = sessions
+        for key in ("ebrl/data/r/weights", "ebrl/data/r/obs/*"):
+            gen.declare_subscriber(key, lambda s: got.append((str(s.key_expr), s.payload.to_bytes())))
+        deadline = time.monotonic() + 30
+        while not {b"sim obs", b"train weights"} <= {payload for _, payload in got}:
+            assert time.monotonic() < deadline, f"the allowed messages never arrived: {got}"
+            sim.put("ebrl/data/r/weights", b"sim weights")  # refused
+            sim.put("ebrl/data/r/obs/0", b"sim obs")
+            train.put("ebrl/data/r/obs/0", b"train obs")  # refused
+            train.put("ebrl/data/r/weights", b"train weights")
+            time.sleep(0.05)
+    finally:
+        for session in sessions:
+            session.close()
+    assert {payload for _, payload in got} == {b"sim obs", b"train weights"}, got

@@ -277,7 +277,7 @@ def _episode(policy: Any, env: Any, seed: int, deterministic: bool, recorder: Vi
         if recorder is not None:
             recorder.add(env.render())
         while length < MAX_EPISODE_STEPS:
-            obs, reward, terminated, truncated, info = env.step(policy.predict(obs, deterministic))
+            obs, reward, terminated, truncated, info = env.step(policy.predict(obs, deterministic=deterministic)[0])
             total += float(reward)
             length += 1
             if "success" in info:

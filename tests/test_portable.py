@@ -99,24 +99,31 @@ def test_predict_hands_out_the_chunk_one_action_per_call(tmp_path):
     policy = ebrl.load_policy(saved(tmp_path, "mlp", init_log_std=0.0)[1])
     first, later = obs_batch(INFO.layout, 2, seed=1)
     chunk = policy.predict_chunk(first[None])[0]
-    got = [policy.predict(first)] + [policy.predict(later) for _ in range(3)]  # the chunk of the first obs
+    got = [policy.predict(first)[0]] + [policy.predict(later)[0] for _ in range(3)]  # the first obs's chunk
     np.testing.assert_array_equal(np.stack(got), chunk)
-    assert policy.predict(later).shape == (1,)  # spent: a new chunk, from the observation given now
+    assert policy.predict(later)[0].shape == (1,)  # spent: a new chunk, from the observation given now
     np.testing.assert_array_equal(policy._actions[0], policy.predict_chunk(later[None])[0])
     policy.reset()  # an episode boundary: the rest of the chunk is dropped
-    np.testing.assert_array_equal(policy.predict(first), chunk[0])
+    np.testing.assert_array_equal(policy.predict(first)[0], chunk[0])
+    policy.predict(later)
+    action, state = policy.predict(first, episode_start=True)  # the same, Stable-Baselines3's way
+    np.testing.assert_array_equal(action, chunk[0])
+    assert state is None
 
 
 def test_a_batch_of_envs_keeps_a_chunk_each_and_resets_one(tmp_path):
     policy = ebrl.load_policy(saved(tmp_path, "mlp")[1])
     obs = obs_batch(INFO.layout, 3)
     chunks = policy.predict_chunk(obs)
-    np.testing.assert_array_equal(policy.predict(obs), chunks[:, 0])
+    np.testing.assert_array_equal(policy.predict(obs)[0], chunks[:, 0])
     policy.reset(1)
     other = obs_batch(INFO.layout, 3, seed=5)
-    step = policy.predict(other)
+    step, _ = policy.predict(other)
     np.testing.assert_array_equal(step[[0, 2]], chunks[[0, 2], 1])
     np.testing.assert_array_equal(step[1], policy.predict_chunk(other[1:2])[0, 0])
+    step, _ = policy.predict(obs, episode_start=[False, False, True])  # env 2's episode starts: a new chunk
+    np.testing.assert_array_equal(step[[0, 1]], np.stack([chunks[0, 2], policy._actions[1, 1]]))
+    np.testing.assert_allclose(step[2], chunks[2, 0], rtol=1e-5)  # a batch of 1 here, of 3 there
     with pytest.raises(ValueError, match="takes"):
         policy.predict(np.zeros(5))
 
@@ -128,7 +135,7 @@ def test_actions_are_clipped_to_the_bounds(tmp_path):
     save_checkpoint(model, str(path), read_metadata(str(path)))
     policy = ebrl.load_policy(path)
     assert INFO.action_space.high[0] == 3.0
-    assert policy.predict(obs_batch(INFO.layout, 1)[0]).tolist() == [3.0]
+    assert policy.predict(obs_batch(INFO.layout, 1)[0])[0].tolist() == [3.0]
     assert (policy.predict_chunk(obs_batch(INFO.layout), deterministic=False) == 3.0).all()
 
 
@@ -193,10 +200,10 @@ import sys, gymnasium as gym, ebrl
 policy = ebrl.load_policy(sys.argv[1])
 env = gym.make("InvertedPendulum-v5")
 obs, _ = env.reset(seed=2_000_000_000)
-policy.reset()
 total, done = 0.0, False
 while not done:
-    obs, reward, terminated, truncated, _ = env.step(policy.predict(obs))
+    action, _ = policy.predict(obs)
+    obs, reward, terminated, truncated, _ = env.step(action)
     total, done = total + reward, terminated or truncated
 print(total)
 """

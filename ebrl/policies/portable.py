@@ -49,9 +49,10 @@ class PolicyFileError(ValueError):
 class PortablePolicy:
     """A policy rebuilt from its checkpoint, acting one step at a time.
 
-    ``predict(obs)`` returns one action per call: the policy computes a chunk of K actions from one
-    observation and hands them out in order, computing the next chunk once the last is spent (open loop,
-    exactly as training executed them). ``reset()`` at an episode's start drops what is left of the chunk.
+    ``action, _ = predict(obs)`` gives one action per call, as Stable-Baselines3's ``predict`` does: the policy
+    computes a chunk of K actions from one observation and hands them out in order, computing the next chunk
+    once the last is spent (open loop, exactly as training executed them). ``reset()`` (or ``predict``'s
+    ``episode_start``) at an episode's start drops what is left of the chunk.
     ``obs`` may be one observation or a batch ``[B, *obs_shape]`` (B environments in lockstep; ``reset(i)``
     resets env i alone). Actions are clipped to the action bounds.
 
@@ -83,20 +84,28 @@ class PortablePolicy:
 
     # --- acting ---
 
-    def predict(self, obs: Any, deterministic: bool = True) -> np.ndarray:
-        """The next action ``[A]`` for one observation, or ``[B, A]`` for a batch."""
+    def predict(self, obs: Any, state: Any = None, episode_start: Any = None,
+                deterministic: bool = True) -> tuple[np.ndarray, None]:
+        """The next action ``[A]`` for one observation, or ``[B, A]`` for a batch, and the recurrent state, in
+        Stable-Baselines3's form (``action, _ = policy.predict(obs)``). The state is always None: what the
+        policy carries from call to call, the rest of each env's chunk, it keeps itself, so ``state`` is
+        ignored. ``episode_start`` (a bool, or one per env): those envs start an episode with this observation,
+        so their chunk is dropped first, as ``reset(i)`` does. Unlike Stable-Baselines3, ``deterministic``
+        defaults to True (evaluation)."""
         batch, single = self._as_batch(obs)
         n = len(batch)
         if self._actions is None or len(self._actions) != n:  # first call, or another number of envs
             self._actions = np.zeros((n, self.chunk, self.action_dim), np.float32)
             self._next = np.full(n, self.chunk, np.int64)
+        if episode_start is not None:
+            self._next[np.broadcast_to(np.asarray(episode_start, bool).reshape(-1), (n,))] = self.chunk
         spent = self._next >= self.chunk
         if spent.any():
             self._actions[spent] = self.predict_chunk(batch[spent], deterministic)
             self._next[spent] = 0
         actions = self._actions[np.arange(n), self._next]
         self._next += 1
-        return actions[0] if single else actions
+        return (actions[0] if single else actions), None
 
     def predict_chunk(self, obs: Any, deterministic: bool = True) -> np.ndarray:
         """A whole chunk ``[B, K, A]`` for a batch of observations (clipped to the bounds); no chunk state."""

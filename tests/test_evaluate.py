@@ -249,11 +249,11 @@ def test_an_episode_cut_short_leaves_no_video(tmp_path):
     policy = ebrl.load_policy(tmp_path / "p.safetensors")
     calls = []
 
-    def failing(obs, deterministic=True):
+    def failing(obs, state=None, episode_start=None, deterministic=True):
         calls.append(1)
         if len(calls) == 3:
             raise RuntimeError("the simulator broke")
-        return np.zeros(1, np.float32)
+        return np.zeros(1, np.float32), None
 
     policy.predict = failing
     with pytest.raises(RuntimeError, match="simulator broke"):

@@ -1,4 +1,5 @@
-"""``ebrl`` command line: up, eval, stats, profile, report, bench, router, secret, schemas, config, graph.
+"""``ebrl`` command line: up, eval, stats, profile, report, bench, router, secret, schemas, config, configs,
+init, graph.
 
 Each command is two functions, ``_args_<command>`` (its arguments) and ``_run_<command>`` (what it does,
 importing what it needs only then, so ``ebrl --help`` stays fast), listed once in :data:`COMMANDS`."""
@@ -73,12 +74,14 @@ def _args_stats(p: argparse.ArgumentParser) -> None:
                         "tcp/127.0.0.1:7447)")
     p.add_argument("--spans", action="store_true", help="also print timeline spans")
     p.add_argument("--count", type=int, default=0, help="exit after this many messages (0: until Ctrl-C)")
+    p.add_argument("--json", action="store_true", help="one JSON object per line (its key, then its fields)")
 
 
 def _run_stats(args: argparse.Namespace) -> int:
-    from ebrl.stats import watch
+    from ebrl.stats import command
 
-    return watch(args.connect, args.run, spans=args.spans, count=args.count, secret=args.run_dir)
+    return command(args.connect, args.run, spans=args.spans, count=args.count, secret=args.run_dir,
+                   as_json=args.json)
 
 
 def _args_bench(p: argparse.ArgumentParser) -> None:
@@ -208,6 +211,39 @@ def _run_config(args: argparse.Namespace) -> int:
     return 0
 
 
+def _args_configs(p: argparse.ArgumentParser) -> None:
+    pass
+
+
+def _run_configs(args: argparse.Namespace) -> int:
+    from ebrl import config
+
+    for name, path in config.stock_configs().items():
+        first = next((line.lstrip("# ").strip() for line in path.read_text().splitlines() if line.startswith("#")),
+                     "")
+        print(f"{name:<26} {first}")
+    return 0
+
+
+def _args_init(p: argparse.ArgumentParser) -> None:
+    p.add_argument("name", help="a stock config (ebrl configs lists them)")
+    p.add_argument("dir", nargs="?", default=".", help="where to write it (and the configs it is based on)")
+
+
+def _run_init(args: argparse.Namespace) -> int:
+    from ebrl import config
+
+    try:
+        written = config.copy_stock(args.name, args.dir)
+    except (config.ConfigError, OSError) as exc:
+        print(f"ebrl init: {exc}", file=sys.stderr)
+        return 2
+    for path in written:
+        print(path)
+    print(f"edit it, then: ebrl up {written[0]}")
+    return 0
+
+
 def _args_graph(p: argparse.ArgumentParser) -> None:
     p.add_argument("--markdown", action="store_true", help="as docs/graph.md (a Mermaid chart and a table)")
 
@@ -230,6 +266,8 @@ COMMANDS = {  # name: (help, its arguments, what it runs)
     "secret": ("create a secret file for a run over several hosts (bus.secret_file)", _args_secret, _run_secret),
     "schemas": ("write schemas/*.json from ebrl/messages.py", _args_schemas, _run_schemas),
     "config": ("check a config, or list every config key", _args_config, _run_config),
+    "configs": ("list the stock configs (ebrl up NAME runs one)", _args_configs, _run_configs),
+    "init": ("copy a stock config here to edit", _args_init, _run_init),
     "graph": ("print the service graph: who publishes, subscribes to and queries what", _args_graph, _run_graph),
 }
 

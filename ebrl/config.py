@@ -474,9 +474,63 @@ class Config:
         return dataclasses.asdict(self)
 
 
-def load(path: str, overrides: list[str] = ()) -> Config:
-    """Read ``path`` (TOML, with its ``base`` files), apply ``section.key=value`` overrides, validate."""
-    raw = read(path)
+# Where the stock configs are: shipped inside the package, or the repository's configs/ in a clone.
+STOCK_DIRS = (Path(__file__).resolve().parent / "configs", Path(__file__).resolve().parent.parent / "configs")
+
+
+def stock_configs() -> dict[str, Path]:
+    """The configs that come with EBRL, by name (``quickstart``: ``configs/quickstart.toml``)."""
+    found: dict[str, Path] = {}
+    for directory in STOCK_DIRS:
+        for path in sorted(directory.glob("*.toml")) if directory.is_dir() else ():
+            found.setdefault(path.stem, path)
+    return found
+
+
+def find(path_or_name: str | os.PathLike) -> Path:
+    """A config file: ``path_or_name`` where it exists, else the stock config of that name (``quickstart`` or
+    ``quickstart.toml``); a ConfigError naming the stock configs if neither."""
+    path = Path(path_or_name)
+    if path.exists() or len(path.parts) > 1:
+        return path
+    stock = stock_configs()
+    if (name := path.name.removesuffix(".toml")) in stock:
+        return stock[name]
+    raise ConfigError(f"{path_or_name}: no such file, and no stock config of that name (stock configs: "
+                      f"{', '.join(stock) or 'none found'}; `ebrl configs` lists them)")
+
+
+def copy_stock(name: str, directory: str | os.PathLike) -> list[Path]:
+    """Copy the stock config ``name`` into ``directory`` to edit, with the configs it is based on (``base``,
+    the same relative names), never replacing a file; the files written, the config first."""
+    stock = stock_configs()
+    if name.removesuffix(".toml") not in stock:
+        raise ConfigError(f"no stock config {name!r} (stock configs: {', '.join(stock)})")
+    chain, source = [], stock[name.removesuffix(".toml")]
+    while source is not None:
+        chain.append(source)
+        base = tomllib.loads(source.read_text()).get("base")
+        source = (source.parent / base).resolve() if isinstance(base, str) else None
+    root = chain[0].parent
+    targets = [Path(directory) / src.relative_to(root) for src in chain]
+    if existing := [str(t) for t in targets if t.exists()]:
+        raise ConfigError(f"{', '.join(existing)} already exists; nothing was written")
+    for src, target in zip(chain, targets):
+        target.parent.mkdir(parents=True, exist_ok=True)
+        target.write_text(src.read_text())
+    return targets
+
+
+def override(path: str, value: Any) -> str:
+    """``section.key=value`` for :func:`load`'s overrides, ``value`` written as TOML (``override("run.name",
+    "a")`` is ``run.name="a"``)."""
+    return f"{path}={_toml_value(value)}"
+
+
+def load(path: str | os.PathLike, overrides: list[str] = ()) -> Config:
+    """Read ``path`` (a TOML file with its ``base`` files, or a stock config's name: :func:`find`), apply
+    ``section.key=value`` overrides, validate."""
+    raw = read(find(path))
     for item in overrides:
         apply_override(raw, item)
     return from_dict(raw)

@@ -367,8 +367,15 @@ def up(config_path: str, overrides: list[str], viz: str | None = None, resume: s
     except prepare.NotStarted as exc:
         print(f"ebrl: {exc}", file=sys.stderr)
         return 2
+    return launch(run)
+
+
+def launch(run: prepare.PreparedRun, out=sys.stdout) -> int:
+    """Start a prepared run's services on this host and supervise them until the run ends; its exit code
+    (130 after Ctrl-C, which stops every service first)."""
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
     try:
-        return asyncio.run(Launcher(run.cfg, run.run_dir, plan=run.plan, gpu_env=run.gpu_env, notes=run.notes).main())
+        return asyncio.run(Launcher(run.cfg, run.run_dir, out=out, plan=run.plan, gpu_env=run.gpu_env,
+                                    notes=run.notes).main())
     finally:
         run.close()

@@ -1,19 +1,25 @@
-"""Watching a run from a script: :func:`observer_config` (a Zenoh config signed in as an observer), and
-``ebrl stats``, which subscribes to ``ebrl/stats/**`` and prints every decoded message."""
+"""Watching a run from a script: :func:`stream` (``ebrl.watch``: the run's stats reports as they arrive, until
+it ends), :func:`observer_config` (a Zenoh config signed in as an observer, for a script of your own), and
+``ebrl stats``, which subscribes to ``ebrl/stats/**`` and prints every decoded message (``--json``: one JSON
+object per line, for other tools)."""
 
 from __future__ import annotations
 
 import json
+import os
 import queue
 import signal
-import os
 import sys
+import threading
+import time
 from pathlib import Path
+from typing import Iterator
 
 import zenoh
 
 from ebrl.bus import auth, codec, keys
 from ebrl.bus.session import BusOptions, zenoh_config
+from ebrl.messages import EpisodeBatch, Event, MessageError, SpanBatch, StatsReport, decode_stats_sample
 
 DEFAULT_ENDPOINT = "tcp/127.0.0.1:7447"
 
@@ -34,6 +40,56 @@ def observer_config(run: str | os.PathLike, connect: str | None = None):
                                    secret_file=str(secret) if signed else "", role="observer"))
 
 
+def stream(run_dir: str | os.PathLike, *, connect: str | None = None, everything: bool = False,
+           idle_timeout: float | None = None) -> Iterator[StatsReport | SpanBatch | Event | EpisodeBatch]:
+    """The stats reports of the run in ``run_dir`` as they arrive (decoded, validated: what fails is skipped),
+    signed in as an observer (read only). ``everything``: its spans, events and episode batches too. It ends
+    once the run's launcher has left the bus (the run ended), or after ``idle_timeout`` seconds without a
+    message; break out of the loop to stop earlier::
+
+        for report in ebrl.watch("runs/quickstart-20261126-101500"):
+            print(report.service, report.metrics.get("train/policy_version"))
+    """
+    run_dir = Path(run_dir)
+    try:
+        run = json.loads((run_dir / "bus.json").read_text())["run"]
+    except (OSError, ValueError, KeyError) as exc:
+        raise FileNotFoundError(f"{run_dir}: not a started run's directory (no bus.json: {exc})") from None
+    inbox: queue.Queue = queue.Queue(maxsize=10_000)
+    launchers: set[str] = set()
+    ended = threading.Event()
+
+    def on_sample(sample: zenoh.Sample) -> None:
+        try:
+            message = decode_stats_sample(str(sample.key_expr), sample.payload.to_bytes())
+        except MessageError:
+            return
+        if everything or isinstance(message, StatsReport):
+            try:
+                inbox.put_nowait(message)
+            except queue.Full:  # the reader fell behind: dropped
+                pass
+
+    def on_token(sample: zenoh.Sample) -> None:
+        (launchers.add if sample.kind == zenoh.SampleKind.PUT else launchers.discard)(str(sample.key_expr))
+        if not launchers:
+            ended.set()  # the run ended (its last reports came before its launcher left)
+
+    with zenoh.open(observer_config(run_dir, connect)) as session:
+        session.declare_subscriber(keys.stats_all(run), on_sample)
+        session.liveliness().declare_subscriber(keys.live(run, "launcher", "*"), on_token, history=True)
+        last = time.monotonic()
+        while True:
+            try:
+                message = inbox.get(timeout=0.5)
+            except queue.Empty:
+                if ended.is_set() or (idle_timeout is not None and time.monotonic() - last > idle_timeout):
+                    return
+                continue
+            last = time.monotonic()
+            yield message
+
+
 def format_message(key: str, msg: dict) -> str:
     if "metrics" in msg:
         metrics = " ".join(f"{k}={v:.4g}" for k, v in sorted(msg["metrics"].items()))
@@ -41,10 +97,12 @@ def format_message(key: str, msg: dict) -> str:
     return f"{key} {json.dumps(msg, default=str)}"
 
 
-def watch(connect: str | None, run: str | None, spans: bool = False, count: int = 0, secret: str = "") -> int:
-    """Print stats (and spans) until Ctrl-C or ``count`` messages. ``secret``: the run's secret file (or its
-    directory), signing in as an observer; empty for a run with ``bus.auth = false``. ``connect`` None: the
-    endpoint in the run directory's ``bus.json``, else the default port."""
+def command(connect: str | None, run: str | None, spans: bool = False, count: int = 0, secret: str = "",
+            as_json: bool = False) -> int:
+    """``ebrl stats``: print stats (and spans) until Ctrl-C or ``count`` messages; ``as_json``: each as one JSON
+    object (its key, then its fields). ``secret``: the run's secret file (or its directory), signing in as an
+    observer; empty for a run with ``bus.auth = false``. ``connect`` None: the endpoint in the run directory's
+    ``bus.json``, else the default port."""
     selector = keys.stats() if run is None else keys.stats_all(run)
     inbox: queue.Queue = queue.Queue(maxsize=10_000)
     signal.signal(signal.SIGINT, lambda *_: inbox.put(None))
@@ -80,6 +138,16 @@ def watch(connect: str | None, run: str | None, spans: bool = False, count: int 
             item = inbox.get()
             if item is None:
                 break
-            print(format_message(*item), flush=True)
+            key, msg = item
+            print(json.dumps({"key": key, **msg}, default=_plain) if as_json else format_message(key, msg), flush=True)
             seen += 1
     return 0
+
+
+def _plain(value):
+    """A decoded array (numpy) or bytes as JSON."""
+    if hasattr(value, "tolist"):
+        return value.tolist()
+    if isinstance(value, (bytes, bytearray)):
+        return value.hex()
+    raise TypeError(f"{type(value).__name__} is not JSON")

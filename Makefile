@@ -1,5 +1,5 @@
 # Two commands do all the set-up on a fresh machine (Python 3.11, pip, gcc, make):
-#   make quickstart   create .venv on first use, install, run configs/quickstart.toml
+#   make quickstart   create .venv on first use, install, run the quickstart config (configs/quickstart.toml)
 #   make test         create .venv on first use, install, run the fast tests
 VENV ?= .venv
 PY := $(VENV)/bin/python
@@ -9,14 +9,14 @@ PYTEST_FLAGS ?= -q -rs  # -rs: print why each skipped test skipped
 
 install: $(VENV)/.installed
 
-$(VENV)/.installed: pyproject.toml
+$(VENV)/.installed: pyproject.toml constraints.txt
 	python3 -m venv $(VENV)
 	$(PY) -m pip install -q --upgrade pip
-	$(PY) -m pip install -q -e '.[test]'
+	$(PY) -m pip install -q -c constraints.txt -e '.[test]'
 	touch $@
 
 quickstart: install
-	$(VENV)/bin/ebrl up configs/quickstart.toml
+	$(VENV)/bin/ebrl up quickstart
 
 test: install
 	$(PY) -m pytest $(PYTEST_FLAGS)

@@ -474,8 +474,8 @@ class Config:
         return dataclasses.asdict(self)
 
 
-# Where the stock configs are: shipped inside the package, or the repository's configs/ in a clone.
-STOCK_DIRS = (Path(__file__).resolve().parent / "configs", Path(__file__).resolve().parent.parent / "configs")
+# Where the stock configs are: inside the package (a clone's configs/ links here).
+STOCK_DIRS = (Path(__file__).resolve().parent / "configs",)
 
 
 def stock_configs() -> dict[str, Path]:

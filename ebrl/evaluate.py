@@ -1,6 +1,6 @@
 """Evaluating a policy: episodes in plain gymnasium loops, confidence intervals, videos, ``eval.json``.
 
-Used by ``ebrl eval PATH`` and by the eval service (``services/eval.py``), the same code for both:
+Used by ``ebrl eval PATH`` and by the eval service (``ebrl/services/eval.py``), the same code for both:
 
 - :func:`run_episodes` plays episodes of the policy's own environment (built as training built it,
   ``ebrl.envs``) on the CPU, one after another; episode i resets with seed ``seed + i``, so an evaluation is

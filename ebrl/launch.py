@@ -50,9 +50,9 @@ OPTIONAL_ROLES = ("log", "eval")  # services no other one needs: a death that re
 
 
 def service_argv(config_path: Path, endpoint: str) -> Argv:
-    """``python -m services.<role> --config ... --instance N [--connect <the launcher's endpoint>]``."""
+    """``python -m ebrl.services.<role> --config ... --instance N [--connect <the launcher's endpoint>]``."""
     def argv(role: str, instance: int) -> list[str]:
-        cmd = [sys.executable, "-m", f"services.{role}", "--config", str(config_path), "--instance", str(instance)]
+        cmd = [sys.executable, "-m", f"ebrl.services.{role}", "--config", str(config_path), "--instance", str(instance)]
         return cmd + (["--connect", endpoint] if endpoint else [])
     return argv
 

@@ -39,7 +39,7 @@ def gen_seed(run_seed: int, instance: int) -> int:
 
 
 def seeds(cfg: config_mod.Config) -> dict[str, Any]:
-    """Every seed the run uses, as derived from ``run.seed`` (``ebrl.sched.fleet``, ``services/gen.py``,
+    """Every seed the run uses, as derived from ``run.seed`` (``ebrl.sched.fleet``, ``ebrl/services/gen.py``,
     ``ebrl.algos.learner``)."""
     from ebrl.envs.worker import EPISODE_SEED_STRIDE
     from ebrl.sched.fleet import ENV_SEED_STRIDE

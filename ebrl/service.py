@@ -327,8 +327,8 @@ def _describe_control(msg: Any) -> str:
 
 
 def service_main(cls: type[Service], argv: list[str] | None = None) -> None:
-    """Entry point of ``python -m services.<role>``: parse args, configure logging, run."""
-    parser = argparse.ArgumentParser(prog=f"services.{cls.role}")
+    """Entry point of ``python -m ebrl.services.<role>``: parse args, configure logging, run."""
+    parser = argparse.ArgumentParser(prog=f"ebrl.services.{cls.role}")
     parser.add_argument("--config", required=True, help="resolved TOML config")
     parser.add_argument("--instance", type=int, default=0)
     parser.add_argument("--connect", action="append", default=[], help="bus endpoint to connect to")

@@ -1,6 +1,6 @@
 """The service processes of one host: started, restarted after a failure or for a new GPU share, stopped in order.
 
-A child is ``python -m services.<role>`` (or any command line: tests start small
+A child is ``python -m ebrl.services.<role>`` (or any command line: tests start small
 Python scripts) in a process group of its own, so that Ctrl-C reaches only the
 launcher, which stops the children in order; it dies with the launcher
 (``PR_SET_PDEATHSIG``) and appends its output to ``logs/<role>-<instance>.log``.

@@ -38,7 +38,7 @@ from ebrl.messages import MessageError, StatsReport, decode_stats_sample
 __all__ = ["InProcessRun", "Output", "Run", "RunError", "StatsWatcher", "free_port", "run_name", "service_class",
            "source", "up_command", "up_sets"]
 
-REPO = Path(__file__).resolve().parent.parent  # where `ebrl` and `services` are
+REPO = Path(__file__).resolve().parent.parent  # where `ebrl` is (a clone's root, or site-packages)
 STOP_S = 30.0  # after SIGINT, before SIGKILL (the launcher itself stops every service within SHUTDOWN_S)
 STARTUP_S = 300.0  # default deadline for the launcher's first line (generous: shared, loaded machines)
 TAIL_LINES = 40
@@ -252,16 +252,14 @@ class Run:
 
 
 def service_class(role: str) -> type:
-    """The service class of ``role``, from ``services/<role>.py`` (beside ``ebrl``, as the launcher runs them)."""
-    if str(REPO) not in sys.path:
-        sys.path.insert(0, str(REPO))
-    module = importlib.import_module(f"services.{role}")
+    """The service class of ``role``, from ``ebrl/services/<role>.py``."""
+    module = importlib.import_module(f"ebrl.services.{role}")
     return next(v for v in vars(module).values() if isinstance(v, type) and getattr(v, "role", None) == role)
 
 
 class InProcessRun:
     """Services of one run as tasks of the running event loop, on one in-memory bus network: the real services
-    (``services/<role>.py``), models, env worker processes and protocols; only the transport is in memory.
+    (``ebrl/services/<role>.py``), models, env worker processes and protocols; only the transport is in memory.
 
     ``roles``: ``"sim"`` or ``("sim", 1)`` (an instance other than 0). ``make_bus(network, role)`` gives each
     service its bus (default: a :class:`~ebrl.bus.memory.MemoryBus`; a test may record what it sends).

@@ -1,7 +1,7 @@
 """Experiment tracking: the run's stats, episode records and eval results, keyed by env steps, into TensorBoard,
 CSV and Weights & Biases.
 
-Where it runs, and why there: in the ``log`` service (``services/log.py``), a subscriber of
+Where it runs, and why there: in the ``log`` service (``ebrl/services/log.py``), a subscriber of
 ``ebrl/stats/<run>/**`` started and supervised by the launcher like ``viz``. Everything a sink needs is
 already on the bus (stats reports, ``EpisodeBatch`` records, the eval service's reports), so no training
 service knows the sinks exist, and a sink that stalls (a slow disk, W&B's network) or dies is isolated in its
@@ -493,7 +493,7 @@ def steps_so_far(run_dir: str | Path) -> int:
 
 
 def open_tracker(cfg: config_mod.Config, run_dir: str | Path) -> Tracker:
-    """The tracker of the run in ``run_dir``, with every sink ``[log]`` asks for (``services/log.py``)."""
+    """The tracker of the run in ``run_dir``, with every sink ``[log]`` asks for (``ebrl/services/log.py``)."""
     from ebrl import meta as meta_mod
 
     run_dir = Path(run_dir)

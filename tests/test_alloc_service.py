@@ -160,7 +160,7 @@ def test_a_new_gpu_share_restarts_training_at_a_safe_point_and_loses_nothing(tmp
     def train_share() -> str | None:
         for child in psutil.Process(proc.pid).children(recursive=True):
             try:
-                if "services.train" in child.cmdline():
+                if "ebrl.services.train" in child.cmdline():
                     return child.environ().get("CUDA_MPS_ACTIVE_THREAD_PERCENTAGE")
             except psutil.Error:
                 pass

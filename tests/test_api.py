@@ -62,7 +62,7 @@ def test_a_run_that_cannot_start_raises_naming_the_field(tmp_path):
 
 
 def test_stock_configs_run_by_name_and_copy_with_their_bases(tmp_path):
-    assert config.find("quickstart") == ROOT / "configs" / "quickstart.toml"
+    assert config.find("quickstart").read_text() == (ROOT / "configs" / "quickstart.toml").read_text()
     assert config.load("quickstart.toml").run.name == "quickstart"
     with pytest.raises(config.ConfigError, match="stock configs: .*quickstart"):
         config.find("quikstart")

@@ -26,7 +26,7 @@ def test_importing_ebrl_envs_imports_no_simulator():
 
 def test_the_sim_service_imports_no_torch():
     """torch costs a second or more at every sim start; only a vectorized group's own process needs it."""
-    code = "import sys, services.sim, ebrl.sched.fleet, ebrl.envs.vector\nprint('torch' in sys.modules)"
+    code = "import sys, ebrl.services.sim, ebrl.sched.fleet, ebrl.envs.vector\nprint('torch' in sys.modules)"
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60, check=True,
                          cwd=pathlib.Path(__file__).resolve().parent.parent)
     assert out.stdout.strip() == "False"

@@ -63,7 +63,7 @@ def test_an_eval_service_that_dies_never_stops_the_run(tmp_path):
                     "eval.episodes=2", "eval.video_episodes=0", "run.max_restarts=0", name="evaldies") as run:
         run.wait_for_line("all services live", 300)
         launcher = psutil.Process(run.proc.pid)
-        evaluator = next(p for p in launcher.children() if "services.eval" in p.cmdline())
+        evaluator = next(p for p in launcher.children() if "ebrl.services.eval" in p.cmdline())
         deadline = time.monotonic() + 120
         while not (workers := evaluator.children(recursive=True)):  # started with the first evaluation
             assert time.monotonic() < deadline, run.output

@@ -34,7 +34,7 @@ def wait_version(stats: StatsWatcher, version: int, timeout: float = 300) -> Non
 
 def service(run: Run, role: str) -> psutil.Process:
     for child in psutil.Process(run.proc.pid).children():
-        if f"services.{role}" in " ".join(child.cmdline()):
+        if f"ebrl.services.{role}" in " ".join(child.cmdline()):
             return child
     raise AssertionError(f"no {role} service running")
 

@@ -265,7 +265,7 @@ def test_killing_one_rank_restarts_the_training_group(tmp_path):
             assert time.monotonic() < deadline, "no checkpoint after 300 s"
             time.sleep(0.2)
         rank1 = [p for p in psutil.Process(run.proc.pid).children()
-                 if p.cmdline()[2:3] == ["services.train"] and "--instance" in p.cmdline()
+                 if p.cmdline()[2:3] == ["ebrl.services.train"] and "--instance" in p.cmdline()
                  and p.cmdline()[p.cmdline().index("--instance") + 1] == "1"]
         assert len(rank1) == 1
         rank1[0].kill()

@@ -162,7 +162,7 @@ def test_a_stopped_gen_is_reported_by_name_restarted_and_the_run_finishes(tmp_pa
         stats.wait_for(lambda: (stats.latest("train/0", "train/policy_version") or 0) >= 2, 300, "policy v2")
         import psutil
 
-        gen = next(p for p in psutil.Process(run.proc.pid).children() if "services.gen" in " ".join(p.cmdline()))
+        gen = next(p for p in psutil.Process(run.proc.pid).children() if "ebrl.services.gen" in " ".join(p.cmdline()))
         stopped = time.monotonic()
         gen.send_signal(signal.SIGSTOP)
         line = run.wait_for_line(lambda s: "gen/0 stalled" in s, 120, "the stall line")

@@ -141,7 +141,7 @@ def write_run(tmp_path: Path, *sets: str) -> tuple[Path, config.Config]:
 
 
 async def feed_log_service(run_dir: Path, messages: list[tuple[str, object]]) -> tuple[int, str]:
-    """Start ``python -m services.log`` on the run in ``run_dir`` (its own process, a real Zenoh session),
+    """Start ``python -m ebrl.services.log`` on the run in ``run_dir`` (its own process, a real Zenoh session),
     publish ``messages`` once it is live, stop it over the bus; its exit status and log."""
     port = helpers.free_port()
     bus = helpers.loopback_bus(port)
@@ -150,7 +150,7 @@ async def feed_log_service(run_dir: Path, messages: list[tuple[str, object]]) ->
     log_path = run_dir / "logs" / "log-0.log"
     env = dict(os.environ, PYTHONPATH=str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", ""))
     with open(log_path, "ab") as out:
-        proc = subprocess.Popen([sys.executable, "-m", "services.log", "--config", str(run_dir / "config.toml"),
+        proc = subprocess.Popen([sys.executable, "-m", "ebrl.services.log", "--config", str(run_dir / "config.toml"),
                                  "--connect", f"tcp/127.0.0.1:{port}"], stdout=out, stderr=subprocess.STDOUT, env=env)
     try:
         await helpers.until(lambda: live or proc.poll() is not None, 120, "the log service live")
@@ -352,7 +352,7 @@ def test_generation_samples_from_a_seed_fixed_per_instance():
 
     from ebrl.bus.memory import MemoryBus, MemoryNetwork
     from ebrl.policies import load_arrays
-    from services.gen import GenService
+    from ebrl.services.gen import GenService
 
     cfg = config.load(str(ROOT / "configs" / "quickstart.toml"), ["run.seed=3"])
     obs = np.random.default_rng(0).standard_normal((8, 4)).astype(np.float32)
@@ -386,7 +386,7 @@ def test_the_log_service_writes_tensorboard_without_importing_torch(tmp_path):
     script = f"""
 import sys
 from pathlib import Path
-import services.log
+import ebrl.services.log
 from ebrl import config, tracking
 cfg = config.load({str(run_dir / "config.toml")!r})
 info = tracking.RunInfo(cfg.run.name, Path({str(run_dir)!r}), cfg, config.dump_toml(cfg), {{}})

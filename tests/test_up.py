@@ -94,7 +94,7 @@ def test_services_are_separate_processes_and_sigint_leaves_none(tmp_path):
         time.sleep(2)  # let it train a little
         tree = launcher.children(recursive=True)
         roles = {p.cmdline()[2] for p in launcher.children() if len(p.cmdline()) > 2}
-        assert roles == {"services.sim", "services.gen", "services.train", "services.log"}
+        assert roles == {"ebrl.services.sim", "ebrl.services.gen", "ebrl.services.train", "ebrl.services.log"}
         run.interrupt()
         start = time.monotonic()
         code = run.wait(SHUTDOWN_S + LOADED_S)

@@ -1,4 +1,4 @@
-"""A training rank's update cycle, seen from the event loop (the train service drives it, ``services/train.py``).
+"""A training rank's update cycle, seen from the event loop (the train service drives it, ``ebrl/services/train.py``).
 
 Rank 0 learns whenever a full batch is pending: segments arrive all the time (also during an update), a
 batch becomes ready as they do, and the cycle waits for it, takes it and updates on the learner's one update

@@ -2,7 +2,7 @@
 (Shao et al. 2024, "DeepSeekMath", section 4.1; outcome supervision).
 
 The ``group_size`` environments ``g * group_size ... (g + 1) * group_size - 1``
-reset with the same seeds (services/sim.py), so their k-th episodes start from
+reset with the same seeds (ebrl/services/sim.py), so their k-th episodes start from
 the same initial state; actions are sampled independently, so the episodes
 differ. When all ``group_size`` k-th episodes have finished, each episode's
 advantage is its return standardised within the group,

@@ -12,7 +12,7 @@ It holds the policy, PPO/GRPO and the bounded collector, and the rules that keep
   bad gradient step, :meth:`Learner.finite_or_previous` undoes an update that made non-finite weights,
   ``ebrl.algos.saving`` refuses a checkpoint or policy file that is not finite).
 
-No bus and no event loop here: the train service (``services/train.py``) drives it through
+No bus and no event loop here: the train service (``ebrl/services/train.py``) drives it through
 ``ebrl.algos.cycle``, and with several ranks the choreography of ``ebrl.algos.parallel`` decides who learns
 from what.
 """

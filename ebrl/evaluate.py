@@ -46,8 +46,10 @@ def t_interval(values: Any, confidence: float = CONFIDENCE) -> tuple[float, floa
     mean = float(x.mean()) if len(x) else math.nan
     if len(x) < 2:
         return mean, math.nan, math.nan
-    half = float(stats.t.ppf((1 + confidence) / 2, len(x) - 1) * x.std(ddof=1) / math.sqrt(len(x)))
-    return mean, mean - half, mean + half
+    if (sem := float(stats.sem(x))) == 0:  # every value the same: no spread (scipy would say nan)
+        return mean, mean, mean
+    lo, hi = stats.t.interval(confidence, len(x) - 1, loc=mean, scale=sem)
+    return mean, float(lo), float(hi)
 
 
 def wilson_interval(successes: int, n: int, confidence: float = CONFIDENCE) -> tuple[float, float, float]:
@@ -56,14 +58,10 @@ def wilson_interval(successes: int, n: int, confidence: float = CONFIDENCE) -> t
 
     if n <= 0:
         return math.nan, math.nan, math.nan
-    z = float(stats.norm.ppf((1 + confidence) / 2))
-    p = successes / n
-    denominator = 1 + z * z / n
-    centre = (p + z * z / (2 * n)) / denominator
-    half = z * math.sqrt(p * (1 - p) / n + z * z / (4 * n * n)) / denominator
-    lo = 0.0 if successes == 0 else max(0.0, centre - half)  # exact at the ends (rounding leaves 1 - 1e-16)
-    hi = 1.0 if successes == n else min(1.0, centre + half)
-    return p, lo, hi
+    ci = stats.binomtest(successes, n).proportion_ci(confidence_level=confidence, method="wilson")
+    lo = 0.0 if successes == 0 else max(0.0, float(ci.low))  # exact at the ends (rounding leaves 1 - 1e-16)
+    hi = 1.0 if successes == n else min(1.0, float(ci.high))
+    return successes / n, lo, hi
 
 
 # --- results ------------------------------------------------------------------------------------------

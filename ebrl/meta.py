@@ -116,9 +116,12 @@ def machine() -> dict[str, Any]:
 
 
 def command_line() -> list[str]:
-    """This process's command line as the user typed it (``ebrl up ...``, also under ``python -m ebrl.cli``)."""
+    """This process's command line as the user typed it: ``ebrl up ...`` (also under ``python -m ebrl.cli``), or
+    ``python train.py ...`` for a script that called ``ebrl.train``."""
     program = Path(sys.argv[0]).name
-    return ["ebrl" if program in ("ebrl", "cli.py", "__main__.py") else sys.argv[0], *sys.argv[1:]]
+    if program in ("ebrl", "cli.py", "__main__.py"):
+        return ["ebrl", *sys.argv[1:]]
+    return ["python", *sys.argv] if program.endswith(".py") else list(sys.argv)
 
 
 def collect(cfg: config_mod.Config, run_dir: str | Path, argv: list[str] | None = None,

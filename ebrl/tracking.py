@@ -161,30 +161,20 @@ def text_summary(tag: str, text: str) -> Any:
 
 def hparams_summaries(params: dict[str, str | float | int], metrics: Iterable[str]) -> tuple[Any, Any, Any]:
     """The HParams plugin's three records: the experiment (which hyperparameters and metrics there are), the
-    session's start (this run's values) and its end (success)."""
-    from tensorboard.compat.proto.summary_pb2 import Summary, SummaryMetadata
-    from tensorboard.plugins.hparams import metadata as hp
-    from tensorboard.plugins.hparams.api_pb2 import DataType, Experiment, HParamInfo, MetricInfo, MetricName, Status
-    from tensorboard.plugins.hparams.plugin_data_pb2 import HParamsPluginData, SessionEndInfo, SessionStartInfo
+    session's start (this run's values) and its end (success). TensorBoard's own ``summary_v2`` writes the
+    first two without TensorFlow; the end record is the plugin's data as its ``metadata`` module builds it."""
+    from tensorboard.compat.proto.summary_pb2 import Summary
+    from tensorboard.plugins.hparams import metadata, summary_v2
+    from tensorboard.plugins.hparams.api_pb2 import Status
+    from tensorboard.plugins.hparams.plugin_data_pb2 import HParamsPluginData, SessionEndInfo
 
-    def summary(tag: str, content: Any) -> Any:
-        data = SummaryMetadata.PluginData(plugin_name=hp.PLUGIN_NAME, content=content.SerializeToString())
-        return Summary(value=[Summary.Value(tag=tag, metadata=SummaryMetadata(plugin_data=data))])
-
-    start, infos = SessionStartInfo(), []
-    for key, value in params.items():
-        if isinstance(value, str):
-            start.hparams[key].string_value = value
-            infos.append(HParamInfo(name=key, type=DataType.Value("DATA_TYPE_STRING")))
-        else:
-            start.hparams[key].number_value = float(value)
-            infos.append(HParamInfo(name=key, type=DataType.Value("DATA_TYPE_FLOAT64")))
-    experiment = Experiment(hparam_infos=infos, metric_infos=[MetricInfo(name=MetricName(tag=m)) for m in metrics])
-    end = SessionEndInfo(status=Status.Value("STATUS_SUCCESS"))
-    version = hp.PLUGIN_DATA_VERSION
-    return (summary(hp.EXPERIMENT_TAG, HParamsPluginData(experiment=experiment, version=version)),
-            summary(hp.SESSION_START_INFO_TAG, HParamsPluginData(session_start_info=start, version=version)),
-            summary(hp.SESSION_END_INFO_TAG, HParamsPluginData(session_end_info=end, version=version)))
+    experiment = summary_v2.hparams_config_pb([summary_v2.HParam(key) for key in params],
+                                              [summary_v2.Metric(m) for m in metrics])
+    end = HParamsPluginData(session_end_info=SessionEndInfo(status=Status.Value("STATUS_SUCCESS")),
+                            version=metadata.PLUGIN_DATA_VERSION)
+    end_summary = Summary(value=[Summary.Value(tag=metadata.SESSION_END_INFO_TAG,
+                                               metadata=metadata.create_summary_metadata(end))])
+    return experiment, summary_v2.hparams_pb(params), end_summary
 
 
 class CsvSink:

@@ -1,12 +1,14 @@
-"""EBRL from Python (ebrl.api, ebrl.stats.stream): a short script trains the stock quickstart by name with
-ebrl.train while this process follows the run with ebrl.watch and `ebrl stats --json`; config names and
-copies of the stock configs (ebrl configs, ebrl init)."""
+"""EBRL from Python (ebrl.api, ebrl.stats.stream), and the fast suite's end-to-end quickstart: a short script
+trains the stock quickstart by name with ebrl.train while ebrl.watch, the README's zenoh subscriber and `ebrl
+stats --json` follow it; config names and copies of the stock configs (ebrl configs, ebrl init)."""
 
 from __future__ import annotations
 
 import json
+import os
 import subprocess
 import sys
+from pathlib import Path
 
 import pytest
 
@@ -14,44 +16,55 @@ import ebrl
 from ebrl import config
 from ebrl.testing import Output, free_port
 from helpers import ROOT
+from test_up import check_tracking_outputs
 
 SCRIPT = """\
 import sys, ebrl
-run = ebrl.train("quickstart", run={{"iterations": 4, "output_dir": sys.argv[1]}}, train={{"batch_size": 256}},
-                 viz={{"rerun": "off"}}, bus={{"listen": ["tcp/127.0.0.1:{port}"]}})
+run = ebrl.train("quickstart", run={{"iterations": 3, "name": "e2e", "output_dir": sys.argv[1]}},
+                 train={{"batch_size": 256}}, bus={{"listen": ["tcp/127.0.0.1:{port}"]}})
 print("result", run.exit_code, run.summary["iterations"], run.policy_path, run.load_policy().chunk)
 """
 
 
-def test_a_script_trains_with_ebrl_train_while_ebrl_watch_follows_the_run(tmp_path):
+def test_a_script_trains_with_ebrl_train_while_scripts_and_ebrl_stats_follow_the_run(tmp_path):
+    """The quickstart by name from a short script (ebrl.train), followed three ways while it runs: ebrl.watch
+    here, the README's plain zenoh subscriber (examples/subscribe_stats.py) and `ebrl stats --json`; then what
+    the run leaves (summary, TensorBoard, metrics.csv, meta.json, the policy)."""
     script = tmp_path / "train.py"
     script.write_text(SCRIPT.format(port=free_port()))
-    proc = subprocess.Popen([sys.executable, str(script), str(tmp_path / "runs")], cwd=tmp_path,
-                            env={"PYTHONPATH": str(ROOT), "PATH": "/usr/bin:/bin"}, stdout=subprocess.PIPE,
-                            stderr=subprocess.STDOUT, text=True)
-    out = Output(proc, "the ebrl.train script")
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    proc = subprocess.Popen([sys.executable, str(script), str(tmp_path / "runs")], cwd=tmp_path, env=env,
+                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    out, watchers = Output(proc, "the ebrl.train script"), []
     try:
-        first = out.wait_for_line(lambda line: line.startswith("run quickstart: "), 120, "the run's first line")
-        run_dir = first.split(": ", 1)[1].split("  (", 1)[0]
+        first = out.wait_for_line(lambda line: line.startswith("run e2e: "), 120, "the run's first line")
+        run_dir = Path(first.split(": ", 1)[1].split("  (", 1)[0])
         out.wait_for_line(lambda line: "all services live" in line, 300, "every service live")
-        versions, as_json = [], None
-        for report in ebrl.watch(run_dir, idle_timeout=120):  # ends by itself when the run does
-            if report.service == "train":
-                versions.append(report.metrics["train/policy_version"])
-            if as_json is None:
-                as_json = subprocess.run([sys.executable, "-m", "ebrl.cli", "stats", run_dir, "--json", "--count",
-                                          "2"], capture_output=True, text=True, timeout=120, cwd=ROOT)
+        watchers = [subprocess.Popen([sys.executable, *args], stdout=subprocess.PIPE, text=True, env=env) for args in
+                    ([str(ROOT / "examples" / "subscribe_stats.py"), str(run_dir), "60"],
+                     ["-m", "ebrl.cli", "stats", str(run_dir), "--json", "--count", "3"])]
+        versions = [r.metrics["train/policy_version"] for r in ebrl.watch(run_dir, idle_timeout=120)
+                    if r.service == "train"]  # it ends by itself when the run does
         assert proc.wait(120) == 0, out.text
+        as_json, _ = watchers[1].communicate(timeout=60)
     finally:
-        if proc.poll() is None:
-            proc.kill()
+        for p in (proc, *watchers):
+            p.kill()
     out.join()
-    assert versions and max(versions) == 4 and versions == sorted(versions)
-    assert as_json.returncode == 0, as_json.stderr
-    lines = [json.loads(line) for line in as_json.stdout.splitlines()]
-    assert len(lines) == 2 and all(line["key"].startswith("ebrl/stats/quickstart/") for line in lines)
-    result = out.text.splitlines()[-1].split()
-    assert result[:3] == ["result", "0", "4"] and result[3].endswith("policy.safetensors") and result[4] == "4"
+    plain, _ = watchers[0].communicate()
+    assert versions and max(versions) == 3 and versions == sorted(versions)
+    lines = [json.loads(line) for line in as_json.splitlines()]
+    assert len(lines) == 3 and all(line["key"].startswith("ebrl/stats/e2e/") for line in lines)
+    assert "e2e:" in plain and "env steps/s" in plain  # decoded stats reached a plain zenoh script
+    assert len((ROOT / "examples" / "subscribe_stats.py").read_text().splitlines()) < 15  # README's promise
+    text = out.text
+    assert "run e2e finished: 3 iterations" in text
+    assert "auto: policy.dtype = 'float32', gen.compile = 'off' (no GPU on this host)" in text
+    result = text.splitlines()[-1].split()
+    assert result[:3] == ["result", "0", "3"] and result[3].endswith("policy.safetensors") and result[4] == "4"
+    summary = json.loads((run_dir / "summary.json").read_text())
+    assert summary["iterations"] == 3 and summary["segments"] > 0 and summary["env_steps"] > 0
+    check_tracking_outputs(run_dir, summary, command=("python", str(script)))
 
 
 def test_a_run_that_cannot_start_raises_naming_the_field(tmp_path):

@@ -140,7 +140,7 @@ def test_ebrl_profile_measures_real_stages_and_prints_an_allocation(tmp_path):
                           "--out", str(tmp_path / "p.json")], capture_output=True, text=True, timeout=180,
                          cwd=str(__import__("pathlib").Path(__file__).resolve().parent.parent))
     assert out.returncode == 0, out.stdout + out.stderr
-    assert "profiling [" in out.stderr and "Algorithm 1 (" in out.stdout
+    assert "profiling 1/" in out.stderr and "Algorithm 1 (" in out.stdout
     stored = Profiles.from_json(json.loads((tmp_path / "p.json").read_text())["profiles"])
     assert all(rate > 0 for table in (stored.sim, stored.gen, stored.train) for rate in table.values())
 

@@ -210,24 +210,25 @@ def measure_train(cfg: config_mod.Config, cores: list[int], batch: int, seconds:
 
 
 class Progress:
-    """A one-line progress bar on stderr (plain lines when stderr is not a terminal)."""
+    """The profile's progress on stderr: a tqdm bar on a terminal, with what the last point measured; one plain
+    line per point otherwise (a log stays readable)."""
 
     def __init__(self, total: int, out=sys.stderr):
+        from tqdm import tqdm
+
         self.total, self.done, self.out = total, 0, out
-        self.tty = out.isatty()
-        self.start = time.monotonic()
+        self.bar = tqdm(total=total, desc="profiling", unit="point", file=out, dynamic_ncols=True,
+                        disable=not out.isatty())
 
     def step(self, what: str) -> None:
         self.done += 1
-        width = 30
-        filled = int(width * self.done / self.total)
-        line = (f"profiling [{'#' * filled}{'.' * (width - filled)}] {self.done}/{self.total} "
-                f"{time.monotonic() - self.start:4.0f} s  {what}")
-        if self.tty:
-            self.out.write("\r\033[K" + line + ("\n" if self.done == self.total else ""))
-        else:
-            self.out.write(line + "\n")
-        self.out.flush()
+        if self.bar.disable:
+            print(f"profiling {self.done}/{self.total}: {what}", file=self.out, flush=True)
+            return
+        self.bar.set_postfix_str(what, refresh=False)
+        self.bar.update()
+        if self.done == self.total:
+            self.bar.close()
 
 
 def profile(pool: ResourcePool, cfg: config_mod.Config, seconds: float = 1.0,

@@ -72,6 +72,8 @@ class RunSection(Section):
         "success) reaches this fraction (0.9: 90 %); absent: never", None)
     seed: int = doc("seed for environments and model initialisation", 0)
     output_dir: str = doc("where run directories (logs, resolved config, summary) are created", "runs")
+    group: str = doc("a Unix group whose members may read the run's directory (mode 0750, that group); empty: "
+                     "only you (mode 0700: the logs, config, stats and policy of a run are its owner's)", "")
     stall_timeout: float = doc(
         "seconds a stage may stop moving (a service's stats reports, env steps, answered observations, updates) "
         "before the launcher says which and why, restarts it, and ends the run if that does not help "

@@ -90,6 +90,7 @@ class LauncherBus:
             self.bus.subscribe_raw(keys.stats_all(self.run), self.recorder.write)
         self._seq = 0
         self.ctl_unknown = 0  # control messages for a service this run does not have
+        self.gpu_shares_refused = 0  # GPU shares in a run without the allocator
 
     def count_unknown_controls(self, roles: tuple[str, ...] | list[str]) -> None:
         """Count control messages for a service this run does not have (every service ignores them)."""
@@ -305,6 +306,7 @@ class Launcher:
     def publish_stats(self) -> None:
         """The launcher's own stats report: restarts per service, services up."""
         metrics = {**self.supervisor.metrics(), "launcher/ctl_unknown_service": float(self.link.ctl_unknown),
+                   "launcher/gpu_shares_refused": float(self.link.gpu_shares_refused),
                    "launcher/services_live": float(self.members.services_live()),
                    "launcher/stats_refused": float(self.view.refused)}
         self.link.publish_stats(metrics)
@@ -331,7 +333,13 @@ class Launcher:
 
     def on_gpu_share(self, key: str, share: GpuShare) -> None:
         """A new GPU share for a stage of this host: its processes stop at their safe point (generation between
-        batches, training after its update, its state in a checkpoint) and start again with it."""
+        batches, training after its update, its state in a checkpoint) and start again with it. Only the
+        allocator makes shares: without it, one is refused (counted, said once)."""
+        if not self.cfg.alloc.enabled:
+            if not self.link.gpu_shares_refused:
+                self.console.say(f"\nebrl: a GPU share for {share.stage} refused: this run has no allocator")
+            self.link.gpu_shares_refused += 1
+            return
         for child in self.supervisor.new_gpu_share(share.stage, share.env, share.version):
             self.link.bus.put_nowait(keys.ctl(self.run_name, child.role, child.instance, "stop"),
                                      Stop(reason=STOP_TO_RESTART))

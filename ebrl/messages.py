@@ -20,6 +20,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
+import re
 import types
 import typing
 from dataclasses import dataclass, field
@@ -386,11 +387,23 @@ class Quota:
             _count("Quota.batch", self.batch, 1, 1 << 24)
 
 
+# The variables of a GPU share (ebrl.resources.pool.Binding.env), each with the values it may take: devices by
+# index or UUID, an SM percentage, MPS's per-device memory limits ("0=1024M").
+GPU_SHARE_VARIABLES = {
+    "CUDA_VISIBLE_DEVICES": r"(\d{1,3}|(GPU|MIG)-[0-9A-Za-z/-]{1,80})(,(\d{1,3}|(GPU|MIG)-[0-9A-Za-z/-]{1,80})){0,15}",
+    "CUDA_MPS_ACTIVE_THREAD_PERCENTAGE": r"(100|[1-9]?\d)(\.\d{1,6})?",
+    "CUDA_MPS_PINNED_DEVICE_MEM_LIMIT": r"\d{1,3}=\d{1,9}[MG](,\d{1,3}=\d{1,9}[MG]){0,15}",
+}
+
+
 @dataclass
 class GpuShare:
     """Start one stage's processes again with a new GPU share (allocator -> the launcher of its host). MPS
     fixes a process's share when it makes its CUDA context: the launcher stops the stage's processes at their
-    safe point (``Stop``, reason ``STOP_TO_RESTART``) and starts them with ``env``; not counted as a restart."""
+    safe point (``Stop``, reason ``STOP_TO_RESTART``) and starts them with ``env`` (counted in
+    ``launcher/requotas``); only in a run with the allocator. ``env`` holds only the variables a share is made
+    of (:data:`GPU_SHARE_VARIABLES`), each in its own format: anything else (a library for CUDA to load) is
+    refused."""
 
     KEY = "ebrl/ctl/<run>/launcher/<host>/gpu_share"
     version: int = doc("plan version; a share whose version the stage already has is ignored")
@@ -403,9 +416,12 @@ class GpuShare:
         _count("GpuShare.version", self.version)
 
     def __post_init__(self) -> None:
-        other = sorted(k for k in self.env if not k.startswith("CUDA_"))
+        other = sorted(k for k in self.env if k not in GPU_SHARE_VARIABLES)
         if other:
-            raise MessageError(f"GpuShare: env may only set CUDA_* variables, not {', '.join(other)}")
+            raise MessageError(f"GpuShare: env may only set {', '.join(GPU_SHARE_VARIABLES)}, not {', '.join(other)}")
+        for name, value in self.env.items():
+            if not re.fullmatch(GPU_SHARE_VARIABLES[name], value):
+                raise MessageError(f"GpuShare: {name}={value!r} is not a share's value")
 
 
 MESSAGES: tuple[type, ...] = (

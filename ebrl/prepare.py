@@ -12,6 +12,7 @@ quit again). :mod:`ebrl.launch` then only wires the processes, the run's view an
 from __future__ import annotations
 
 import dataclasses
+import grp
 import os
 import sys
 import time
@@ -20,7 +21,7 @@ from typing import Any
 
 from ebrl import autotune, config as config_mod, devices, meta, tracking
 from ebrl.bus import auth
-from ebrl.bus.endpoints import config_file_listen
+from ebrl.bus.endpoints import config_file_acl, config_file_endpoints
 from ebrl.hosts import HostPlan, plan as plan_host
 
 
@@ -118,16 +119,50 @@ def run_directory(cfg: config_mod.Config, resume: str | None) -> Path:
 
 
 def make_run_dir(cfg: config_mod.Config) -> Path:
+    """A new directory for the run, only its owner's (0700), or its owner's and ``run.group``'s (0750): made so
+    from the start, never readable by others in between."""
     stamp = time.strftime("%Y%m%d-%H%M%S")
     run_dir = Path(cfg.run.output_dir) / f"{cfg.run.name}-{stamp}"
     suffix = 1
     while run_dir.exists():
         run_dir = Path(cfg.run.output_dir) / f"{cfg.run.name}-{stamp}-{suffix}"
         suffix += 1
-    (run_dir / "logs").mkdir(parents=True)
+    run_dir.parent.mkdir(parents=True, exist_ok=True)
+    run_dir.mkdir(mode=0o700)
+    if cfg.run.group:
+        try:
+            os.chown(run_dir, -1, grp.getgrnam(cfg.run.group).gr_gid)
+        except (KeyError, PermissionError) as exc:
+            run_dir.rmdir()
+            why = "no such group" if isinstance(exc, KeyError) else "you are not one of its members"
+            raise NotStarted(f"run.group = {cfg.run.group!r}: {why}") from None
+        run_dir.chmod(0o750)
+    (run_dir / "logs").mkdir()
     return run_dir
 
 
+
+
+def check_bus_endpoints(cfg: config_mod.Config) -> str | None:
+    """Every endpoint Zenoh will use (bus.listen, bus.connect and those of bus.config_file): plain ones that
+    leave the host refused unless bus.insecure (then a warning). A config file's own access control is refused
+    where EBRL signs the run in (bus.auth), rather than silently replaced by EBRL's rules."""
+    try:
+        endpoints = config_file_endpoints(cfg.bus.config_file)
+        file_acl = config_file_acl(cfg.bus.config_file)
+    except Exception as exc:  # zenoh.ZError: the file does not parse
+        return f"bus.config_file = {cfg.bus.config_file!r}: {exc}"
+    if file_acl and cfg.bus.auth:
+        return (f"bus.config_file = {cfg.bus.config_file!r} turns on access_control, and with bus.auth EBRL sets "
+                "the run's own (observers only read); it cannot merge the two: remove the block from the file, or "
+                "set bus.auth = false to run with yours alone")
+    endpoints += [*cfg.bus.listen, *cfg.bus.connect]
+    if refused := auth.check_endpoints(endpoints, cfg.bus.insecure, "bus"):
+        return refused
+    if cfg.bus.insecure and (plain := auth.insecure_endpoints(endpoints)):
+        print(f"ebrl: warning: bus.insecure = true: {', '.join(plain)} carry the run's data unencrypted beyond "
+              "this host", file=sys.stderr)
+    return None
 
 
 def preflight(cfg: config_mod.Config, roles: tuple[str, ...] = ("gen", "train"), multi: bool = False) -> str | None:
@@ -135,16 +170,8 @@ def preflight(cfg: config_mod.Config, roles: tuple[str, ...] = ("gen", "train"),
     services this host runs; ``multi``: one host of several."""
     from ebrl.envs import EnvError, EnvSpec, preflight as env_preflight
 
-    try:
-        listen = config_file_listen(cfg.bus.config_file) or list(cfg.bus.listen)
-    except Exception as exc:  # zenoh.ZError: the file does not parse
-        return f"bus.config_file = {cfg.bus.config_file!r}: {exc}"
-    refused = auth.check_endpoints(listen + list(cfg.bus.connect), cfg.bus.insecure, "bus")
-    if refused:
-        return refused
-    if cfg.bus.insecure and auth.insecure_endpoints(listen + list(cfg.bus.connect)):
-        print(f"ebrl: warning: bus.insecure = true: {', '.join(auth.insecure_endpoints(listen + list(cfg.bus.connect)))} "
-              "carry the run's data unencrypted beyond this host", file=sys.stderr)
+    if problem := check_bus_endpoints(cfg):
+        return problem
     if multi and cfg.bus.auth and not cfg.bus.secret_file:
         return ("a run over several hosts needs one secret on every host: create it with `ebrl secret PATH`, copy it "
                 "to each host (mode 0600) and set bus.secret_file = PATH (or bus.auth = false on a trusted network)")

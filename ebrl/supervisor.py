@@ -12,7 +12,7 @@ A child that exits on its own is started again after a backoff (1, 2, 4 ... s)
 at most ``run.max_restarts`` times when ``run.restart = "on-failure"``, then
 reported as the run's failure; an *optional* child (the tracking sinks: no other
 service needs it) is then given up and the run goes on without it. A child asked to stop for a new GPU share is
-started again with it as soon as it has exited: a *requota*, not counted as a
+started again with it as soon as it has exited: a *requota*, counted apart (``launcher/requotas``), not as a
 restart. Shutdown: a ``Stop`` over the bus (the caller sends it), SIGTERM after
 ``STOP_GRACE_S``, SIGKILL to the process group at ``SHUTDOWN_S``.
 """
@@ -53,6 +53,7 @@ class Child:
     restarts: int = 0
     restart_at: float | None = None  # monotonic time of a scheduled restart
     requota: bool = False  # asked to stop for a new GPU share: started again with it once it has exited
+    requotas: int = 0  # times it was started again with a new GPU share (launcher/requotas)
     given_up: bool = False  # an optional child that exited for good: the run goes on without it
     started: float = dataclasses.field(default_factory=time.monotonic)  # when its process was last started
 
@@ -204,6 +205,7 @@ class Supervisor:
         """Start ``child`` again: after a failure (counted), or after it stopped for a new GPU share."""
         if requota:
             child.requota = False
+            child.requotas += 1
         else:
             child.restarts += 1
         child.restart_at = None
@@ -267,6 +269,7 @@ class Supervisor:
         for c in self.children:
             key = f"launcher/restarts_{c.role}"
             out[key] = out.get(key, 0.0) + c.restarts
+        out["launcher/requotas"] = float(sum(c.requotas for c in self.children))
         return out
 
     async def shutdown(self, ask_to_stop: Callable[[Child], Awaitable[None]], stop_grace_s: float = STOP_GRACE_S,

@@ -109,6 +109,14 @@ def main() -> int:
             readable = True
     except OSError:
         readable = False
+    run_files = []  # what of the run's directory it could list or read (another user: nothing)
+    for name in ("config.toml", "bus.json", "logs"):
+        try:
+            path = os.path.join(run_dir, name)
+            os.listdir(path) if name == "logs" else open(path).close()
+            run_files.append(name)
+        except OSError:
+            pass
     options = BusOptions(mode="peer", connect=[endpoint], listen=["tcp/127.0.0.1:0"])
     received: dict[str, int] = {}
 
@@ -135,7 +143,7 @@ def main() -> int:
         done.wait(0.05)
     del token
     own = sorted({key for key, _ in attacks(run)} | {keys.traj(run, 1)})
-    print(json.dumps({"secret_readable": readable, "peers": peers, "received": received, "own": own, "sent": sent,
+    print(json.dumps({"secret_readable": readable, "run_files": run_files, "peers": peers, "received": received, "own": own, "sent": sent,
                       "liveliness": sorted(set(live)), "uid": os.getuid()}), flush=True)
     os._exit(0)  # zenoh's threads would hold interpreter exit
 

@@ -69,7 +69,8 @@ def test_a_service_checks_whoever_connects_an_observer_only_signs_in(tmp_path):
 @pytest.mark.parametrize("endpoint, local", [
     ("tcp/127.0.0.1:7447", True), ("tcp/127.77.1.1:7447", True), ("tcp/localhost:1", True), ("tcp/[::1]:7447", True),
     ("unixsock-stream//tmp/x.sock", True), ("tcp/0.0.0.0:7447", False), ("tcp/10.0.0.5:7447", False),
-    ("tls/10.0.0.5:7447", False), ("tcp/[::]:7447", False)])
+    ("tls/10.0.0.5:7447", False), ("tcp/[::]:7447", False),
+    ("tcp/127.attacker.example:7447", False), ("tcp/127.0.0.1.nip.io:7447", False)])  # names, not addresses
 def test_loopback_endpoints(endpoint, local):
     assert auth.is_loopback(endpoint) is local
 
@@ -87,6 +88,21 @@ def test_ebrl_up_refuses_a_plain_listen_endpoint_on_every_interface(tmp_path):
                           cwd=ROOT, capture_output=True, text=True, timeout=120)
     assert proc.returncode == 2 and "bus.insecure" in proc.stderr, proc.stderr
     assert not any(tmp_path.iterdir())  # nothing started
+
+
+def test_every_endpoint_of_a_zenoh_config_file_is_checked_and_its_own_acl_is_not_dropped(tmp_path):
+    from ebrl.prepare import check_bus_endpoints
+
+    native = tmp_path / "zenoh.json5"
+    native.write_text('{ connect: { endpoints: ["tcp/10.0.0.5:7447"] } }')  # plain, beyond this host
+    cfg = config.load(ROOT / "configs/quickstart.toml", [f'bus.config_file="{native}"'])
+    assert "tcp/10.0.0.5:7447" in check_bus_endpoints(cfg) and "bus.insecure" in check_bus_endpoints(cfg)
+    native.write_text('{ connect: { endpoints: { peer: ["tls/10.0.0.5:7447"] } }, access_control: { enabled: true,'
+                      ' default_permission: "deny" } }')
+    cfg = config.load(ROOT / "configs/quickstart.toml", [f'bus.config_file="{native}"'])
+    assert "access_control" in check_bus_endpoints(cfg)  # refused, not replaced by EBRL's own rules
+    cfg = config.load(ROOT / "configs/quickstart.toml", [f'bus.config_file="{native}"', "bus.auth=false"])
+    assert check_bus_endpoints(cfg) is None  # the user's rules alone, on encrypted endpoints
 
 
 def test_a_run_over_several_hosts_needs_a_shared_secret():
@@ -271,6 +287,7 @@ def test_a_hostile_process_can_neither_read_nor_stop_nor_poison_a_run(tmp_path):
     assert out["sent"] > 0
     if user:
         assert out["uid"] == user[0] and not out["secret_readable"]
+        assert out["run_files"] == []  # another user reads nothing of the run's directory (0700)
     assert out["peers"] == 0
     assert set(out["received"]) <= set(out["own"]), out["received"]  # only what it published itself
     assert out["liveliness"] == [keys.live(run.name, "train", 7)]  # its own token, nobody else's
@@ -325,3 +342,22 @@ def test_on_an_open_bus_crafted_payloads_on_every_key_are_refused_and_the_run_fi
             assert max(real(service, "proc/rss_mb")) < rss + 100, service
     lag = {s: max(real(s, "proc/loop_lag_max_ms") or [0.0]) for s in before}
     print(f"event loop lag (max, ms) under attack: {lag}")
+
+
+def test_a_run_directory_is_its_owners_or_its_groups_and_nobody_elses(tmp_path):
+    """Mode 0700 from the start (logs, config, stats and policy are the owner's); run.group opens it to one
+    group (0750); a group that does not exist stops the run before anything starts."""
+    import grp
+
+    from ebrl.prepare import NotStarted, make_run_dir
+
+    cfg = config.load(ROOT / "configs/quickstart.toml", [f'run.output_dir="{tmp_path}"'])
+    run_dir = make_run_dir(cfg)
+    assert stat.S_IMODE(run_dir.stat().st_mode) == 0o700 and (run_dir / "logs").is_dir()
+    group = grp.getgrgid(os.getgid()).gr_name
+    shared = make_run_dir(config.load(ROOT / "configs/quickstart.toml",
+                                      [f'run.output_dir="{tmp_path}"', f'run.group="{group}"']))
+    assert stat.S_IMODE(shared.stat().st_mode) == 0o750 and shared.stat().st_gid == os.getgid()
+    with pytest.raises(NotStarted, match="no such group"):
+        make_run_dir(config.load(ROOT / "configs/quickstart.toml",
+                                 [f'run.output_dir="{tmp_path}"', 'run.group="no-such-group-here"']))

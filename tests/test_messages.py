@@ -76,14 +76,24 @@ def test_literal_and_optional_fields():
         m.from_wire(m.Stop, wire)
 
 
-def test_a_gpu_share_sets_cuda_variables_only():
+def test_a_gpu_share_sets_a_shares_variables_only():
     share = m.GpuShare(version=2, stage="train", env={"CUDA_VISIBLE_DEVICES": "0",
-                                                      "CUDA_MPS_ACTIVE_THREAD_PERCENTAGE": "30"})
+                                                      "CUDA_MPS_ACTIVE_THREAD_PERCENTAGE": "33.3333",
+                                                      "CUDA_MPS_PINNED_DEVICE_MEM_LIMIT": "0=2048M"})
     assert m.decode_message(m.GpuShare, m.encode_message(share)) == share
-    wire = m.to_wire(share)
-    wire["env"] = {"LD_PRELOAD": "/tmp/x.so"}
-    with pytest.raises(m.MessageError, match="only set CUDA_"):
-        m.from_wire(m.GpuShare, wire)
+    assert m.GpuShare(version=1, stage="gen", env={"CUDA_VISIBLE_DEVICES": "MIG-4f1a2b3c-1111-2222-3333-444455556666"})
+    # a library for CUDA to load into the owner's process (issue 40), or any other variable: refused
+    for env in ({"LD_PRELOAD": "/tmp/x.so"}, {"CUDA_INJECTION64_PATH": "/tmp/x.so"}, {"CUDA_MPS_LOG_DIRECTORY": "/"}):
+        wire = m.to_wire(share)
+        wire["env"] = env
+        with pytest.raises(m.MessageError, match="may only set CUDA_VISIBLE_DEVICES"):
+            m.from_wire(m.GpuShare, wire)
+    for name, value in (("CUDA_VISIBLE_DEVICES", "0;touch /tmp/x"), ("CUDA_MPS_ACTIVE_THREAD_PERCENTAGE", "1000"),
+                        ("CUDA_MPS_PINNED_DEVICE_MEM_LIMIT", "0=1T")):
+        wire = m.to_wire(share)
+        wire["env"] = {name: value}
+        with pytest.raises(m.MessageError, match="is not a share's value"):
+            m.from_wire(m.GpuShare, wire)
     wire = m.to_wire(share)
     wire["stage"] = "sim"
     with pytest.raises(m.MessageError):

@@ -94,7 +94,7 @@ def test_a_crashing_child_is_restarted_up_to_the_limit_then_reported(made):
     child = sup.start("crash", 0)
     assert first_failure(sup) == "crash/0 exited with status 3 (after 2 restarts)"
     assert child.restarts == 2 and sup.restarts() == {"crash/0": 2}
-    assert sup.metrics() == {"launcher/restarts": 2.0, "launcher/restarts_crash": 2.0}
+    assert sup.metrics() == {"launcher/restarts": 2.0, "launcher/restarts_crash": 2.0, "launcher/requotas": 0.0}
     assert [kind for kind, _ in said.events] == ["exited", "restart", "exited", "restart", "exited"]
     assert sum("restarting it in" in line for line in said.lines) == 2
     log = child.log_path.read_text()

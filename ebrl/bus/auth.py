@@ -21,6 +21,7 @@ Signing in does not encrypt the session: on loopback that is enough; between hos
 
 from __future__ import annotations
 
+import ipaddress
 import os
 import secrets
 import stat
@@ -137,7 +138,12 @@ def is_loopback(endpoint: str) -> bool:
     if proto in _LOCAL_ONLY:
         return True
     host = address.split("#", 1)[0].split("?", 1)[0].rsplit(":", 1)[0].strip("[]").lower()
-    return host == "localhost" or host == "::1" or host.startswith("127.")
+    if host == "localhost":
+        return True
+    try:  # an address, not a prefix: "127.attacker.example" is a name that resolves anywhere
+        return ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        return False
 
 
 def insecure_endpoints(endpoints: list[str]) -> list[str]:

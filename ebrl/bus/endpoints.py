@@ -33,12 +33,38 @@ def listen_endpoint(wanted: str, strict: bool = False) -> str:
     return free
 
 
-def config_file_listen(config_file: str) -> list[str]:
-    """The listen endpoints a native Zenoh config file sets (they are never replaced by EBRL's)."""
-    if not config_file:
-        return []
+def _file_setting(config_file: str, path: str) -> object:
+    """What a native Zenoh config file sets at ``path`` (JSON), or None where it leaves Zenoh's default."""
     import json
 
     import zenoh
 
-    return json.loads(zenoh.Config.from_file(config_file).get_json("listen/endpoints"))
+    value = json.loads(zenoh.Config.from_file(config_file).get_json(path))
+    return None if value == json.loads(zenoh.Config().get_json(path)) else value
+
+
+def _endpoints(value: object) -> list[str]:
+    """Endpoints as a config gives them: a list, or lists per mode (``{"router": [...], "peer": [...]}``)."""
+    lists = value.values() if isinstance(value, dict) else [value]
+    return [e for endpoints in lists if isinstance(endpoints, list) for e in endpoints if isinstance(e, str)]
+
+
+def config_file_endpoints(config_file: str) -> list[str]:
+    """Every endpoint a native Zenoh config file sets for a session to use: its listen and its connect ones."""
+    if not config_file:
+        return []
+    return [e for path in ("listen/endpoints", "connect/endpoints")
+            for e in _endpoints(_file_setting(config_file, path))]
+
+
+def config_file_acl(config_file: str) -> bool:
+    """Whether a native Zenoh config file turns on access control of its own."""
+    return bool(config_file) and bool(_file_setting(config_file, "access_control/enabled"))
+
+
+def config_file_listen(config_file: str) -> list[str]:
+    """The listen endpoints a native Zenoh config file sets (they are never replaced by EBRL's); none where it
+    leaves Zenoh's default (which listens on every interface)."""
+    if not config_file:
+        return []
+    return _endpoints(_file_setting(config_file, "listen/endpoints"))

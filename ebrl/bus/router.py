@@ -19,7 +19,7 @@ import zenoh
 
 from ebrl.bus import auth, keys
 from ebrl.bus.session import BusOptions
-from ebrl.bus.endpoints import config_file_listen
+from ebrl.bus.endpoints import config_file_acl, config_file_endpoints, config_file_listen
 from ebrl.bus.session import zenoh_config
 
 
@@ -29,17 +29,22 @@ def serve(listen: list[str], connect: list[str], config_file: str = "", quiet: b
     host (``insecure`` allows it, with a warning). ``secret``: the run's secret file; only its holders join."""
     try:
         listen = config_file_listen(config_file) or listen  # the file's endpoints are never replaced
+        every = config_file_endpoints(config_file) + listen + connect  # each endpoint zenoh will use, checked
+        if secret and config_file_acl(config_file):
+            raise auth.AuthError(f"{config_file} turns on access_control, and with --secret the router sets its "
+                                 "own (observers only read); it cannot merge the two: remove the block, or leave "
+                                 "out --secret to run with yours alone")
         conf = zenoh_config(BusOptions(mode="router", listen=listen, connect=connect, config_file=config_file,
                                        secret_file=secret, file_listen_wins=True))
     except (auth.AuthError, zenoh.ZError) as exc:
         print(f"ebrl router: {exc}", file=sys.stderr)
         return 2
-    refused = auth.check_endpoints(listen + connect, insecure, "ebrl router")
+    refused = auth.check_endpoints(every, insecure, "ebrl router")
     if refused:
         print(refused, file=sys.stderr)
         return 2
-    if auth.insecure_endpoints(listen + connect):
-        print(f"ebrl router: warning: --insecure: {', '.join(auth.insecure_endpoints(listen + connect))} carry "
+    if auth.insecure_endpoints(every):
+        print(f"ebrl router: warning: --insecure: {', '.join(auth.insecure_endpoints(every))} carry "
               "the run's data unencrypted", file=sys.stderr)
     if not secret:
         print("ebrl router: no --secret: any process that reaches these endpoints can join", file=sys.stderr)

@@ -36,6 +36,7 @@ import zenoh
 
 from ebrl import messages  # module import: messages itself imports ebrl.bus.codec
 from ebrl.bus import auth
+from ebrl.bus.endpoints import config_file_listen
 
 log = logging.getLogger("ebrl.bus")
 T = TypeVar("T")
@@ -95,7 +96,7 @@ def zenoh_config(options: BusOptions) -> zenoh.Config:
     conf.insert_json5("scouting/multicast/enabled", "false")
     if json.loads(conf.get_json("scouting/gossip/autoconnect_strategy")) is None:  # unless config_file says
         conf.insert_json5("scouting/gossip/autoconnect_strategy", json.dumps(AUTOCONNECT_STRATEGY))
-    file_listen = json.loads(conf.get_json("listen/endpoints")) if options.config_file else []
+    file_listen = config_file_listen(options.config_file)  # none where the file leaves the default (every address)
     if options.listen and options.mode != "client" and not (options.file_listen_wins and file_listen):
         conf.insert_json5("listen/endpoints", json.dumps(options.listen))
     if options.connect:

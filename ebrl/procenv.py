@@ -11,7 +11,7 @@ import os
 from typing import Mapping
 
 LOCAL_SIM = "EBRL_LOCAL_SIM"  # "0": the allocator's host runs no simulator (multi-host runs)
-DIST_ADDR = "EBRL_DIST_ADDR"  # host:port of training rank 0's rendezvous store (train.world_size > 1)
+DIST_ADDR = "EBRL_DIST_ADDR"  # the training ranks' rendezvous (train.world_size > 1): file://RUN_DIR/.dist-... or host:port
 VERSION_FLOOR = "EBRL_VERSION_FLOOR"  # newest policy version published before a train restart
 
 

@@ -25,6 +25,7 @@ import ctypes
 import dataclasses
 import logging
 import os
+import secrets
 import signal
 import subprocess
 import time
@@ -32,7 +33,6 @@ from pathlib import Path
 from typing import Awaitable, Callable
 
 from ebrl import procenv
-from ebrl.bus.endpoints import free_port
 
 log = logging.getLogger("ebrl.supervisor")
 
@@ -130,9 +130,14 @@ class Supervisor:
         self.role_env = dict(role_env or {})  # role -> EBRL variables of its processes (ebrl.procenv)
         self.train_ranks = train_ranks
         self.optional = optional  # roles whose death never ends the run
-        # training rank 0's rendezvous, new for each start of the group
-        self.dist_addr = f"127.0.0.1:{free_port()}" if train_ranks > 1 else ""
+        # the training ranks' rendezvous, new for each start of the group
+        self.dist_addr = self.rendezvous() if train_ranks > 1 else ""
         self.children: list[Child] = []
+
+    def rendezvous(self) -> str:
+        """Where the training ranks meet: a file store in the run's directory (its owner's alone, 0700), not a
+        TCP store (torch's listens on every interface, with no secret); each start of the group a new one."""
+        return f"file://{self.log_dir.parent.resolve()}/.dist-{secrets.token_hex(8)}"
 
     def start(self, role: str, instance: int) -> Child:
         log_path = self.log_dir / f"{role}-{instance}.log"
@@ -145,6 +150,8 @@ class Supervisor:
         env = dict(os.environ, PYTHONUNBUFFERED="1", **self.gpu_env.get(role, {}), **self.role_env.get(role, {}))
         if role == "train":
             env.update(procenv.service_env(dist_addr=self.dist_addr))
+            if self.train_ranks > 1:  # gloo's connections between the ranks stay on this host
+                env.setdefault("GLOO_SOCKET_IFNAME", "lo")
         env.update(extra_env or {})
         root = str(Path(__file__).resolve().parent.parent)
         env["PYTHONPATH"] = root + os.pathsep + env.get("PYTHONPATH", "")  # `services` beside `ebrl`
@@ -195,7 +202,7 @@ class Supervisor:
                         _kill_group(rank)
                         rank.proc.wait(5.0)
                     rank.restart_at = now + delay
-            self.dist_addr = f"127.0.0.1:{free_port()}"
+            self.dist_addr = self.rendezvous()
         limit = self.policy.max_restarts
         self.event("exited", f"{what}; restart {child.restarts + 1}/{limit} in {delay:.0f} s")
         self.say(f"\nebrl: {what}; restarting it in {delay:.0f} s ({child.restarts + 1}/{limit}); "

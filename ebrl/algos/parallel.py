@@ -102,7 +102,9 @@ class DataParallel:
             torch.cuda.set_device(self.device)
         # NCCL wants one GPU per rank; ranks sharing a GPU (or on the CPU) use gloo
         self.backend = "nccl" if cuda and torch.cuda.device_count() >= world else "gloo"
-        dist.init_process_group(self.backend, init_method=f"tcp://{address}", rank=rank, world_size=world,
+        # "file://RUN_DIR/.dist-...": the launcher's file store; "host:port": a TCP store (tests, by hand)
+        init = address if "://" in address else f"tcp://{address}"
+        dist.init_process_group(self.backend, init_method=init, rank=rank, world_size=world,
                                 timeout=datetime.timedelta(seconds=TIMEOUT_S))
         self.names = [f"policy.{name}" for name, _ in policy.named_parameters()]  # optimizer index -> FQN
         if not shard:

@@ -172,3 +172,34 @@ def test_what_a_stopping_train_hands_over_rebuilds_the_same_groups():
         again.add(s)
     assert (again.ready_steps, again.pending_steps) == (c.ready_steps, c.pending_steps) == (4, 6)
     assert sorted(e.env_id for e, _, _ in again.take(version=0, batch_size=4)) == [0, 1]
+
+
+def test_rank_commands_travel_as_messages_never_as_pickles():
+    """What rank 0 sends the other training ranks (ebrl.algos.parallel): EBRL's codec, each segment validated
+    as any message is; anything else (a pickle, a bad kind, a mask that does not fit) is refused."""
+    import pickle
+
+    from ebrl.algos.parallel import Command, decode_command, encode_command
+    from ebrl.algos.ppo import SegmentCollector
+    from ebrl.messages import MessageError
+
+    c, _ = collector()
+    c.add(seg(0, 0, [1.0, 1.0], end="terminated"))
+    c.add(seg(1, 0, [0.0], end="terminated"))
+    items = c.take(version=0, batch_size=4)
+    back = decode_command(encode_command(Command("update", items), GroupCollector), GroupCollector)
+    assert back.kind == "update" and len(back.items) == 2
+    for (episode, adv, fresh), (episode2, adv2, fresh2) in zip(items, back.items):
+        assert (episode2.env_id, episode2.index, adv2) == (episode.env_id, episode.index, adv)
+        np.testing.assert_array_equal(fresh2, fresh)
+        np.testing.assert_array_equal(episode2.cat("rewards"), episode.cat("rewards"))
+    segment = seg(0, 1, [0.5])
+    (got,) = decode_command(encode_command(Command("update", [segment]), SegmentCollector), SegmentCollector).items
+    np.testing.assert_array_equal(got.rewards, segment.rewards)
+    assert decode_command(encode_command(Command("stop"), SegmentCollector), SegmentCollector).items is None
+    from ebrl.bus import codec
+
+    for payload in (pickle.dumps(Command("stop")), codec.encode({"kind": "exec", "items": None}),
+                    codec.encode({"kind": "update", "items": [{"segments": [], "fresh": [True], "advantage": 1.0}]})):
+        with pytest.raises((MessageError, codec.DecodeError)):
+            decode_command(payload, GroupCollector)

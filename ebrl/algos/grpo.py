@@ -18,6 +18,7 @@ the update are dropped from the batch (they still count in the return).
 from __future__ import annotations
 
 import collections
+import math
 from dataclasses import dataclass
 from typing import Any, Callable
 
@@ -26,7 +27,7 @@ import torch
 from torch import nn
 
 from ebrl.algos.ppo import Batch
-from ebrl.messages import TrajectorySegment
+from ebrl.messages import MessageError, TrajectorySegment, from_wire, to_wire
 
 
 def group_advantages(returns: np.ndarray, eps: float = 1e-6) -> np.ndarray:
@@ -129,6 +130,23 @@ class GroupCollector:
     def size(item: tuple[Episode, float, np.ndarray]) -> int:
         """Decisions of one item of ``take``."""
         return int(item[2].sum())
+
+    @staticmethod
+    def to_wire(item: tuple[Episode, float, np.ndarray]) -> dict[str, Any]:
+        """One item of ``take`` as it travels between training ranks (``ebrl.algos.parallel``)."""
+        episode, advantage, fresh = item
+        return {"env_id": episode.env_id, "index": episode.index, "segments": [to_wire(s) for s in episode.segments],
+                "advantage": float(advantage), "fresh": np.asarray(fresh, dtype=bool)}
+
+    @staticmethod
+    def from_wire(raw: Any) -> tuple[Episode, float, np.ndarray]:
+        if not isinstance(raw, dict) or not isinstance(raw.get("segments"), list):
+            raise MessageError(f"not a GRPO item: {type(raw).__name__}")
+        segments = [from_wire(TrajectorySegment, s) for s in raw["segments"]]
+        fresh = np.asarray(raw.get("fresh"), dtype=bool)
+        if fresh.shape != (sum(len(s.obs) for s in segments),) or not math.isfinite(raw.get("advantage", math.nan)):
+            raise MessageError("a GRPO item whose fresh mask or advantage does not fit its segments")
+        return Episode(int(raw["env_id"]), int(raw["index"]), segments), float(raw["advantage"]), fresh
 
     def build(self, items: list[tuple[Episode, float, np.ndarray]], model: nn.Module) -> Batch:
         def cat(name: str) -> torch.Tensor:

@@ -68,7 +68,7 @@ class Learner:
         """With several ranks: join the training group (blocks until every rank joined; every rank then
         holds rank 0's weights)."""
         self.dp = DataParallel(self.model, self.ppo.optimizer, self.rank, self.world,
-                               shard=self.cfg.train.parallel == "fsdp", device=self.device)
+                               shard=self.cfg.train.parallel == "fsdp", device=self.device, wire=self.collector)
         self.ppo.net, self.ppo.optimizer = self.dp.net, self.dp.optimizer
 
     @property

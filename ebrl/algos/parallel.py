@@ -29,16 +29,19 @@ import contextlib
 import datetime
 import inspect
 import logging
+import struct
 import warnings
 from dataclasses import dataclass
-from typing import Any, Callable, Iterator, Sequence
+from typing import Any, Callable, Iterator, Protocol, Sequence
 
 import numpy as np
 import torch
 import torch.distributed as dist
 from torch import nn
 
-from ebrl import procenv
+from ebrl import procenv, typecheck
+from ebrl.bus import codec
+from ebrl.messages import MessageError
 
 log = logging.getLogger(__name__)
 
@@ -71,6 +74,34 @@ class Command:
     items: list | None = None
 
 
+COMMANDS = ("update", "idle", "stop")
+
+
+class ItemWire(Protocol):
+    """How a learner's items travel between ranks (its collector: ``SegmentCollector``, ``GroupCollector``)."""
+
+    @staticmethod
+    def to_wire(item: Any) -> Any: ...
+
+    @staticmethod
+    def from_wire(raw: Any) -> Any: ...
+
+
+def encode_command(command: Command, wire: ItemWire) -> bytes:
+    """A command as EBRL's codec writes messages (msgpack and arrays), never as a pickle."""
+    items = None if command.items is None else [wire.to_wire(item) for item in command.items]
+    return codec.encode({"kind": command.kind, "items": items})
+
+
+def decode_command(payload: bytes, wire: ItemWire) -> Command:
+    """A command from rank 0, checked as any message is (segments validated by ``ebrl.messages``)."""
+    raw = codec.decode(payload)
+    if (not isinstance(raw, dict) or raw.get("kind") not in COMMANDS
+            or not isinstance(raw.get("items"), (list, type(None)))):
+        raise MessageError(f"not a rank command: {typecheck.describe(raw)}")
+    return Command(raw["kind"], None if raw["items"] is None else [wire.from_wire(item) for item in raw["items"]])
+
+
 def shards(items: Sequence, size: Callable[[Any], int], world: int) -> list[list]:
     """Cut ``items`` (in order) into ``world`` runs of about equal total ``size``; a run may be empty when
     there are fewer items than ranks."""
@@ -89,12 +120,13 @@ class DataParallel:
     checkpoint); with ``shard`` it is replaced by one over the shards (``self.optimizer``), state included."""
 
     def __init__(self, policy: nn.Module, optimizer: torch.optim.Optimizer, rank: int, world: int,
-                 address: str | None = None, shard: bool = False, device: torch.device | None = None):
+                 address: str | None = None, shard: bool = False, device: torch.device | None = None,
+                 wire: ItemWire | None = None):
         address = address or procenv.dist_addr()
         if not address:
             raise RuntimeError(f"train.world_size = {world}: {procenv.DIST_ADDR} (rank 0's host:port) is not set; "
                                "start training ranks with `ebrl up`")
-        self.rank, self.world, self.shard = rank, world, shard
+        self.rank, self.world, self.shard, self.wire = rank, world, shard, wire
         self.policy, self.optimizer = policy, optimizer
         self.device = device or torch.device("cpu")
         cuda = self.device.type == "cuda"
@@ -185,15 +217,30 @@ class DataParallel:
     def send(self, command: Command | list[Command]) -> Command:
         """Rank 0: scatter one command per rank (or the same to all); return rank 0's own."""
         commands = command if isinstance(command, list) else [command] * self.world
-        mine: list[Any] = [None]
-        dist.scatter_object_list(mine, commands, src=0)
-        return mine[0]
+        self._scatter([encode_command(c, self.wire) for c in commands])
+        return commands[0]
 
     def receive(self) -> Command:
         """Ranks > 0: wait for rank 0's next command."""
-        mine: list[Any] = [None]
-        dist.scatter_object_list(mine, None, src=0)
-        return mine[0]
+        return decode_command(self._scatter(None), self.wire)
+
+    def _scatter(self, payloads: list[bytes] | None) -> bytes:
+        """Rank 0's ``payloads[r]`` to each rank r, a collective of byte tensors (scatter_object_list would
+        unpickle what arrives): the longest length first, then each payload behind its own length."""
+        device = self.device if self.backend == "nccl" else torch.device("cpu")
+        size = torch.tensor([max(map(len, payloads)) if payloads else 0], dtype=torch.int64, device=device)
+        dist.broadcast(size, src=0)
+        n = int(size.item())
+        mine = torch.empty(8 + n, dtype=torch.uint8, device=device)
+        chunks = None if payloads is None else [
+            torch.frombuffer(bytearray(struct.pack("<q", len(p)) + p + bytes(n - len(p))), dtype=torch.uint8).to(device)
+            for p in payloads]
+        dist.scatter(mine, chunks, src=0)
+        raw = mine.cpu().numpy().tobytes()
+        (length,) = struct.unpack("<q", raw[:8])
+        if not 0 <= length <= n:
+            raise MessageError(f"a rank command of {length} bytes in a buffer of {n}")
+        return raw[8:8 + length]
 
     def close(self) -> None:
         """Leave the process group. DDP's reducer (and its logger) are let go first, while the group is still

@@ -36,7 +36,7 @@ import torch
 from torch import nn
 
 from ebrl.algos.parallel import Methods
-from ebrl.messages import TrajectorySegment
+from ebrl.messages import TrajectorySegment, from_wire, to_wire
 from ebrl.sched.staleness import fresh_suffix
 
 
@@ -416,6 +416,15 @@ class SegmentCollector:
             segments.append(seg)
             steps += len(seg.obs)
         return segments
+
+    @staticmethod
+    def to_wire(seg: TrajectorySegment) -> dict[str, Any]:
+        """One item of ``take`` as it travels between training ranks (``ebrl.algos.parallel``)."""
+        return to_wire(seg)
+
+    @staticmethod
+    def from_wire(raw: Any) -> TrajectorySegment:
+        return from_wire(TrajectorySegment, raw)
 
     def segments(self) -> list[TrajectorySegment]:
         """Every buffered segment, oldest first (what a stopping train hands over)."""

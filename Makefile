@@ -1,11 +1,12 @@
 # Two commands do all the set-up on a fresh machine (Python 3.11, pip, gcc, make):
 #   make quickstart   create .venv on first use, install, run the quickstart config (configs/quickstart.toml)
 #   make test         create .venv on first use, install, run the fast tests
+#   make docs         the documentation site: regenerate the reference pages (docs/gen.py), mkdocs build --strict into site/
 VENV ?= .venv
 PY := $(VENV)/bin/python
 PYTEST_FLAGS ?= -q -rs  # -rs: print why each skipped test skipped
 
-.PHONY: install quickstart test test-slow schemas clean
+.PHONY: install quickstart test test-slow schemas docs clean
 
 install: $(VENV)/.installed
 
@@ -27,5 +28,15 @@ test-slow: install
 schemas: install
 	$(VENV)/bin/ebrl schemas --dir schemas
 
+# the docs extra (MkDocs, Material) once, into the same venv; then the generated pages and a strict build
+# (NO_MKDOCS_2_WARNING: without Material's end-of-life banner)
+$(VENV)/.docs-installed: $(VENV)/.installed pyproject.toml
+	$(PY) -m pip install -q -c constraints.txt -e '.[docs]'
+	touch $@
+
+docs: $(VENV)/.docs-installed
+	$(PY) docs/gen.py
+	NO_MKDOCS_2_WARNING=1 $(PY) -m mkdocs build --strict --site-dir site
+
 clean:
-	rm -rf $(VENV) runs .pytest_cache
+	rm -rf $(VENV) runs .pytest_cache site

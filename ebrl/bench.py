@@ -106,7 +106,7 @@ def measure(config: str, mode: str, extra: list[str], duration: float, startup_t
     return summarize(stats.between(t0, t1), t1 - t0)
 
 
-# The last update's learning diagnostics, kept with each point of a learning curve (README: "Stats: watching a run from any script").
+# The last update's learning diagnostics, kept with each point of a learning curve (docs/stats.md: "Stats: watching a run from any script").
 TRAIN_DIAGNOSTICS = ("staleness_mean", "behave_kl", "behave_weight_mean", "behave_weight_capped", "approx_kl",
                      "clipfrac", "value_drift", "explained_variance", "adv_std", "entropy", "value_loss")
 

@@ -2,7 +2,7 @@
 
 Each section is a dataclass that checks what its own values mean (:meth:`Section.check`); the few rules
 that tie sections together are :func:`_check_across`. Every field has a docstring (``doc``), shown by
-``ebrl config --help-fields`` and README. Values derived from several fields are computed in one place
+``ebrl config`` and docs/reference/config.md. Values derived from several fields are computed in one place
 (properties of :class:`Config`).
 """
 

@@ -65,7 +65,7 @@ def _count(name: str, value: int, low: int = 0, high: int = MAX_VERSION) -> None
 
 
 def doc(text: str, **kw: Any) -> Any:
-    """A dataclass field with a docstring (used in ``schemas/`` and README)."""
+    """A dataclass field with a docstring (used in ``schemas/`` and docs/reference/messages.md)."""
     return field(metadata={"doc": text}, **kw)
 
 
@@ -235,7 +235,7 @@ class StatsReport:
     instance: int = doc("instance index of the service")
     time: float = doc("epoch seconds of the report")
     seq: int = doc("report counter of this instance, from 0")
-    metrics: dict[str, float] = doc("namespaced metrics, e.g. sim/env_steps_per_s (see README)")
+    metrics: dict[str, float] = doc("namespaced metrics, e.g. sim/env_steps_per_s (see docs/stats.md)")
 
     MAX_BYTES = 1 * MIB
 

@@ -1,5 +1,5 @@
 """EBRL from Python (ebrl.api, ebrl.stats.stream), and the fast suite's end-to-end quickstart: a short script
-trains the stock quickstart by name with ebrl.train while ebrl.watch, the README's zenoh subscriber and `ebrl
+trains the stock quickstart by name with ebrl.train while ebrl.watch, the plain zenoh subscriber (examples/subscribe_stats.py) and `ebrl
 stats --json` follow it; config names and copies of the stock configs (ebrl configs, ebrl init)."""
 
 from __future__ import annotations
@@ -28,7 +28,7 @@ print("result", run.exit_code, run.summary["iterations"], run.policy_path, run.l
 
 def test_a_script_trains_with_ebrl_train_while_scripts_and_ebrl_stats_follow_the_run(tmp_path):
     """The quickstart by name from a short script (ebrl.train), followed three ways while it runs: ebrl.watch
-    here, the README's plain zenoh subscriber (examples/subscribe_stats.py) and `ebrl stats --json`; then what
+    here, the plain zenoh subscriber (examples/subscribe_stats.py) and `ebrl stats --json`; then what
     the run leaves (summary, TensorBoard, metrics.csv, meta.json, the policy)."""
     script = tmp_path / "train.py"
     script.write_text(SCRIPT.format(port=free_port()))
@@ -56,7 +56,7 @@ def test_a_script_trains_with_ebrl_train_while_scripts_and_ebrl_stats_follow_the
     lines = [json.loads(line) for line in as_json.splitlines()]
     assert len(lines) == 3 and all(line["key"].startswith("ebrl/stats/e2e/") for line in lines)
     assert "e2e:" in plain and "env steps/s" in plain  # decoded stats reached a plain zenoh script
-    assert len((ROOT / "examples" / "subscribe_stats.py").read_text().splitlines()) < 15  # README's promise
+    assert len((ROOT / "examples" / "subscribe_stats.py").read_text().splitlines()) < 15  # docs/stats.md's promise
     text = out.text
     assert "run e2e finished: 3 iterations" in text
     assert "auto: policy.dtype = 'float32', gen.compile = 'off' (no GPU on this host)" in text

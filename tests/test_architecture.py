@@ -267,16 +267,27 @@ def test_keys_are_built_and_parsed_only_in_the_key_module():
 
 
 def test_readme_headings_named_in_the_code_exist():
-    """A message or comment that sends the user to a README section (``README: "Heading"``) names one that is
-    there."""
+    """A message or comment that sends the user to a section of the documentation names one that is there:
+    ``README: "Heading"`` a heading of README.md or of a page under docs/; ``docs/page.md`` a page that exists,
+    and ``docs/page.md: "Heading"`` a heading of that page."""
     import re
 
-    headings = [line.lstrip("#").strip() for line in (ROOT / "README.md").read_text().splitlines()
+    def headings(*pages: Path) -> list[str]:
+        return [line.lstrip("#").strip() for page in pages for line in page.read_text().splitlines()
                 if line.startswith("#")]
+
+    everywhere = headings(ROOT / "README.md", *sorted((ROOT / "docs").rglob("*.md")))
     missing = []
     for path in sorted((ROOT / "ebrl").rglob("*.py")):
-        for match in re.finditer(r'README: \\?"([^"\\]+)', path.read_text()):
-            if not any(h.startswith(match.group(1).strip()) for h in headings):
+        text = path.read_text()
+        for match in re.finditer(r'README: \\?"([^"\\]+)', text):
+            if not any(h.startswith(match.group(1).strip()) for h in everywhere):
                 missing.append(f"{path.relative_to(ROOT)}: {match.group(1)!r}")
-    assert not missing, "README headings that do not exist:\n" + "\n".join(missing)
+        for match in re.finditer(r'\b(docs/[\w/.-]+\.md)(?:[:,] \\?"([^"\\]+))?', text):
+            page = ROOT / match.group(1)
+            if not page.is_file():
+                missing.append(f"{path.relative_to(ROOT)}: {match.group(1)} (no such page)")
+            elif match.group(2) and not any(h.startswith(match.group(2).strip()) for h in headings(page)):
+                missing.append(f"{path.relative_to(ROOT)}: {match.group(1)}: {match.group(2)!r}")
+    assert not missing, "README or docs/ headings that do not exist:\n" + "\n".join(missing)
 

@@ -17,7 +17,7 @@ def quickstart(tmp_path, *overrides, name: str) -> helpers.Run:
     return helpers.up(tmp_path, "configs/quickstart.toml", *overrides, name=name)
 
 
-# The fast suite's end-to-end quickstart (versions advance, the README's subscriber, `ebrl stats`, what the run
+# The fast suite's end-to-end quickstart (versions advance, examples/subscribe_stats.py, `ebrl stats`, what the run
 # leaves) is tests/test_api.py's, started from Python as a user's script would.
 
 

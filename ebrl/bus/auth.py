@@ -9,7 +9,7 @@ names a shared one for a run over several hosts). It is a Zenoh user-password di
 * Every service of the run, and its launcher, signs in as ``ebrl`` and checks whoever connects against the
   file (Zenoh's ``transport/auth/usrpwd``). A process that does not hold the file cannot open a session with
   any of them: nothing it sends arrives, and it receives nothing.
-* A script that watches the run (``ebrl stats``, ``ebrl bench``, the README's subscriber) signs in as
+* A script that watches the run (``ebrl stats``, ``ebrl bench``, ``examples/subscribe_stats.py``) signs in as
   ``observer``, as a Zenoh client of the launcher. Zenoh's access control on every service drops what an
   observer publishes (puts, deletes, queryables, liveliness tokens): it reads, it cannot act on the run.
   (The file holds the service password too: it is the owner's, 0600, like the processes they could as well
@@ -158,7 +158,7 @@ def check_endpoints(endpoints: list[str], insecure: bool, where: str) -> str | N
     if not plain or insecure:
         return None
     return (f"{where}: {', '.join(plain)} would carry the run's data unencrypted beyond this host; use tls/... "
-            "endpoints with certificates in bus.config_file (README: \"Scaling out: several hosts, several "
+            "endpoints with certificates in bus.config_file (docs/scaling-out.md: \"Scaling out: several hosts, several "
             "training ranks\"), or set bus.insecure = true on a network you trust")
 
 

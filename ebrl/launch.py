@@ -334,10 +334,12 @@ class Launcher:
     def on_gpu_share(self, key: str, share: GpuShare) -> None:
         """A new GPU share for a stage of this host: its processes stop at their safe point (generation between
         batches, training after its update, its state in a checkpoint) and start again with it. Only the
-        allocator makes shares: without it, one is refused (counted, said once)."""
-        if not self.cfg.alloc.enabled:
+        allocator makes shares, and only on a GPU, where the run started with its first ones: in a run that
+        started without (no allocator, or no GPU) one is refused (counted, said once)."""
+        if not self.gpu_env:
             if not self.link.gpu_shares_refused:
-                self.console.say(f"\nebrl: a GPU share for {share.stage} refused: this run has no allocator")
+                self.console.say(f"\nebrl: a GPU share for {share.stage} refused: this run has no GPU shares "
+                                 "(no allocator on a GPU)")
             self.link.gpu_shares_refused += 1
             return
         for child in self.supervisor.new_gpu_share(share.stage, share.env, share.version):

@@ -177,7 +177,9 @@ def test_one_forged_weights_version_ahead_of_train_does_not_stall_the_run(tmp_pa
         finally:
             await bus.close()
 
-    with up(tmp_path, "configs/quickstart.toml", "run.iterations=10", "train.batch_size=256", 'viz.rerun="off"',
+    # 16 iterations: the forger subscribes once v3 is seen and must still catch a weights publish (with 10 the
+    # run could end first and it waited for one in vain)
+    with up(tmp_path, "configs/quickstart.toml", "run.iterations=16", "train.batch_size=256", 'viz.rerun="off"',
             "bus.auth=false", "train.checkpoint_every=0", name="forged") as run, StatsWatcher(run) as stats:
         stats.wait_for(lambda: (stats.latest("train/0", "train/policy_version") or 0) >= 3, 300, "policy v3")
         forged = asyncio.run(forge(run.port, run.name))
@@ -185,5 +187,5 @@ def test_one_forged_weights_version_ahead_of_train_does_not_stall_the_run(tmp_pa
         code = run.wait(300)
     assert code == 0, run.output
     summary = json.loads((run.run_dir / "summary.json").read_text())
-    assert summary["iterations"] == 10 and summary["restarts"] == {}
+    assert summary["iterations"] == 16 and summary["restarts"] == {}
     assert stats.latest("gen/0", "gen/version_resets") >= 1  # it went back to train's weights, on its own

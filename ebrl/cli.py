@@ -167,16 +167,31 @@ def _run_router(args: argparse.Namespace) -> int:
 
 def _args_secret(p: argparse.ArgumentParser) -> None:
     p.add_argument("path", help="where to write it (mode 0600; an existing file is never replaced)")
+    p.add_argument("--observer", default=None, metavar="RUN_DIR",
+                   help="instead: a read-only file for the run in RUN_DIR (its observer's line alone, no service "
+                        "password) to hand to another user or script: ebrl stats PATH --connect ENDPOINT")
 
 
 def _run_secret(args: argparse.Namespace) -> int:
+    import json
+    from pathlib import Path
+
     from ebrl.bus import auth
 
     try:
-        print(auth.create(args.path))
-    except OSError as exc:
-        print(f"ebrl secret: {args.path}: {exc.strerror or exc}", file=sys.stderr)
+        if args.observer is None:
+            print(auth.create(args.path))
+            return 0
+        print(auth.write_observer(Path(args.observer) / auth.FILENAME, args.path))
+    except (OSError, auth.AuthError) as exc:
+        print(f"ebrl secret: {args.path}: {getattr(exc, 'strerror', None) or exc}", file=sys.stderr)
         return 2
+    try:
+        endpoint = json.loads((Path(args.observer) / "bus.json").read_text())["listen"][0]
+    except (OSError, ValueError, KeyError, IndexError):
+        endpoint = "ENDPOINT"
+    print(f"read-only access to the run; give the file to its user (chown) and watch with: ebrl stats {args.path} "
+          f"--connect {endpoint}")
     return 0
 
 
@@ -260,10 +275,12 @@ COMMANDS = {  # name: (help, its arguments, what it runs)
     "eval": ("evaluate a trained policy on held-out seeds: a table, eval.json, videos", _args_eval, _run_eval),
     "stats": ("print decoded ebrl/stats/** messages live", _args_stats, _run_stats),
     "bench": ("run a config in several modes, interleaved, and compare throughput", _args_bench, _run_bench),
-    "profile": ("profile each stage alone and print the tables and Algorithm 1's allocation", _args_profile, _run_profile),
+    "profile": ("profile each stage alone and print the tables and Algorithm 1's allocation", _args_profile,
+                _run_profile),
     "report": ("write a run's Gantt PNG, throughput PNG and report.md from its recording", _args_report, _run_report),
     "router": ("run a Zenoh router that the hosts of a multi-host run connect to", _args_router, _run_router),
-    "secret": ("create a secret file for a run over several hosts (bus.secret_file)", _args_secret, _run_secret),
+    "secret": ("create a secret file for a run over several hosts (bus.secret_file), or --observer: a read-only one",
+               _args_secret, _run_secret),
     "schemas": ("write schemas/*.json from ebrl/messages.py", _args_schemas, _run_schemas),
     "config": ("check a config, or list every config key", _args_config, _run_config),
     "configs": ("list the stock configs (ebrl up NAME runs one)", _args_configs, _run_configs),

@@ -197,7 +197,12 @@ def test_without_the_secret_a_peer_gets_nothing_in_or_out_and_an_observer_only_r
     service = _open(port, secret)
     outsider = _open(port)
     impostor = _open(port, auth.create(tmp_path / "other.secret"))  # a valid-looking secret of another run
-    observer = zenoh.open(stats_mod.observer_config(secret, f"tcp/127.0.0.1:{port}"))
+    # the observer signs in with a file made for it (ebrl secret --observer): the observer's line alone
+    observer_file = auth.write_observer(secret, tmp_path / "watch.secret")
+    assert stat.S_IMODE(observer_file.stat().st_mode) == 0o600 and len(observer_file.read_text().splitlines()) == 1
+    with pytest.raises(auth.AuthError, match="no 'ebrl' line"):
+        auth.load(observer_file, "service")  # it cannot sign in as a service
+    observer = zenoh.open(stats_mod.observer_config(observer_file, f"tcp/127.0.0.1:{port}"))
     sessions = [launcher, service, outsider, impostor, observer]
     forged = [keys.ctl("r", "train", 0, "stop"), keys.traj("r", 0), keys.stats("r", "train", 9)]
     try:

@@ -59,6 +59,20 @@ def create(path: str | os.PathLike) -> Path:
     return path
 
 
+def write_observer(secret: str | os.PathLike, path: str | os.PathLike) -> Path:
+    """Write at ``path`` (0600, fsynced; an existing file is never replaced) the observer's line of the run's
+    secret file ``secret`` alone: what another user or a script needs to watch the run (read its stats, ask a
+    service's status) and nothing more. It holds no service password, so it cannot sign in as a service."""
+    credentials = load(secret, "observer")
+    fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
+    try:
+        os.write(fd, f"{credentials.user}:{credentials.password}\n".encode())
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+    return Path(path)
+
+
 def ensure(path: str | os.PathLike) -> Path:
     """The secret file at ``path``, created when there is none (a new run, or a run resumed from before
     secrets existed); an existing one is checked (:func:`load`)."""
@@ -158,8 +172,8 @@ def check_endpoints(endpoints: list[str], insecure: bool, where: str) -> str | N
     if not plain or insecure:
         return None
     return (f"{where}: {', '.join(plain)} would carry the run's data unencrypted beyond this host; use tls/... "
-            "endpoints with certificates in bus.config_file (docs/scaling-out.md: \"Scaling out: several hosts, several "
-            "training ranks\"), or set bus.insecure = true on a network you trust")
+            "endpoints with certificates in bus.config_file (docs/scaling-out.md: \"Scaling out: several hosts, "
+            "several training ranks\"), or set bus.insecure = true on a network you trust")
 
 
 def secret_path(bus, run_dir: str | os.PathLike) -> str:

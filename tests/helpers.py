@@ -84,3 +84,19 @@ def run_collecting_stats(out_dir, config: str, *overrides: str, run: str, timeou
     with up(out_dir, config, *overrides, name=run) as started, StatsWatcher(started) as stats:
         code = started.wait(timeout)
     return code, started.output, stats.by_source()
+
+
+def store_profile(path: Path, cfg, gen_batches: tuple[int, ...], train_batch: int) -> None:
+    """A stage profile at ``path`` for this machine and ``cfg`` (its "auto" settings settled), as the launcher
+    would find one: the simulator scales with cores, the small models do not and look cheap, so Algorithm 1
+    predicts that every stage shares every core."""
+    from ebrl.alloc.algorithm import Profiles
+    from ebrl.alloc.profile import fingerprint, save
+    from ebrl.resources.pool import ResourcePool
+
+    pool = ResourcePool(gpu_pool="none")
+    n = len(pool.cores)
+    save(path, Profiles(sim={(1, e, e): 1000.0 * 1.6 ** (e - 1) for e in range(1, n + 1)},
+                        gen={(c, b): 50_000.0 for c in range(1, n + 1) for b in gen_batches},
+                        train={(c, train_batch): 50_000.0 for c in range(1, n + 1)}), fingerprint(pool, cfg))
+

@@ -11,8 +11,6 @@ import json
 import time
 
 from ebrl import autotune, config
-from ebrl.alloc.algorithm import Profiles
-from ebrl.alloc.profile import fingerprint, save
 from ebrl.alloc.runtime import capacities
 from ebrl.resources.pool import ResourcePool
 from ebrl.testing import StatsWatcher
@@ -40,15 +38,11 @@ def test_up_with_the_allocator_re_plans_from_measurements_and_services_apply_it(
     cfg = config.load(str(helpers.ROOT / "configs/quickstart.toml"),
                       overrides + [f"run.output_dir={json.dumps(str(out_dir))}"])
     cfg, _ = autotune.settle(cfg, ("sim", "gen", "train", "alloc"), multi=False)  # as the launcher profiles it
-    pool = ResourcePool(gpu_pool="none")
-    n = len(pool.cores)
-    # A profile taken before training got slow (run.slowdown: every update takes 6x as long): the simulator
-    # scales with cores, the small models do not, and training looks cheap, so sharing every core is predicted
-    # best. Measured capacities show training expensive, which favours giving the simulator a core of its own.
-    profiles = Profiles(sim={(1, e, e): 1000.0 * 1.6 ** (e - 1) for e in range(1, n + 1)},
-                        gen={(c, b): 50_000.0 for c in range(1, n + 1) for b in (4, 8)},
-                        train={(c, 1024): 50_000.0 for c in range(1, n + 1)})
-    save(out_dir / "profiles" / "alloc.json", profiles, fingerprint(pool, cfg))
+    # A profile taken before training got slow (run.slowdown: every update takes 6x as long) predicts sharing
+    # every core best. Measured capacities show training expensive, which favours giving the simulator a core
+    # of its own.
+    helpers.store_profile(out_dir / "profiles" / "alloc.json", cfg, gen_batches=(4, 8), train_batch=1024)
+    n = len(ResourcePool(gpu_pool="none").cores)
     with helpers.up(out_dir, "configs/quickstart.toml", *overrides, name="alloc") as run, \
             StatsWatcher(run) as stats:
         stats.wait_for(lambda: (stats.latest("alloc/0", "alloc/reallocations") or 0) >= 1, 600, "a re-allocation")

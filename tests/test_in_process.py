@@ -8,11 +8,9 @@ import asyncio
 import csv
 
 from ebrl import autotune
-from ebrl.alloc.algorithm import Profiles
-from ebrl.alloc.profile import fingerprint, save
 from ebrl.bus import keys
-from ebrl.resources.pool import ResourcePool
 from ebrl.testing import InProcessRun
+from helpers import store_profile
 from test_graph import recording, undeclared
 from test_pipeline import small_config
 
@@ -52,12 +50,7 @@ def test_the_allocator_observes_the_stages_re_plans_and_the_services_apply_it_in
     cfg = small_config(tmp_path, alloc={"enabled": True, "window": 2, "patience": 1, "gap": 1e-3})
     roles = ("train", "gen", "sim", "alloc")
     cfg, _ = autotune.settle(cfg, roles, multi=False)
-    pool = ResourcePool(gpu_pool="none")
-    n = len(pool.cores)
-    profiles = Profiles(sim={(1, e, e): 1000.0 * 1.6 ** (e - 1) for e in range(1, n + 1)},
-                        gen={(c, b): 50_000.0 for c in range(1, n + 1) for b in (2, 4)},
-                        train={(c, 64): 50_000.0 for c in range(1, n + 1)})
-    save(tmp_path / "profiles" / "pipe.json", profiles, fingerprint(pool, cfg))
+    store_profile(tmp_path / "profiles" / "pipe.json", cfg, gen_batches=(2, 4), train_batch=64)
     used: dict[str, set[tuple[str, str]]] = {}
 
     async def main():

@@ -30,7 +30,7 @@ RESULTS = Path(__file__).resolve().parent / "results"
 
 def run(config_path: str, name: str, overrides: list[str], duration: float, out_dir: str) -> Path:
     """Run ``config_path`` for ``duration`` seconds, stop it as Ctrl-C would; its run directory."""
-    with Run(config_path, "run.iterations=0", *bench.RUN_SETS, *overrides, name=name, out_dir=out_dir,
+    with Run(config_path, "run.iterations=0", *bench.WINDOW_SETS, *overrides, name=name, out_dir=out_dir,
              stats_interval=1.0) as up:
         time.sleep(duration)  # the run itself: the slowdown comes mid-way, and the allocator's answer (or none)
         up.stop(60)

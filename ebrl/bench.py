@@ -26,6 +26,9 @@ from ebrl.testing import Run, RunError, StatsWatcher, source
 
 BASELINES = ("colocated", "hybrid", "async")
 RUN_SETS = ("viz.report=false",)  # before the user's overrides: a measured run writes no report
+# a throughput window is not ended by a target return or success rate (a mode that learns faster would
+# otherwise be measured over less time, or not at all)
+WINDOW_SETS = (*RUN_SETS, "run.target_return=", "run.target_success=")
 # The mechanisms ``--ablations`` switches, each by its config key. A variant flips one of them from what the
 # ebrl mode runs with this config: ``ebrl-no_<name>`` switches it off, ``ebrl+<name>`` on where the config
 # leaves it off (the allocator is off by default, so its variant is usually ``ebrl+allocator``). Core
@@ -86,7 +89,7 @@ def measure(config: str, mode: str, extra: list[str], duration: float, startup_t
     ``duration`` seconds after warm-up or, with ``trajectories`` > 0, until that many more trajectory
     segments are done (at most ``max_seconds``). The run keeps a ``run.name`` given in ``extra``."""
     name = f"bench-{mode}".replace("_", "-").replace("+", "-with-")[:40]
-    overrides = [f"run.mode={base_mode(mode)}", "run.iterations=0", *RUN_SETS, *extra]
+    overrides = [f"run.mode={base_mode(mode)}", "run.iterations=0", *WINDOW_SETS, *extra]
     with Run(config, *overrides, name=name, out_dir=out_dir, stats_interval=1.0) as run, StatsWatcher(run) as stats:
         # warm: one update done, so start-up and the first compile are outside the window
         stats.wait_for(lambda: (stats.latest("train/0", "train/policy_version") or 0) >= 1, startup_timeout,

@@ -571,7 +571,8 @@ def read(path: str | os.PathLike, _chain: tuple[Path, ...] = ()) -> dict[str, An
 
 def apply_override(raw: dict[str, Any], item: str) -> None:
     """Apply one ``section.key=value``; the key may go deeper (``env.kwargs.obs=rgb``) and is a TOML dotted key
-    (``env.kwargs."a.b"=1``); the value is parsed as TOML, else taken as a string."""
+    (``env.kwargs."a.b"=1``); the value is parsed as TOML, else taken as a string. An empty value
+    (``run.target_return=``) removes the key: the field takes its default (``None`` where that means absent)."""
     path, text = [], ""
     for at in (i for i, c in enumerate(item) if c == "="):  # the first "=" outside a quoted key
         try:
@@ -581,6 +582,7 @@ def apply_override(raw: dict[str, Any], item: str) -> None:
             continue
     if len(path) < 2:
         raise ConfigError(f"--set {item!r}: expected section.key=value (or section.key.subkey=value)")
+    unset = not text.strip()
     try:
         value = tomllib.loads(f"v = {text}")["v"]
     except tomllib.TOMLDecodeError:
@@ -592,7 +594,10 @@ def apply_override(raw: dict[str, Any], item: str) -> None:
             where = ".".join(path[:depth + 1])
             raise ConfigError(f"--set {item!r}: {where} is not a table" if depth else
                               f"--set {item!r}: [{where}] is not a section")
-    table[path[-1]] = value
+    if unset:
+        table.pop(path[-1], None)
+    else:
+        table[path[-1]] = value
 
 
 def _key_path(parsed: dict[str, Any]) -> list[str]:

@@ -59,6 +59,16 @@ def test_overrides_are_typed(tmp_path):
         config.load(write(tmp_path, ""), ["iterations=3"])
 
 
+def test_an_empty_override_value_removes_the_key(tmp_path):
+    """`--set run.target_return=` runs without the config's target (ebrl bench: a target does not end a window);
+    a quoted empty string stays a value."""
+    path = write(tmp_path, '[run]\ntarget_return = 900.0\nname = "x"\n[env.kwargs]\nobs = "rgb"\n')
+    cfg = config.load(path, ["run.target_return=", "env.kwargs.obs= "])
+    assert cfg.run.target_return is None and cfg.env.kwargs == {} and cfg.run.name == "x"
+    assert config.load(path, ['log.wandb_group=""']).log.wandb_group == ""
+    assert config.load(path, ["run.target_success="]).run.target_return == 900.0  # an absent key: nothing to do
+
+
 def test_dump_round_trips(tmp_path):
     cfg = config.load(str(ROOT / "configs" / "quickstart.toml"), ['env.kwargs={reset_noise_scale = 0.1}'])
     again = config.load(write(tmp_path, config.dump_toml(cfg)))

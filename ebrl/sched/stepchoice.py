@@ -12,16 +12,20 @@ in each mode, in the run's steady state:
 * **Not at start-up.** The first trial starts once chunks acted by policy version ``steady_version`` (2)
   arrive (training runs, kernels and caches are warm; at c20bf78 a trial in the first seconds measured
   rebinding 1.10x faster on W1 and the run that kept it delivered 29 % less), or after
-  ``steady_timeout_s`` where no such version comes.
+  ``steady_timeout_s`` where no such version comes. Until then the envs run in the mode the step latencies
+  suggest (:meth:`SteppingChoice.prior`: rebinding for long, heavy-tailed steps), which nothing measured
+  yet.
 * **Paired windows, a confidence rule.** A trial runs pairs of windows, one in each mode, the order
   alternating (P R, R P, P R, ...: drift hits both alike); a window spans at least ``window_s``, 8 chunks
   after settling, and the interval between two policy updates (training's share of the cores comes and goes
   with them). Each pair
   gives the log of rebinding's rate over pinning's; after ``min_pairs`` (2) the trial decides as soon as the
-  one-sided 97.5 % bounds of their mean (Student's t) say rebinding is faster by more than ``WORTH`` (1 %:
-  rebinding), or cannot be (pinned), and after ``max_pairs`` (8) without that it keeps pinning (no
-  hand-offs, no migrations: the tie's side). A clear difference is told after two pairs (rebinding 29 %
-  slower, windows within 3 %), a small one takes more.
+  one-sided ``CONFIDENCE`` (95 %) bounds of their mean (Student's t) say rebinding is faster by more than
+  ``WORTH`` (1 %: rebinding), or cannot be (pinned), and after ``max_pairs`` (8) without that it keeps
+  pinning (no hand-offs, no migrations: the tie's side). A clear difference is told after two pairs
+  (rebinding 29 % slower, windows within 3 %), a small one takes more. (At 97.5 %, W1's trials took 3-4
+  pairs to turn down rebinding at 0.91x, each rebinding window costing the run 9 % of its rate; a wrong
+  call at 95 % is a small difference, and the watch below undoes a large one.)
 * **Kept deciding.** After a decision the chosen mode's windows go on being measured; when the median of
   the last three falls below the other mode's rate in the trial by ``drop`` (5 %), a new trial runs (the
   choice is undone if the other mode now wins). A trial also runs again every ``recheck_s`` seconds and when
@@ -45,29 +49,32 @@ import statistics
 from typing import Iterable
 
 import numpy as np
+from scipy import stats as scipy_stats
 
 from ebrl.sched.corepool import PINNED, REBIND
 
 NAMES = {PINNED: "pinned", REBIND: "rebind"}
 MULTI_THREADED = 1.25  # cores an env keeps busy while stepping above which it counts as multi-threaded
-# Student's t, one-sided 97.5 %, by degrees of freedom (pairs - 1); beyond the table, the normal's 1.96. A
-# trial looks after every pair: each look at 97.5 % keeps the chance that noise alone decides low over them
-T975 = {1: 12.706, 2: 4.303, 3: 3.182, 4: 2.776, 5: 2.571, 6: 2.447, 7: 2.365, 8: 2.306, 9: 2.262, 10: 2.228,
-        11: 2.201, 12: 2.179, 13: 2.160, 14: 2.145, 15: 2.131}
+CONFIDENCE = 0.95  # one-sided, at each look (after every pair)
 WORTH = 0.01  # a gain of rebinding below 1 % is not worth its hand-offs: the indifference zone's width
+# The first mode, before any trial (start-up, the first updates): rebinding where the step-latency model says
+# it pays -- long steps (hand-offs cost tens of µs, well under 1 % of them) with a heavy tail (p90/p50: a
+# straggler's core stays busy while cores beside it run dry) -- else pinned; the trial then measures both.
+PRIOR_P50_S, PRIOR_TAIL = 2e-3, 2.0
 
 
 def interval(log_ratios: list[float]) -> tuple[float, float, float]:
     """(mean, low, high) of rebinding's rate over pinning's, from the pairs' log ratios: the geometric mean
-    and its one-sided 97.5 % bounds."""
+    and its one-sided ``CONFIDENCE`` bounds (Student's t)."""
     n = len(log_ratios)
     mean = statistics.fmean(log_ratios)
-    half = T975.get(n - 1, 1.96) * statistics.stdev(log_ratios) / math.sqrt(n) if n > 1 else math.inf
+    half = float(scipy_stats.t.ppf(CONFIDENCE, n - 1)) * statistics.stdev(log_ratios) / math.sqrt(n) \
+        if n > 1 else math.inf
     return math.exp(mean), math.exp(mean - half), math.exp(mean + half)
 
 
 def verdict(log_ratios: list[float], min_pairs: int) -> int | None:
-    """REBIND when rebinding is faster by more than ``WORTH`` at 97.5 %, PINNED when it cannot be (its upper
+    """REBIND when rebinding is faster by more than ``WORTH`` at ``CONFIDENCE``, PINNED when it cannot be (its upper
     bound below 1 + ``WORTH``), None while the pairs cannot tell."""
     if len(log_ratios) < max(2, min_pairs):
         return None
@@ -188,6 +195,9 @@ class SteppingChoice:
         if not self.trial and self.decisions == 0:  # the first trial: once the run is in its steady state
             if now >= max(self.steady_at, self.earliest) and not self.steps.multi_threaded():
                 self._start_trial(now, "start-up")
+            elif now - self._checked_at >= self.check_every_s:
+                self._checked_at = now
+                self.mode = self.window_mode = self.prior()
             return self._multi_threaded_check(now)
         if now >= self.window_start + self.window():
             span = self.window_last - self.window_first if self.window_first is not None else 0.0
@@ -205,6 +215,13 @@ class SteppingChoice:
         if not self.steps.multi_threaded() and (why := self._shifted(now)):
             self._start_trial(now, why)
         return None
+
+    def prior(self) -> int:
+        """The mode before the first trial: REBIND for long heavy-tailed steps of a single-threaded env
+        (``PRIOR_P50_S``, ``PRIOR_TAIL``), else PINNED (also before 500 steps were seen)."""
+        dist = self.steps.distribution()
+        heavy = dist is not None and dist[0] >= PRIOR_P50_S and dist[1] >= PRIOR_TAIL
+        return REBIND if heavy and not self.steps.multi_threaded() else PINNED
 
     def _multi_threaded_check(self, now: float) -> str | None:
         """No trial for multi-threaded envs: rebinding is not for them; a rebinding choice becomes pinned."""
@@ -255,8 +272,9 @@ class SteppingChoice:
         if ratios:
             gain, low, high = interval(ratios)
             self.gain = gain
-            told = "at 97.5 %" if chosen is not None else "no difference at 97.5 %, pinned kept"
-            measured = (f"rebinding ran {gain:.2f}x the env steps/s of pinned whole chunks (97.5 % bounds "
+            level = f"{CONFIDENCE * 100:g} %"
+            told = f"at {level}" if chosen is not None else f"no difference at {level}, pinned kept"
+            measured = (f"rebinding ran {gain:.2f}x the env steps/s of pinned whole chunks ({level} bounds "
                         f"{low:.2f}-{high:.2f}x; {told}) over {len(ratios)} pairs of {self.window():.1f} s windows "
                         f"(rebind {rebind:.0f} vs pinned {pinned:.0f} steps/s)")
         else:

@@ -157,6 +157,11 @@ class EnvSection(Section):
         "the largest reward magnitude of one env step that training takes: a larger one is clipped to it and a "
         "non-finite one counts as 0 (counted: sim/rewards_clipped, sim/rewards_nonfinite), and train drops a "
         "segment that carries more (train/reward_bound_dropped); inf: no bound", 1e6)
+    obs_keys: list[str] = doc(
+        "a Dict observation's keys the policy sees, in order, as key paths (\"observation\", \"camera/front\"; an "
+        "inner Dict's path selects every key under it); empty: all of them. Each becomes a field by its space: a "
+        "uint8 (H, W, C) Box an image, other Box, Discrete, MultiDiscrete, MultiBinary a vector, Text "
+        "instruction tokens", factory=list)
 
     def _check(self) -> None:
         if not self.max_abs_reward > 0:  # NaN too

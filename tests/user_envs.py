@@ -126,3 +126,55 @@ class SlidingBlock(MjTask):
     def evaluate(self, xp, state):
         x = state.qpos[:, 0]
         return -xp.abs(x), xp.abs(x) < 0.01, xp.zeros_like(x, dtype=xp.bool)
+
+
+class GoalImage(gymnasium.Env):
+    """A user's own goal-conditioned env with a nested Dict observation, as EBRL reads it with no wrapper
+    ("user_envs:GoalImage-v0"): ``{"camera": {"rgb": 16x16x3 uint8}, "robot": {"position": (2,)}, "goal": (2,),
+    "task": Text}``. A point moves by the action (clipped to [-1, 1]^2); reward: minus its distance to the goal,
+    drawn in the image as a bright pixel (the point as a grey one). 20-step episodes; ``info["is_success"]`` within
+    0.1 of the goal (gymnasium-robotics' key)."""
+
+    SIZE = 16
+
+    def __init__(self):
+        import numpy as np
+
+        spaces = gymnasium.spaces
+        self.np = np
+        self.observation_space = spaces.Dict({
+            "camera": spaces.Dict({"rgb": spaces.Box(0, 255, (self.SIZE, self.SIZE, 3), np.uint8)}),
+            "robot": spaces.Dict({"position": spaces.Box(-1.0, 1.0, (2,), np.float32)}),
+            "goal": spaces.Box(-1.0, 1.0, (2,), np.float32),
+            "task": spaces.Text(64, charset="abcdefghijklmnopqrstuvwxyz "),
+        })
+        self.action_space = spaces.Box(-1.0, 1.0, (2,), np.float32)
+        self.t = 0
+
+    def _pixel(self, xy):
+        return tuple(int(round((v + 1) / 2 * (self.SIZE - 1))) for v in xy)
+
+    def _obs(self):
+        np = self.np
+        image = np.zeros((self.SIZE, self.SIZE, 3), np.uint8)
+        image[self._pixel(self.goal)] = 255
+        image[self._pixel(self.position)] = (128, 128, 128)
+        return {"camera": {"rgb": image}, "robot": {"position": self.position.copy()}, "goal": self.goal.copy(),
+                "task": "reach the goal"}
+
+    def reset(self, *, seed=None, options=None):
+        super().reset(seed=seed)
+        self.t = 0
+        self.position = self.np_random.uniform(-1, 1, 2).astype(self.np.float32)
+        self.goal = self.np_random.uniform(-1, 1, 2).astype(self.np.float32)
+        return self._obs(), {}
+
+    def step(self, action):
+        np = self.np
+        self.position = np.clip(self.position + 0.2 * np.clip(np.asarray(action, np.float32), -1, 1), -1, 1)
+        self.t += 1
+        distance = float(np.linalg.norm(self.position - self.goal))
+        return self._obs(), -distance, False, self.t >= 20, {"is_success": distance < 0.1}
+
+
+gymnasium.register("GoalImage-v0", entry_point=GoalImage)

@@ -10,6 +10,7 @@ from types import ModuleType
 
 import gymnasium as gym
 
+from ebrl.envs.dictobs import SUPPORTED, DictObservation, field_of, leaves
 from ebrl.envs.latency import StepLatency
 from ebrl.envs.obs import ObsLayout
 from ebrl.envs.render import RenderingUnavailable, ensure_gl_for
@@ -53,6 +54,11 @@ def make_env(spec: EnvSpec, seed: int = 0) -> gym.Env:
     except Exception as exc:  # gymnasium, the simulators and user modules raise many kinds
         raise EnvError(f"env.id = {spec.id!r} (backend {spec.backend}): {type(exc).__name__}: {exc}") from exc
     check_spaces(spec.id, env.observation_space, env.action_space)
+    if isinstance(env.observation_space, gym.spaces.Dict):
+        env = DictObservation(env, spec.obs_keys, spec.id)
+    elif spec.obs_keys:
+        raise EnvError(f"env.obs_keys = {list(spec.obs_keys)} selects keys of a Dict observation; {spec.id}'s "
+                       f"observation space is {env.observation_space}")
     if spec.latency == "lognormal":
         env = StepLatency(env, spec.latency_mean_ms, spec.latency_sigma, seed=seed)
     return env
@@ -71,10 +77,19 @@ def preflight(spec: EnvSpec) -> None:
 
 
 def check_spaces(env_id: str, obs_space: gym.Space, act_space: gym.Space) -> None:
-    if not isinstance(obs_space, gym.spaces.Box):
-        raise EnvError(f"{env_id}: observation space {obs_space} is not a Box (flat or image arrays are supported)")
+    """EnvError naming the space and what EBRL supports, for spaces it cannot read or drive."""
+    if isinstance(obs_space, gym.spaces.Dict):
+        for path, leaf in leaves(obs_space).items():
+            field_of(path, leaf, env_id)
+    elif not isinstance(obs_space, gym.spaces.Box):
+        raise EnvError(f"{env_id}: observation space {obs_space} is not supported: EBRL reads a Box (flat or image "
+                       f"arrays) or a Dict, nested too, whose leaves are {SUPPORTED}")
     if not isinstance(act_space, gym.spaces.Box) or len(act_space.shape) != 1:
-        raise EnvError(f"{env_id}: action space {act_space} is not a 1-d Box (continuous actions are supported)")
+        hint = (" (discrete actions are not: EBRL's policies output chunks of continuous actions)"
+                if isinstance(act_space, (gym.spaces.Discrete, gym.spaces.MultiDiscrete, gym.spaces.MultiBinary))
+                else " (a Box of another shape: flatten it to 1-d)" if isinstance(act_space, gym.spaces.Box) else "")
+        raise EnvError(f"{env_id}: action space {act_space} is not supported: EBRL drives continuous actions, a 1-d "
+                       f"Box (low, high, (n,)){hint}; wrap the env so that its action space is one")
 
 
 def describe(spec: EnvSpec) -> EnvInfo:
@@ -83,10 +98,30 @@ def describe(spec: EnvSpec) -> EnvInfo:
     env = make_env(spec)
     try:
         base = env.unwrapped
-        layout = getattr(base, "obs_layout", None) or ObsLayout.for_shape(env.observation_space.shape)
+        layout = _declared_layout(env) or ObsLayout.for_shape(env.observation_space.shape)
         if layout.size != math.prod(env.observation_space.shape):
             raise EnvError(f"{spec.id}: obs_layout {layout.describe()} has {layout.size} values, "
                            f"the observation space {env.observation_space.shape}")
         return EnvInfo(env.observation_space, env.action_space, layout, getattr(base, "instruction", ""))
     finally:
         env.close()
+
+
+def _declared_layout(env: gym.Env) -> ObsLayout | None:
+    """The ``obs_layout`` of the outermost wrapper or env that declares one (the Dict adapter's, the env's own)."""
+    try:
+        return env.get_wrapper_attr("obs_layout")
+    except AttributeError:
+        return None
+
+
+def lazy_observer(env: gym.Env) -> gym.Env | None:
+    """What skips rendering the observations nobody reads (``skip_observation``) and renders the current one on
+    demand (``observe()``), ebrl/envs/worker.py: the env itself (robosuite's, a user's), seen through the Dict
+    adapter when one converts its observations; None for an env that cannot."""
+    base = env.unwrapped
+    if not (callable(getattr(base, "observe", None)) and hasattr(base, "skip_observation")):
+        return None
+    while isinstance(env, gym.Wrapper) and not isinstance(env, DictObservation):
+        env = env.env
+    return env if isinstance(env, DictObservation) else base

@@ -15,7 +15,7 @@ import torch
 from gymnasium.utils import seeding
 
 import ebrl.envs.guard as guard
-from ebrl.envs.backends import make_env
+from ebrl.envs.backends import lazy_observer, make_env
 from ebrl.envs.mjtask import MjState, MjTask, make_task
 from ebrl.envs.mjwarp import resolve_device, split_kwargs
 from ebrl.envs.spec import EnvError, EnvSpec
@@ -55,10 +55,8 @@ class EnvBatch:
         first = self.envs[0]
         self.low, self.high = first.action_space.low, first.action_space.high
         self.obs = np.zeros((self.num_envs, int(np.prod(first.observation_space.shape))), np.float32)
-        bases = [env.unwrapped for env in self.envs]
         # an env that can skip rendering the observations nobody reads (ebrl/envs/worker.py)
-        self.lazy = [b if callable(getattr(b, "observe", None)) and hasattr(b, "skip_observation") else None
-                     for b in bases]
+        self.lazy = [lazy_observer(env) for env in self.envs]
 
     def reset(self, idx: np.ndarray, episodes: np.ndarray) -> torch.Tensor:
         """Start episode ``episodes[j]`` of env ``idx[j]``; every env's observation, [N, D]."""

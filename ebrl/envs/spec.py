@@ -30,6 +30,7 @@ class EnvSpec:
     latency_mean_ms: float = 16.0
     latency_sigma: float = 0.3
     max_abs_reward: float = 1e6  # per env step: beyond it a reward is clipped (ebrl.envs.guard)
+    obs_keys: tuple[str, ...] = ()  # a Dict observation's key paths, selected and ordered (ebrl.envs.dictobs)
 
     @property
     def gpu_physics(self) -> bool:
@@ -41,7 +42,8 @@ class EnvSpec:
     def from_config(cls, env_cfg: Any) -> "EnvSpec":
         return cls(id=env_cfg.id, backend=env_cfg.backend, max_episode_steps=env_cfg.max_episode_steps,
                    kwargs=dict(env_cfg.kwargs), latency=env_cfg.latency, latency_mean_ms=env_cfg.latency_mean_ms,
-                   latency_sigma=env_cfg.latency_sigma, max_abs_reward=env_cfg.max_abs_reward)
+                   latency_sigma=env_cfg.latency_sigma, max_abs_reward=env_cfg.max_abs_reward,
+                   obs_keys=tuple(env_cfg.obs_keys))
 
 
 @dataclass(frozen=True)

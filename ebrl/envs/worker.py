@@ -26,7 +26,7 @@ from typing import Any, Callable, Iterable
 import numpy as np
 
 import ebrl.envs.guard as guard
-from ebrl.envs.backends import backend, make_env
+from ebrl.envs.backends import backend, lazy_observer, make_env
 from ebrl.envs.render import ensure_gl_for
 from ebrl.envs.spec import EnvSpec
 from ebrl.sched.corepool import CoreClaim, CorePool, ParentGone, pin_threads
@@ -196,8 +196,8 @@ class _ServedEnv:
         self.seed, self.claim = seed, claim
         self.low, self.high = env.action_space.low, env.action_space.high
         self.bound = spec.max_abs_reward
-        self.base = base = env.unwrapped
-        self.lazy = callable(getattr(base, "observe", None)) and hasattr(base, "skip_observation")
+        observer = lazy_observer(env)  # renders only the observations that are read
+        self.base, self.lazy = (observer, True) if observer is not None else (env.unwrapped, False)
         self.episode_return, self.episode_length, self.episodes = 0.0, 0, 0
         self.success: bool | None = None
 

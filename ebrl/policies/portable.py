@@ -23,6 +23,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import os
+from collections.abc import Mapping
 from pathlib import Path
 from typing import Any, Literal
 
@@ -30,6 +31,7 @@ import numpy as np
 import torch
 
 from ebrl import config as config_mod
+from ebrl.envs import dictobs
 from ebrl.envs.obs import ObsLayout
 from ebrl.envs.spec import EnvSpec
 from ebrl.policies import make_policy
@@ -54,7 +56,9 @@ class PortablePolicy:
     once the last is spent (open loop, exactly as training executed them). ``reset()`` (or ``predict``'s
     ``episode_start``) at an episode's start drops what is left of the chunk.
     ``obs`` may be one observation or a batch ``[B, *obs_shape]`` (B environments in lockstep; ``reset(i)``
-    resets env i alone). Actions are clipped to the action bounds.
+    resets env i alone). A Dict-observation env's policy also takes the Dict the env itself returns (one, a list,
+    or a Dict of batched values), converted as training saw it (:mod:`ebrl.envs.dictobs`). Actions are clipped to
+    the action bounds.
 
     ``deterministic=True``: the Gaussian policies' mean; the flow policy's chain from the fixed initial noise
     x_0 = 0 without the final step's noise. ``deterministic=False`` samples, from a generator seeded by
@@ -124,6 +128,8 @@ class PortablePolicy:
             self.generator.manual_seed(seed)
 
     def _as_batch(self, obs: Any) -> tuple[np.ndarray, bool]:
+        if isinstance(obs, Mapping) or (isinstance(obs, (list, tuple)) and obs and isinstance(obs[0], Mapping)):
+            return dictobs.pack_batch(self.layout, obs)  # the Dict a Dict-observation env returns (or a batch)
         o = np.asarray(obs, dtype=np.float32)
         if o.shape == self.obs_shape:
             return o.reshape(1, -1), True
@@ -142,7 +148,8 @@ class PortablePolicy:
         step latency a scheduler experiment may have added."""
         env = self.env_config
         return EnvSpec(id=env["id"], backend=env.get("backend", "gymnasium"),
-                       max_episode_steps=int(env.get("max_episode_steps", 0)), kwargs=dict(env.get("kwargs", {})))
+                       max_episode_steps=int(env.get("max_episode_steps", 0)), kwargs=dict(env.get("kwargs", {})),
+                       obs_keys=tuple(env.get("obs_keys", ())))
 
     def make_env(self, render_mode: str | None = None):
         """A gymnasium env of the task the policy was trained on, built as EBRL builds it (``ebrl.envs``);

@@ -305,6 +305,23 @@ def test_the_choice_follows_a_workload_whose_better_stepping_changes_mid_run():
     assert choice.metrics()["sim/stepping_decisions"] == len(decisions) <= 4
 
 
+def test_a_trial_that_cannot_tell_at_its_last_pair_takes_the_point_estimate():
+    """Windows as a noisy machine measures them (rebinding ahead by 25 %, behind by 17 %, ahead by 20 %): the
+    last pair (max_pairs = 3 here) cannot tell them apart at 95 %, and the run takes the better estimate
+    (rebinding 1.08x) rather than the tie's side."""
+    choice = SteppingChoice(now=0.0, warmup_s=0.0, steady_version=0, max_pairs=3)
+    load = Workload(choice, [(0.0, {PINNED: 1000, REBIND: 1100}, 0.001)])
+    steps = {PINNED: iter([1000, 1200, 900]), REBIND: iter([1250, 1000, 1080])}  # each window's rate
+    rates = load.phases[0][1]
+    decided = []
+    while not decided and load.now < 60.0:  # one rate per window: what a noisy machine measures
+        window, mode = choice.window_start, choice.mode
+        rates[mode] = next(steps[mode], rates[mode])
+        while choice.window_start == window and not decided:
+            decided = load.run(load.now + 0.05)
+    assert choice.mode == REBIND and "not told apart at 95 %: the point estimate" in decided[0], decided
+
+
 def test_no_difference_keeps_pinning():
     choice = SteppingChoice(now=0.0, warmup_s=0.0, steady_version=0)
     decided = Workload(choice, [(0.0, {PINNED: 1000, REBIND: 1000}, 0.001)]).run(120.0)

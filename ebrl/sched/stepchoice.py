@@ -21,8 +21,9 @@ in each mode, in the run's steady state:
   with them). Each pair
   gives the log of rebinding's rate over pinning's; after ``min_pairs`` (2) the trial decides as soon as the
   one-sided ``CONFIDENCE`` (95 %) bounds of their mean (Student's t) say rebinding is faster by more than
-  ``WORTH`` (1 %: rebinding), or cannot be (pinned), and after ``max_pairs`` (8) without that it keeps
-  pinning (no hand-offs, no migrations: the tie's side). A clear difference is told after two pairs
+  ``WORTH`` (1 %: rebinding), or cannot be (pinned); after ``max_pairs`` (8) without that, the point estimate
+  decides (rebinding when it is more than ``WORTH`` ahead; pinning, with no hand-offs or migrations, is the
+  tie's side). A clear difference is told after two pairs
   (rebinding 29 % slower, windows within 3 %), a small one takes more. (At 97.5 %, W1's trials took 3-4
   pairs to turn down rebinding at 0.91x, each rebinding window costing the run 9 % of its rate; a wrong
   call at 95 % is a small difference, and the watch below undoes a large one.)
@@ -260,7 +261,10 @@ class SteppingChoice:
     def _decide(self, now: float, chosen: int | None, ratios: list[float]) -> str:
         multi = self.steps.multi_threaded()  # seen during the trial: not for rebinding, whatever it measured
         self.trial = False
-        self.mode = self.window_mode = chosen if chosen is not None and not multi else PINNED
+        best = chosen  # undecided after max_pairs: the point estimate's side, pinning within WORTH of a tie
+        if best is None and ratios:
+            best = REBIND if interval(ratios)[0] > 1.0 + WORTH else PINNED
+        self.mode = self.window_mode = best if best is not None and not multi else PINNED
         pinned = statistics.median(p for p, _ in self.pairs) if self.pairs else 0.0
         rebind = statistics.median(r for _, r in self.pairs) if self.pairs else 0.0
         self.other_rate = rebind if self.mode == PINNED else pinned
@@ -273,7 +277,7 @@ class SteppingChoice:
             gain, low, high = interval(ratios)
             self.gain = gain
             level = f"{CONFIDENCE * 100:g} %"
-            told = f"at {level}" if chosen is not None else f"no difference at {level}, pinned kept"
+            told = f"at {level}" if chosen is not None else f"not told apart at {level}: the point estimate"
             measured = (f"rebinding ran {gain:.2f}x the env steps/s of pinned whole chunks ({level} bounds "
                         f"{low:.2f}-{high:.2f}x; {told}) over {len(ratios)} pairs of {self.window():.1f} s windows "
                         f"(rebind {rebind:.0f} vs pinned {pinned:.0f} steps/s)")

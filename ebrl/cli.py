@@ -14,9 +14,10 @@ def _args_up(p: argparse.ArgumentParser) -> None:
     p.add_argument("config", help="path to a config, e.g. configs/quickstart.toml")
     p.add_argument("--set", action="append", default=[], dest="overrides", metavar="SECTION.KEY=VALUE",
                    help="override one config value (TOML syntax), e.g. --set run.iterations=2")
-    p.add_argument("--viz", nargs="?", const="spawn", default=None, choices=("spawn", "serve", "save", "off"),
+    p.add_argument("--viz", nargs="?", const="spawn", default=None, choices=("spawn", "serve", "web", "save", "off"),
                    help="live rerun timeline: spawn a viewer (the default of a bare --viz), serve for a viewer "
-                        "to connect, save RUN_DIR/timeline.rrd, or off (sets viz.rerun)")
+                        "to connect, web (a browser's viewer on 127.0.0.1:viz.web_port), save "
+                        "RUN_DIR/timeline.rrd, or off (sets viz.rerun)")
     p.add_argument("--only", default=None, metavar="SERVICES",
                    help="start only these services on this host (comma-separated, e.g. sim or gen,train): one "
                         "host of a run over several; the bus endpoints join the hosts")

@@ -362,13 +362,17 @@ class AllocSection(Section):
 @dataclass
 class VizSection(Section):
     NAME = "viz"
-    POSITIVE = ("window_s", "port")
+    POSITIVE = ("window_s", "port", "web_port")
 
-    rerun: Literal["spawn", "serve", "save", "off"] = doc(
-        "live timeline in rerun: spawn a viewer, serve over gRPC for a viewer to connect (even late), save only, "
-        "or off (no viz service); every mode but off also writes RUN_DIR/timeline.rrd", "off")
-    port: int = doc("gRPC port of the rerun server (serve) or of the spawned viewer (spawn)", 9876)
-    memory_limit: str = doc("rerun server memory (serve): what a late viewer can still see", "2GiB")
+    rerun: Literal["spawn", "serve", "web", "save", "off"] = doc(
+        "live timeline in rerun: spawn a viewer, serve over gRPC for a viewer to connect (even late), web (serve "
+        "rerun's web viewer to a browser, on 127.0.0.1:web_port), save only, or off (no viz service); every mode "
+        "but off also writes RUN_DIR/timeline.rrd", "off")
+    port: int = doc("gRPC port of the rerun server (serve, web; on 127.0.0.1) or of the spawned viewer (spawn)",
+                    9876)
+    web_port: int = doc("HTTP port of the web viewer's page (web), on 127.0.0.1; reach it from a laptop with "
+                        "ssh -L web_port:127.0.0.1:web_port -L port:127.0.0.1:port HOST", 9090)
+    memory_limit: str = doc("rerun server memory (serve, web): what a late viewer can still see", "2GiB")
     window_s: float = doc("seconds of history the live Gantt shows while following the present", 20.0)
     spans: bool = doc("publish timeline spans; false keeps only the busy/<lane> stats (for overhead measurements)",
                       True)

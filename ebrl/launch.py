@@ -40,7 +40,7 @@ from ebrl.weights import known_version
 from ebrl.runview import Console, RunView, write_report, write_summary
 from ebrl.service import STOP_TO_RESTART
 from ebrl.supervisor import Argv, RestartPolicy, Supervisor
-from ebrl.viz import record
+from ebrl.viz import record, web_url
 
 log = logging.getLogger("ebrl.launch")
 
@@ -70,8 +70,10 @@ def launcher_endpoint(cfg: config_mod.Config, plan: HostPlan) -> str:
 
 
 def viz_line(viz: config_mod.VizSection, run_dir: Path) -> str:
-    return f"viz: rerun {viz.rerun} -> {run_dir / 'timeline.rrd'}" + (
-        f" (viewer: rerun --connect rerun+http://127.0.0.1:{viz.port}/proxy)" if viz.rerun == "serve" else "")
+    where = {"serve": f" (viewer: rerun --connect rerun+http://127.0.0.1:{viz.port}/proxy)",
+             "web": f" (browser: {web_url(viz.port, viz.web_port)}; from a laptop: ssh -L {viz.web_port}:127.0.0.1:"
+                    f"{viz.web_port} -L {viz.port}:127.0.0.1:{viz.port} HOST)"}
+    return f"viz: rerun {viz.rerun} -> {run_dir / 'timeline.rrd'}" + where.get(viz.rerun, "")
 
 
 class LauncherBus:

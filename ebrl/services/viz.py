@@ -13,7 +13,7 @@ import threading
 from ebrl.bus import keys
 from ebrl.messages import EpisodeBatch, Event, SpanBatch, decode_stats_sample
 from ebrl.service import Service, service_main
-from ebrl.viz.rerun_bridge import RerunBridge, make_blueprint, open_recording
+from ebrl.viz.rerun_bridge import RerunBridge, make_blueprint, open_recording, serve_web, stop_web
 
 FLUSH_S = 0.25
 INBOX = 50_000
@@ -25,8 +25,10 @@ class VizService(Service):
     async def setup(self) -> None:
         viz = self.cfg.viz
         self.rrd_path = os.path.join(self.run_dir, "timeline.rrd")
+        # web: the rerun CLI serves the page and the run on loopback; a child of this (main) thread
+        self.web = serve_web(viz.port, viz.web_port, viz.memory_limit) if viz.rerun == "web" else None
         self.rec, where = open_recording(viz.rerun, self.rrd_path, self.run_name, viz.port, viz.memory_limit,
-                                         make_blueprint(viz.window_s))
+                                         make_blueprint(viz.window_s), web_port=viz.web_port)
         self.bridge = RerunBridge(self.rec)
         self.lock = threading.Lock()  # the executor thread and teardown both log
         self.log.info("rerun: %s", where)
@@ -64,6 +66,8 @@ class VizService(Service):
         self.log_items(items)
         self.rec.flush(timeout_sec=5.0)
         self.rec.disconnect()  # closes the file sink: the .rrd gets its footer
+        if self.web is not None:
+            stop_web(self.web)  # an open page keeps what it received
 
 
 def main() -> None:

@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import collections
 import re
+import subprocess
 from typing import Any
 
 import numpy as np
@@ -32,6 +33,7 @@ import rerun as rr
 import rerun.blueprint as rrb
 
 from ebrl.messages import Event, Span, SpanBatch, StatsReport
+from ebrl.viz import web_url
 from ebrl.viz.timeline import STAGE_ORDER, STATE_COLORS, state_of
 
 # topic -> (view title, metric names or prefixes ending in "/")
@@ -198,6 +200,47 @@ def _listening(port: int) -> bool:
         return sock.connect_ex(("127.0.0.1", port)) == 0
 
 
+def serve_web(port: int, web_port: int, memory_limit: str, timeout: float = 60.0) -> subprocess.Popen:
+    """Start the rerun CLI bundled with rerun-sdk as the web viewer's server: its gRPC server on
+    127.0.0.1:``port`` (keeping up to ``memory_limit`` of the run for pages opened late) and the web viewer's
+    page over HTTP on 127.0.0.1:``web_port``. Both on loopback (``--bind``): the SDK's own
+    ``serve_web_viewer`` listens on every interface. The process gets SIGTERM when this thread's process dies
+    (``PR_SET_PDEATHSIG``: call it from the main thread); stop it with :func:`stop_web`."""
+    import ctypes
+    import os
+    import signal
+    import time
+
+    for p in (port, web_port):
+        if _listening(p):
+            raise RuntimeError(f"viz.rerun = web: port {p} on 127.0.0.1 is taken (set viz.port / viz.web_port)")
+    import rerun_cli
+
+    # the binary itself, not the `rerun` script that runs it as a child (which would outlive a SIGKILLed viz)
+    exe = os.path.join(os.path.dirname(rerun_cli.__file__), "rerun")
+    cmd = [exe if os.path.exists(exe) else "rerun", "--serve-web", "--bind", "127.0.0.1", "--port", str(port),
+           "--web-viewer-port", str(web_port), "--server-memory-limit", memory_limit]
+    proc = subprocess.Popen(cmd, stdin=subprocess.DEVNULL,
+                            preexec_fn=lambda: ctypes.CDLL("libc.so.6").prctl(1, signal.SIGTERM))
+    deadline = time.monotonic() + timeout
+    while not (_listening(port) and _listening(web_port)):
+        if proc.poll() is not None or time.monotonic() > deadline:
+            stop_web(proc)
+            raise RuntimeError(f"the rerun web viewer ({' '.join(cmd)}) did not start listening on ports "
+                               f"{port} and {web_port} within {timeout:.0f} s (exit code {proc.returncode})")
+        time.sleep(0.1)
+    return proc
+
+
+def stop_web(proc: subprocess.Popen) -> None:
+    proc.terminate()
+    try:
+        proc.wait(10)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        proc.wait()
+
+
 def describe_recording(path: str) -> dict[str, Any]:
     """Entity paths of a saved ``.rrd`` with their row counts (for tests and ``ebrl report``)."""
     from rerun.chunk import RrdReader
@@ -209,13 +252,14 @@ def describe_recording(path: str) -> dict[str, Any]:
 
 
 def open_recording(mode: str, rrd_path: str, run_name: str, port: int, memory_limit: str,
-                   blueprint: rrb.Blueprint) -> tuple[rr.RecordingStream, str]:
+                   blueprint: rrb.Blueprint, web_port: int = 9090) -> tuple[rr.RecordingStream, str]:
     """A recording streaming to the sinks of ``[viz] rerun`` (always also to ``rrd_path``).
 
     ``save``: the file only. ``serve``: a gRPC server on 127.0.0.1:``port`` that keeps up to
     ``memory_limit`` of the run, so a viewer that connects late still sees it all. ``spawn``:
     stream to the viewer listening on ``port``, starting one if none is; without a display
-    (and no viewer already there) this falls back to ``save``.
+    (and no viewer already there) this falls back to ``save``. ``web``: stream to the server
+    :func:`serve_web` started on ``port``, whose web viewer is on ``web_port``.
     Returns the recording and a line telling the user where to look.
     """
     import os
@@ -236,6 +280,10 @@ def open_recording(mode: str, rrd_path: str, run_name: str, port: int, memory_li
                  executable_path=exe if os.path.exists(exe) else None)
         sinks.append(rr.GrpcSink(url))
         where = f"viewer spawned on {url}; also " + where
+    elif mode == "web":
+        sinks.append(rr.GrpcSink(url))
+        where = (f"web viewer on {web_url(port, web_port)} (from another machine: ssh -L {web_port}:127.0.0.1:"
+                 f"{web_port} -L {port}:127.0.0.1:{port} HOST, then open that address); also " + where)
     elif mode == "serve":
         server = rr.GrpcServerSink("127.0.0.1", port, server_memory_limit=memory_limit)
         sinks.append(server)

@@ -64,6 +64,15 @@ def _count(name: str, value: int, low: int = 0, high: int = MAX_VERSION) -> None
         raise MessageError(f"{name} = {value}: outside [{low}, {high}]")
 
 
+_NO_BYTES = np.zeros((0, 0), np.uint8)  # a message's ``images`` when the observations have no uint8 fields
+
+
+def _bytes_rows(name: str, images: np.ndarray, rows: int) -> None:
+    """An ``images`` array holds a row per observation, or nothing at all."""
+    if images.size and images.shape[0] != rows:
+        raise MessageError(f"{name}: {images.shape[0]} rows of bytes for {rows} observations")
+
+
 def doc(text: str, **kw: Any) -> Any:
     """A dataclass field with a docstring (used in ``schemas/`` and docs/reference/messages.md)."""
     return field(metadata={"doc": text}, **kw)
@@ -83,8 +92,12 @@ class Observation:
     group: int = doc("group index")
     seq: int = doc("chunk counter of this group; the action chunk answering it carries the same seq")
     env_ids: Annotated[np.ndarray, Array("int64", 1)] = doc("global env ids, shape [E]")
-    obs: Annotated[np.ndarray, Array("float32")] = doc("observations, shape [E, *obs_shape]")
+    obs: Annotated[np.ndarray, Array("float32")] = doc(
+        "observations, shape [E, *obs_shape]; with `images`, the fields that are not bytes, shape [E, n]")
     sent_at: float = doc("epoch seconds when sim published it")
+    images: Annotated[np.ndarray, Array("uint8", 2)] = doc(
+        "the observation layout's uint8 fields (camera images) as bytes, shape [E, byte_size] "
+        "(ObsLayout.to_wire); shape [E, 0] or [0, 0] when it has none", default_factory=lambda: _NO_BYTES.copy())
 
     MAX_BYTES = DATA_MAX_BYTES
 
@@ -95,6 +108,7 @@ class Observation:
             raise MessageError(f"Observation: {len(self.env_ids)} env ids for observations of shape {self.obs.shape}")
         if len(self.env_ids) and int(self.env_ids.min()) < 0:
             raise MessageError("Observation.env_ids: a negative env id")
+        _bytes_rows("Observation.images", self.images, len(self.obs))
 
 
 @dataclass
@@ -147,6 +161,11 @@ class TrajectorySegment:
     last_obs: Annotated[np.ndarray, Array("float32")] = doc("observation after the last chunk, for bootstrapping")
     episode_returns: list[float] = doc("returns of episodes that finished inside this segment")
     episode_lengths: list[int] = doc("lengths (env steps) of episodes that finished inside this segment")
+    images: Annotated[np.ndarray, Array("uint8", 2)] = doc(
+        "the uint8 fields of `obs` as bytes, shape [T, byte_size] (as Observation.images; `obs` and `last_obs` "
+        "then hold the other fields); [0, 0] when the layout has none", default_factory=lambda: _NO_BYTES.copy())
+    last_images: Annotated[np.ndarray, Array("uint8", 1)] = doc(
+        "the uint8 fields of `last_obs` as bytes, shape [byte_size]", default_factory=lambda: np.zeros(0, np.uint8))
 
     MAX_BYTES = DATA_MAX_BYTES
 
@@ -164,6 +183,10 @@ class TrajectorySegment:
                                f"logprobs, values, rewards, steps, versions {lengths})")
         if self.last_obs.shape != self.obs.shape[1:]:
             raise MessageError(f"{name}.last_obs has shape {self.last_obs.shape}, observations {self.obs.shape[1:]}")
+        _bytes_rows(f"{name}.images", self.images, t)
+        if self.images.size and self.last_images.shape != self.images.shape[1:] or (
+                not self.images.size and self.last_images.size):
+            raise MessageError(f"{name}.last_images has shape {self.last_images.shape}, images {self.images.shape}")
         _finite(name, self.obs, self.actions, self.latents, self.logprobs, self.values, self.rewards, self.last_obs)
         if int(self.steps.min()) < 0 or int(self.steps.max()) > self.actions.shape[1]:
             raise MessageError(f"{name}.steps: outside 0..{self.actions.shape[1]} (the chunk length)")

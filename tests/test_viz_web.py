@@ -94,6 +94,28 @@ def lanes_drawn(tops: dict[str, tuple[int, int]]) -> bool:
     return min(chunk, forward, update) > 300 and 0 <= sim < gen < train
 
 
+def test_rerun_started_by_a_run_keeps_its_usage_analytics_off(tmp_path, monkeypatch):
+    """rerun sends usage analytics by default; under the viz service's environment its CLI (what serves the web
+    viewer, or a spawned viewer) reads a config with them off, and the user's own config is not touched."""
+    import json
+    import os
+    import subprocess
+
+    import rerun_cli
+
+    from ebrl.viz.rerun_bridge import without_analytics
+
+    monkeypatch.setenv("HOME", str(tmp_path / "home"))  # the user's config would be under it
+    for name in ("XDG_CONFIG_HOME", "XDG_DATA_HOME"):
+        monkeypatch.delenv(name, raising=False)
+    exe = os.path.join(os.path.dirname(rerun_cli.__file__), "rerun")
+    env = {**os.environ, **without_analytics(str(tmp_path / "run"))}
+    out = subprocess.run([exe, "analytics", "config"], env=env, capture_output=True, text=True, timeout=60).stdout
+    config = json.loads(out[out.index("{"):out.rindex("}") + 1])
+    assert config["analytics_enabled"] is False and config["config_file_path"].startswith(str(tmp_path / "run"))
+    assert not (tmp_path / "home").exists()
+
+
 @pytest.mark.slow
 def test_web_viewer_in_headless_chromium_draws_the_lanes_of_a_live_run(tmp_path):
     exe = find_chromium()

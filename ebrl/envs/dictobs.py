@@ -15,7 +15,7 @@ the layout alone converts an observation Dict (:func:`pack`, :func:`pack_batch`)
 takes the Dict the env returns. Goal-conditioned envs (gymnasium-robotics) report ``info["is_success"]``; the
 adapter passes it on as EBRL's ``info["success"]`` too.
 
-Observations travel as float32 (images too, in [0, 1]), as every other env's do.
+Images travel on the bus as their bytes (``ObsField.uint8``; :meth:`~ebrl.envs.obs.ObsLayout.to_wire`).
 """
 
 from __future__ import annotations
@@ -55,7 +55,7 @@ def field_of(path: str, space: gym.Space, env_id: str) -> ObsField:
     """The layout field of one leaf; EnvError naming the leaf and what is supported for any other space."""
     if is_image(space):
         height, width, channels = space.shape
-        return ObsField(path, "image", (channels, height, width))
+        return ObsField(path, "image", (channels, height, width), uint8=True)  # bytes / 255: uint8 on the bus
     if isinstance(space, gym.spaces.Text):
         return ObsField(path, "tokens", (INSTRUCTION_TOKENS,))
     if isinstance(space, _NUMBERS):

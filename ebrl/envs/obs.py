@@ -6,7 +6,9 @@ float32 vector per environment (one array per message, whatever the task);
 the :class:`ObsLayout` says which slice is which, so a policy can route the
 image to a conv encoder, the instruction tokens to an embedding table and the
 rest to an MLP. Images are channel-first, scaled to [0, 1]; tokens are integer
-ids stored as floats (exact below 2**24).
+ids stored as floats (exact below 2**24). A field read from uint8 pixels says so
+(``ObsField.uint8``): its values are bytes / 255, and on the bus it travels as
+those bytes (:meth:`ObsLayout.to_wire`), a quarter of the float32 size.
 
 Instructions are tokenized by a word-hashing tokenizer the project owns (no
 vocabulary file, nothing to download): lower-cased words, each mapped to one
@@ -15,6 +17,7 @@ of ``VOCAB_SIZE - 1`` ids by CRC32; id 0 is padding.
 
 from __future__ import annotations
 
+import functools
 import math
 import re
 import zlib
@@ -34,6 +37,7 @@ class ObsField:
     name: str
     kind: FieldKind
     shape: tuple[int, ...]  # image: (C, H, W); vector and tokens: (n,)
+    uint8: bool = False  # the values are bytes / 255 (an image read from uint8 pixels): uint8 on the bus
 
     @property
     def size(self) -> int:
@@ -98,12 +102,60 @@ class ObsLayout:
     def describe(self) -> str:
         return " + ".join(f"{f.name}:{f.kind}{list(f.shape)}" for f in self.fields)
 
+    # --- on the bus: uint8 fields as bytes --------------------------------------------------------------
+
+    @functools.cached_property
+    def _columns(self) -> tuple[np.ndarray, np.ndarray]:
+        """Positions in the flat vector of the float fields' values and of the uint8 fields' values."""
+        floats, raw, offset = [], [], 0
+        for f in self.fields:
+            (raw if f.uint8 else floats).append(np.arange(offset, offset + f.size))
+            offset += f.size
+        join = lambda parts: np.concatenate(parts) if parts else np.zeros(0, np.int64)  # noqa: E731
+        return join(floats), join(raw)
+
+    @property
+    def byte_size(self) -> int:
+        """Values of the uint8 fields: what travels as bytes."""
+        return sum(f.size for f in self.fields if f.uint8)
+
+    def to_wire(self, flat: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Observations ``[B, *any shape of size]`` as the bus carries them: ``([B, size - byte_size]`` float32 of
+        the other fields, ``[B, byte_size]`` uint8 of the uint8 fields``)``. Without uint8 fields, the
+        observations unchanged and ``[B, 0]`` bytes."""
+        batch = flat.shape[0]
+        if not self.byte_size:
+            return np.asarray(flat, np.float32), np.zeros((batch, 0), np.uint8)
+        flat = flat.reshape(batch, self.size)
+        floats, raw = self._columns
+        with np.errstate(invalid="ignore"):  # a NaN pixel was counted and replaced before (ebrl.envs.guard)
+            pixels = np.rint(np.clip(flat[:, raw], 0.0, 1.0) * 255.0).astype(np.uint8)
+        return np.ascontiguousarray(flat[:, floats], np.float32), pixels
+
+    def from_wire(self, floats: np.ndarray, pixels: np.ndarray) -> np.ndarray:
+        """:meth:`to_wire`'s two arrays back as flat float32 observations ``[B, size]`` (pixels / 255); ValueError
+        when their widths are not this layout's."""
+        batch = floats.shape[0]
+        floats = floats.reshape(batch, -1)
+        if pixels.shape != (batch, self.byte_size) or floats.shape[1] != self.size - self.byte_size:
+            raise ValueError(f"observations of {floats.shape[1]} float and {pixels.shape[-1]} byte values; the "
+                             f"layout {self.describe()} has {self.size - self.byte_size} and {self.byte_size}")
+        if not self.byte_size:
+            return floats
+        out = np.empty((batch, self.size), np.float32)
+        float_cols, raw_cols = self._columns
+        out[:, float_cols] = floats
+        out[:, raw_cols] = np.divide(pixels, np.float32(255), dtype=np.float32)  # as the env side scaled them
+        return out
+
     def to_dict(self) -> list[dict[str, Any]]:
-        return [{"name": f.name, "kind": f.kind, "shape": list(f.shape)} for f in self.fields]
+        return [{"name": f.name, "kind": f.kind, "shape": list(f.shape), **({"uint8": True} if f.uint8 else {})}
+                for f in self.fields]
 
     @classmethod
     def from_dict(cls, items: list[dict[str, Any]]) -> "ObsLayout":
-        return cls(tuple(ObsField(d["name"], d["kind"], tuple(int(s) for s in d["shape"])) for d in items))
+        return cls(tuple(ObsField(d["name"], d["kind"], tuple(int(s) for s in d["shape"]), bool(d.get("uint8")))
+                         for d in items))
 
 
 _WORD = re.compile(r"[a-z0-9]+")

@@ -99,7 +99,8 @@ class RobosuiteEnv(gym.Env):
         proprio = np.size(raw[PROPRIO_KEY])
         if self.obs_mode == "rgb":
             height, width, channels = raw[f"{self.camera}_image"].shape
-            fields = [ObsField("image", "image", (channels, height, width)), ObsField("proprio", "vector", (proprio,))]
+            fields = [ObsField("image", "image", (channels, height, width), uint8=True),  # rendered pixels / 255
+                      ObsField("proprio", "vector", (proprio,))]
         else:
             fields = [ObsField("state", "vector", (proprio + np.size(raw[OBJECT_KEY]),))]
         if with_tokens:

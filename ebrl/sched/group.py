@@ -21,7 +21,9 @@ from typing import Any, Callable
 
 import numpy as np
 
+from ebrl import obswire
 from ebrl.bus import keys
+from ebrl.envs.obs import ObsLayout
 from ebrl.envs.worker import WorkerFailed
 from ebrl.messages import ActionChunk, Observation, TrajectorySegment
 from ebrl.meter import Telemetry
@@ -41,9 +43,11 @@ class ActionExchange:
     publish its observations again at once."""
 
     def __init__(self, bus: Any, run: str, groups: list[int], telemetry: Telemetry,
-                 timeout_s: float = ACTION_TIMEOUT_S, action_shape: tuple[int, int] | None = None):
+                 timeout_s: float = ACTION_TIMEOUT_S, action_shape: tuple[int, int] | None = None,
+                 layout: ObsLayout | None = None):
         self.bus, self.run, self.telemetry, self.timeout_s = bus, run, telemetry, timeout_s
         self.action_shape = action_shape  # (chunk, action dim): a chunk of another shape is dropped, counted
+        self.layout = layout  # images of its uint8 fields travel as bytes (ebrl.obswire)
         self.actions = {g: bus.subscribe(keys.act(run, g), ActionChunk, capacity=4) for g in groups}
         self.gen_epoch = 0
 
@@ -52,7 +56,8 @@ class ActionExchange:
 
     async def exchange(self, g: int, seq: int, env_ids: np.ndarray, obs: np.ndarray) -> ActionChunk:
         """Publish group ``g``'s observations for chunk ``seq`` and wait for the chunk that answers them."""
-        message = Observation(group=g, seq=seq, env_ids=env_ids, obs=obs, sent_at=time.time())
+        message = obswire.observation(self.layout, g, seq, env_ids, obs, time.time()) if self.layout is not None \
+            else Observation(group=g, seq=seq, env_ids=env_ids, obs=obs, sent_at=time.time())
         while True:
             await self.bus.put(keys.obs(self.run, g), message, express=True)
             start, epoch = time.time(), self.gen_epoch
@@ -79,12 +84,16 @@ class SegmentOutbox:
     """Finished segments to train, or held while ``train_live()`` is False (at most ``max_pending``
     decisions; beyond that the oldest are dropped, counted): training resumes where it stopped."""
 
-    def __init__(self, bus: Any, telemetry: Telemetry, max_pending: int, train_live: Callable[[], bool]):
+    def __init__(self, bus: Any, telemetry: Telemetry, max_pending: int, train_live: Callable[[], bool],
+                 layout: ObsLayout | None = None):
         self.bus, self.telemetry, self.max_pending, self.train_live = bus, telemetry, max_pending, train_live
+        self.layout = layout  # images of its uint8 fields travel (and wait here) as bytes (ebrl.obswire)
         self.held: collections.deque[tuple[str, TrajectorySegment]] = collections.deque()
         self.held_steps = 0
 
     async def send(self, key: str, segment: TrajectorySegment) -> None:
+        if self.layout is not None:
+            segment = obswire.segment(self.layout, segment)
         if self.train_live():
             await self.send_held()
             await self.bus.put(key, segment)

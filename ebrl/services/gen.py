@@ -12,7 +12,7 @@ import os
 import numpy as np
 import torch
 
-from ebrl import devices, meta, threads
+from ebrl import devices, meta, obswire, threads
 from ebrl.bus import keys
 from ebrl.bus.peers import LivePeers
 from ebrl.envs import EnvSpec, describe
@@ -49,7 +49,8 @@ class GenService(Service):
         self.forward = Forward(self.actor, self.device, self.pool)  # short CPU passes on the loop itself
         self.wake = asyncio.Event()
         # A group has at most one observation in flight; room for the groups of many sim hosts.
-        self.obs = self.bus.subscribe(keys.obs(self.run_name), Observation, capacity=4 * self.schedule.groups * 16,
+        decode = obswire.decoder(Observation, info.layout, info.obs_shape)  # camera images arrive as bytes
+        self.obs = self.bus.subscribe(keys.obs(self.run_name), decode, capacity=4 * self.schedule.groups * 16,
                                       notify=self.wake)
         # assembles off the event loop; takes only versions of this policy's tensors, finite, plausibly numbered
         self.weights = WeightsReceiver(self.bus, self.run_name, notify=self.wake,

@@ -43,8 +43,9 @@ class SimService(Service):
         self.fleet.stepping.timeout = self.stats.step_timeout()  # refreshed with every stats report
         self.peers = LivePeers(self.bus, self.run_name, warn=lambda: not self.stopping.is_set())
         self.exchange = ActionExchange(self.bus, self.run_name, self.fleet.groups, self,
-                                       action_shape=(cfg.policy.chunk, info.action_dim))
-        self.outbox = SegmentOutbox(self.bus, self, cfg.train.max_pending, lambda: self.peers.has("train"))
+                                       action_shape=(cfg.policy.chunk, info.action_dim), layout=info.layout)
+        self.outbox = SegmentOutbox(self.bus, self, cfg.train.max_pending, lambda: self.peers.has("train"),
+                                    layout=info.layout)
         # a (re)started gen has none of the observations in flight: publish them again
         self.peers.on_join("gen", self.exchange.generation_restarted)
         self.peers.on_join("train", lambda: asyncio.ensure_future(self.outbox.send_held()))

@@ -11,7 +11,7 @@ import asyncio
 import os
 import time
 
-from ebrl import procenv, threads
+from ebrl import obswire, procenv, threads
 from ebrl.algos import saving
 from ebrl.algos.cycle import UpdateCycle, wind_down
 from ebrl.algos.handover import HANDOVER_FILE
@@ -53,7 +53,8 @@ class TrainService(Service):
         self.last: dict[str, float] = {}
         if rank > 0:
             return
-        self.traj = self.bus.subscribe(keys.traj(self.run_name), TrajectorySegment, capacity=256)
+        decode = obswire.decoder(TrajectorySegment, info.layout, info.obs_shape)  # camera images arrive as bytes
+        self.traj = self.bus.subscribe(keys.traj(self.run_name), decode, capacity=256)
         self.weights = WeightsPublisher(self.bus, self.run_name)  # also answers late joiners with the newest
         handover = os.path.join(self.run_dir, HANDOVER_FILE)
         taken, handed = learner.take_over(lambda exc: self.bus.count_malformed(handover, exc))

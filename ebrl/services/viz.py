@@ -13,7 +13,8 @@ import threading
 from ebrl.bus import keys
 from ebrl.messages import EpisodeBatch, Event, SpanBatch, decode_stats_sample
 from ebrl.service import Service, service_main
-from ebrl.viz.rerun_bridge import RerunBridge, make_blueprint, open_recording, serve_web, stop_web
+from ebrl.viz.rerun_bridge import (RerunBridge, make_blueprint, open_recording, serve_web, stop_web,
+                                  without_analytics)
 
 FLUSH_S = 0.25
 INBOX = 50_000
@@ -25,6 +26,7 @@ class VizService(Service):
     async def setup(self) -> None:
         viz = self.cfg.viz
         self.rrd_path = os.path.join(self.run_dir, "timeline.rrd")
+        os.environ.update(without_analytics(self.run_dir))  # for the SDK here and the rerun processes it starts
         # web: the rerun CLI serves the page and the run on loopback; a child of this (main) thread
         self.web = serve_web(viz.port, viz.web_port, viz.memory_limit) if viz.rerun == "web" else None
         self.rec, where = open_recording(viz.rerun, self.rrd_path, self.run_name, viz.port, viz.memory_limit,

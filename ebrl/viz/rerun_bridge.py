@@ -192,6 +192,24 @@ def make_blueprint(window_s: float = 20.0) -> rrb.Blueprint:
     )
 
 
+def without_analytics(run_dir: str) -> dict[str, str]:
+    """Environment variables under which rerun (this SDK, its CLI and a viewer it spawns) keeps its usage
+    analytics off: by default it sends them to rerun's servers, set in ``~/.config/rerun/analytics.json``. Its
+    config and data directories become ``RUN_DIR/rerun/`` (XDG), holding a config with analytics disabled, so
+    a run neither phones home nor changes the user's own rerun settings."""
+    import json
+    import os
+
+    config, data = os.path.join(run_dir, "rerun", "config"), os.path.join(run_dir, "rerun", "data")
+    path = os.path.join(config, "rerun", "analytics.json")
+    os.makedirs(os.path.dirname(path), mode=0o700, exist_ok=True)
+    os.makedirs(os.path.join(data, "rerun", "analytics"), mode=0o700, exist_ok=True)
+    with open(path, "w") as fh:
+        json.dump({"analytics_enabled": False, "analytics_id": "", "metadata": {}, "config_file_path": path,
+                   "data_dir_path": os.path.join(data, "rerun", "analytics")}, fh)
+    return {"XDG_CONFIG_HOME": config, "XDG_DATA_HOME": data}
+
+
 def _listening(port: int) -> bool:
     import socket
 

@@ -2,11 +2,12 @@
 #   make quickstart   create .venv on first use, install, run the quickstart config (configs/quickstart.toml)
 #   make test         create .venv on first use, install, run the fast tests
 #   make docs         the documentation site: regenerate the reference pages (docs/gen.py), mkdocs build --strict into site/
+#   make libero       the LIBERO benchmark (env.backend = "libero"): the libero extra, then `ebrl libero setup`
 VENV ?= .venv
 PY := $(VENV)/bin/python
 PYTEST_FLAGS ?= -q -rs  # -rs: print why each skipped test skipped
 
-.PHONY: install quickstart test test-slow schemas docs clean
+.PHONY: install quickstart test test-slow schemas docs libero clean
 
 install: $(VENV)/.installed
 
@@ -37,6 +38,15 @@ $(VENV)/.docs-installed: $(VENV)/.installed pyproject.toml
 docs: $(VENV)/.docs-installed
 	$(PY) docs/gen.py
 	NO_MKDOCS_2_WARNING=1 $(PY) -m mkdocs build --strict --site-dir site
+
+# LIBERO: the extra with the known-good constraints, then LIBERO itself without its dependencies (it asks for
+# robosuite>=1.5.2, whose mink pin needs numpy<2), its assets linked and its config written
+libero: $(VENV)/.libero-installed
+
+$(VENV)/.libero-installed: $(VENV)/.installed pyproject.toml constraints.txt
+	$(PY) -m pip install -q -c constraints.txt -e '.[libero]'
+	$(VENV)/bin/ebrl libero setup
+	touch $@
 
 clean:
 	rm -rf $(VENV) runs .pytest_cache site

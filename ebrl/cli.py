@@ -1,5 +1,5 @@
 """``ebrl`` command line: up, eval, stats, profile, report, bench, router, secret, schemas, config, configs,
-init, graph.
+init, graph, libero.
 
 Each command is two functions, ``_args_<command>`` (its arguments) and ``_run_<command>`` (what it does,
 importing what it needs only then, so ``ebrl --help`` stays fast), listed once in :data:`COMMANDS`."""
@@ -39,7 +39,8 @@ def _run_up(args: argparse.Namespace) -> int:
 
 def _args_eval(p: argparse.ArgumentParser) -> None:
     p.add_argument("path", help="a run directory (its latest policy, or --best) or a .safetensors policy file")
-    p.add_argument("--episodes", type=int, default=10, help="episodes to run (default 10)")
+    p.add_argument("--episodes", type=int, default=None,
+                   help="episodes to run (default 10); with --suite: initial states per task (default 50, all)")
     p.add_argument("--seed", type=int, default=None,
                    help="reset seed of the first episode; episode i uses seed + i (default 2000000000: held out "
                         "from training's seeds, the same as the eval service's eval.seeds)")
@@ -54,13 +55,28 @@ def _args_eval(p: argparse.ArgumentParser) -> None:
                    help="the run's config.toml, for a policy file written before policies carried their config")
     p.add_argument("--out", default=None, metavar="FILE",
                    help="where to write eval.json (default: RUN_DIR/eval.json for a run directory, ./eval.json "
-                        "for a file)")
+                        "for a file; with --suite eval_SUITE.json, and {suite} in FILE is the suite)")
+    p.add_argument("--suite", action="append", default=[], metavar="SUITE",
+                   help="the LIBERO protocol instead: every task of the suite (libero_spatial, libero_object, "
+                        "libero_goal, libero_10, libero_90; repeat or comma-separate for several) from its official "
+                        "initial states, in parallel envs; success per task and per suite with Wilson intervals")
+    p.add_argument("--tasks", default=None, metavar="I,J",
+                   help="with --suite: only these tasks (indices)")
+    p.add_argument("--workers", type=int, default=0,
+                   help="with --suite: env processes (default: one per CPU this process may use)")
 
 
 def _run_eval(args: argparse.Namespace) -> int:
+    if args.suite:
+        from ebrl.evaluate_suite import command as suite_command
+
+        suites = [s.strip() for item in args.suite for s in item.split(",") if s.strip()]
+        tasks = [int(t) for t in args.tasks.split(",")] if args.tasks else None
+        return suite_command(args.path, suites, episodes=args.episodes or 50, tasks=tasks, workers=args.workers,
+                             stochastic=args.stochastic, best=args.best, config=args.config, out=args.out)
     from ebrl.evaluate import command
 
-    return command(args.path, episodes=args.episodes, seed=args.seed, video=args.video,
+    return command(args.path, episodes=args.episodes or 10, seed=args.seed, video=args.video,
                    video_episodes=args.video_episodes, stochastic=args.stochastic, best=args.best,
                    config=args.config, out=args.out)
 
@@ -260,6 +276,31 @@ def _run_init(args: argparse.Namespace) -> int:
     return 0
 
 
+def _args_libero(p: argparse.ArgumentParser) -> None:
+    p.add_argument("action", choices=("setup", "tasks"),
+                   help="setup: install what is missing of LIBERO (the libero extra, LIBERO itself without its "
+                        "dependencies), link its assets, write its config; tasks: list a suite's tasks")
+    p.add_argument("suite", nargs="?", default="libero_spatial", help="tasks: the suite (default libero_spatial)")
+
+
+def _run_libero(args: argparse.Namespace) -> int:
+    import subprocess
+
+    from ebrl.envs import libero_suite
+
+    try:
+        if args.action == "setup":
+            libero_suite.setup()
+            print("LIBERO is ready: env.backend = \"libero\" (configs/libero_spatial.toml)")
+        else:
+            for task in libero_suite.tasks_of(args.suite):
+                print(f"{task.index:>3}  {task.language}")
+    except (ValueError, libero_suite.LiberoMissing, OSError, subprocess.CalledProcessError) as exc:
+        print(f"ebrl libero: {exc}", file=sys.stderr)
+        return 2
+    return 0
+
+
 def _args_graph(p: argparse.ArgumentParser) -> None:
     p.add_argument("--markdown", action="store_true", help="as docs/graph.md (a Mermaid chart and a table)")
 
@@ -287,6 +328,8 @@ COMMANDS = {  # name: (help, its arguments, what it runs)
     "configs": ("list the stock configs (ebrl up NAME runs one)", _args_configs, _run_configs),
     "init": ("copy a stock config here to edit", _args_init, _run_init),
     "graph": ("print the service graph: who publishes, subscribes to and queries what", _args_graph, _run_graph),
+    "libero": ("set up the LIBERO benchmark (ebrl libero setup), or list a suite's tasks", _args_libero,
+               _run_libero),
 }
 
 

@@ -138,17 +138,22 @@ class BusSection(Section):
 class EnvSection(Section):
     NAME = "env"
 
-    backend: Literal["gymnasium", "robosuite", "maniskill", "mjwarp"] = doc(
+    backend: Literal["gymnasium", "robosuite", "maniskill", "mjwarp", "libero"] = doc(
         "simulator adapter (maniskill: the optional extra, `pip install -e '.[maniskill]'`, needs a Vulkan GPU; "
         "mjwarp: MuJoCo Warp, `pip install -e '.[mjwarp]'`, each group one batch of envs_per_group worlds on the GPU "
-        "or the CPU, env.kwargs.device)", "gymnasium")
+        "or the CPU, env.kwargs.device; libero: the LIBERO benchmark, `make libero`)", "gymnasium")
     id: str = doc("environment id: a gymnasium id (InvertedPendulum-v5, my_pkg.envs:MyEnv-v0), a robosuite "
-                  "task (Lift, PickPlaceCan, Stack), a ManiSkill task (PickCube-v1) or an mjwarp task "
-                  "(PandaPickCube-v0, my_pkg.tasks:MyTask)", "InvertedPendulum-v5")
-    max_episode_steps: int = doc("time limit in env steps; 0 keeps the environment's own", 0)
+                  "task (Lift, PickPlaceCan, Stack), a ManiSkill task (PickCube-v1), an mjwarp task "
+                  "(PandaPickCube-v0, my_pkg.tasks:MyTask) or a LIBERO suite (libero_spatial, libero_object, "
+                  "libero_goal, libero_10, libero_90)", "InvertedPendulum-v5")
+    max_episode_steps: int = doc("time limit in env steps; 0 keeps the environment's own (LIBERO: the suite's, "
+                                 "280/280/300/520/400)", 0)
     kwargs: dict[str, Any] = doc("extra keyword arguments for the environment constructor (robosuite and ManiSkill: "
                                  "obs = \"state\" | \"rgb\", image_size, camera, instruction, ...; mjwarp: device, "
-                                 "nconmax, njmax, cuda_graph, then the task's own, e.g. model)", factory=dict)
+                                 "nconmax, njmax, cuda_graph, then the task's own, e.g. model; LIBERO: tasks (an "
+                                 "index, a name or a list; empty: the whole suite spread over the envs), obs = "
+                                 "\"rgb\" | \"state\", cameras, image_size, no_op_steps, init_states, arena_mb, "
+                                 "object_state_size)", factory=dict)
     latency: Literal["none", "lognormal"] = doc(
         "add a synthetic step latency (CPU busy-wait) drawn from this distribution, for scheduler experiments", "none")
     latency_mean_ms: float = doc("mean of the added step latency in milliseconds", 16.0)

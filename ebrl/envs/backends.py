@@ -4,6 +4,7 @@ ebrl.envs imports no simulator), and what every backend shares: building, descri
 from __future__ import annotations
 
 import importlib
+import inspect
 import math
 from dataclasses import dataclass
 from types import ModuleType
@@ -32,6 +33,10 @@ BACKENDS: dict[str, Backend] = {
     "robosuite": Backend("ebrl.envs.robosuite", ("gymnasium", "mujoco", "robosuite")),
     "maniskill": Backend("ebrl.envs.maniskill", ("gymnasium", "torch", "mani_skill.envs")),
     "mjwarp": Backend("ebrl.envs.mjwarp", ("gymnasium", "mujoco")),  # a group is one batch; one env: CPU MuJoCo
+    # LIBERO's modules once in the forkserver, shared by every worker it forks (ebrl.envs.libero first: it points
+    # LIBERO at its config before libero is imported; an ImportError of a preload is ignored there)
+    "libero": Backend("ebrl.envs.libero",
+                      ("gymnasium", "mujoco", "robosuite", "ebrl.envs.libero", "libero.libero.envs")),
 }
 
 
@@ -47,10 +52,11 @@ def backend_module(spec: EnvSpec) -> ModuleType:
 
 
 def make_env(spec: EnvSpec, seed: int = 0) -> gym.Env:
-    """Build the environment with its backend, check its spaces, and add the configured step latency."""
+    """Build the environment with its backend, check its spaces, and add the configured step latency. A builder
+    that takes ``seed`` (the worker's) is given it: LIBERO picks each env's task by it."""
     build = backend_module(spec).build
     try:
-        env: gym.Env = build(spec)
+        env: gym.Env = build(spec, seed=seed) if "seed" in inspect.signature(build).parameters else build(spec)
     except Exception as exc:  # gymnasium, the simulators and user modules raise many kinds
         raise EnvError(f"env.id = {spec.id!r} (backend {spec.backend}): {type(exc).__name__}: {exc}") from exc
     check_spaces(spec.id, env.observation_space, env.action_space)

@@ -65,6 +65,8 @@ def ensure_gl_for(spec: Any) -> str | None:
     it renders nothing. Call it before mujoco/robosuite are imported and before env workers start."""
     if spec.backend == "robosuite" and spec.kwargs.get("obs", "state") == "rgb":
         return choose_gl()
+    if spec.backend == "libero" and spec.kwargs.get("obs", "rgb") == "rgb":  # LIBERO's cameras are on by default
+        return choose_gl()
     return None
 
 
@@ -74,7 +76,7 @@ def with_rendering(spec: Any) -> Any:
     call it before mujoco is imported in this process."""
     import dataclasses
 
-    if spec.backend in ("gymnasium", "robosuite", "mjwarp"):
+    if spec.backend in ("gymnasium", "robosuite", "mjwarp", "libero"):
         choose_gl()
     return dataclasses.replace(spec, kwargs={**spec.kwargs, "render_mode": "rgb_array"})
 

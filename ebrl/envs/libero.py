@@ -27,6 +27,8 @@ Cameras render only the observation a chunk ends on (``skip_observation``/``obse
 
 from __future__ import annotations
 
+import contextlib
+import io
 import os
 from typing import Any
 
@@ -175,6 +177,7 @@ class LiberoEnv(gym.Env):
 
     def close(self) -> None:
         self.env.close()
+        _release_build_memory()  # the model's memory back to the system: describe() builds and closes one env
 
 
 def _check_options(obs: str, cameras: Any, image_size: Any, no_op_steps: Any, arena_mb: Any,
@@ -203,6 +206,8 @@ def _import_libero() -> Any:
 
     _import_robosuite()  # quiet, and MUJOCO_GL left as it was
     try:
+        with contextlib.redirect_stderr(io.StringIO()):  # gym 0.26 (LIBERO's vector envs) prints a notice
+            import gym  # noqa: F401
         from libero.libero import envs
         from libero.libero.envs.robots.on_the_ground_panda import OnTheGroundPanda
     except ImportError as exc:

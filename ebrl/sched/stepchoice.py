@@ -12,9 +12,11 @@ in each mode, in the run's steady state:
 * **Not at start-up.** The first trial starts once chunks acted by policy version ``steady_version`` (2)
   arrive (training runs, kernels and caches are warm; at c20bf78 a trial in the first seconds measured
   rebinding 1.10x faster on W1 and the run that kept it delivered 29 % less), or after
-  ``steady_timeout_s`` where no such version comes. Until then the envs run in the mode the step latencies
-  suggest (:meth:`SteppingChoice.prior`: rebinding for long, heavy-tailed steps), which nothing measured
-  yet.
+  ``steady_timeout_s`` where no such version comes. Until then the envs run pinned whole chunks, which
+  never costs much: rebinding first where the step latencies suggested it (long, heavy-tailed steps) was
+  tried, and LIBERO's steps (a 195 ms camera render at each chunk's start among 5 ms steps) ran 0.61x the
+  best baseline for the 59 % of a 45 s window it spent rebinding before its trial, while on the
+  heavy-tailed sweep points it bought nothing measurable (`lat:16:1` 1.17x with it and without).
 * **Paired windows, a confidence rule.** A trial runs pairs of windows, one in each mode, the order
   alternating (P R, R P, P R, ...: drift hits both alike); a window spans at least ``window_s``, 8 chunks
   after settling, and the interval between two policy updates (training's share of the cores comes and goes
@@ -58,10 +60,6 @@ NAMES = {PINNED: "pinned", REBIND: "rebind"}
 MULTI_THREADED = 1.25  # cores an env keeps busy while stepping above which it counts as multi-threaded
 CONFIDENCE = 0.95  # one-sided, at each look (after every pair)
 WORTH = 0.01  # a gain of rebinding below 1 % is not worth its hand-offs: the indifference zone's width
-# The first mode, before any trial (start-up, the first updates): rebinding where the step-latency model says
-# it pays -- long steps (hand-offs cost tens of µs, well under 1 % of them) with a heavy tail (p90/p50: a
-# straggler's core stays busy while cores beside it run dry) -- else pinned; the trial then measures both.
-PRIOR_P50_S, PRIOR_TAIL = 2e-3, 2.0
 
 
 def interval(log_ratios: list[float]) -> tuple[float, float, float]:
@@ -196,9 +194,6 @@ class SteppingChoice:
         if not self.trial and self.decisions == 0:  # the first trial: once the run is in its steady state
             if now >= max(self.steady_at, self.earliest) and not self.steps.multi_threaded():
                 self._start_trial(now, "start-up")
-            elif now - self._checked_at >= self.check_every_s:
-                self._checked_at = now
-                self.mode = self.window_mode = self.prior()
             return self._multi_threaded_check(now)
         if now >= self.window_start + self.window():
             span = self.window_last - self.window_first if self.window_first is not None else 0.0
@@ -216,13 +211,6 @@ class SteppingChoice:
         if not self.steps.multi_threaded() and (why := self._shifted(now)):
             self._start_trial(now, why)
         return None
-
-    def prior(self) -> int:
-        """The mode before the first trial: REBIND for long heavy-tailed steps of a single-threaded env
-        (``PRIOR_P50_S``, ``PRIOR_TAIL``), else PINNED (also before 500 steps were seen)."""
-        dist = self.steps.distribution()
-        heavy = dist is not None and dist[0] >= PRIOR_P50_S and dist[1] >= PRIOR_TAIL
-        return REBIND if heavy and not self.steps.multi_threaded() else PINNED
 
     def _multi_threaded_check(self, now: float) -> str | None:
         """No trial for multi-threaded envs: rebinding is not for them; a rebinding choice becomes pinned."""

@@ -127,10 +127,12 @@ def test_a_non_finite_state_is_never_checkpointed_saved_or_resumed_from(tmp_path
 
 @pytest.fixture(scope="module")
 def buggy_run(tmp_path_factory):
-    """The quickstart on InvertedPendulum with a user's numeric bugs: absurd (1e38), NaN and -inf rewards and NaN
-    observations, each every few hundred steps of every env."""
+    """The quickstart on InvertedPendulum with a user's numeric bugs: absurd (1e38), NaN and -inf rewards every few
+    hundred steps of every env, and NaN observations every 101st. The worker checks every reward but only the
+    observation a chunk ends on (the one the policy reads): with 607 between bad observations, a run of 10
+    iterations could see none at a chunk's end (1 failure in a full suite); at 101, some 100 in the run."""
     out = tmp_path_factory.mktemp("buggy")
-    kwargs = '{absurd_every = 300, nan_every = 401, inf_every = 503, bad_obs_every = 607}'
+    kwargs = '{absurd_every = 300, nan_every = 401, inf_every = 503, bad_obs_every = 101}'
     with pytest.MonkeyPatch.context() as patch:
         patch.setenv("PYTHONPATH", os.pathsep.join([str(TESTS), os.environ.get("PYTHONPATH", "")]))  # faulty_envs
         # the target return is off: one clipped 1e38 reward (1e6) in an episode would reach it

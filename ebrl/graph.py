@@ -10,8 +10,8 @@ in one module) and the message it carries. From it:
   from it (:func:`markdown`; the test checks it is current);
 * the bus's access rules are generated from it (:func:`access_control`: Zenoh's ACL in which each role's
   identity may send only what its flows declare, enforced where every sender's identity is known, a router;
-  a test runs it on one). Runs do not sign in one identity per role yet: the rules a run enforces today are
-  ``ebrl.bus.auth``'s (observers only read).
+  a test runs it on one). Every run's launcher enforces them on the services that are its clients
+  (``bus.mode = "client"``, the default; ``ebrl.bus.auth``).
 
 Patterns: ``{run}`` is the run's name, ``{role}`` and ``{instance}`` the service's own; ``*`` matches one
 key chunk, ``**`` any number (Zenoh's key expressions). Every service has :data:`SERVICE_FLOWS` (its stats,
@@ -92,8 +92,11 @@ FLOWS: dict[str, tuple[Flow, ...]] = {
         Flow("put", keys.gpu_share(R, "*"), "GpuShare", "a stage's new GPU share, for its host's launcher"),
     ),
     "log": (Flow("sub", keys.stats_all(R), EVERY_STAT, "everything, for the sinks"),),
-    "observer": (  # a script or `ebrl stats` signed in as observer (ebrl.stats.observer_config): it reads only
-        Flow("sub", keys.stats_all(R), EVERY_STAT, "a run watched from any script", chart=False),
+    "observer": (  # a script or `ebrl stats` signed in as observer (ebrl.stats.observer_config): it reads only,
+        # the stats of any run on the bus (its file names no run: `ebrl stats` without --run watches every one)
+        Flow("sub", keys.stats(), EVERY_STAT, "a run watched from any script", chart=False),
+        Flow("watch", keys.live("*", "launcher", "*"), "-", "whether a run's launchers are up "
+             "(the end of ebrl.stats.stream)", chart=False),
     ),
     "viz": (Flow("sub", keys.stats_all(R), EVERY_STAT, "everything, for rerun"),),
     "launcher": (
@@ -188,19 +191,33 @@ ALL_ACL_MESSAGES = sorted({m for ms in ACL_MESSAGES.values() for m in ms} | {"de
 
 
 def username(role: str) -> str:
-    """The Zenoh user name of ``role``'s identity (:func:`access_control`'s subjects)."""
-    return f"ebrl-{role}"
+    """The Zenoh user name of ``role``'s identity (:func:`access_control`'s subjects, ``ebrl.bus.auth``'s lines):
+    ``ebrl-<role>``, and ``observer`` for observers."""
+    return "observer" if role == "observer" else f"ebrl-{role}"
 
 
-def access_control(run: str, roles: tuple[str, ...] | None = None) -> dict[str, object]:
+ROUTING_ROLE = "launcher"  # a host's launcher routes every role's traffic between hosts: its identity sends all
+
+
+def access_control(run: str, roles: tuple[str, ...] | None = None, trusted_zids: list[str] | tuple[str, ...] = ()
+                   ) -> dict[str, object]:
     """Zenoh's ``access_control`` block for run ``run``, default deny: what a peer signed in as a role's identity
     (:func:`username`) sends is taken in only where that role's flows declare it (each role's instance chunk
     any instance's: one identity per role); what a session sends out is not filtered, since every receiver
-    checks what it takes in. ``roles``: the identities to admit (default: every role of the graph)."""
+    checks what it takes in. ``roles``: the identities to admit (default: every role of the graph). Another
+    host's launcher (:data:`ROUTING_ROLE`) forwards what its own clients were allowed to send, so its identity,
+    and the sessions with the Zenoh ids ``trusted_zids`` (the far ends of links this router opened itself,
+    which identify no user), may send anything."""
+    every = {"id": "anything", "permission": "allow", "flows": ["ingress"], "messages": ALL_ACL_MESSAGES,
+             "key_exprs": ["**"]}
     rules: list[dict[str, object]] = [{"id": "send", "permission": "allow", "flows": ["egress"],
-                                       "messages": ALL_ACL_MESSAGES, "key_exprs": ["**"]}]
+                                       "messages": ALL_ACL_MESSAGES, "key_exprs": ["**"]}, every]
     subjects, policies = [], []
     for role in roles or tuple(FLOWS):
+        subjects.append({"id": role, "usernames": [username(role)]})
+        if role == ROUTING_ROLE:
+            policies.append({"id": role, "rules": ["anything"], "subjects": [role]})
+            continue
         ids = [""]
         for direction in DIRECTIONS:
             exprs = sorted({_concrete(f.pattern, run, role) for f in flows(role) if f.direction == direction})
@@ -208,8 +225,10 @@ def access_control(run: str, roles: tuple[str, ...] | None = None) -> dict[str, 
                 ids.append(f"{role}-{direction}")
                 rules.append({"id": ids[-1], "permission": "allow", "flows": ["ingress"],
                               "messages": list(ACL_MESSAGES[direction]), "key_exprs": exprs})
-        subjects.append({"id": role, "usernames": [username(role)]})
         policies.append({"id": role, "rules": ids[1:], "subjects": [role]})
+    if trusted_zids:
+        subjects.append({"id": "opened", "zids": list(trusted_zids)})
+        policies.append({"id": "opened", "rules": ["anything"], "subjects": ["opened"]})
     subjects.append({"id": "anyone"})  # no attribute: every peer
     policies.append({"id": "send", "rules": ["send"], "subjects": ["anyone"]})
     return {"enabled": True, "default_permission": "deny", "rules": rules, "subjects": subjects,

@@ -33,7 +33,7 @@ from typing import Callable
 from ebrl import config as config_mod, prepare, procenv, stall
 from ebrl.bus import auth, keys
 from ebrl.bus.session import Bus, BusOptions
-from ebrl.bus.endpoints import config_file_listen, listen_endpoint
+from ebrl.bus.endpoints import config_file_connect, config_file_listen, listen_endpoint
 from ebrl.hosts import PRIMARY_LOST_S, HostPlan, Membership, enabled_roles
 from ebrl.messages import Event, GpuShare, StatsReport, Stop
 from ebrl.weights import known_version
@@ -83,9 +83,15 @@ class LauncherBus:
     def __init__(self, cfg: config_mod.Config, plan: HostPlan, endpoint: str, run_dir: Path):
         self.run = cfg.run.name
         listen = [endpoint, *cfg.bus.listen[1:]] if endpoint else []
-        self.bus = Bus(BusOptions(mode="router" if plan.multi else "peer", listen=listen,
-                                  connect=list(cfg.bus.connect), config_file=cfg.bus.config_file,
-                                  secret_file=auth.secret_path(cfg.bus, run_dir), file_listen_wins=True))
+        secret = auth.secret_path(cfg.bus, run_dir)
+        # the router of this host's services when they are its clients (each checked against its role's rights,
+        # ebrl.bus.auth), and between hosts; a launcher that other hosts connect to, opening no link itself, has
+        # the Zenoh id they trust at the far end of theirs
+        hub = secret and not (cfg.bus.connect or config_file_connect(cfg.bus.config_file))
+        self.bus = Bus(BusOptions(mode="router" if plan.multi or cfg.bus.mode == "client" else "peer",
+                                  listen=listen, connect=list(cfg.bus.connect), config_file=cfg.bus.config_file,
+                                  secret_file=secret, file_listen_wins=True, role="launcher", run=self.run,
+                                  zid=auth.host_zid(secret, plan.instance) if hub else ""))
         (run_dir / "bus.json").write_text(json.dumps({"listen": listen, "run": self.run}) + "\n")
         self.recorder = record.Recorder(run_dir / record.FILENAME) if cfg.viz.record else None
         if self.recorder is not None:
@@ -181,7 +187,7 @@ class Launcher:
         self.view = RunView(cfg.run.name, cfg.run.iterations, cfg.run.target_return,
                             instances=run_instances(cfg, self.plan, self.members),
                             floor=known_version(str(run_dir)),  # a resumed run's checkpoint
-                            target_success=cfg.run.target_success)
+                            target_success=cfg.run.target_success, max_abs_reward=cfg.env.max_abs_reward)
         self.gpu_env = gpu_env or {}  # stage -> the CUDA variables it starts with (the allocator's first GPU share)
         self.failure: str | None = None
         self.stop_reason = ""
@@ -310,7 +316,8 @@ class Launcher:
         metrics = {**self.supervisor.metrics(), "launcher/ctl_unknown_service": float(self.link.ctl_unknown),
                    "launcher/gpu_shares_refused": float(self.link.gpu_shares_refused),
                    "launcher/services_live": float(self.members.services_live()),
-                   "launcher/stats_refused": float(self.view.refused)}
+                   "launcher/stats_refused": float(self.view.refused),
+                   "launcher/returns_refused": float(self.view.returns_refused)}
         self.link.publish_stats(metrics)
 
     async def stop_services(self) -> None:

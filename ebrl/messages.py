@@ -161,6 +161,9 @@ class TrajectorySegment:
     last_obs: Annotated[np.ndarray, Array("float32")] = doc("observation after the last chunk, for bootstrapping")
     episode_returns: list[float] = doc("returns of episodes that finished inside this segment")
     episode_lengths: list[int] = doc("lengths (env steps) of episodes that finished inside this segment")
+    episode_successes: list[bool | None] = doc(
+        "the task's success check at the end of each of those episodes (null where the task has none); empty: "
+        "not reported", default_factory=list)
     images: Annotated[np.ndarray, Array("uint8", 2)] = doc(
         "the uint8 fields of `obs` as bytes, shape [T, byte_size] (as Observation.images; `obs` and `last_obs` "
         "then hold the other fields); [0, 0] when the layout has none", default_factory=lambda: _NO_BYTES.copy())
@@ -198,6 +201,9 @@ class TrajectorySegment:
                                "lengths")
         if not all(math.isfinite(r) for r in self.episode_returns) or any(n < 0 for n in self.episode_lengths):
             raise MessageError(f"{name}: an episode return that is not finite or a negative length")
+        if self.episode_successes and len(self.episode_successes) != len(self.episode_returns):
+            raise MessageError(f"{name}: {len(self.episode_successes)} episode successes, "
+                               f"{len(self.episode_returns)} returns")
 
 
 @dataclass
@@ -319,6 +325,7 @@ class Event:
     MAX_BYTES = 256 * KIB
 
 
+RETURN_WINDOW = 20  # the latest episodes behind a reported mean return or success rate (sim's, train's)
 EPISODES_MAX = 1024  # most records in one EpisodeBatch; a simulator finishing more per interval counts the rest
 
 

@@ -19,11 +19,12 @@ from pathlib import Path
 from typing import Any, Callable, TextIO
 
 from ebrl.bus import keys
-from ebrl.messages import StatsReport
+from ebrl.messages import RETURN_WINDOW, StatsReport
 from ebrl.weights import plausible
 
 PROGRESS_EVERY_S = 5.0  # a progress line this often when the output is not a terminal
 RETURN = "sim/episode_return_mean"
+TRAIN_RETURN, TRAIN_SUCCESS = "train/episode_return_mean", "train/success_rate"  # what a run ends on
 
 
 @dataclasses.dataclass(frozen=True)
@@ -44,13 +45,21 @@ class RunView:
     own, from an instance the run does not have, or of a value that is not finite (that value; the whole report
     where no value is left) is dropped and counted in ``refused``; so is a training report whose policy version
     runs implausibly far ahead of the last one (:func:`ebrl.weights.plausible`), so a forged report can neither
-    end the run nor move its progress."""
+    end the run nor move its progress.
+
+    ``run.target_return`` and ``run.target_success`` are read from training's reports alone (the return and
+    success rate of the latest episodes of the segments it took, which it checked), never from a simulator's:
+    on the bus only training's identity may send them. A return that moves further than the episodes finished
+    since the last report could move it (each returns at most ``max_abs_reward`` per step) is not taken
+    (``returns_refused``)."""
 
     def __init__(self, run: str, iterations: int = 0, target_return: float | None = None,
                  instances: Callable[[str, int], bool] | None = None, floor: int = 0,
-                 target_success: float | None = None):
+                 target_success: float | None = None, max_abs_reward: float = math.inf):
         self.run, self.iterations, self.target_return = run, iterations, target_return
-        self.target_success = target_success
+        self.target_success, self.max_abs_reward = target_success, max_abs_reward
+        self.trained: dict[str, float] = {}  # training's episodes, return, success rate: what the run ends on
+        self.returns_refused = 0
         self.instances, self.floor = instances, max(0, floor)  # floor: the newest version known at the start
         self.refused = 0  # reports (or values) not taken
         self._train_version: dict[str, tuple[float, float]] = {}  # train key -> (version, monotonic time)
@@ -81,6 +90,11 @@ class RunView:
                 self.refused += 1
                 return
             self._train_version[key] = (version, now)
+        if key == keys.stats(self.run, "train", 0) and TRAIN_RETURN in finite:
+            if self._moves_plausibly(finite):
+                self.trained = {n: finite[n] for n in ("train/episodes", TRAIN_RETURN, TRAIN_SUCCESS) if n in finite}
+            else:
+                self.returns_refused += 1
         self.stats[key] = report
         self.received[key] = self.received.get(key, 0) + 1
         if report.service == "eval" and "eval/version" in report.metrics:
@@ -88,6 +102,22 @@ class RunView:
         ret = self.metric(RETURN, "mean")
         if ret is not None:
             self.best_return = ret if self.best_return is None else max(self.best_return, ret)
+
+    def _moves_plausibly(self, metrics: dict[str, float]) -> bool:
+        """Whether training's return and success rate moved no further than the episodes finished since its
+        last report taken could move a mean of the latest ``RETURN_WINDOW`` (a trainer that started again counts
+        from 0: its first report is taken as a first)."""
+        bound = self.max_abs_reward * max(1.0, metrics.get("train/episode_length_max", 1.0))
+        ret, episodes = metrics[TRAIN_RETURN], metrics.get("train/episodes", 0.0)
+        if abs(ret) > bound * (1 + 1e-6):
+            return False
+        before = self.trained
+        if not before or episodes < before.get("train/episodes", 0.0):
+            return True
+        share = min(episodes - before.get("train/episodes", 0.0), RETURN_WINDOW) / RETURN_WINDOW
+        moved = abs(ret - before[TRAIN_RETURN]) <= share * 2 * bound * (1 + 1e-6) + 1e-9 * abs(ret)
+        success, was = metrics.get(TRAIN_SUCCESS), before.get(TRAIN_SUCCESS)
+        return moved and (success is None or was is None or abs(success - was) <= share + 1e-9)
 
     def metric(self, name: str, how: str = "sum") -> float | None:
         """``name`` over every instance that reports it (sum, max or mean); None when none does."""
@@ -111,9 +141,9 @@ class RunView:
         return bool(self.iterations) and self.version() >= self.iterations
 
     def target_reached(self, wall_s: float) -> str | None:
-        """``run.target_return`` or ``run.target_success`` reached now (remembered for the summary): the line
-        that says so; else None."""
-        ret, success = self.mean_return(), self.metric("sim/success_rate", "mean")
+        """``run.target_return`` or ``run.target_success`` reached now by training's return or success rate
+        (remembered for the summary): the line that says so; else None."""
+        ret, success = self.trained.get(TRAIN_RETURN), self.trained.get(TRAIN_SUCCESS)
         if self.target_return is not None and ret is not None and ret >= self.target_return:
             self.reached = TargetReached(self.version(), wall_s, ret, success)
             what = f"run.target_return = {self.target_return:g}: mean return {ret:.1f}"

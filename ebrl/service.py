@@ -56,7 +56,8 @@ class Service:
         self.bus_options = bus_options or BusOptions(mode=cfg.bus.mode, connect=list(cfg.bus.connect),
                                                      config_file=cfg.bus.config_file,
                                                      max_message_bytes=cfg.bus.max_message_bytes,
-                                                     secret_file=auth.secret_path(cfg.bus, self.run_dir))
+                                                     secret_file=auth.secret_path(cfg.bus, self.run_dir),
+                                                     role=self.role)
         self.log = logging.getLogger(f"ebrl.{self.role}")
         self.bus: Bus = None  # type: ignore[assignment]  # opened in main()
         self.stopping: asyncio.Event = None  # type: ignore[assignment]
@@ -346,7 +347,8 @@ def service_main(cls: type[Service], argv: list[str] | None = None) -> None:
     run_dir = os.path.dirname(os.path.abspath(args.config))
     options = BusOptions(mode=cfg.bus.mode, connect=args.connect or list(cfg.bus.connect),
                          listen=["tcp/127.0.0.1:0"], config_file=cfg.bus.config_file,
-                         max_message_bytes=cfg.bus.max_message_bytes, secret_file=auth.secret_path(cfg.bus, run_dir))
+                         max_message_bytes=cfg.bus.max_message_bytes, secret_file=auth.secret_path(cfg.bus, run_dir),
+                         role=cls.role)
     service = cls(cfg, args.instance, options, run_dir=run_dir)
 
     async def run_then_arm() -> int:

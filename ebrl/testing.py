@@ -24,7 +24,7 @@ import sys
 import threading
 import time
 from pathlib import Path
-from typing import Any, Callable, Literal, Sequence
+from typing import Any, Callable, Sequence
 
 import zenoh
 
@@ -326,13 +326,13 @@ class InProcessRun:
         return RunError(f"in-process run {self.name}: {what}" + (f" (exit codes {codes})" if codes else ""))
 
 
-def run_session_config(run: Run, endpoint: str | None = None,
-                       role: Literal["observer", "service"] = "observer") -> zenoh.Config:
-    """A Zenoh config that joins ``run``'s bus: signed in with the run's secret when it has one (``role``:
-    ``observer`` watches stats; ``service`` may publish anything, as an insider would), else open."""
+def run_session_config(run: Run, endpoint: str | None = None, role: str = "observer") -> zenoh.Config:
+    """A Zenoh config that joins ``run``'s bus, a client of its launcher: signed in with the run's secret when
+    it has one, as ``role`` (``observer`` watches stats; a role of the service graph may send what that role
+    may, as an insider holding its line would), else open."""
     secret = auth.secret_path(config_mod.load(run.run_dir / "config.toml").bus, run.run_dir)
-    return zenoh_config(BusOptions(mode="client" if role == "observer" else "peer", connect=[endpoint or run.endpoint],
-                                   listen=[], secret_file=secret, role=role))
+    return zenoh_config(BusOptions(mode="client", connect=[endpoint or run.endpoint], listen=[], secret_file=secret,
+                                   role=role))
 
 
 class StatsWatcher:
@@ -342,7 +342,7 @@ class StatsWatcher:
     in-memory network. Thread-safe: filled by the transport's callback."""
 
     def __init__(self, run: Run | InProcessRun, endpoint: str | None = None,
-                 role: Literal["observer", "service"] = "observer"):
+                 role: str = "observer"):
         self.run = run
         self._lock = threading.Lock()
         self._reports: list[StatsReport] = []

@@ -6,6 +6,16 @@ launcher is gone, tries to read its data and to stop, poison and end it. Prints 
 It has no credentials: it tries to read RUN_DIR/bus.secret, as an outsider would, and joins without. It stops
 when its standard input closes.
 
+    python tests/hostile_peer.py --insider ROLE ENDPOINT RUN RUN_DIR
+
+An insider: signed in with ROLE's line of the run's secret (a role's credential that leaked, or a user's env
+code in that role's process), it sends until its standard input closes what another role owns, each message
+well formed and plausible, so that only the bus's access rules can stop it: the policy's own tensors zeroed at
+plausible versions (weights), training's and the simulators' reports of a return no run reaches, quotas,
+affinities and GPU shares at version 2**53, a GPU share naming CUDA_INJECTION64_PATH, stops for every service,
+a second trainer's liveliness token. Each forged message is marked (:func:`mark`, ``MARK_TIME``,
+``MARK_REASON``) so the test can tell it apart. What ROLE owns itself (sim's reports, for a sim insider) passes the rules: the run must not believe it.
+
     python tests/hostile_peer.py --crafted ENDPOINT RUN SECONDS
 
 On a run whose bus is open (bus.auth = false), what validation alone must stop: for SECONDS, messages made
@@ -99,9 +109,90 @@ def crafted(run: str, seen: dict[str, bytes]) -> list[tuple[str, bytes]]:
     return out
 
 
+MARK_SEQ = 987_654_321  # the seq of every forged report
+MARK_TIME = 12_345.0  # the created_at of every forged weights message
+MARK_REASON = "insider stop"
+
+
+def insider_attacks(run: str, run_dir: str, role: str) -> list[tuple[str, bytes]]:
+    """What an insider signed in as ``role`` sends: what other roles own, each message plausible."""
+    import numpy as np
+
+    from ebrl import config as config_mod
+    from ebrl.envs import EnvSpec, describe
+    from ebrl.bus import codec
+    from ebrl.messages import Affinity, EpisodeBatch, GpuShare, Quota, to_wire
+    from ebrl.policies import make_policy
+
+    cfg = config_mod.load(os.path.join(run_dir, "config.toml"))
+    info = describe(EnvSpec.from_config(cfg.env))
+    params = {name: np.zeros(tuple(t.shape), np.float32)
+              for name, t in make_policy(cfg.policy, info.layout, info.action_dim).state_dict().items()}
+    out = [(keys.weights(run), encode_message(Weights(version=v, params=params, created_at=MARK_TIME)))
+           for v in range(1, 121, 3)]  # the policy's own tensors, zeroed: some version is always just ahead
+    huge = 1 << 53
+    forged_return = {"train/policy_version": 2.0, "train/iteration": 2.0, "train/episode_return_mean": 1e9,
+                     "train/success_rate": 1.0, "train/episodes": 1e6}
+    out.append((keys.stats(run, "train", 0), encode_message(StatsReport(
+        run=run, service="train", instance=0, time=time.time(), seq=mark(role), metrics=forged_return))))
+    sim_return = {"sim/episode_return_mean": 1e9, "sim/success_rate": 1.0, "sim/env_steps": 10.0}
+    for instance in (0, 1):  # the one simulator host, and one the run does not have
+        out.append((keys.stats(run, "sim", instance), encode_message(StatsReport(
+            run=run, service="sim", instance=instance, time=time.time(), seq=mark(role), metrics=sim_return))))
+    out.append((keys.episodes(run, "sim"), encode_message(EpisodeBatch(
+        service="sim", instance=0, env_id=[0], episode=[mark(role)], returns=[1e9], length=[1], success=[True],
+        policy_version=[1], env_steps=[1], end_time=[time.time()]))))
+    for stage in ("sim", "gen", "train"):
+        out.append((keys.ctl(run, stage, 0, "quota"), encode_message(Quota(version=huge, threads=1, batch=1))))
+        out.append((keys.ctl(run, stage, 0, "affinity"), encode_message(Affinity(version=huge, cores=[0]))))
+    share = GpuShare(version=huge, stage="gen", env={"CUDA_VISIBLE_DEVICES": "0"})
+    injected = {**to_wire(share), "env": {"CUDA_INJECTION64_PATH": "/tmp/inject.so"}}  # what GpuShare refuses
+    out += [(keys.gpu_share(run, 0), encode_message(share)), (keys.gpu_share(run, 0), codec.encode(injected))]
+    for stage in ("sim", "gen", "train", "log", "launcher"):
+        out.append((keys.ctl(run, stage, 0, "stop"), encode_message(Stop(reason=MARK_REASON))))
+    return out
+
+
+def mark(role: str) -> int:
+    """The seq of the reports an insider of ``role`` forges."""
+    return MARK_SEQ + sorted(auth.IDENTITIES).index(role)
+
+
+def main_insider(role: str, endpoint: str, run: str, run_dir: str) -> int:
+    """Send :func:`insider_attacks` signed in as ``role`` until standard input closes; print what it sent and
+    received, and how many sessions it had (it must have signed in: the test checks)."""
+    secret = os.path.join(run_dir, auth.FILENAME)
+    session = zenoh.open(zenoh_config(BusOptions(mode="client", connect=[endpoint], listen=[], secret_file=secret,
+                                                 role=role)))
+    received: dict[str, int] = {}
+
+    def on_sample(sample: zenoh.Sample) -> None:
+        key = str(sample.key_expr)
+        received[key] = received.get(key, 0) + 1
+
+    session.declare_subscriber("ebrl/**", on_sample)  # more than the role may read: dropped where it enters
+    token = session.liveliness().declare_token(keys.live(run, "train", 7))
+    batch = insider_attacks(run, run_dir, role)
+    done = threading.Event()
+    threading.Thread(target=lambda: (sys.stdin.read(), done.set()), daemon=True).start()
+    sent, routers = 0, 0
+    while not done.is_set():
+        routers = max(routers, len(list(session.info.routers_zid())))
+        for key, payload in batch:
+            session.put(key, payload)
+            sent += 1
+        done.wait(0.1)
+    del token
+    print(json.dumps({"sent": sent, "kinds": len(batch), "routers": routers, "received": received,
+                      "own": sorted({key for key, _ in batch})}), flush=True)
+    os._exit(0)
+
+
 def main() -> int:
     if sys.argv[1] == "--crafted":
         return main_crafted(*sys.argv[2:5])
+    if sys.argv[1] == "--insider":
+        return main_insider(*sys.argv[2:6])
     endpoint, run, run_dir = sys.argv[1:4]
     secret = os.path.join(run_dir, auth.FILENAME)
     try:

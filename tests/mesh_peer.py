@@ -12,7 +12,7 @@ from ebrl.bus.session import BusOptions, zenoh_config
 
 
 def main(endpoint: str, secret: str, name: str, names: list[str]) -> None:
-    session = zenoh.open(zenoh_config(BusOptions(connect=[endpoint], secret_file=secret)))
+    session = zenoh.open(zenoh_config(BusOptions(connect=[endpoint], secret_file=secret, role="sim")))
     heard: set[str] = set()
     session.declare_subscriber("test/mesh/*", lambda sample: heard.add(str(sample.key_expr).rsplit("/", 1)[1]))
     stop = threading.Event()

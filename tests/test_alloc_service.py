@@ -144,8 +144,9 @@ def test_a_new_gpu_share_restarts_training_at_a_safe_point_and_loses_nothing(tmp
         assert proc.poll() is None and time.monotonic() < deadline, "the launcher wrote no config.toml"
         time.sleep(0.1)
     secret = [str(path) for path in tmp_path.glob("requota-*/bus.secret")]  # with bus.auth = true
-    # as one of the run's own processes would publish a GPU share
-    conf = zenoh_config(BusOptions(connect=[f"tcp/127.0.0.1:{port}"], listen=[], secret_file=secret[0] if secret else ""))
+    # as the run's allocator would publish a GPU share (signed in as alloc: its role may)
+    conf = zenoh_config(BusOptions(mode="client", connect=[f"tcp/127.0.0.1:{port}"], listen=[],
+                                   secret_file=secret[0] if secret else "", role="alloc"))
     versions: list[float] = []
 
     def on_stats(sample) -> None:

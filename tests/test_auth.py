@@ -17,8 +17,13 @@ from ebrl import config
 from ebrl import stats as stats_mod
 from ebrl.bus import auth, keys
 from ebrl.bus.session import BusOptions, zenoh_config
-from ebrl.testing import StatsWatcher
+from ebrl.messages import EpisodeBatch, Stop, Weights, decode_message, decode_stats_sample
+from ebrl.testing import StatsWatcher, run_session_config
 from helpers import ROOT, free_port, up
+
+import hostile_peer as hostile
+
+MARKS = {hostile.mark(role) for role in auth.IDENTITIES}
 
 
 # --- the secret file -------------------------------------------------------------------------------------------
@@ -27,13 +32,29 @@ from helpers import ROOT, free_port, up
 def test_a_secret_is_private_random_and_never_replaced(tmp_path):
     path = auth.create(tmp_path / "bus.secret")
     assert stat.S_IMODE(path.stat().st_mode) == 0o600
-    service, observer = auth.load(path, "service"), auth.load(path, "observer")
-    assert (service.user, observer.user) == ("ebrl", "observer")
-    assert len(service.password) == 64 and service.password != observer.password
-    assert auth.load(auth.create(tmp_path / "other"), "service").password != service.password
+    lines = {role: auth.load(path, role) for role in auth.IDENTITIES}  # one identity per role, and observer
+    assert {c.user for c in lines.values()} == {"ebrl-sim", "ebrl-gen", "ebrl-train", "ebrl-eval", "ebrl-alloc",
+                                                 "ebrl-log", "ebrl-viz", "ebrl-launcher", "observer"}
+    assert all(len(c.password) == 64 for c in lines.values()) and len({c.password for c in lines.values()}) == 9
+    sim = lines["sim"]
+    assert auth.load(auth.create(tmp_path / "other"), "sim").password != sim.password
     with pytest.raises(FileExistsError):
         auth.create(path)
-    assert auth.ensure(path) == path and auth.load(path, "service") == service  # kept, not replaced
+    assert auth.ensure(path) == path and auth.load(path, "sim") == sim  # kept, not replaced
+    with pytest.raises(auth.AuthError, match="no identity for 'service'"):
+        auth.load(path, "service")
+
+
+def test_a_secret_from_before_identities_per_role_gets_them_and_keeps_its_lines(tmp_path):
+    path = tmp_path / "bus.secret"  # a resumed run's: one service line and the observer's
+    path.write_text("ebrl:" + "a" * 64 + "\nobserver:" + "b" * 64 + "\n")
+    path.chmod(0o600)
+    with pytest.raises(auth.AuthError, match="no 'ebrl-sim' line.*ebrl secret PATH"):
+        auth.load(path, "sim")
+    auth.ensure(path)
+    assert auth.load(path, "observer").password == "b" * 64 and path.read_text().startswith("ebrl:" + "a" * 64)
+    assert {auth.load(path, role).user for role in auth.IDENTITIES} >= {"ebrl-sim", "ebrl-launcher"}
+    assert stat.S_IMODE(path.stat().st_mode) == 0o600
 
 
 def test_a_secret_others_can_read_or_a_broken_one_is_refused_with_the_fix(tmp_path):
@@ -42,25 +63,48 @@ def test_a_secret_others_can_read_or_a_broken_one_is_refused_with_the_fix(tmp_pa
     with pytest.raises(auth.AuthError, match="chmod 600"):
         auth.load(path, "observer")
     path.chmod(0o600)
-    path.write_text("ebrl:short\n")
+    path.write_text("ebrl-sim:short\n")
     with pytest.raises(auth.AuthError, match="line 1"):
-        auth.load(path, "service")
-    path.write_text("ebrl:" + "a" * 32 + "\n")
+        auth.load(path, "sim")
+    path.write_text("ebrl-sim:" + "a" * 32 + "\n")
     with pytest.raises(auth.AuthError, match="no 'observer' line"):
         auth.load(path, "observer")
     with pytest.raises(auth.AuthError, match="no such file|No such file"):
-        auth.load(tmp_path / "missing", "service")
+        auth.load(tmp_path / "missing", "sim")
 
 
-def test_a_service_checks_whoever_connects_an_observer_only_signs_in(tmp_path):
+def test_each_session_signs_in_as_its_role_and_only_a_router_or_peer_checks_others(tmp_path):
     path = auth.create(tmp_path / "bus.secret")
-    service = zenoh_config(BusOptions(secret_file=str(path)))
-    assert json.loads(service.get_json("transport/auth/usrpwd/dictionary_file")) == str(path.resolve())
-    assert json.loads(service.get_json("transport/auth/usrpwd/user")) == "ebrl"
-    observer = zenoh_config(BusOptions(secret_file=str(path), role="observer"))
+    router = zenoh_config(BusOptions(mode="router", secret_file=str(path), role="launcher", run="r"))
+    assert json.loads(router.get_json("transport/auth/usrpwd/dictionary_file")) == str(path.resolve())
+    assert json.loads(router.get_json("transport/auth/usrpwd/user")) == "ebrl-launcher"
+    acl = json.loads(router.get_json("access_control"))  # each role's rights (ebrl.graph), default deny
+    assert acl["default_permission"] == "deny"
+    assert next(s for s in acl["subjects"] if s["id"] == "sim")["usernames"] == ["ebrl-sim"]
+    client = zenoh_config(BusOptions(mode="client", secret_file=str(path), role="sim"))
+    assert json.loads(client.get_json("transport/auth/usrpwd/user")) == "ebrl-sim"
+    assert json.loads(client.get_json("transport/auth/usrpwd/dictionary_file")) is None  # signs in, nothing more
+    peer = zenoh_config(BusOptions(mode="peer", secret_file=str(path), role="gen"))
+    assert json.loads(peer.get_json("transport/auth/usrpwd/dictionary_file")) == str(path.resolve())
+    assert json.loads(peer.get_json("access_control/default_permission")) == "allow"  # a mesh: observers only read
+    observer = zenoh_config(BusOptions(mode="client", secret_file=str(path), role="observer"))
     assert json.loads(observer.get_json("transport/auth/usrpwd/user")) == "observer"
-    assert json.loads(observer.get_json("transport/auth/usrpwd/dictionary_file")) is None
     assert json.loads(zenoh_config(BusOptions()).get_json("transport/auth/usrpwd/user")) is None  # bus.auth = false
+    with pytest.raises(auth.AuthError, match="needs a role"):
+        zenoh_config(BusOptions(secret_file=str(path)))
+
+
+def test_a_router_that_opens_links_trusts_only_the_launchers_and_router_at_their_far_end(tmp_path):
+    path = auth.create(tmp_path / "bus.secret")
+    opener = zenoh_config(BusOptions(mode="router", secret_file=str(path), role="launcher", run="r",
+                                     connect=["tcp/127.0.0.1:7447"]))
+    opened = next(s for s in json.loads(opener.get_json("access_control"))["subjects"] if s["id"] == "opened")
+    assert auth.host_zid(path, 0) in opened["zids"] and auth.host_zid(path, "router") in opened["zids"]
+    other = auth.create(tmp_path / "other.secret")  # another run's launchers have other ids
+    assert auth.host_zid(other, 0) not in opened["zids"]
+    accepter = json.loads(zenoh_config(BusOptions(mode="router", secret_file=str(path), role="launcher",
+                                                  run="r")).get_json("access_control"))
+    assert "opened" not in {s["id"] for s in accepter["subjects"]}  # it opens no link: every peer signs in
 
 
 # --- endpoints ---------------------------------------------------------------------------------------------
@@ -135,7 +179,7 @@ def test_ebrl_secret_writes_a_private_file_and_never_overwrites(tmp_path):
 # --- sessions on a live bus ----------------------------------------------------------------------------------
 
 
-def _open(port: int, secret="", role="service", listen=True) -> zenoh.Session:
+def _open(port: int, secret="", role="sim", listen=True) -> zenoh.Session:
     return zenoh.open(zenoh_config(BusOptions(
         connect=[f"tcp/127.0.0.1:{port}"], listen=["tcp/127.0.0.1:0"] if listen else [], secret_file=str(secret),
         role=role)))
@@ -156,7 +200,7 @@ def test_signed_in_peers_starting_together_all_hear_each_other(tmp_path, start):
     in 8 of 20 such starts (a run stalled at start): each start here failed with probability about 0.4."""
     secret = auth.create(tmp_path / "bus.secret")
     endpoint = f"tcp/127.0.0.1:{free_port()}"
-    launcher = zenoh.open(zenoh_config(BusOptions(listen=[endpoint], secret_file=str(secret))))
+    launcher = zenoh.open(zenoh_config(BusOptions(listen=[endpoint], secret_file=str(secret), role="launcher")))
     names = [f"s{i}" for i in range(6)]
     env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(ROOT), str(ROOT / "tests")])}
     peers = [subprocess.Popen([sys.executable, str(ROOT / "tests" / "mesh_peer.py"), endpoint, str(secret), name,
@@ -193,15 +237,16 @@ def _readline(process: subprocess.Popen, deadline: float) -> str:
 def test_without_the_secret_a_peer_gets_nothing_in_or_out_and_an_observer_only_reads(tmp_path):
     secret = auth.create(tmp_path / "bus.secret")
     port = free_port()
-    launcher = zenoh.open(zenoh_config(BusOptions(listen=[f"tcp/127.0.0.1:{port}"], secret_file=str(secret))))
+    launcher = zenoh.open(zenoh_config(BusOptions(listen=[f"tcp/127.0.0.1:{port}"], secret_file=str(secret),
+                                                  role="launcher")))
     service = _open(port, secret)
     outsider = _open(port)
     impostor = _open(port, auth.create(tmp_path / "other.secret"))  # a valid-looking secret of another run
     # the observer signs in with a file made for it (ebrl secret --observer): the observer's line alone
     observer_file = auth.write_observer(secret, tmp_path / "watch.secret")
     assert stat.S_IMODE(observer_file.stat().st_mode) == 0o600 and len(observer_file.read_text().splitlines()) == 1
-    with pytest.raises(auth.AuthError, match="no 'ebrl' line"):
-        auth.load(observer_file, "service")  # it cannot sign in as a service
+    with pytest.raises(auth.AuthError, match="no 'ebrl-sim' line"):
+        auth.load(observer_file, "sim")  # it cannot sign in as a service
     observer = zenoh.open(stats_mod.observer_config(observer_file, f"tcp/127.0.0.1:{port}"))
     sessions = [launcher, service, outsider, impostor, observer]
     forged = [keys.ctl("r", "train", 0, "stop"), keys.traj("r", 0), keys.stats("r", "train", 9)]
@@ -297,6 +342,74 @@ def test_a_hostile_process_can_neither_read_nor_stop_nor_poison_a_run(tmp_path):
     assert set(out["received"]) <= set(out["own"]), out["received"]  # only what it published itself
     assert out["liveliness"] == [keys.live(run.name, "train", 7)]  # its own token, nobody else's
     assert stats.reports("sim/0") and stats.reports("gen/0")  # the owner's observer saw the run
+
+
+def test_insiders_holding_sim_s_or_gen_s_credential_cannot_act_as_another_role(tmp_path):
+    """Two insiders, one signed in with sim's line of the run's secret and one with gen's, send for the whole run
+    what other roles own, each message plausible: the policy's own tensors zeroed at versions just ahead,
+    training's report of a return of 1e9 (the run's target is 1e8), the simulators' (from gen), quotas,
+    affinities and GPU shares at version 2**53 (one naming CUDA_INJECTION64_PATH), stops for every service, a
+    second trainer's token. The launcher routes the run's services and takes from each identity only what its
+    role may send: none of it reaches anyone (a session signed in as a launcher sees what passed), the run
+    finishes every iteration, nothing restarts, and the report of a 1e9 return that sim may send about itself
+    does not end the run, since only training's reports do. An observer reads stats and gets no weights."""
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    with up(tmp_path, "configs/quickstart.toml", "run.iterations=30", "train.batch_size=256", 'viz.rerun="off"',
+            "run.target_return=1e8", name="insider") as run:  # bus.auth and bus.mode = "client": the defaults
+        run.wait_for_line("all services live", 300)
+        arrived: list[tuple[str, object]] = []  # what got past the router's rules, as a launcher sees it
+
+        def on_sample(sample: zenoh.Sample) -> None:
+            key, tag = str(sample.key_expr), None  # tag: the insider's mark on a report or episode
+            try:
+                if key.startswith("ebrl/stats/"):
+                    msg = decode_stats_sample(key, sample.payload.to_bytes())
+                    tag = next(iter(set(msg.episode) & MARKS), None) if isinstance(msg, EpisodeBatch) else \
+                        getattr(msg, "seq", None)
+                    marked = tag in MARKS
+                elif key.startswith(keys.weights(run.name)):
+                    marked = decode_message(Weights, sample.payload.to_bytes()).created_at == hostile.MARK_TIME
+                elif key.endswith("/stop"):
+                    marked = decode_message(Stop, sample.payload.to_bytes()).reason == hostile.MARK_REASON
+                else:  # quotas, affinities, GPU shares: this run has no allocator, so any is forged
+                    marked = "/ctl/" in key
+            except Exception:  # a part of a large message, or something else: not one of the insider's
+                marked = False
+            if marked:
+                arrived.append((key, tag))
+
+        watcher = zenoh.open(run_session_config(run, role="launcher"))
+        for key in (keys.stats_all(run.name), keys.weights(run.name), keys.ctl(run.name, "*", "*", "*")):
+            watcher.declare_subscriber(key, on_sample)
+        observer = zenoh.open(run_session_config(run, role="observer"))
+        insiders = {role: subprocess.Popen([sys.executable, str(ROOT / "tests" / "hostile_peer.py"), "--insider",
+                                            role, run.endpoint, run.name, str(run.run_dir)],
+                                           stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True, env=env)
+                    for role in ("sim", "gen")}
+        with StatsWatcher(run) as stats:
+            weights_replies = list(observer.get(keys.weights_all(run.name), timeout=5.0))
+            code = run.wait(300)
+        out = {role: json.loads(p.communicate("", timeout=120)[0]) for role, p in insiders.items()}
+        watcher.close()
+        observer.close()
+    assert code == 0, run.output[-4000:]
+    for role, got in out.items():
+        assert got["routers"] == 1 and got["sent"] > 10 * got["kinds"], (role, got)  # signed in, and kept at it
+    # sim's reports about itself are sim's to send: they arrived (and did not end the run); nothing else did
+    sims = (keys.stats(run.name, "sim", 0), keys.stats(run.name, "sim", 1), keys.episodes(run.name, "sim"))
+    assert {a for a in arrived if a[1] != hostile.mark("sim") or a[0] not in sims} == set(), arrived
+    assert any(a[1] == hostile.mark("sim") for a in arrived)
+    assert stats.latest("train/0", "train/policy_version") == 30  # every iteration: no forged report ended it
+    summary = json.loads((run.run_dir / "summary.json").read_text())
+    assert summary["restarts"] == {} and summary["target_reached"] is None, summary
+    assert all(r.metrics.get("bus/malformed", 0) == 0 for r in stats.reports())
+    assert stats.latest("gen/0", "gen/weights_refused") == 0  # no forged weights even reached its checks
+    assert stats.latest("launcher/0", "launcher/gpu_shares_refused") == 0  # nor a GPU share the launcher's
+    assert max(stats.values("gen/0", "gen/policy_version")) <= 30
+    assert "insider stop" not in run.output and "restart" not in run.output
+    assert weights_replies == [] and stats.reports("train/0")  # the observer reads stats, gets no weights
+    for got in out.values():  # nothing of the run reached them: its session hears only its own puts
+        assert set(got["received"]) <= set(got["own"]), got["received"]
 
 
 @pytest.mark.slow

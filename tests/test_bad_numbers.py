@@ -80,6 +80,15 @@ def test_train_drops_a_segment_whose_rewards_no_sim_could_send(tmp_path):
     assert learn.accept(segment(reward=1e6 * CFG.policy.chunk), lambda exc: None)  # at the bound: taken
     assert not learn.accept(segment(reward=3.0e38), lambda exc: None)
     assert telemetry.counts == {"train/segments_received": 1, "train/reward_bound_dropped": 1}
+    # an episode of 10 steps returns at most 10 times the bound: one that claims more is no sim's
+    ok, forged = segment(reward=1.0), segment(reward=1.0)
+    ok.episode_returns, ok.episode_lengths, ok.episode_successes = [9e6], [10], [True]
+    forged.episode_returns, forged.episode_lengths = [1e9], [10]
+    assert learn.accept(ok, lambda exc: None) and not learn.accept(forged, lambda exc: None)
+    assert telemetry.counts["train/reward_bound_dropped"] == 2
+    metrics = learn.metrics()  # what the launcher ends a run on: the episodes of the segments taken
+    assert (metrics["train/episode_return_mean"], metrics["train/success_rate"], metrics["train/episodes"],
+            metrics["train/episode_length_max"]) == (9e6, 1.0, 1.0, 10.0)
 
 
 def test_weights_that_turned_non_finite_are_never_published_and_the_last_good_ones_come_back(tmp_path):

@@ -67,11 +67,15 @@ def test_a_newer_report_replaces_the_instance_s_last_and_the_best_return_is_kept
     assert view.mean_return() == 20.0 and view.best_return == 50.0
 
 
-def test_the_target_return_ends_the_run_and_goes_into_the_summary(tmp_path):
+def test_the_target_return_ends_the_run_on_training_s_report_and_goes_into_the_summary(tmp_path):
     view = fed(report("sim", sim__episode_return_mean=850.0, sim__env_steps=4000.0, sim__segments=12.0),
-               report("train", train__policy_version=7.0), target_return=900.0)
+               report("train", train__policy_version=7.0, train__episode_return_mean=840.0, train__episodes=30.0,
+                      train__episode_length_max=1000.0), target_return=900.0)
     assert view.target_reached(10.0) is None and view.reached is None
     view.on_report(*report("sim", sim__episode_return_mean=905.5, sim__env_steps=8000.0, sim__segments=30.0))
+    assert view.target_reached(15.0) is None  # the simulators' own word does not end a run: training's does
+    view.on_report(*report("train", train__policy_version=7.0, train__episode_return_mean=905.5,
+                           train__episodes=40.0, train__episode_length_max=1000.0))
     assert view.target_reached(20.0) == ("reached run.target_return = 900: mean return 905.5 at iteration 7 "
                                          "after 20 s")
     summary = view.summary(0, 40.0, run_dir=tmp_path, failure=None, restarts={"gen/0": 1}, host=0, hosts=[0, 1])
@@ -86,13 +90,35 @@ def test_the_target_return_ends_the_run_and_goes_into_the_summary(tmp_path):
 
 
 def test_the_target_success_ends_the_run_too(tmp_path):
-    view = fed(report("sim", sim__episode_return_mean=3.0, sim__success_rate=0.85),
-               report("train", train__policy_version=30.0), target_success=0.9)
+    view = fed(report("sim", sim__success_rate=0.99),
+               report("train", train__policy_version=30.0, train__episode_return_mean=3.0, train__success_rate=0.85,
+                      train__episodes=100.0), target_success=0.9)
     assert view.target_reached(10.0) is None
-    view.on_report(*report("sim", sim__episode_return_mean=4.0, sim__success_rate=0.95))
+    view.on_report(*report("train", train__policy_version=30.0, train__episode_return_mean=3.0,
+                           train__success_rate=0.95, train__episodes=104.0))
     assert view.target_reached(60.0) == "reached run.target_success = 0.9: success rate 95% at iteration 30 after 60 s"
     summary = view.summary(0, 61.0, run_dir=tmp_path, failure=None, restarts={}, host=0, hosts=[0])
     assert summary["target_success"] == 0.9 and summary["target_reached"]["success_rate"] == 0.95
+
+
+def test_a_return_that_moves_further_than_the_episodes_since_could_is_not_taken():
+    first = dict(train__policy_version=5.0, train__episode_return_mean=10.0, train__success_rate=0.1,
+                 train__episodes=50.0, train__episode_length_max=100.0)
+    view = fed(report("train", **first), target_return=500.0, target_success=0.9, max_abs_reward=1.0)
+    # no episode finished since, yet the return moved: refused, and it cannot end the run
+    view.on_report(*report("train", **{**first, "train__episode_return_mean": 600.0}))
+    # one new episode moves a mean of 20 by at most 1/20 of twice the largest return (100 steps of 1): 10
+    view.on_report(*report("train", **{**first, "train__episode_return_mean": 25.0, "train__episodes": 51.0}))
+    view.on_report(*report("train", **{**first, "train__success_rate": 0.95, "train__episodes": 51.0}))
+    # more than an episode of 100 steps can return at all
+    view.on_report(*report("train", **{**first, "train__episode_return_mean": 101.0, "train__episodes": 200.0}))
+    assert view.returns_refused == 4 and view.target_reached(1.0) is None
+    view.on_report(*report("train", **{**first, "train__episode_return_mean": 19.0, "train__episodes": 51.0}))
+    assert view.returns_refused == 4 and view.trained["train/episode_return_mean"] == 19.0  # within the bound
+    view.on_report(*report("train", **{**first, "train__episode_return_mean": 3.0, "train__episodes": 0.0}))
+    assert view.trained["train/episodes"] == 0.0  # a trainer that started again counts from 0
+    view.on_report(*report("sim", sim__episode_return_mean=1e9, sim__success_rate=1.0))  # sim's own, however high
+    assert view.target_reached(2.0) is None
 
 
 def test_a_stopped_run_says_so_and_has_no_return_yet(tmp_path):

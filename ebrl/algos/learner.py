@@ -33,7 +33,7 @@ from ebrl.algos.grpo import GroupCollector
 from ebrl.algos.parallel import Command, DataParallel, shards
 from ebrl.algos.ppo import PPO, BadBatch, Batch, SegmentCollector
 from ebrl.envs.guard import decision_bound
-from ebrl.messages import TrajectorySegment
+from ebrl.messages import RETURN_WINDOW, TrajectorySegment
 from ebrl.policies import load_arrays, make_policy, state_arrays
 from ebrl.policies.checkpoint import portable_metadata
 from ebrl.meter import Telemetry
@@ -59,7 +59,11 @@ class Learner:
         self.dp: DataParallel | None = None
         collector = GroupCollector if cfg.algo.name == "grpo" else SegmentCollector
         self.collector = collector(cfg.algo, cfg.train.max_pending, max_staleness, telemetry.count)
-        self.returns: collections.deque[float] = collections.deque(maxlen=20)
+        # the latest episodes of the segments taken: the return and success rate the launcher ends a run on
+        self.returns: collections.deque[float] = collections.deque(maxlen=RETURN_WINDOW)
+        self.successes: collections.deque[bool] = collections.deque(maxlen=RETURN_WINDOW)
+        self.episodes = 0
+        self.longest = 0  # env steps of the longest episode taken
         self.staleness_hist = np.zeros(max_staleness + 1, dtype=np.int64)  # decisions per lag
         self.arrays: dict[str, np.ndarray] = {}  # the full weights rank 0 publishes
         self.train_state: tuple[int, dict, dict] | None = None  # sharded: (version, model, optimizer) gathered
@@ -93,6 +97,9 @@ class Learner:
             return False
         self.collector.add(seg)
         self.returns.extend(seg.episode_returns)
+        self.successes.extend(ok for ok in seg.episode_successes if ok is not None)
+        self.episodes += len(seg.episode_returns)
+        self.longest = max([self.longest, *seg.episode_lengths])
         self.telemetry.count("train/segments_received")
         return True
 
@@ -217,6 +224,10 @@ class Learner:
         out.update({"train/pending_steps": float(self.collector.pending_steps), "train/batch_ready": float(self.ready)})
         if self.returns:
             out["train/episode_return_mean"] = float(np.mean(self.returns))
+            out["train/episodes"] = float(self.episodes)
+            out["train/episode_length_max"] = float(self.longest)
+        if self.successes:
+            out["train/success_rate"] = float(np.mean(self.successes))
         for lag, n in enumerate(self.staleness_hist):
             out[f"train/staleness_hist_{lag}"] = float(n)
         return out
@@ -249,5 +260,9 @@ def count_skipped(out: dict[str, float], telemetry: Telemetry, version: int) -> 
 
 
 def out_of_bound(seg: TrajectorySegment, max_abs_reward: float) -> bool:
-    """Whether a segment carries a reward larger than a sim that clips at ``max_abs_reward`` sends."""
-    return bool((np.abs(seg.rewards.astype(np.float64)) > decision_bound(max_abs_reward, seg.steps)).any())
+    """Whether a segment carries a reward, or an episode return, larger than a sim that clips each step's reward
+    at ``max_abs_reward`` sends (an episode of n steps returns at most n times it)."""
+    if (np.abs(seg.rewards.astype(np.float64)) > decision_bound(max_abs_reward, seg.steps)).any():
+        return True
+    return any(abs(ret) > max_abs_reward * max(length, 1) * (1 + 1e-6)
+               for ret, length in zip(seg.episode_returns, seg.episode_lengths))

@@ -57,6 +57,11 @@ def config_file_endpoints(config_file: str) -> list[str]:
             for e in _endpoints(_file_setting(config_file, path))]
 
 
+def config_file_connect(config_file: str) -> list[str]:
+    """The connect endpoints a native Zenoh config file sets."""
+    return _endpoints(_file_setting(config_file, "connect/endpoints")) if config_file else []
+
+
 def config_file_acl(config_file: str) -> bool:
     """Whether a native Zenoh config file turns on access control of its own."""
     return bool(config_file) and bool(_file_setting(config_file, "access_control/enabled"))

@@ -32,10 +32,11 @@ def serve(listen: list[str], connect: list[str], config_file: str = "", quiet: b
         every = config_file_endpoints(config_file) + listen + connect  # each endpoint zenoh will use, checked
         if secret and config_file_acl(config_file):
             raise auth.AuthError(f"{config_file} turns on access_control, and with --secret the router sets its "
-                                 "own (observers only read); it cannot merge the two: remove the block, or leave "
-                                 "out --secret to run with yours alone")
+                                 "own (each role's rights, ebrl.graph); it cannot merge the two: remove the block, "
+                                 "or leave out --secret to run with yours alone")
         conf = zenoh_config(BusOptions(mode="router", listen=listen, connect=connect, config_file=config_file,
-                                       secret_file=secret, file_listen_wins=True))
+                                       secret_file=secret, file_listen_wins=True, role="launcher",
+                                       zid=auth.host_zid(secret, "router") if secret and not connect else ""))
     except (auth.AuthError, zenoh.ZError) as exc:
         print(f"ebrl router: {exc}", file=sys.stderr)
         return 2

@@ -36,7 +36,7 @@ import zenoh
 
 from ebrl import messages  # module import: messages itself imports ebrl.bus.codec
 from ebrl.bus import auth
-from ebrl.bus.endpoints import config_file_listen
+from ebrl.bus.endpoints import config_file_connect, config_file_listen
 
 log = logging.getLogger("ebrl.bus")
 T = TypeVar("T")
@@ -71,7 +71,9 @@ class BusOptions:
     config_file: str = ""
     max_message_bytes: int = 256 << 20  # larger payloads are dropped before decoding (Zenoh's own rx limit too)
     secret_file: str = ""  # the run's secret (ebrl.bus.auth); empty: an open bus that anyone on the host can join
-    role: Literal["service", "observer"] = "service"  # who signs in: a service of the run, or a script watching it
+    role: str = ""  # who signs in (with a secret_file): a role of the service graph, or observer (a script watching)
+    run: str = "*"  # the run whose keys a router's access rules name (ebrl.graph.access_control)
+    zid: str = ""  # this session's Zenoh id (a launcher's or the router's, ebrl.bus.auth.host_zid); empty: random
     file_listen_wins: bool = False  # the listen endpoints of config_file, when it has some, replace ``listen``
 
 
@@ -85,7 +87,7 @@ AUTOCONNECT_STRATEGY = {"peer": {"to_router": "always", "to_peer": "greater-zid"
 
 def zenoh_config(options: BusOptions) -> zenoh.Config:
     """A Zenoh config: loopback-only peer unless told otherwise, multicast scouting off; with a
-    ``secret_file``, signed in and access-controlled (:mod:`ebrl.bus.auth`).
+    ``secret_file``, signed in as ``role`` and, as a router or peer, access-controlled (:mod:`ebrl.bus.auth`).
 
     Peers learn each other's loopback locators by gossip through the endpoint they
     connect to (the launcher's), so services talk directly, without a relay. Of two peers that learn of each
@@ -104,9 +106,15 @@ def zenoh_config(options: BusOptions) -> zenoh.Config:
     # Zenoh reassembles no message larger than this (it drops it, the link stays): the same bound as ours
     conf.insert_json5("transport/link/rx/max_message_size", json.dumps(options.max_message_bytes))
     if options.secret_file:
+        if not options.role:
+            raise auth.AuthError("signing in needs a role (BusOptions.role): a role of the service graph or "
+                                 "observer")
         credentials = auth.load(options.secret_file, options.role)
-        for path, value in auth.zenoh_settings(credentials, options.role).items():
+        connects = options.mode == "router" and bool(options.connect or config_file_connect(options.config_file))
+        for path, value in auth.zenoh_settings(credentials, options.mode, options.run, connects).items():
             conf.insert_json5(path, json.dumps(value))
+    if options.zid:
+        conf.insert_json5("id", json.dumps(options.zid))
     return conf
 
 

@@ -23,7 +23,7 @@ import numpy as np
 from ebrl.envs import EnvSpec, EnvWorker
 from ebrl.envs.vector import VectorWorker
 from ebrl.envs.worker import ChunkResult, WorkerFailed
-from ebrl.messages import EPISODES_MAX, EpisodeBatch
+from ebrl.messages import EPISODES_MAX, RETURN_WINDOW, EpisodeBatch
 from ebrl.sched.corepool import CorePool
 from ebrl.sched.modes import Schedule, home_cores
 from ebrl.sched.rollout import Episodes
@@ -293,8 +293,8 @@ class RolloutStats:
 
     def __init__(self, step_timeout: float = 0.0):
         self.configured_timeout = step_timeout  # sim.step_timeout; 0: derived from the chunk latencies
-        self.returns: collections.deque[float] = collections.deque(maxlen=20)
-        self.successes: collections.deque[bool] = collections.deque(maxlen=20)
+        self.returns: collections.deque[float] = collections.deque(maxlen=RETURN_WINDOW)
+        self.successes: collections.deque[bool] = collections.deque(maxlen=RETURN_WINDOW)
         self.chunk_latency: collections.deque[float] = collections.deque(maxlen=1000)
         self.env_steps = 0  # this instance's env steps (what sim/env_steps counts)
         # every episode that ended since the last EpisodeBatch, the newest EPISODES_MAX of them

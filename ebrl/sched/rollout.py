@@ -28,6 +28,7 @@ class SegmentBuilder:
     _versions: list[int] = field(default_factory=list)
     _returns: list[float] = field(default_factory=list)
     _lengths: list[int] = field(default_factory=list)
+    _successes: list[bool | None] = field(default_factory=list)
     _episode: int = 0
 
     def __len__(self) -> int:
@@ -51,6 +52,7 @@ class SegmentBuilder:
         if result.episode_return is not None:
             self._returns.append(result.episode_return)
             self._lengths.append(int(result.episode_length))
+            self._successes.append(result.episode_success)
         if result.terminated:
             return self._emit("terminated", result.final_obs)
         if result.truncated:
@@ -76,9 +78,10 @@ class SegmentBuilder:
             last_obs=np.asarray(last_obs, dtype=np.float32),
             episode_returns=list(self._returns),
             episode_lengths=list(self._lengths),
+            episode_successes=list(self._successes),
         )
         for buf in (self._obs, self._actions, self._latents, self._logprobs, self._values, self._rewards, self._steps,
-                    self._versions, self._returns, self._lengths):
+                    self._versions, self._returns, self._lengths, self._successes):
             buf.clear()
         return segment
 

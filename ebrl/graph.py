@@ -181,6 +181,37 @@ def markdown() -> str:
         "the service's own; `*` one key chunk, `**` any number):\n\n" + "\n".join(table) + "\n"
 
 
+SENDS: tuple[Direction, ...] = ("put", "answer", "token")  # what acts on the run
+READS: tuple[Direction, ...] = ("sub", "query", "watch")
+
+
+def rights_markdown() -> str:
+    """Which identity may do what on a run's bus, as a Markdown table (README's security section and
+    ``docs/security.md``): the keys each may send on and those it may read, from :data:`FLOWS` (what
+    :func:`access_control` enforces at the launcher). Keys are shortened to ``<plane>/<rest>`` (the run's name
+    left out), an instance is ``*``."""
+    def short(pattern: str, role: str) -> str:
+        chunks = pattern.replace(ROLE, role).replace(I, "*").split("/")
+        if len(chunks) > 3 and chunks[2] in (R, "*"):
+            return "/".join(chunks[1:2] + chunks[3:])
+        return "/".join(chunks[1:])  # ebrl/<plane>/**: every run's
+
+    def keys_of(role: str, directions: tuple[Direction, ...], own: tuple[Flow, ...]) -> str:
+        found = sorted({short(f.pattern, role) for f in own if f.direction in directions})
+        return ", ".join(f"`{k}`" for k in found) or "nothing"
+
+    every = ", ".join(f"`{short(f.pattern, '<role>')}`" for f in SERVICE_FLOWS if f.direction in SENDS)
+    rows = ["| identity | may send (publish, answer, hold a token) | may read (subscribe, query, watch) |",
+            "|---|---|---|",
+            f"| every service (`ebrl-<role>`) | its own {every} | `ctl/<role>/*/*` (its control) |"]
+    for role in FLOWS:
+        sends = keys_of(role, SENDS, FLOWS[role])
+        if role == ROUTING_ROLE:
+            sends = f"anything (it routes what the services of other hosts were allowed to send); itself: {sends}"
+        rows.append(f"| `{username(role)}` | {sends} | {keys_of(role, READS, FLOWS[role])} |")
+    return "\n".join(rows) + "\n"
+
+
 # What a peer of each direction sends on the keys of its flows, in Zenoh's ACL words: a publisher sends puts, a
 # subscriber its subscription's declaration, an asker queries, an answerer its queryable and the replies, a
 # token holder the token, a watcher its liveliness subscription and queries.

@@ -40,7 +40,9 @@ MECHANISMS = {
     "overlap": "train.overlap",
     "core_rebinding": "sim.core_rebinding",
     "vectorized": "sim.vectorized",
+    "lazy_render": "sim.lazy_render",
 }
+CAMERA_DEFAULTS = {"libero": "rgb", "robosuite": "state"}  # the backends that render lazily, their default obs
 
 
 def commit() -> str:
@@ -69,9 +71,13 @@ def ablation_variants(config: str, overrides: list[str]) -> dict[str, list[str]]
         "overlap": schedule.overlap,
         "core_rebinding": schedule.core_rebinding,
         "vectorized": schedule.vectorized,
+        "lazy_render": schedule.lazy_render,
     }
+    cameras = cfg.env.kwargs.get("obs", CAMERA_DEFAULTS.get(cfg.env.backend, "state")) == "rgb"
     out = {}
     for name, key in MECHANISMS.items():
+        if name == "lazy_render" and not cameras:
+            continue  # nothing renders: the switch changes nothing
         if running[name]:
             out[f"ebrl-no_{name}"] = [f"{key}=false"]
         if name == "vectorized" and (cfg.algo.name == "grpo" or cfg.alloc.enabled):

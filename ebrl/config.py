@@ -201,6 +201,11 @@ class SimSection(Section):
         "alloc.enabled the allocator picks it from its profile", 1)
     group_pipeline: bool | None = doc(
         "pipeline groups through generation; false makes all envs one group; absent: the mode's choice", None)
+    lazy_render: bool | None = doc(
+        "render only the observations the policy reads (the one each chunk ends on, and an episode's last) in "
+        "envs that render on demand (robosuite and LIBERO cameras, a lazily rendering Dict env); false renders "
+        "every step's, as RLinf's LIBERO env does (its chunk_step steps its vector env once per action and each "
+        "step renders the cameras); absent: the mode's choice (ebrl: true; colocated, hybrid, async: false)", None)
     vectorized: bool | Literal["auto"] = doc(
         "each group one process stepping its envs as one batch (ManiSkill on GPU PhysX: one vectorized env of "
         "envs_per_group envs; other backends: envs_per_group copies stepped in turn) instead of one worker process "

@@ -189,3 +189,33 @@ def test_the_w1_benchmark_config_runs_every_mode_in_one_command(tmp_path):
     assert set(results) == {"ebrl", "colocated", "hybrid", "async"}
     assert all(r[0]["env_steps_per_s"] > 0 and r[0]["sim_efficiency"] > 0 for r in results.values())
     assert "(best)" in proc.stdout
+
+
+def test_only_ebrl_renders_just_the_observations_it_reads_and_the_switch_overrides_the_mode():
+    """RLinf's LIBERO env renders its cameras at every step of a chunk; the baseline modes do as it does,
+    ebrl renders only a chunk's last observation (sim.lazy_render overrides either). A worker's env that
+    renders on demand (tests/user_envs.py: its observation counts its renders) shows which happened."""
+    import asyncio
+    import dataclasses
+
+    import numpy as np
+
+    from ebrl import config
+    from ebrl.envs import EnvSpec, EnvWorker
+    from ebrl.sched.modes import resolve
+
+    for mode, lazy in (("ebrl", True), ("colocated", False), ("hybrid", False), ("async", False)):
+        assert resolve(config.load("configs/quickstart.toml", [f"run.mode={mode}"])).lazy_render is lazy
+        flipped = config.load("configs/quickstart.toml", [f"run.mode={mode}", f"sim.lazy_render={str(not lazy).lower()}"])
+        assert resolve(flipped).lazy_render is (not lazy)
+
+    async def renders_per_chunk(lazy: bool) -> list[float]:
+        worker = EnvWorker(dataclasses.replace(EnvSpec("user_envs:CountsRenders-v0"), lazy_render=lazy), seed=0)
+        try:
+            await worker.reset()
+            return [float((await worker.chunk(np.zeros((4, 1), np.float32))).next_obs[0]) for _ in range(3)]
+        finally:
+            worker.close()
+
+    assert asyncio.run(renders_per_chunk(True)) == [2.0, 3.0, 4.0]  # the reset's, then one per chunk
+    assert asyncio.run(renders_per_chunk(False)) == [5.0, 9.0, 13.0]  # every step's

@@ -178,3 +178,34 @@ class GoalImage(gymnasium.Env):
 
 
 gymnasium.register("GoalImage-v0", entry_point=GoalImage)
+
+
+class CountsRenders(gymnasium.Env):
+    """A camera env that renders on demand, as robosuite's and LIBERO's do (``skip_observation``, ``observe()``):
+    its observation is how many times it has rendered, so a chunk's last observation tells how many of its
+    steps rendered."""
+
+    def __init__(self):
+        import numpy as np
+
+        self.np = np
+        self.observation_space = gymnasium.spaces.Box(0.0, 1e9, (1,), np.float32)
+        self.action_space = gymnasium.spaces.Box(-1.0, 1.0, (1,), np.float32)
+        self.renders, self.skip_observation, self.t = 0, False, 0
+
+    def observe(self):
+        self.renders += 1
+        return self.np.array([self.renders], self.np.float32)
+
+    def reset(self, *, seed=None, options=None):
+        super().reset(seed=seed)
+        self.t = 0
+        return self.observe(), {}
+
+    def step(self, action):
+        self.t += 1
+        obs = self.np.array([self.renders], self.np.float32) if self.skip_observation else self.observe()
+        return obs, 0.0, False, self.t >= 1000, {}
+
+
+gymnasium.register("CountsRenders-v0", entry_point=CountsRenders)

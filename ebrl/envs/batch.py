@@ -56,7 +56,7 @@ class EnvBatch:
         self.low, self.high = first.action_space.low, first.action_space.high
         self.obs = np.zeros((self.num_envs, int(np.prod(first.observation_space.shape))), np.float32)
         # an env that can skip rendering the observations nobody reads (ebrl/envs/worker.py)
-        self.lazy = [lazy_observer(env) for env in self.envs]
+        self.lazy = [lazy_observer(env) if spec.lazy_render else None for env in self.envs]
 
     def reset(self, idx: np.ndarray, episodes: np.ndarray) -> torch.Tensor:
         """Start episode ``episodes[j]`` of env ``idx[j]``; every env's observation, [N, D]."""

@@ -31,6 +31,7 @@ class EnvSpec:
     latency_sigma: float = 0.3
     max_abs_reward: float = 1e6  # per env step: beyond it a reward is clipped (ebrl.envs.guard)
     obs_keys: tuple[str, ...] = ()  # a Dict observation's key paths, selected and ordered (ebrl.envs.dictobs)
+    lazy_render: bool = True  # render only the observations read (the schedule's sim.lazy_render), where it can
 
     @property
     def gpu_physics(self) -> bool:

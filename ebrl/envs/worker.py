@@ -196,7 +196,7 @@ class _ServedEnv:
         self.seed, self.claim = seed, claim
         self.low, self.high = env.action_space.low, env.action_space.high
         self.bound = spec.max_abs_reward
-        observer = lazy_observer(env)  # renders only the observations that are read
+        observer = lazy_observer(env) if spec.lazy_render else None  # renders only the observations that are read
         self.base, self.lazy = (observer, True) if observer is not None else (env.unwrapped, False)
         self.episode_return, self.episode_length, self.episodes = 0.0, 0, 0
         self.success: bool | None = None

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import asyncio
 import collections
+import dataclasses
 import logging
 import time
 from typing import Callable
@@ -63,7 +64,8 @@ class EnvFleet:
 
     def _place(self, spec: EnvSpec, schedule: Schedule, host: int, seed: int, share: int) -> None:
         """What every fleet keeps: this host's groups and env ids, the episode bookkeeping, the failure counts."""
-        self.spec, self.schedule, self.seed = spec, schedule, seed
+        self.spec = dataclasses.replace(spec, lazy_render=schedule.lazy_render)  # the mode's rendering
+        self.schedule, self.seed = schedule, seed
         first = host * schedule.groups
         self.groups = list(range(first, first + schedule.groups))
         per = self.per_group = schedule.envs_per_group

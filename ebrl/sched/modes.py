@@ -9,8 +9,9 @@ switches into the concrete schedule every service follows.
 | hybrid    | yes            | batch                 | no                    | shared                     |
 | async     | no (one batch) | batch                 | yes (max_staleness)   | rollout and train disjoint |
 
-An explicit ``sim.stepping``, ``sim.core_rebinding``, ``sim.group_pipeline`` or
-``train.overlap`` overrides the mode's choice (the ablations).
+Every mode but ebrl also renders every step's observation (``lazy_render``: RLinf's LIBERO env renders its
+cameras at every step of a chunk). An explicit ``sim.stepping``, ``sim.core_rebinding``, ``sim.group_pipeline``,
+``sim.lazy_render`` or ``train.overlap`` overrides the mode's choice (the ablations).
 """
 
 from __future__ import annotations
@@ -48,6 +49,8 @@ class Schedule:
     # sim.cores_per_env: each env worker pinned to a set of this many cores (a multi-threaded simulator); above 1
     # there is no step-level rebinding, which hands out single cores
     cores_per_env: int = 1
+    # sim.lazy_render: envs that render on demand render only the observations the policy reads
+    lazy_render: bool = True
 
     def length(self, hosts: int = 1) -> int:
         """Decisions per env per iteration while ``hosts`` sim hosts are live: an update's batch comes from all
@@ -108,6 +111,7 @@ def resolve(cfg: Any, cores: list[int] | None = None) -> Schedule:
         rebinding_auto=core_rebinding and rebinding == "auto",
         vectorized=batched,
         cores_per_env=cfg.sim.cores_per_env,
+        lazy_render=bool(pick(cfg.sim.lazy_render, "lazy_render")),
     )
 
 

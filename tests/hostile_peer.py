@@ -243,7 +243,7 @@ def main_crafted(endpoint: str, run: str, seconds: str) -> int:
     """On an open bus (bus.auth = false): read the run's traffic, then send crafted payloads on every key for
     ``seconds`` seconds (a batch every 0.1 s) and 8 MB of garbage on the data keys (every second); print what
     it sent."""
-    session = zenoh.open(zenoh_config(BusOptions(mode="peer", connect=[endpoint], listen=["tcp/127.0.0.1:0"])))
+    session = zenoh.open(zenoh_config(BusOptions(mode="client", connect=[endpoint], listen=[])))  # as services join
     seen: dict[str, bytes] = {}
 
     def on_sample(sample: zenoh.Sample) -> None:

@@ -237,7 +237,8 @@ def table(results: dict[str, list[dict[str, Any]]]) -> str:
     rows = [head]
     for mode, runs in results.items():
         traj = sorted(x["traj_per_s"] for x in runs)
-        ratio = f"{med(mode, 'traj_per_s') / med(best, 'traj_per_s'):.2f}x" if best else "-"
+        ratio = "-" if not best else (f"{med(mode, 'traj_per_s') / med(best, 'traj_per_s'):.2f}x"
+                                      if med(best, "traj_per_s") > 0 else "inf" if med(mode, "traj_per_s") else "-")
         rows.append((
             mode,
             f"{traj[0]:.1f}-{statistics.median(traj):.1f}-{traj[-1]:.1f}",
@@ -284,12 +285,12 @@ def main(config: str, modes: str, ablations: bool, duration: float, repeat: int,
     except config_mod.ConfigError as exc:
         print(f"ebrl: config error: {exc}", file=sys.stderr)
         return 2
-    print(table(results))
-    if json_path:
+    if json_path:  # first: what was measured is kept whatever the printing does
         Path(json_path).parent.mkdir(parents=True, exist_ok=True)
         Path(json_path).write_text(json.dumps({
             "command": "ebrl " + " ".join(sys.argv[1:]), "machine": f"{len(os.sched_getaffinity(0))} usable cores",
             "config": config, "duration_s": duration, "trajectories": trajectories, "repeat": repeat,
             "overrides": overrides, "variants": variants, "results": results,
         }, indent=2) + "\n")
+    print(table(results))
     return 0

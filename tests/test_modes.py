@@ -129,6 +129,20 @@ def test_ablations_flip_each_mechanism_from_what_ebrl_runs_with_the_config():
     assert "ebrl-no_allocator" in lift and "ebrl-no_core_rebinding" in lift and "ebrl+vectorized" not in lift
     assert [base_mode(v) for v in ("ebrl", "ebrl-no_overlap", "ebrl+allocator", "colocated")] == [
         "ebrl", "ebrl", "ebrl", "colocated"]
+    # rendering only what is read is ebrl's: a camera config gets the ablation, a state config none
+    assert ablation_variants("configs/robosuite_lift_rgb.toml", [])["ebrl-no_lazy_render"] == ["sim.lazy_render=false"]
+    assert not any("lazy_render" in v for v in ablation_variants("configs/robosuite_lift.toml", []))
+
+
+def test_the_bench_table_says_inf_when_no_baseline_finished_a_trajectory():
+    from ebrl.bench import table
+
+    def result(traj: float, steps: float) -> dict:
+        return dict(traj_per_s=traj, env_steps_per_s=steps, chunk_latency_avg_ms=1.0, chunk_latency_p50_ms=1.0,
+                    chunk_latency_p99_ms=1.0, idle_sim=0.0, idle_gen=0.0, idle_train=0.0, useful_work_utilisation=1.0)
+
+    rows = table({"ebrl": [result(1.5, 64.0)], "hybrid": [result(0.0, 13.0)]}).splitlines()
+    assert rows[1].split()[-1] == "inf" and rows[2].split()[-2:] == ["-", "(best)"]
 
 
 def test_bench_variants_name_their_mode_and_carry_their_overrides(capsys):

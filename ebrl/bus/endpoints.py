@@ -51,10 +51,7 @@ def _endpoints(value: object) -> list[str]:
 
 def config_file_endpoints(config_file: str) -> list[str]:
     """Every endpoint a native Zenoh config file sets for a session to use: its listen and its connect ones."""
-    if not config_file:
-        return []
-    return [e for path in ("listen/endpoints", "connect/endpoints")
-            for e in _endpoints(_file_setting(config_file, path))]
+    return config_file_listen(config_file) + config_file_connect(config_file)
 
 
 def config_file_connect(config_file: str) -> list[str]:

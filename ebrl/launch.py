@@ -33,7 +33,7 @@ from typing import Callable
 from ebrl import config as config_mod, prepare, procenv, stall
 from ebrl.bus import auth, keys
 from ebrl.bus.session import Bus, BusOptions
-from ebrl.bus.endpoints import config_file_connect, config_file_listen, listen_endpoint
+from ebrl.bus.endpoints import config_file_listen, listen_endpoint
 from ebrl.hosts import PRIMARY_LOST_S, HostPlan, Membership, enabled_roles
 from ebrl.messages import Event, GpuShare, StatsReport, Stop
 from ebrl.weights import known_version
@@ -83,15 +83,12 @@ class LauncherBus:
     def __init__(self, cfg: config_mod.Config, plan: HostPlan, endpoint: str, run_dir: Path):
         self.run = cfg.run.name
         listen = [endpoint, *cfg.bus.listen[1:]] if endpoint else []
-        secret = auth.secret_path(cfg.bus, run_dir)
         # the router of this host's services when they are its clients (each checked against its role's rights,
-        # ebrl.bus.auth), and between hosts; a launcher that other hosts connect to, opening no link itself, has
-        # the Zenoh id they trust at the far end of theirs
-        hub = secret and not (cfg.bus.connect or config_file_connect(cfg.bus.config_file))
+        # ebrl.bus.auth), and between hosts
         self.bus = Bus(BusOptions(mode="router" if plan.multi or cfg.bus.mode == "client" else "peer",
                                   listen=listen, connect=list(cfg.bus.connect), config_file=cfg.bus.config_file,
-                                  secret_file=secret, file_listen_wins=True, role="launcher", run=self.run,
-                                  zid=auth.host_zid(secret, plan.instance) if hub else ""))
+                                  secret_file=auth.secret_path(cfg.bus, run_dir), file_listen_wins=True,
+                                  role="launcher", run=self.run, host=plan.instance))
         (run_dir / "bus.json").write_text(json.dumps({"listen": listen, "run": self.run}) + "\n")
         self.recorder = record.Recorder(run_dir / record.FILENAME) if cfg.viz.record else None
         if self.recorder is not None:

@@ -105,6 +105,11 @@ def test_a_router_that_opens_links_trusts_only_the_launchers_and_router_at_their
     accepter = json.loads(zenoh_config(BusOptions(mode="router", secret_file=str(path), role="launcher",
                                                   run="r")).get_json("access_control"))
     assert "opened" not in {s["id"] for s in accepter["subjects"]}  # it opens no link: every peer signs in
+    hub = zenoh_config(BusOptions(mode="router", secret_file=str(path), role="launcher", run="r", host=0))
+    assert json.loads(hub.get_json("id")) == auth.host_zid(path, 0)  # the id the hosts that connect to it trust
+    opener = zenoh_config(BusOptions(mode="router", secret_file=str(path), role="launcher", run="r", host=1,
+                                     connect=["tcp/127.0.0.1:7447"]))
+    assert json.loads(opener.get_json("id")) != auth.host_zid(path, 1)  # one that opens a link keeps a random id
 
 
 # --- endpoints ---------------------------------------------------------------------------------------------

@@ -185,7 +185,7 @@ def zenoh_settings(credentials: Credentials, mode: str, run: str = "*", connects
     * ``router`` (a launcher, ``ebrl router``): checks whoever connects against the file and takes from each
       identity only what its role declares in run ``run`` (:func:`ebrl.graph.access_control`); ``connects``:
       it opens links itself (``bus.connect``), whose far ends are trusted by their Zenoh ids (:func:`host_zid`;
-      its own is set to its host's by the caller).
+      one that opens none takes its own host's id: ``ebrl.bus.session.zenoh_config``).
     * ``peer`` (a service of a mesh): checks whoever connects; observers only read.
     * ``client`` (a service of a launcher's, a script watching): signs in, nothing more.
     """

@@ -35,8 +35,7 @@ def serve(listen: list[str], connect: list[str], config_file: str = "", quiet: b
                                  "own (each role's rights, ebrl.graph); it cannot merge the two: remove the block, "
                                  "or leave out --secret to run with yours alone")
         conf = zenoh_config(BusOptions(mode="router", listen=listen, connect=connect, config_file=config_file,
-                                       secret_file=secret, file_listen_wins=True, role="launcher",
-                                       zid=auth.host_zid(secret, "router") if secret and not connect else ""))
+                                       secret_file=secret, file_listen_wins=True, role="launcher", host="router"))
     except (auth.AuthError, zenoh.ZError) as exc:
         print(f"ebrl router: {exc}", file=sys.stderr)
         return 2

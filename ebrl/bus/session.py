@@ -73,7 +73,9 @@ class BusOptions:
     secret_file: str = ""  # the run's secret (ebrl.bus.auth); empty: an open bus that anyone on the host can join
     role: str = ""  # who signs in (with a secret_file): a role of the service graph, or observer (a script watching)
     run: str = "*"  # the run whose keys a router's access rules name (ebrl.graph.access_control)
-    zid: str = ""  # this session's Zenoh id (a launcher's or the router's, ebrl.bus.auth.host_zid); empty: random
+    # a launcher's host number, or "router" for ebrl router: a router signed in that opens no link of its own
+    # takes that host's Zenoh id (ebrl.bus.auth.host_zid), which the hosts that connect to it trust
+    host: int | str | None = None
     file_listen_wins: bool = False  # the listen endpoints of config_file, when it has some, replace ``listen``
 
 
@@ -113,8 +115,8 @@ def zenoh_config(options: BusOptions) -> zenoh.Config:
         connects = options.mode == "router" and bool(options.connect or config_file_connect(options.config_file))
         for path, value in auth.zenoh_settings(credentials, options.mode, options.run, connects).items():
             conf.insert_json5(path, json.dumps(value))
-    if options.zid:
-        conf.insert_json5("id", json.dumps(options.zid))
+        if options.mode == "router" and not connects and options.host is not None:
+            conf.insert_json5("id", json.dumps(auth.host_zid(options.secret_file, options.host)))
     return conf
 
 

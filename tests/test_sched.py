@@ -1,5 +1,7 @@
 """Mode presets and overrides, the generation gate, staleness trimming, the decoupled PPO loss."""
 
+import dataclasses
+
 import numpy as np
 import pytest
 import torch
@@ -12,7 +14,7 @@ from ebrl.algos.ppo import PPO, build_batch
 from ebrl.messages import TrajectorySegment
 from ebrl.policies import make_policy
 from ebrl.sched.modes import resolve
-from ebrl.sched.staleness import fresh_suffix
+from ebrl.sched.staleness import fresh_suffix, split
 
 
 def cfg(**sections):
@@ -80,6 +82,33 @@ def test_fresh_suffix_cuts_the_stale_prefix():
     assert dropped == 3 and list(cut.versions) == [5, 5] and list(cut.rewards) == [3.0, 4.0]
     assert cut.obs.shape == (2, 4) and cut.end == "cut"
     assert fresh_suffix(seg, version=9, max_staleness=1) == (None, 5)
+
+
+def test_split_cuts_a_segment_that_bootstraps_from_the_rest():
+    seg = dataclasses.replace(segment([0, 0, 1, 1, 1]), end="terminated", episode_returns=[7.0],
+                              episode_lengths=[10], episode_successes=[True])
+    first, rest = split(seg, 2)
+    assert list(first.rewards) == [0.0, 1.0] and first.end == "cut" and first.episode_returns == []
+    np.testing.assert_array_equal(first.last_obs, seg.obs[2])  # the bootstrap: where the rest starts
+    assert list(rest.rewards) == [2.0, 3.0, 4.0] and rest.end == "terminated" and rest.episode_returns == [7.0]
+    np.testing.assert_array_equal(np.concatenate([first.obs, rest.obs]), seg.obs)
+    first.check(), rest.check()
+
+
+def test_every_batch_is_exactly_batch_size_so_updates_keep_pace_with_the_iterations():
+    """Segments cut at episode ends (5 and 3 decisions) do not line up with batches of 4: each batch takes 4
+    decisions, the segment it ends in split, so the k-th update is ready once 4k decisions arrived. Taken
+    whole, the first batch took 5 and the second waited for 9 decisions in all (the updates fell behind)."""
+    from ebrl.algos.ppo import SegmentCollector
+    c = SegmentCollector(SimpleNamespace(), max_pending=100, max_staleness=1, count=lambda *a: None)
+    c.add(segment([0] * 5))
+    first = c.take(version=0, batch_size=4)
+    assert [len(s.obs) for s in first] == [4] and c.ready_steps == 1
+    c.add(segment([0] * 3))
+    assert c.ready_steps == 4  # the second batch is ready at 8 decisions, as the iterations are
+    second = c.take(version=0, batch_size=4)
+    assert [len(s.obs) for s in second] == [1, 3] and c.ready_steps == 0
+    assert list(second[0].rewards) == [4.0]  # the first segment's last decision, in order
 
 
 ALGO = dict(gamma=0.9, gae_lambda=0.9, clip=0.2, epochs=2, minibatches=2, ent_coef=0.0, vf_coef=0.5,

@@ -37,7 +37,7 @@ from torch import nn
 
 from ebrl.algos.parallel import Methods
 from ebrl.messages import TrajectorySegment, from_wire, to_wire
-from ebrl.sched.staleness import fresh_suffix
+from ebrl.sched.staleness import fresh_suffix, split
 
 
 def gae(rewards: np.ndarray, values: np.ndarray, discounts: np.ndarray, last_value: float,
@@ -381,8 +381,14 @@ class PPO:
 
 class SegmentCollector:
     """PPO's side of the train service: segments in arrival order, at most ``max_pending`` decisions
-    (beyond it the oldest segments are dropped, counted); a batch is the oldest decisions up to
-    ``batch_size``, decisions more than ``max_staleness`` versions behind cut off (counted)."""
+    (beyond it the oldest segments are dropped, counted); a batch is the oldest ``batch_size`` decisions,
+    decisions more than ``max_staleness`` versions behind cut off (counted).
+
+    A batch is exactly ``batch_size`` decisions: the segment it ends in is split (``staleness.split``), its
+    rest the first of the next batch. Taking it whole instead (up to a segment's length more) made every update
+    wait for that many more decisions than the one before, so the updates fell behind the iterations they
+    learn from, and generation held groups back at iteration boundaries (``Schedule.min_version``) while
+    training caught up: on heavy-tailed 2 ms steps, 60 % of the groups' time waiting for actions."""
 
     def __init__(self, algo_cfg: Any, max_pending: int, max_staleness: int, count: Callable[[str, float], None]):
         self.cfg, self.max_pending, self.max_staleness, self.count = algo_cfg, max_pending, max_staleness, count
@@ -413,6 +419,10 @@ class SegmentCollector:
                 self.count("train/stale_dropped", dropped)
             if seg is None:
                 continue
+            if steps + len(seg.obs) > batch_size:
+                seg, rest = split(seg, batch_size - steps)
+                self.pending.appendleft(rest)
+                self.pending_steps += len(rest.obs)
             segments.append(seg)
             steps += len(seg.obs)
         return segments

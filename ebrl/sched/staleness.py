@@ -1,4 +1,5 @@
-"""Bounded staleness on the training side: cut decisions older than the bound off a segment."""
+"""Bounded staleness on the training side: cut decisions older than the bound off a segment, and split a segment
+where an update's batch ends."""
 
 from __future__ import annotations
 
@@ -22,3 +23,13 @@ def fresh_suffix(seg: TrajectorySegment, version: int, max_staleness: int) -> tu
         return None, len(seg.obs)
     start = len(seg.obs) - keep
     return dataclasses.replace(seg, **{name: getattr(seg, name)[start:] for name in PER_DECISION}), start
+
+
+def split(seg: TrajectorySegment, n: int) -> tuple[TrajectorySegment, TrajectorySegment]:
+    """``seg``'s first ``n`` decisions and the rest, 0 < n < len(seg.obs). The first part ends "cut" and
+    bootstraps from the observation the rest starts with, as a segment cut at ``sim.segment_length`` does; the
+    episodes that finished inside ``seg`` finished at its end, so they stay with the rest."""
+    first = dataclasses.replace(
+        seg, **{name: getattr(seg, name)[:n] for name in PER_DECISION}, end="cut", last_obs=seg.obs[n],
+        episode_returns=[], episode_lengths=[], episode_successes=[])
+    return first, dataclasses.replace(seg, **{name: getattr(seg, name)[n:] for name in PER_DECISION})

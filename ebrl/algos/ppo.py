@@ -388,7 +388,8 @@ class SegmentCollector:
     rest the first of the next batch. Taking it whole instead (up to a segment's length more) made every update
     wait for that many more decisions than the one before, so the updates fell behind the iterations they
     learn from, and generation held groups back at iteration boundaries (``Schedule.min_version``) while
-    training caught up: on heavy-tailed 2 ms steps, 60 % of the groups' time waiting for actions."""
+    training caught up (segments cut at episode ends do not line up with batches). On heavy-tailed 2 ms steps
+    the groups waited for actions 8.6 % of their time, two thirds of it in such waits; with exact batches, 3.7 %."""
 
     def __init__(self, algo_cfg: Any, max_pending: int, max_staleness: int, count: Callable[[str, float], None]):
         self.cfg, self.max_pending, self.max_staleness, self.count = algo_cfg, max_pending, max_staleness, count

@@ -28,7 +28,9 @@ def fresh_suffix(seg: TrajectorySegment, version: int, max_staleness: int) -> tu
 def split(seg: TrajectorySegment, n: int) -> tuple[TrajectorySegment, TrajectorySegment]:
     """``seg``'s first ``n`` decisions and the rest, 0 < n < len(seg.obs). The first part ends "cut" and
     bootstraps from the observation the rest starts with, as a segment cut at ``sim.segment_length`` does; the
-    episodes that finished inside ``seg`` finished at its end, so they stay with the rest."""
+    episodes that finished inside ``seg`` finished at its end, so they stay with the rest. For training's
+    segments, whose camera bytes were joined back into ``obs`` on receipt (``obswire.decoder``), as for
+    :func:`fresh_suffix`."""
     first = dataclasses.replace(
         seg, **{name: getattr(seg, name)[:n] for name in PER_DECISION}, end="cut", last_obs=seg.obs[n],
         episode_returns=[], episode_lengths=[], episode_successes=[])

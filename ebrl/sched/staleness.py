@@ -22,7 +22,7 @@ def fresh_suffix(seg: TrajectorySegment, version: int, max_staleness: int) -> tu
     if keep == 0:
         return None, len(seg.obs)
     start = len(seg.obs) - keep
-    return dataclasses.replace(seg, **{name: getattr(seg, name)[start:] for name in PER_DECISION}), start
+    return _decisions(seg, slice(start, None)), start
 
 
 def split(seg: TrajectorySegment, n: int) -> tuple[TrajectorySegment, TrajectorySegment]:
@@ -31,7 +31,11 @@ def split(seg: TrajectorySegment, n: int) -> tuple[TrajectorySegment, Trajectory
     episodes that finished inside ``seg`` finished at its end, so they stay with the rest. For training's
     segments, whose camera bytes were joined back into ``obs`` on receipt (``obswire.decoder``), as for
     :func:`fresh_suffix`."""
-    first = dataclasses.replace(
-        seg, **{name: getattr(seg, name)[:n] for name in PER_DECISION}, end="cut", last_obs=seg.obs[n],
-        episode_returns=[], episode_lengths=[], episode_successes=[])
-    return first, dataclasses.replace(seg, **{name: getattr(seg, name)[n:] for name in PER_DECISION})
+    first = dataclasses.replace(_decisions(seg, slice(None, n)), end="cut", last_obs=seg.obs[n],
+                                episode_returns=[], episode_lengths=[], episode_successes=[])
+    return first, _decisions(seg, slice(n, None))
+
+
+def _decisions(seg: TrajectorySegment, part: slice) -> TrajectorySegment:
+    """``seg`` with ``part`` of each per-decision field."""
+    return dataclasses.replace(seg, **{name: getattr(seg, name)[part] for name in PER_DECISION})

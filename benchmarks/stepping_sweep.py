@@ -9,6 +9,10 @@ throughput read from the stats stream): ``ebrl`` (defaults: ``sim.core_rebinding
 * ``halfcheetah`` — ``configs/bench_halfcheetah.toml`` (HalfCheetah-v5, ~75 µs steps);
 * ``lift`` — ``configs/robosuite_lift.toml`` (robosuite Lift, ~16 ms steps).
 
+Each ``lat`` point also records what the cores allow (:func:`ceiling`): its steps cost their mean latency in CPU
+time, so ``cores * 1000 / mean_ms`` env steps/s bounds every mode, and that ceiling over the best baseline's
+rate is the highest ratio any scheduler could read there.
+
 Results are merged into the JSON file point by point (a point already there is skipped unless ``--force``; a
 point measured again keeps the earlier verdicts under ``earlier``), so the sweep can run one command per point,
 across sessions, and a plot of every point so far is redrawn:
@@ -54,6 +58,26 @@ def point_config(point: str) -> tuple[str, list[str]]:
     if kind != "lat":
         raise ValueError(f"unknown point {point!r}: lat:<mean_ms>:<sigma>, {', '.join(NAMED)}")
     return "configs/bench_stepping.toml", [f"env.latency_mean_ms={float(mean)}", f"env.latency_sigma={float(sigma)}"]
+
+
+def ceiling(point: str, cores: int, summary: dict) -> dict:
+    """What the cores allow at a ``lat`` point: its steps cost ``mean_ms`` of CPU each (the wrapper busy-waits on
+    the thread's CPU clock), so no mode completes more than ``cores * 1000 / mean_ms`` env steps/s -- fewer, as
+    generation, training and the services need the same cores. Returns that ceiling, ebrl's and the best
+    baseline's share of it, and the highest ratio over the best baseline any mode could read
+    (``ceiling_vs_best``); {} for the named points, whose step cost is not set."""
+    if not point.startswith("lat:"):
+        return {}
+    top = cores * 1e3 / float(point.split(":")[1])
+    steps = {m: statistics.median(r["env_steps_per_s"] for r in runs) for m, runs in summary["results"].items()}
+    best = max(steps[m] for m in bench.BASELINES)
+    return {"cores": cores, "env_steps_ceiling": top, "ebrl_of_ceiling": steps["ebrl"] / top,
+            "best_of_ceiling": best / top, "ceiling_vs_best": top / best}
+
+
+def machine_cores(machine: str) -> int:
+    """The usable cores a point was measured on, from its ``machine`` text ("x86_64, 2 usable cores")."""
+    return int(machine.split(",")[1].split()[0])
 
 
 def summarize_point(results: dict[str, list[dict]]) -> dict:
@@ -144,10 +168,14 @@ def main() -> None:
         print(f"{point}: ebrl {med['ebrl']:.1f} traj/s, best baseline {result['best_baseline']} "
               f"{med[result['best_baseline']]:.1f} -> {result['ebrl_vs_best']:.2f}x", flush=True)
     if data["points"]:
+        for name, p in data["points"].items():  # derived from what was measured: kept current for every point
+            p.update(ceiling(name, machine_cores(p.get("machine", machine)), p))
+        path.write_text(json.dumps(data, indent=2) + "\n")
         plot(data, path.with_suffix(".png"))
         for point in all_points():
             if p := data["points"].get(point):
-                print(f"{point:14s} ebrl/best {p['ebrl_vs_best']:.2f}x (best: {p['best_baseline']})")
+                top = f", the cores allow {p['ceiling_vs_best']:.2f}x" if "ceiling_vs_best" in p else ""
+                print(f"{point:14s} ebrl/best {p['ebrl_vs_best']:.2f}x (best: {p['best_baseline']}{top})")
 
 
 if __name__ == "__main__":

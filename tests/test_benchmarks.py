@@ -109,3 +109,21 @@ def test_the_parity_verdict_is_within_three_percent_or_above_also_for_negative_r
     below_zero = verdict([78, -157, 193], [-24, -49, 105])  # returns around 0: no ratio, the difference judges
     assert math.isnan(below_zero["final_return_ratio"]) and below_zero["parity"] and below_zero["faster"]
     assert not verdict([-60, -70, -80], [-24, -49, 105])["parity"]  # more than 3 % below a negative median
+
+
+def test_the_sweep_bounds_every_ratio_by_what_the_cores_can_step():
+    """A ``lat`` point's steps cost their mean latency in CPU time: 2 cores at 4 ms complete at most 500 env
+    steps/s, so a best baseline at 400 leaves no mode more than 1.25x (the "cores allow" column)."""
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("stepping_sweep", ROOT / "benchmarks/stepping_sweep.py")
+    sweep = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(sweep)
+    steps = {"ebrl": [450.0, 460.0, 470.0], "colocated": [380.0] * 3, "hybrid": [390.0, 400.0, 410.0],
+             "async": [200.0] * 3}
+    point = {"results": {m: [{"env_steps_per_s": s} for s in runs] for m, runs in steps.items()}}
+    top = sweep.ceiling("lat:4:1", sweep.machine_cores("x86_64, 2 usable cores"), point)
+    assert top["env_steps_ceiling"] == pytest.approx(500.0)
+    assert top["ebrl_of_ceiling"] == pytest.approx(0.92) and top["best_of_ceiling"] == pytest.approx(0.8)
+    assert top["ceiling_vs_best"] == pytest.approx(1.25)
+    assert sweep.ceiling("halfcheetah", 2, point) == {}  # a named point's step cost is not set

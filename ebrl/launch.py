@@ -33,7 +33,7 @@ from typing import Callable
 from ebrl import config as config_mod, prepare, procenv, stall
 from ebrl.bus import auth, keys
 from ebrl.bus.session import Bus, BusOptions
-from ebrl.bus.endpoints import config_file_listen, listen_endpoint
+from ebrl.bus.endpoints import address_in_use, config_file_listen, listen_endpoint
 from ebrl.hosts import PRIMARY_LOST_S, HostPlan, Membership, enabled_roles
 from ebrl.messages import Event, GpuShare, StatsReport, Stop
 from ebrl.weights import known_version
@@ -172,6 +172,27 @@ def run_instances(cfg: config_mod.Config, plan: HostPlan, members: Membership) -
     return has
 
 
+def open_launcher_bus(cfg: config_mod.Config, plan: HostPlan, run_dir: Path,
+                      tries: int = 5) -> tuple[LauncherBus, str]:
+    """This host's launcher on the bus and the endpoint it listens on. Between the check that a port is free
+    (:func:`launcher_endpoint`) and Zenoh's bind, another process may take it (two runs started at the same
+    moment): the bind is tried again on a free port, up to ``tries`` binds in all. OSError, with the reason,
+    where it cannot: the port is fixed (other hosts connect to it, or bus.config_file names it) or no bind took."""
+    endpoint = launcher_endpoint(cfg, plan)
+    fixed = plan.multi or bool(config_file_listen(cfg.bus.config_file))
+    attempt = 1
+    while True:
+        try:
+            return LauncherBus(cfg, plan, endpoint, run_dir), endpoint
+        except Exception as exc:  # zenoh.ZError where its bind failed
+            if not address_in_use(exc):
+                raise
+            if fixed or attempt >= tries:
+                raise OSError(f"cannot listen on {endpoint}: the port is busy (another run?)") from None
+            attempt += 1
+            endpoint = listen_endpoint(endpoint)  # taken now: the same host on a free port
+
+
 class Launcher:
     def __init__(self, cfg: config_mod.Config, run_dir: Path, out=sys.stdout, plan: HostPlan | None = None,
                  gpu_env: dict[str, dict[str, str]] | None = None, notes: list[tuple[str, str]] | None = None):
@@ -197,11 +218,10 @@ class Launcher:
         for sig in (signal.SIGINT, signal.SIGTERM):
             asyncio.get_running_loop().add_signal_handler(sig, self._on_signal, sig)
         try:
-            endpoint = launcher_endpoint(self.cfg, self.plan)
+            self.link, endpoint = open_launcher_bus(self.cfg, self.plan, self.run_dir)
         except OSError as exc:
             self.console.say(f"ebrl: {exc}")
             return 2
-        self.link = LauncherBus(self.cfg, self.plan, endpoint, self.run_dir)
         self.supervisor = Supervisor(
             service_argv(self.run_dir / "config.toml", endpoint), self.run_dir / "logs",
             RestartPolicy(self.cfg.run.restart == "on-failure", self.cfg.run.max_restarts),

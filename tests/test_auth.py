@@ -1,6 +1,7 @@
 """A run only its own processes can steer (issue 20): the run's secret, observers, endpoints that need TLS, and
 hostile peers against a live `ebrl up`."""
 
+import asyncio
 import json
 import math
 import os
@@ -485,3 +486,32 @@ def test_a_run_directory_is_its_owners_or_its_groups_and_nobody_elses(tmp_path):
     with pytest.raises(NotStarted, match="no such group"):
         make_run_dir(config.load(ROOT / "configs/quickstart.toml",
                                  [f'run.output_dir="{tmp_path}"', 'run.group="no-such-group-here"']))
+
+
+def test_a_port_taken_between_the_check_and_the_bind_moves_the_launcher_to_a_free_one(tmp_path, monkeypatch):
+    """Two runs started at the same moment both find 7447 free; the second one's bind fails. Its launcher binds a
+    free port instead (a clear error where the port is fixed, never Zenoh's stack trace)."""
+    import socket
+
+    from ebrl import launch
+    from ebrl.hosts import HostPlan
+
+    cfg = config.load(ROOT / "configs/quickstart.toml")
+    auth.ensure(auth.secret_path(cfg.bus, tmp_path))
+
+    async def main():  # the bus lives on the launcher's event loop
+        link, endpoint = launch.open_launcher_bus(cfg, HostPlan(roles=("sim",)), tmp_path)
+        try:
+            assert endpoint != taken and endpoint.startswith("tcp/127.0.0.1:")
+            assert json.loads((tmp_path / "bus.json").read_text())["listen"][0] == endpoint
+        finally:
+            await link.bus.close()
+        with pytest.raises(OSError, match="the port is busy"):  # other hosts connect to it: it cannot move
+            launch.open_launcher_bus(cfg, HostPlan(roles=("sim",), multi=True), tmp_path)
+
+    with socket.socket() as held:  # the other run's listener, bound after our check said the port was free
+        held.bind(("127.0.0.1", 0))
+        held.listen()
+        taken = f"tcp/127.0.0.1:{held.getsockname()[1]}"
+        monkeypatch.setattr(launch, "launcher_endpoint", lambda cfg, plan: taken)
+        asyncio.run(main())

@@ -33,6 +33,13 @@ def listen_endpoint(wanted: str, strict: bool = False) -> str:
     return free
 
 
+def address_in_use(exc: BaseException) -> bool:
+    """Whether a failed bind (Zenoh's error, or the OS's) says the address is already in use."""
+    import errno
+
+    return getattr(exc, "errno", None) == errno.EADDRINUSE or "Address already in use" in str(exc)
+
+
 def _file_setting(config_file: str, path: str) -> object:
     """What a native Zenoh config file sets at ``path`` (JSON), or None where it leaves Zenoh's default."""
     import json

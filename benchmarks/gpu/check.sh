@@ -32,7 +32,8 @@
 #   mjwarp      (every part of .whl-mjw staged) the MuJoCo Warp tests on the GPU (mjwarp_tests, which also
 #               compile Warp's kernels before anything is timed), a group's chunk time at 1024-4096 worlds with
 #               and without CUDA graphs (mjwarp_step), the race: ebrl to 90 % success on PandaPickCube, then the
-#               one-process GPU PPO peer, RACE_SECONDS each (mjwarp_race), and 2 pipelined groups of 1024 worlds
+#               one-process GPU PPO peer, RACE_SECONDS each, a pair for each of SEEDS ("0"; "0 1 2" gives the
+#               spread, which single pairs hide) (mjwarp_race), and 2 pipelined groups of 1024 worlds
 #               vs one group of 2048 (mjwarp_groups);
 #               Warp's compiled kernels come back as $OUT/warp-cache.tgz.0, .1, ... (put them in .whl-mjw/cache
 #               here and re-run prepare_mjwarp.sh: the next machine loads them instead of compiling)
@@ -49,6 +50,7 @@ DURATION="${DURATION:-15}"
 W3_SECONDS="${W3_SECONDS:-120}"
 SHARES_SECONDS="${SHARES_SECONDS:-8}"
 RACE_SECONDS="${RACE_SECONDS:-240}"
+SEEDS="${SEEDS:-0}"
 VARIANT_SECONDS="${VARIANT_SECONDS:-150}"
 RES=/tmp/ebrl-gpu-results
 mkdir -p "$OUT" "$RES"
@@ -189,10 +191,14 @@ while [ $i -lt ${#PARTS[@]} ]; do
                      --out "$RES/mjwarp_step.json" ;;
     # the learning race, back to back (after the tests: Warp's kernels compiled and cached for both sides):
     # ebrl to 90 % success on PandaPickCube, then the one-process GPU PPO peer
-    mjwarp_race) part mjwarp_ebrl $((RACE_SECONDS + 90)) timeout "$RACE_SECONDS" python3 -m ebrl.cli up \
-                     configs/mjwarp_pickcube.toml --set 'viz.rerun="off"' --set "run.output_dir=\"$RES/mjwarp-race\""
-                 part mjwarp_peer $((RACE_SECONDS + 90)) python3 benchmarks/peers/mjwarp_ppo.py \
-                     --max-seconds "$RACE_SECONDS" --json "$RES/peer_mjwarp_ppo.json" ;;
+    # (SEEDS: one pair a seed, ebrl first; updates to 90 % vary about 2x from seed to seed on either side)
+    mjwarp_race) for s in $SEEDS; do
+                     part "mjwarp_ebrl_s$s" $((RACE_SECONDS + 90)) timeout "$RACE_SECONDS" python3 -m ebrl.cli up \
+                         configs/mjwarp_pickcube.toml --set 'viz.rerun="off"' --set "run.seed=$s" \
+                         --set "run.output_dir=\"$RES/mjwarp-race-s$s\""
+                     part "mjwarp_peer_s$s" $((RACE_SECONDS + 90)) python3 benchmarks/peers/mjwarp_ppo.py --seed "$s" \
+                         --max-seconds "$RACE_SECONDS" --json "$RES/peer_mjwarp_ppo_s$s.json"
+                 done ;;
     mjwarp_variants) set -- mjwarp_chunk1 mjwarp_group4096 mjwarp_mps; for b; do PARTS+=("$b"); done ;;
     mjwarp_chunk1) variant chunk1 policy.chunk=1 train.batch_size=65536 train.max_pending=131072 sim.segment_length=32 ;;
     mjwarp_group4096) variant group4096 sim.groups=1 sim.envs_per_group=4096 train.batch_size=32768 \

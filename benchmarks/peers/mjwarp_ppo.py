@@ -214,6 +214,38 @@ def make_batch(args: Args) -> Any:
     return MjWarpBatch(spec, [args.seed * SEED_STRIDE + i for i in range(args.num_envs)])
 
 
+def ppo_update(agent: Agent, optimizer: torch.optim.Optimizer, args: Args, b_obs: torch.Tensor,
+               b_actions: torch.Tensor, b_logprobs: torch.Tensor, b_advantages: torch.Tensor, b_returns: torch.Tensor,
+               orders: list[torch.Tensor] | None = None) -> list[torch.Tensor]:
+    """CleanRL's update: ``update_epochs`` passes over the batch in ``num_minibatches`` minibatches (``orders``: each
+    epoch's permutation; default random), clipped surrogate, advantages normalised per minibatch, value loss,
+    gradient norm clipped. Returns each step's approximate KL (on the device)."""
+    kls: list[torch.Tensor] = []
+    n = len(b_obs)
+    for epoch in range(args.update_epochs):
+        order = orders[epoch] if orders is not None else torch.randperm(n, device=b_obs.device)
+        for mb in torch.tensor_split(order, args.num_minibatches):
+            _, newlogprob, entropy, newvalue = agent.get_action_and_value(b_obs[mb], b_actions[mb])
+            logratio = newlogprob - b_logprobs[mb]
+            ratio = logratio.exp()
+            with torch.no_grad():
+                approx_kl = ((ratio - 1) - logratio).mean()
+                kls.append(approx_kl)
+            adv = b_advantages[mb]
+            if len(mb) > 1:
+                adv = (adv - adv.mean()) / (adv.std() + 1e-8)
+            pg_loss = torch.max(-adv * ratio, -adv * torch.clamp(ratio, 1 - args.clip_coef, 1 + args.clip_coef)).mean()
+            v_loss = 0.5 * ((newvalue - b_returns[mb]) ** 2).mean()
+            loss = pg_loss - args.ent_coef * entropy.mean() + v_loss * args.vf_coef
+            optimizer.zero_grad()
+            loss.backward()
+            nn.utils.clip_grad_norm_(agent.parameters(), args.max_grad_norm)
+            optimizer.step()
+        if args.target_kl is not None and float(approx_kl) > args.target_kl:
+            break
+    return kls
+
+
 def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
     command = " ".join(shlex.quote(a) for a in [sys.executable, *(sys.argv if argv is None else argv)])
@@ -338,29 +370,7 @@ def main(argv: list[str] | None = None) -> int:
         b_obs = norm(b_raw)
 
         # ---- update: epochs x minibatches of clipped-surrogate PPO ----
-        kls: list[torch.Tensor] = []
-        for _epoch in range(args.update_epochs):
-            order = torch.randperm(args.batch_size, device=device)
-            for mb in torch.tensor_split(order, args.num_minibatches):
-                _, newlogprob, entropy, newvalue = agent.get_action_and_value(b_obs[mb], b_actions[mb])
-                logratio = newlogprob - b_logprobs[mb]
-                ratio = logratio.exp()
-                with torch.no_grad():
-                    approx_kl = ((ratio - 1) - logratio).mean()
-                    kls.append(approx_kl)
-                adv = b_advantages[mb]
-                if len(mb) > 1:
-                    adv = (adv - adv.mean()) / (adv.std() + 1e-8)
-                pg_loss = torch.max(-adv * ratio, -adv * torch.clamp(ratio, 1 - args.clip_coef,
-                                                                    1 + args.clip_coef)).mean()
-                v_loss = 0.5 * ((newvalue - b_returns[mb]) ** 2).mean()
-                loss = pg_loss - args.ent_coef * entropy.mean() + v_loss * args.vf_coef
-                optimizer.zero_grad()
-                loss.backward()
-                nn.utils.clip_grad_norm_(agent.parameters(), args.max_grad_norm)
-                optimizer.step()
-            if args.target_kl is not None and float(approx_kl) > args.target_kl:
-                break
+        kls = ppo_update(agent, optimizer, args, b_obs, b_actions, b_logprobs, b_advantages, b_returns)
         updates += 1
         update_s += time.monotonic() - t_phase
         now = time.monotonic() - T0

@@ -127,3 +127,29 @@ def test_the_sweep_bounds_every_ratio_by_what_the_cores_can_step():
     assert top["ebrl_of_ceiling"] == pytest.approx(0.92) and top["best_of_ceiling"] == pytest.approx(0.8)
     assert top["ceiling_vs_best"] == pytest.approx(1.25)
     assert sweep.ceiling("halfcheetah", 2, point) == {}  # a named point's step cost is not set
+
+
+def test_the_pickcube_race_medians_count_a_seed_that_missed_as_its_whole_run():
+    """benchmarks/pickcube_race.py: per side, the seeds that reached 90 % and the median updates, where a seed that
+    missed counts its whole run (a lower bound); the commands recorded are what a user types."""
+    import importlib.util
+    from pathlib import Path
+
+    spec = importlib.util.spec_from_file_location("pickcube_race", ROOT / "benchmarks/pickcube_race.py")
+    race = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(race)
+    runs = [{"side": "peer", "reached": True, "updates": u, "updates_total": u, "seconds": 10.0 * u, "wall_s": 0.0}
+            for u in (71, 84, 134)]
+    runs += [{"side": "ebrl (ebrl)", "reached": True, "updates": 93, "updates_total": 93, "seconds": 230.0,
+              "wall_s": 240.0},
+             {"side": "ebrl (ebrl)", "reached": False, "updates": None, "updates_total": 300, "seconds": None,
+              "wall_s": 900.0}]
+    got = race.medians(runs)
+    assert got["peer"] == {"seeds": 3, "reached": 3, "median_updates": 84, "median_seconds": 840.0}
+    assert got["ebrl (ebrl)"]["reached"] == 1 and got["ebrl (ebrl)"]["median_updates"] == 196.5
+    out = Path("/scratch/ebrl-3")
+    shown = race.shown(race.ebrl_command(3, "ebrl", False, out, []), f'run.output_dir="{out}"')
+    assert shown.startswith("ebrl up configs/mjwarp_pickcube.toml --set sim.envs_per_group=64")
+    assert "--set run.seed=3" in shown and "scratch" not in shown
+    peer = race.shown(race.peer_command(3, False, 900, Path("/scratch/p.json")), "--json")
+    assert peer == "python benchmarks/peers/mjwarp_ppo.py --device cpu --num-envs 128 --seed 3 --max-seconds 900"

@@ -62,6 +62,7 @@ def test_the_allocator_observes_the_stages_re_plans_and_the_services_apply_it_in
         return run
 
     run = asyncio.run(main())
-    alloc = run.stats.latest_report("alloc/0", "alloc/plan_version").metrics
-    assert alloc["alloc/plan_version"] >= 2 and alloc["alloc/train_capacity"] > 0
+    # capacities are in the reports of the windows whose stats could tell them (on a loaded machine not every one)
+    assert run.stats.latest("alloc/0", "alloc/plan_version") >= 2
+    assert run.stats.latest("alloc/0", "alloc/train_capacity", 0.0) > 0
     assert not undeclared(used), undeclared(used)

@@ -122,7 +122,7 @@ def main() -> None:
     parser.add_argument("--sides", default="ebrl,peer", help="ebrl, peer or both")
     parser.add_argument("--mode", default="ebrl", help="EBRL's run.mode (ebrl, colocated, ...)")
     parser.add_argument("--gpu", action="store_true", help="the config's own size on the GPU, not the CPU proportions")
-    parser.add_argument("--max-seconds", type=float, default=900.0, help="each run stops here at the latest")
+    parser.add_argument("--max-seconds", type=float, default=1800.0, help="each run stops here at the latest")
     parser.add_argument("--jobs", type=int, default=1, help="runs at once")
     parser.add_argument("--set", action="append", default=[], metavar="SECTION.KEY=VALUE", help="for EBRL's runs")
     parser.add_argument("--json", default=str(ROOT / "benchmarks/results/pickcube_race_cpu.json"))

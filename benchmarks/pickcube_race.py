@@ -76,7 +76,11 @@ def run_ebrl(seed: int, args: argparse.Namespace, scratch: Path) -> dict:
         proc.wait(timeout=args.max_seconds)
     except subprocess.TimeoutExpired:  # out of time: Ctrl-C, as a user would (the run writes its summary)
         proc.send_signal(signal.SIGINT)
-        proc.wait(timeout=120)
+        try:
+            proc.wait(timeout=120)
+        except subprocess.TimeoutExpired:  # it did not stop: no summary, the row says so
+            proc.kill()
+            proc.wait()
     summaries = sorted(out.glob("*/summary.json"))
     summary = json.loads(summaries[-1].read_text()) if summaries else {}
     reached = summary.get("target_reached")

@@ -19,6 +19,7 @@ from safetensors.torch import save_file
 
 from ebrl.algos import checkpoint
 from ebrl.algos.learner import Learner
+from ebrl import config
 from ebrl.config import Config
 from ebrl.envs import EnvSpec, describe
 from ebrl.envs.batch import BatchRunner, EnvBatch
@@ -200,3 +201,30 @@ def test_one_forged_weights_version_ahead_of_train_does_not_stall_the_run(tmp_pa
     summary = json.loads((run.run_dir / "summary.json").read_text())
     assert summary["iterations"] == 16 and summary["restarts"] == {}
     assert stats.latest("gen/0", "gen/version_resets") >= 1  # it went back to train's weights, on its own
+
+
+def test_on_policy_data_weighs_one_in_the_decoupled_objective_while_the_normaliser_moves(tmp_path):
+    """pi_prox is the policy that acted, taken before the batch joins the observation statistics: on-policy
+    data far from the statistics so far has w = 1, and the decoupled update is plain PPO's, weight for weight."""
+    weights, stats = {}, {}
+    for decoupled in (True, False):
+        raw: dict = {}
+        for item in ("policy.normalize_obs=true", f"algo.decoupled={str(decoupled).lower()}",
+                     "algo.prox_logp=recompute", "train.batch_size=8"):
+            config.apply_override(raw, item)
+        cfg = config.from_dict(raw)
+        learner = Learner(cfg, INFO, 4, Counts(), str(tmp_path / str(decoupled)))
+        seg = segment()
+        seg.obs = seg.obs * 50.0 + 20.0  # the statistics move a long way with this batch
+        k, a = cfg.policy.chunk, INFO.action_dim
+        seg.actions = np.random.default_rng(1).normal(size=(len(seg.obs), k, a)).astype(np.float32)
+        with torch.no_grad():  # the log-probs of the policy that acted: version 0, statistics before the batch
+            seg.logprobs = learner.model.evaluate(torch.as_tensor(seg.obs), torch.as_tensor(seg.actions),
+                                                  torch.zeros(len(seg.obs), 0))[0].numpy()
+        assert learner.accept(seg, pytest.fail)
+        stats[decoupled] = learner.learn(learner.take())
+        weights[decoupled] = state_arrays(learner.model)
+    assert stats[True]["behave_weight_mean"] == pytest.approx(1.0, abs=1e-6)
+    assert stats[True]["behave_kl"] == pytest.approx(0.0, abs=1e-6)
+    for name, value in weights[False].items():
+        np.testing.assert_allclose(weights[True][name], value, rtol=1e-5, atol=1e-6, err_msg=name)

@@ -121,6 +121,10 @@ class Learner:
         with self.dp.gathered() if self.dp is not None else contextlib.nullcontext():
             batch = checked_batch(self.collector, items, self.model, self.telemetry)
         batch = batch.to(self.device) if batch is not None else None
+        prox = None  # log pi_prox: the policy as it acted, before the normaliser takes in this batch
+        if batch is not None:
+            with devices.autocast(self.device, self.cfg.policy.dtype):
+                prox = self.ppo.proximal(batch)
         if self.model.obs_norm is not None:  # before the gradient steps, the same statistics on every rank
             sums = self.model.obs_norm.sums(batch.obs if batch is not None else torch.zeros(0, *self.obs_shape))
             self.model.obs_norm.merge(sums if self.dp is None else self.dp.all_sum(sums))
@@ -131,7 +135,7 @@ class Learner:
             staleness = self.version - batch.versions
             self.staleness_hist += np.bincount(staleness, minlength=len(self.staleness_hist))[:len(self.staleness_hist)]
             with devices.autocast(self.device, self.cfg.policy.dtype):
-                out = self.ppo.update(batch, version=self.version)
+                out = self.ppo.update(batch, version=self.version, prox=prox)
             out.update(staleness_mean=float(staleness.mean()), staleness_max=float(staleness.max()),
                        batch_size=float(len(batch)))
         count_skipped(out, self.telemetry, self.version + 1)

@@ -8,7 +8,8 @@ it took. Segments that ended by time limit or by segment length bootstrap from
 the value of ``last_obs``; terminated ones do not.
 
 Decoupled loss: with pi_behave the policy that acted, pi_prox the policy at the
-start of this update (log-probs recomputed once) and r = pi_theta / pi_prox,
+start of this update (log-probs recomputed once, before the batch joins the
+observation statistics) and r = pi_theta / pi_prox,
 
     L = -E[ w * min(r * A, clip(r, 1 - eps, 1 + eps) * A) ],   w = min(pi_prox / pi_behave, cap)
 
@@ -229,10 +230,23 @@ class PPO:
         """Make the optimizer now (train: once v0 is published, while the first batch is collected)."""
         _ = self.optimizer
 
-    def update(self, batch: Batch, scale: float = 1.0, version: int | None = None) -> dict[str, float]:
+    def proximal(self, batch: Batch) -> torch.Tensor | None:
+        """log pi_prox of ``batch`` where the objective recomputes it (``algo.decoupled``, ``prox_logp =
+        "recompute"``), else None. The learner calls it before the observation normaliser takes in the batch:
+        pi_prox is the policy that starts the update, the one a decision was drawn from when the data is
+        on-policy, so there w = 1 and the update is plain PPO's. Computed after the merge, w would instead
+        measure how far the normaliser moved and weight each decision by that noise."""
+        if not getattr(self.cfg, "decoupled", False) or getattr(self.cfg, "prox_logp", "recompute") != "recompute":
+            return None
+        with torch.no_grad():
+            return self.net("evaluate", batch.obs, batch.actions, batch.latents)[0]
+
+    def update(self, batch: Batch, scale: float = 1.0, version: int | None = None,
+               prox: torch.Tensor | None = None) -> dict[str, float]:
         """``epochs`` x ``minibatches`` gradient steps, always exactly that many (data-parallel ranks step in
         lockstep); ``scale = 0`` takes the steps with zero gradients (a rank that got no data this time).
         ``version``: the policy version being updated (default: the newest in the batch), for interpolation.
+        ``prox``: log pi_prox from :meth:`proximal` (default: recomputed here, where the objective needs it).
 
         A step whose loss or gradient norm is not finite is skipped (AMP's answer to a bad step) and the
         decisions that made it leave the batch: those whose own log-prob, value or loss term is not finite,
@@ -245,14 +259,13 @@ class PPO:
         interpolate = decoupled and getattr(cfg, "prox_logp", "recompute") == "interpolate"
         cap = getattr(cfg, "behave_weight_cap", math.inf)
         means: dict[str, list[torch.Tensor]] = {}  # per-step values on the device, averaged and read at the end
-        prox = alpha = None
+        alpha = None
         if interpolate:
             lag = torch.as_tensor((version if version is not None else batch.versions.max()) - batch.versions,
                                   dtype=torch.float32, device=device).clamp(min=0)
             alpha = lag / (lag + 1)  # log pi_prox and the weights: per minibatch step (_step)
         elif decoupled:
-            with torch.no_grad():
-                prox = self.net("evaluate", batch.obs, batch.actions, batch.latents)[0]  # log pi_prox, once per update
+            prox = prox if prox is not None else self.proximal(batch)  # log pi_prox, once per update
             self._behaviour_stats(means, prox - batch.logprobs, cap)
         else:
             prox = batch.logprobs  # pi_prox = pi_behave: weight 1, plain PPO

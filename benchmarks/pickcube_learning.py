@@ -131,7 +131,8 @@ def main() -> None:
     command = " ".join(["python benchmarks/pickcube_learning.py",
                         *([f"--config {args.config}"] if args.config != CONFIG else []), f"--minutes {args.minutes:g}",
                         f"--seeds {args.seeds}", f"--window {args.window:g}",
-                        *[f"--set {o}" for o in args.overrides]])
+                        *[f"--set {o}" for o in args.overrides],
+                        *([f"--name {args.name}"] if args.name != "pickcube_cpu_learning" else [])])
     runs: dict[str, Any] = {}
     for seed in args.seeds.split(","):
         run_dir = run(args.config, args.minutes, ROOT / "runs" / "pickcube_learning",

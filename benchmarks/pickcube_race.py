@@ -1,6 +1,6 @@
 """Updates, env steps and seconds to 90 % success on PandaPickCube: EBRL against the one-process peer, seed by seed.
 
-    python benchmarks/pickcube_race.py --seeds 0,1,2,3 --jobs 2          # Warp's CPU device, 2 x 64 worlds
+    python benchmarks/pickcube_race.py --seeds 0,1,2,3                    # Warp's CPU device, 2 x 64 worlds
     python benchmarks/pickcube_race.py --seeds 0,1,2 --gpu                # the GPU race at its own size
 
 Each seed runs ``ebrl up configs/mjwarp_pickcube.toml`` (``run.seed`` set; ``--mode`` for another mode) and
@@ -11,8 +11,9 @@ GPU race's proportions on Warp's CPU device, small enough for 2 cores: one env s
 decisions, segments of 32), the config's network and PPO settings on both sides.
 
 How many updates a seed needs varies about 2x from seed to seed on either side, so one pair says little;
-the medians over the seeds are the comparison. ``--jobs`` runs that many at once (updates and env steps to the
-target do not depend on it; seconds do). Writes ``--json`` (default
+the medians over the seeds are the comparison. ``--jobs`` runs that many at once: the peer's updates and env
+steps to the target do not depend on it, EBRL's do a little (how stale its data is depends on timing), and
+seconds compare only between runs made one at a time (the default). Writes ``--json`` (default
 ``benchmarks/results/pickcube_race_cpu.json``): each run's command, whether and when it reached the target
 (updates, env steps, seconds), and per side the medians.
 """
@@ -132,7 +133,9 @@ def main() -> None:
     parser.add_argument("--json", default=str(ROOT / "benchmarks/results/pickcube_race_cpu.json"))
     args = parser.parse_args()
     seeds = [int(s) for s in args.seeds.split(",") if s.strip()]
-    sides = [s.strip() for s in args.sides.split(",") if s.strip()]
+    sides = [s.strip() for s in args.sides.replace("both", "ebrl,peer").split(",") if s.strip()]
+    if unknown := set(sides) - {"ebrl", "peer"}:
+        parser.error(f"--sides: {', '.join(sorted(unknown))} is not a side (ebrl, peer or both)")
     jobs = [(side, seed) for seed in seeds for side in sides]
     with tempfile.TemporaryDirectory(prefix="pickcube-race-") as scratch, \
             concurrent.futures.ThreadPoolExecutor(max(1, args.jobs)) as pool:

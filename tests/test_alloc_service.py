@@ -161,8 +161,16 @@ def test_a_new_gpu_share_restarts_training_at_a_safe_point_and_loses_nothing(tmp
                 pass
         return None
 
+    session = None
     try:
-        with zenoh.open(conf) as session:
+        while session is None:  # config.toml is written before the launcher listens: connect once it does
+            try:
+                session = zenoh.open(conf)
+            except zenoh.ZError:
+                assert proc.poll() is None, f"the launcher exited:\n{proc.communicate()[0]}"
+                assert time.monotonic() < deadline, "the launcher never listened"
+                time.sleep(0.2)
+        with session:
             session.declare_subscriber(keys.stats("requota", "train", 0), on_stats)
             deadline = time.monotonic() + 600  # a bound for a hang, not a timing window
             while max(versions, default=0) < 4:

@@ -64,6 +64,7 @@ FLOWS: dict[str, tuple[Flow, ...]] = {
     "sim": (
         Flow("put", keys.obs(R), "Observation", "a group's observations, when its chunk ends"),
         Flow("put", keys.traj(R), "TrajectorySegment", "finished segments"),
+        Flow("put", keys.traj_packed(R), "SegmentBatch", "a vectorized group's finished segments, packed"),
         Flow("put", keys.episodes(R, ROLE), "EpisodeBatch", "finished episodes (returns, success)"),
         Flow("sub", keys.act(R), "ActionChunk", "each group's next chunk"),
         Flow("watch", keys.live_all(R), "-", "which gen and sim hosts are up (the iteration gate)"),
@@ -76,6 +77,7 @@ FLOWS: dict[str, tuple[Flow, ...]] = {
     ),
     "train": (
         Flow("sub", keys.traj(R), "TrajectorySegment", "segments to learn from"),
+        Flow("sub", keys.traj_packed(R), "SegmentBatch", "packed segments to learn from"),
         Flow("put", keys.weights(R), "Weights", "each new version (small policies)"),
         Flow("put", keys.weights_parts(R), "WeightsPart", "each new version in parts (large policies)"),
         Flow("answer", keys.weights_all(R), "Weights | WeightsPart", "the newest version, on request"),

@@ -206,6 +206,108 @@ class TrajectorySegment:
                                f"{len(self.episode_returns)} returns")
 
 
+SEGMENT_ENDS: tuple[str, ...] = ("cut", "terminated", "truncated")  # SegmentBatch.ends codes, as TrajectorySegment.end
+
+
+@dataclass
+class SegmentBatch:
+    """Finished segments of many environments of one group, packed (sim -> train): what a vectorized group of
+    hundreds or thousands of envs publishes at a chunk instead of a :class:`TrajectorySegment` per env. Segment
+    ``s`` is env ``env_ids[s]``'s decisions ``offsets[s] .. offsets[s] + lengths[s]`` of the per-decision fields
+    (``offsets``: the running sum of ``lengths``); it means exactly what the same TrajectorySegment would."""
+
+    KEY = "ebrl/data/<run>/traj/<group>/packed"
+    group: int = doc("group index")
+    env_ids: Annotated[np.ndarray, Array("int64", 1)] = doc("global env id of each segment, shape [S]")
+    episodes: Annotated[np.ndarray, Array("int64", 1)] = doc("episode index of each segment's env, shape [S]")
+    lengths: Annotated[np.ndarray, Array("int32", 1)] = doc("decisions of each segment (>= 1), shape [S]; sum T")
+    ends: Annotated[np.ndarray, Array("int8", 1)] = doc(
+        "why each segment ended, shape [S]: 0 cut (segment length or iteration boundary), 1 terminated, "
+        "2 truncated (TrajectorySegment.end)")
+    obs: Annotated[np.ndarray, Array("float32")] = doc(
+        "observation before each chunk, segments one after another, shape [T, *obs_shape]")
+    actions: Annotated[np.ndarray, Array("float32", 3)] = doc("chunks sent, shape [T, K, action_dim]")
+    latents: Annotated[np.ndarray, Array("float32")] = doc("policy sampling state of each chunk, shape [T, *latent_shape]")
+    logprobs: Annotated[np.ndarray, Array("float32", 1)] = doc("behaviour log-prob of each chunk, shape [T]")
+    values: Annotated[np.ndarray, Array("float32", 1)] = doc("value estimate at each chunk start, shape [T]")
+    rewards: Annotated[np.ndarray, Array("float32", 1)] = doc("sum of env rewards over each chunk, shape [T]")
+    steps: Annotated[np.ndarray, Array("int32", 1)] = doc("env steps executed in each chunk, shape [T]")
+    versions: Annotated[np.ndarray, Array("int64", 1)] = doc("policy version that produced each chunk, shape [T]")
+    last_obs: Annotated[np.ndarray, Array("float32")] = doc(
+        "observation after each segment's last chunk, for bootstrapping, shape [S, *obs_shape]")
+    episode_returns: Annotated[np.ndarray, Array("float32", 1)] = doc(
+        "return of the episode that ended at a segment's last decision, shape [S] (0 where none did)")
+    episode_lengths: Annotated[np.ndarray, Array("int32", 1)] = doc(
+        "its length in env steps, shape [S]; -1 where no episode ended in the segment")
+    episode_successes: Annotated[np.ndarray, Array("int8", 1)] = doc(
+        "its success check, shape [S]: 1, 0, or -1 where none ended or the task reports none")
+    images: Annotated[np.ndarray, Array("uint8", 2)] = doc(
+        "the uint8 fields of `obs` as bytes, shape [T, byte_size] (as TrajectorySegment.images); [0, 0] when the "
+        "layout has none", default_factory=lambda: _NO_BYTES.copy())
+    last_images: Annotated[np.ndarray, Array("uint8", 2)] = doc(
+        "the uint8 fields of `last_obs` as bytes, shape [S, byte_size]; [0, 0] when the layout has none",
+        default_factory=lambda: _NO_BYTES.copy())
+
+    MAX_BYTES = DATA_MAX_BYTES
+
+    def check(self) -> None:
+        """Per-segment fields S long, per-decision fields T = sum(lengths) long, every value finite, counts,
+        codes and versions in range."""
+        name = "SegmentBatch"
+        _count(f"{name}.group", self.group, 0, 1 << 20)
+        s = len(self.env_ids)
+        per_segment = [len(getattr(self, f)) for f in ("episodes", "lengths", "ends", "last_obs", "episode_returns",
+                                                       "episode_lengths", "episode_successes")]
+        if s == 0 or any(n != s for n in per_segment):
+            raise MessageError(f"{name}: per-segment fields differ in length (env_ids {s}; {per_segment})")
+        if int(self.lengths.min()) < 1:
+            raise MessageError(f"{name}.lengths: a segment without decisions")
+        t = int(self.lengths.sum(dtype=np.int64))
+        per_decision = [len(getattr(self, f)) for f in ("obs", "actions", "latents", "logprobs", "values", "rewards",
+                                                        "steps", "versions")]
+        if self.obs.ndim < 1 or any(n != t for n in per_decision):
+            raise MessageError(f"{name}: per-decision fields differ from sum(lengths) = {t} ({per_decision})")
+        if self.last_obs.shape[1:] != self.obs.shape[1:]:
+            raise MessageError(f"{name}.last_obs has shape {self.last_obs.shape}, observations {self.obs.shape}")
+        _bytes_rows(f"{name}.images", self.images, t)
+        _bytes_rows(f"{name}.last_images", self.last_images, s)
+        if bool(self.images.size) != bool(self.last_images.size) or (
+                self.images.size and self.images.shape[1] != self.last_images.shape[1]):
+            raise MessageError(f"{name}.last_images has shape {self.last_images.shape}, images {self.images.shape}")
+        _finite(name, self.obs, self.actions, self.latents, self.logprobs, self.values, self.rewards, self.last_obs,
+                self.episode_returns)
+        for field_name, values, low, high in (
+                ("env_ids", self.env_ids, 0, 1 << 30), ("episodes", self.episodes, 0, MAX_VERSION),
+                ("ends", self.ends, 0, len(SEGMENT_ENDS) - 1), ("steps", self.steps, 0, self.actions.shape[1]),
+                ("versions", self.versions, 0, MAX_VERSION), ("episode_lengths", self.episode_lengths, -1, 1 << 30),
+                ("episode_successes", self.episode_successes, -1, 1)):
+            if values.size and (int(values.min()) < low or int(values.max()) > high):
+                raise MessageError(f"{name}.{field_name}: a value outside [{low}, {high}]")
+
+    def segments(self) -> list[TrajectorySegment]:
+        """The TrajectorySegment of each packed segment, in order (views of this message's arrays; checked as
+        this message was, so not again)."""
+        ends = np.cumsum(self.lengths, dtype=np.int64)
+        starts = ends - self.lengths
+        out = []
+        pixels = bool(self.images.size)
+        for s, (a, b) in enumerate(zip(starts.tolist(), ends.tolist())):
+            ended = int(self.episode_lengths[s]) >= 0
+            success = int(self.episode_successes[s])
+            out.append(TrajectorySegment(
+                group=self.group, env_id=int(self.env_ids[s]), episode=int(self.episodes[s]), obs=self.obs[a:b],
+                actions=self.actions[a:b], latents=self.latents[a:b], logprobs=self.logprobs[a:b],
+                values=self.values[a:b], rewards=self.rewards[a:b], steps=self.steps[a:b],
+                versions=self.versions[a:b], end=SEGMENT_ENDS[int(self.ends[s])],  # type: ignore[arg-type]
+                last_obs=self.last_obs[s],
+                episode_returns=[float(self.episode_returns[s])] if ended else [],
+                episode_lengths=[int(self.episode_lengths[s])] if ended else [],
+                episode_successes=([None if success < 0 else bool(success)] if ended else []),
+                images=self.images[a:b] if pixels else _NO_BYTES.copy(),
+                last_images=self.last_images[s] if pixels else np.zeros(0, np.uint8)))
+        return out
+
+
 @dataclass
 class Weights:
     """Versioned policy weights (train -> gen)."""
@@ -458,6 +560,7 @@ MESSAGES: tuple[type, ...] = (
     Observation,
     ActionChunk,
     TrajectorySegment,
+    SegmentBatch,
     Weights,
     WeightsPart,
     StatsReport,

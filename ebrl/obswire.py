@@ -16,9 +16,10 @@ from typing import Callable, TypeVar
 import numpy as np
 
 from ebrl.envs.obs import ObsLayout
-from ebrl.messages import MessageError, Observation, TrajectorySegment, decode_message
+from ebrl.messages import MessageError, Observation, SegmentBatch, TrajectorySegment, decode_message
 
-M = TypeVar("M", Observation, TrajectorySegment)
+M = TypeVar("M", Observation, TrajectorySegment, SegmentBatch)
+S = TypeVar("S", TrajectorySegment, SegmentBatch)
 
 
 def observation(layout: ObsLayout, group: int, seq: int, env_ids: np.ndarray, obs: np.ndarray,
@@ -30,11 +31,15 @@ def observation(layout: ObsLayout, group: int, seq: int, env_ids: np.ndarray, ob
     return Observation(group=group, seq=seq, env_ids=env_ids, obs=floats, sent_at=sent_at, images=pixels)
 
 
-def segment(layout: ObsLayout, seg: TrajectorySegment) -> TrajectorySegment:
-    """A segment as sim publishes it: the uint8 fields of ``obs`` and ``last_obs`` as bytes."""
+def segment(layout: ObsLayout, seg: S) -> S:
+    """A segment (or a group's packed segments) as sim publishes it: the uint8 fields of ``obs`` and
+    ``last_obs`` as bytes."""
     if not layout.byte_size:
         return seg
     floats, pixels = layout.to_wire(seg.obs)
+    if isinstance(seg, SegmentBatch):  # a last observation per segment
+        last, last_pixels = layout.to_wire(seg.last_obs)
+        return dataclasses.replace(seg, obs=floats, images=pixels, last_obs=last, last_images=last_pixels)
     last, last_pixels = layout.to_wire(seg.last_obs[None])
     return dataclasses.replace(seg, obs=floats, images=pixels, last_obs=last[0], last_images=last_pixels[0])
 
@@ -51,6 +56,10 @@ def decoder(cls: type[M], layout: ObsLayout, obs_shape: tuple[int, ...]) -> Call
             obs = layout.from_wire(msg.obs, msg.images).reshape(len(msg.obs), *obs_shape)
             if isinstance(msg, Observation):
                 return dataclasses.replace(msg, obs=obs, images=np.zeros((0, 0), np.uint8))
+            if isinstance(msg, SegmentBatch):
+                last = layout.from_wire(msg.last_obs, msg.last_images).reshape(len(msg.last_obs), *obs_shape)
+                return dataclasses.replace(msg, obs=obs, last_obs=last, images=np.zeros((0, 0), np.uint8),
+                                           last_images=np.zeros((0, 0), np.uint8))
             last = layout.from_wire(msg.last_obs[None], msg.last_images[None]).reshape(obs_shape)
             return dataclasses.replace(msg, obs=obs, last_obs=last, images=np.zeros((0, 0), np.uint8),
                                        last_images=np.zeros(0, np.uint8))

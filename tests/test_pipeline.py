@@ -16,7 +16,7 @@ import pytest
 
 from ebrl import config
 from ebrl.bus import keys
-from ebrl.messages import ActionChunk, StatsReport, TrajectorySegment
+from ebrl.messages import ActionChunk, SegmentBatch, StatsReport, TrajectorySegment
 from ebrl.sched.modes import resolve
 from ebrl.testing import InProcessRun
 
@@ -46,9 +46,11 @@ def segments_until_version(seen: dict, version: int = 3):
     (``seen["versions"]``) until gen acts with ``version``."""
     async def until(watch):
         segments = watch.subscribe(keys.traj("pipe"), TrajectorySegment, capacity=1024)
+        packed = watch.subscribe(keys.traj_packed("pipe"), SegmentBatch, capacity=1024)  # vectorized groups'
         stats = watch.subscribe(keys.stats("pipe", "*", 0), StatsReport, capacity=256)
         while True:
             seen["segments"] += [seg for _, seg in segments.drain()]
+            seen["segments"] += [seg for _, batch in packed.drain() for seg in batch.segments()]
             for _, report in stats.drain():
                 if report.service == "gen":
                     seen["versions"].append(report.metrics["gen/policy_version"])

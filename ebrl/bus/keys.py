@@ -45,6 +45,12 @@ def traj(run: str, group: int | str = "*") -> str:
     return f"{ROOT}/data/{run}/traj/{group}"
 
 
+def traj_packed(run: str, group: int | str = "*") -> str:
+    """``ebrl/data/<run>/traj/<group>/packed``: finished segments of many envs in one message (sim -> train), as
+    a vectorized group publishes them (``SegmentBatch``); ``traj/**`` reaches both forms."""
+    return f"{ROOT}/data/{run}/traj/{group}/packed"
+
+
 def weights(run: str) -> str:
     """``ebrl/data/<run>/weights``: versioned policy weights (train -> gen), one message per version
     while a version is small (``ebrl.weights``); also answered by the publisher's queryable, so a late
@@ -140,6 +146,7 @@ class Key:
     category      layout                                      fields
     ============  ==========================================  =========================================
     ``data``      ``ebrl/data/<run>/<kind>[/<group>]``         kind (obs, act, traj, weights), group
+                  (``traj/<group>/packed`` too)
     ``ctl``       ``ebrl/ctl/<run>/<service>/<instance>/<k>``  service, instance, kind
     ``stats``     ``ebrl/stats/<run>/<service>/<instance>``    service, instance
     ``stats``     ``ebrl/stats/<run>/spans/<lane>``            service = "spans", lane
@@ -177,7 +184,8 @@ def parse(key: object) -> Key:
         raise ValueError(f"not an EBRL key: {text!r}")
     category, run, rest = chunks[1], chunks[2], chunks[3:]
     if category == "data":
-        group = int(rest[1]) if rest[0] in ("obs", "act", "traj") and len(rest) == 2 and rest[1].isdigit() else None
+        grouped = rest[0] in ("obs", "act", "traj") and (len(rest) == 2 or rest[0] == "traj" and rest[2:] == ["packed"])
+        group = int(rest[1]) if grouped and rest[1].isdigit() else None
         return Key(category, run, kind=rest[0], group=group)
     if category == "stats" and rest[0] in RESERVED_STATS:
         return Key(category, run, service=rest[0], lane="/".join(rest[1:]))

@@ -23,7 +23,7 @@ import numpy as np
 
 from ebrl.envs import EnvSpec, EnvWorker
 from ebrl.envs.vector import VectorWorker
-from ebrl.envs.worker import ChunkResult, WorkerFailed
+from ebrl.envs.worker import ChunkResult, VectorChunk, WorkerFailed
 from ebrl.messages import EPISODES_MAX, RETURN_WINDOW, EpisodeBatch
 from ebrl.sched.corepool import CorePool
 from ebrl.sched.modes import Schedule, home_cores
@@ -220,13 +220,21 @@ class VectorFleet(EnvFleet):
     async def run_chunk(self, g: int, active: list[int], actions: np.ndarray) -> tuple[list[Result], list[float]]:
         if len(active) != self.per_group:
             raise ValueError(f"group {g}: a vectorized batch steps all of its {self.per_group} envs, not {len(active)}")
+        chunk, latency = await self.run_vector_chunk(g, actions)
+        if isinstance(chunk, WorkerFailed):
+            return [chunk] * len(active), [0.0] * len(active)
+        return list(chunk.results()), [latency] * len(active)
+
+    async def run_vector_chunk(self, g: int, actions: np.ndarray) -> tuple[VectorChunk | WorkerFailed, float]:
+        """Group ``g``'s batch steps ``actions`` ([N, K, A]): what it did as one :class:`VectorChunk` and the
+        chunk's wall seconds, or the :class:`WorkerFailed` of its process (killed: every env then recovers)."""
         start = time.perf_counter()
         try:
             chunk = await self.vectors[g].chunk(actions, timeout=self.stepping.timeout)
         except WorkerFailed as exc:
             self.vectors[g].kill()
-            return [exc] * len(active), [0.0] * len(active)
-        return list(chunk.results()), [time.perf_counter() - start] * len(active)
+            return exc, 0.0
+        return chunk, time.perf_counter() - start
 
     async def recover(self, g: int, i: int, episode: int) -> np.ndarray | None:
         """After group ``g``'s process failed: the first env to ask starts a new process for the whole group, every

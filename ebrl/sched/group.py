@@ -8,7 +8,8 @@ Three parts, each over the bus API only (a Zenoh ``Bus`` or an in-memory one):
 * :class:`SegmentOutbox` — segments out on ``traj/<group>``, held while no train is live (a restart, a
   new GPU share) up to ``train.max_pending`` decisions, and sent when one is back;
 * :class:`GroupLoop` — one group's loop: GRPO gating, exchange, stepping, worker replacement (an env given up
-  by the fleet takes no more chunks), segments.
+  by the fleet takes no more chunks), segments; :class:`VectorGroupLoop` the same for a vectorized group (one
+  batch of all its envs), in arrays, its segments packed (``traj/<group>/packed``). :func:`group_loop` picks.
 """
 
 from __future__ import annotations
@@ -24,12 +25,12 @@ import numpy as np
 from ebrl import obswire
 from ebrl.bus import keys
 from ebrl.envs.obs import ObsLayout
-from ebrl.envs.worker import WorkerFailed
-from ebrl.messages import ActionChunk, Observation, TrajectorySegment
+from ebrl.envs.worker import VectorChunk, WorkerFailed
+from ebrl.messages import ActionChunk, Observation, SegmentBatch, TrajectorySegment
 from ebrl.meter import Telemetry
-from ebrl.sched.fleet import EnvFleet, RolloutStats
+from ebrl.sched.fleet import EnvFleet, RolloutStats, VectorFleet
 from ebrl.sched.modes import Schedule
-from ebrl.sched.rollout import SegmentBuilder
+from ebrl.sched.rollout import SegmentBuffers, SegmentBuilder
 
 log = logging.getLogger(__name__)
 
@@ -88,10 +89,10 @@ class SegmentOutbox:
                  layout: ObsLayout | None = None):
         self.bus, self.telemetry, self.max_pending, self.train_live = bus, telemetry, max_pending, train_live
         self.layout = layout  # images of its uint8 fields travel (and wait here) as bytes (ebrl.obswire)
-        self.held: collections.deque[tuple[str, TrajectorySegment]] = collections.deque()
+        self.held: collections.deque[tuple[str, TrajectorySegment | SegmentBatch]] = collections.deque()
         self.held_steps = 0
 
-    async def send(self, key: str, segment: TrajectorySegment) -> None:
+    async def send(self, key: str, segment: TrajectorySegment | SegmentBatch) -> None:
         if self.layout is not None:
             segment = obswire.segment(self.layout, segment)
         if self.train_live():
@@ -131,11 +132,14 @@ class GroupLoop:
 
     async def run_forever(self) -> None:
         obs = await self.fleet.reset_group(self.g)
-        while not all(self.fleet.given_up_env(int(env)) for env in self.env_ids):
+        while not self.given_up():
             obs = await self.step(obs)
         log.error("group %d: every env given up; the group stops", self.g)
         if self.fleet.count() == 0:  # a sim service without envs fails: the launcher restarts it, or reports it
             raise RuntimeError("every env of this sim service was given up")
+
+    def given_up(self) -> bool:
+        return all(self.fleet.given_up_env(int(env)) for env in self.env_ids)
 
     async def step(self, obs: np.ndarray) -> np.ndarray:
         """One chunk of this group: returns the next observations."""
@@ -195,3 +199,81 @@ class GroupLoop:
             await self.outbox.send(keys.traj(self.run, self.g), segment)
             count("sim/segments")
         return res.next_obs
+
+
+class VectorGroupLoop(GroupLoop):
+    """A vectorized group's loop (:class:`~ebrl.sched.fleet.VectorFleet`: one batch of all its envs, every env
+    acting every chunk): what :class:`GroupLoop` does env by env, in arrays over the batch. Its segments are cut
+    where the per-env builders would cut them and go out packed, one :class:`~ebrl.messages.SegmentBatch` a chunk
+    (:class:`~ebrl.sched.rollout.SegmentBuffers`)."""
+
+    fleet: VectorFleet
+
+    def __init__(self, g: int, fleet: VectorFleet, *args: Any, **kwargs: Any):
+        super().__init__(g, fleet, *args, **kwargs)
+        self.buffers = SegmentBuffers(g, self.env_ids, self.segment_length)
+
+    def given_up(self) -> bool:
+        return self.fleet.given_up_env(int(self.env_ids[0]))  # a vectorized group is given up as a whole
+
+    async def step(self, obs: np.ndarray) -> np.ndarray:
+        g = self.g
+        chunk = await self.exchange.exchange(g, self.seq, self.env_ids, obs)
+        self.fleet.saw_version(chunk.policy_version)
+        start = time.time()
+        result, latency = await self.fleet.run_vector_chunk(g, chunk.actions)
+        self.telemetry.publish_span(f"sim.g{g}", "chunk", start, time.time())
+        boundary = (self.seq + 1) % self.schedule.length(self.sim_hosts()) == 0
+        self.seq += 1
+        if isinstance(result, WorkerFailed):
+            return await self.recover(obs, result)
+        await self.account(result, latency, chunk.policy_version)
+        segments = self.buffers.add(obs, chunk, result, boundary)
+        if segments is not None:
+            await self.outbox.send(keys.traj_packed(self.run, g), segments)
+            self.telemetry.count("sim/segments", len(segments.env_ids))
+        return result.next_obs  # type: ignore[return-value]  (VectorWorker.chunk filled it in)
+
+    async def account(self, result: VectorChunk, latency: float, version: int) -> None:
+        """The chunk's counts, its latency, and each episode that ended in it."""
+        count, stats, episodes = self.telemetry.count, self.stats, self.fleet.episodes
+        stats.chunk_latency.append(latency)
+        steps = int(result.steps.sum())
+        count("sim/env_steps", steps)
+        stats.env_steps += steps
+        count("sim/step_busy_s", result.busy_s)
+        for name, values in (("sim/rewards_clipped", result.rewards_clipped),
+                             ("sim/rewards_nonfinite", result.rewards_nonfinite),
+                             ("sim/obs_nonfinite", result.obs_nonfinite)):
+            if values is not None and (total := int(values.sum())):
+                count(name, total)
+        for j, i in enumerate(result.ended.tolist()):
+            env, episode, success = int(self.env_ids[i]), int(result.episode[i]), int(result.episode_success[j])
+            episodes.set(env, episode + 1)
+            stats.episode_ended(env, episode, float(result.episode_return[j]), int(result.episode_length[j]),
+                                None if success < 0 else bool(success), version)
+        if len(result.ended):
+            count("sim/episodes", len(result.ended))
+
+    async def recover(self, obs: np.ndarray, failed: WorkerFailed) -> np.ndarray:
+        """The group's process failed: the segments in progress are dropped, every env starts its next episode
+        on the new process (or the group is given up: the fleet logged why)."""
+        log.warning("group %d: %s; replacing its process (the episodes in progress are dropped)", self.g, failed)
+        self.telemetry.count("sim/worker_restarts")
+        self.telemetry.count("sim/partial_decisions_dropped", self.buffers.drop())
+        episodes, next_obs = self.fleet.episodes, obs.copy()
+        for i, env in enumerate(self.env_ids.tolist()):
+            episode = episodes.index[env] + 1  # the numbering carries on
+            first = await self.fleet.recover(self.g, i, episode)
+            if first is None:
+                self.telemetry.event("worker", f"group {self.g}: {failed}; given up")
+                return obs
+            next_obs[i] = first
+            episodes.set(env, episode)
+        self.telemetry.event("worker", f"group {self.g}: {failed}; process replaced")
+        return next_obs
+
+
+def group_loop(g: int, fleet: EnvFleet, *args: Any, **kwargs: Any) -> GroupLoop:
+    """Group ``g``'s loop: a :class:`VectorGroupLoop` for a vectorized fleet, else a :class:`GroupLoop`."""
+    return (VectorGroupLoop if isinstance(fleet, VectorFleet) else GroupLoop)(g, fleet, *args, **kwargs)

@@ -16,7 +16,7 @@ from ebrl.bus.peers import LivePeers
 from ebrl.envs import EnvSpec, describe
 from ebrl.resources.nvml import GpuMonitor
 from ebrl.sched.fleet import RolloutStats, make_fleet
-from ebrl.sched.group import ActionExchange, GroupLoop, SegmentOutbox
+from ebrl.sched.group import ActionExchange, SegmentOutbox, group_loop
 from ebrl.sched.modes import resolve
 from ebrl.sched.stepchoice import NAMES
 from ebrl.service import Service, service_main
@@ -49,8 +49,8 @@ class SimService(Service):
         # a (re)started gen has none of the observations in flight: publish them again
         self.peers.on_join("gen", self.exchange.generation_restarted)
         self.peers.on_join("train", lambda: asyncio.ensure_future(self.outbox.send_held()))
-        self.loops = [GroupLoop(g, self.fleet, self.exchange, self.outbox, self.stats, self, self.run_name, sched,
-                                cfg.sim.segment_length, lambda: self.peers.count("sim"))
+        self.loops = [group_loop(g, self.fleet, self.exchange, self.outbox, self.stats, self, self.run_name, sched,
+                                 cfg.sim.segment_length, lambda: self.peers.count("sim"))
                       for g in self.fleet.groups]
         psutil.cpu_percent(percpu=True)
         self.gpus = GpuMonitor()

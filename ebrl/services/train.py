@@ -10,6 +10,7 @@ from __future__ import annotations
 import asyncio
 import os
 import time
+from typing import Any
 
 from ebrl import obswire, procenv, threads
 from ebrl.algos import saving
@@ -19,7 +20,7 @@ from ebrl.algos.learner import Learner
 from ebrl.algos.ranks import Ranks
 from ebrl.bus import keys
 from ebrl.envs import EnvSpec, describe
-from ebrl.messages import TrajectorySegment
+from ebrl.messages import SegmentBatch, TrajectorySegment
 from ebrl.sched.modes import resolve
 from ebrl.service import STOP_TO_RESTART, Service, service_main
 from ebrl.weights import WeightsPublisher
@@ -55,6 +56,8 @@ class TrainService(Service):
             return
         decode = obswire.decoder(TrajectorySegment, info.layout, info.obs_shape)  # camera images arrive as bytes
         self.traj = self.bus.subscribe(keys.traj(self.run_name), decode, capacity=256)
+        self.packed = self.bus.subscribe(keys.traj_packed(self.run_name),  # vectorized groups' segments, packed
+                                         obswire.decoder(SegmentBatch, info.layout, info.obs_shape), capacity=32)
         self.weights = WeightsPublisher(self.bus, self.run_name)  # also answers late joiners with the newest
         handover = os.path.join(self.run_dir, HANDOVER_FILE)
         taken, handed = learner.take_over(lambda exc: self.bus.count_malformed(handover, exc))
@@ -97,11 +100,15 @@ class TrainService(Service):
 
     async def receive(self) -> None:
         """Drain trajectories all the time (also during updates) into the learner's bounded collector."""
-        async for key, seg in self.traj:
-            self.accept(key, seg)
+        async def drain(subscription: Any) -> None:
+            async for key, msg in subscription:
+                self.accept(key, msg)
 
-    def accept(self, key: str, seg: TrajectorySegment) -> None:
-        self.cycle.accept(seg, lambda exc: self.bus.count_malformed(key, exc))
+        await asyncio.gather(drain(self.traj), drain(self.packed))
+
+    def accept(self, key: str, msg: TrajectorySegment | SegmentBatch) -> None:
+        for seg in msg.segments() if isinstance(msg, SegmentBatch) else (msg,):
+            self.cycle.accept(seg, lambda exc: self.bus.count_malformed(key, exc))
 
     async def publish_weights(self) -> None:
         """Send the weights the update thread took; packing and sending run on the publisher's thread."""
@@ -123,8 +130,8 @@ class TrainService(Service):
             return
         self.weights.close()
         if self.stop_reason == STOP_TO_RESTART:  # the next train takes over (a run that ends keeps nothing)
-            for key, seg in self.traj.drain():  # what arrived while stopping
-                self.accept(key, seg)
+            for key, msg in [*self.traj.drain(), *self.packed.drain()]:  # what arrived while stopping
+                self.accept(key, msg)
             if n := self.learner.hand_over():
                 self.log.info("handed over %d segments not yet trained on (%s)", n, HANDOVER_FILE)
         if path := saving.save_at_end(self.learner, self.run_name):

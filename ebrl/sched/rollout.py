@@ -119,13 +119,14 @@ class SegmentBuffers:
         per_decision = {"obs": obs, "actions": chunk.actions, "latents": chunk.latents, "logprobs": chunk.logprobs,
                         "values": chunk.values, "rewards": result.reward, "steps": result.steps,
                         "versions": np.full(n, chunk.policy_version, np.int64)}
-        if not self.bufs:
-            self.bufs = {name: np.zeros((self.length, *np.shape(value)), DTYPES[name])
+        if not self.bufs:  # env-major, [n, length, ...]: a segment's decisions lie together
+            self.bufs = {name: np.zeros((n, self.length, *np.shape(value)[1:]), DTYPES[name])
                          for name, value in per_decision.items()}
         starting = fill == 0
         self.episode[starting] = result.episode[starting]
+        at = (slice(None), int(fill[0])) if int(fill.min()) == int(fill.max()) else (rows, fill)  # in step: a slice
         for name, value in per_decision.items():
-            self.bufs[name][fill, rows] = value
+            self.bufs[name][at] = value
         fill += 1
         terminated = np.asarray(result.terminated, bool)
         truncated = np.asarray(result.truncated, bool) & ~terminated
@@ -137,8 +138,15 @@ class SegmentBuffers:
     def _emit(self, emit: np.ndarray, terminated: np.ndarray, truncated: np.ndarray, result: VectorChunk
               ) -> SegmentBatch:
         lengths = self.fill[emit]
-        valid = np.arange(self.length)[None, :] < lengths[:, None]  # [S, length]: each segment's decisions
-        fields = {name: buf[:, emit].swapaxes(0, 1)[valid] for name, buf in self.bufs.items()}
+        if int(lengths.min()) == int(lengths.max()):  # segments cut together (length, boundary): one copy each
+            every, t = len(emit) == len(self.env_ids), len(emit) * int(lengths[0])
+            fields = {name: (buf[:, :int(lengths[0])] if every else buf[emit, :int(lengths[0])]).reshape(
+                t, *buf.shape[2:]).copy() for name, buf in self.bufs.items()}
+        else:  # decision j of segment s is buffer row (emit[s], j)
+            starts = np.cumsum(lengths) - lengths
+            env_rows = np.repeat(emit, lengths)
+            positions = np.arange(int(lengths.sum())) - np.repeat(starts, lengths)
+            fields = {name: buf[env_rows, positions] for name, buf in self.bufs.items()}
         row = np.full(len(self.env_ids), -1, np.int64)  # env -> its row of the chunk's ended envs
         row[np.asarray(result.ended, np.int64)] = np.arange(len(result.ended))
         r = row[emit]

@@ -19,6 +19,7 @@ from ebrl.messages import (ActionChunk, MessageError, SegmentBatch, TrajectorySe
 from ebrl.meter import Meter
 from ebrl.sched.fleet import RolloutStats
 from ebrl.sched.group import GroupLoop, SegmentOutbox, VectorGroupLoop
+from ebrl.sched import rollout
 from ebrl.sched.rollout import Episodes, SegmentBuffers, SegmentBuilder
 
 N, K, A, D, LENGTH = 6, 3, 2, 5, 4
@@ -58,8 +59,11 @@ def same_segment(a: TrajectorySegment, b: TrajectorySegment) -> None:
     assert (a.episode_lengths, a.episode_successes) == (b.episode_lengths, b.episode_successes)
 
 
-def test_packed_segments_are_the_per_env_builders_segments_through_the_bus():
+@pytest.mark.parametrize("packed_bytes", [rollout.PACKED_BYTES, 1000])  # 1000: a message of 1-3 segments
+def test_packed_segments_are_the_per_env_builders_segments_through_the_bus(packed_bytes, monkeypatch):
+    monkeypatch.setattr(rollout, "PACKED_BYTES", packed_bytes)
     rng = np.random.default_rng(7)
+    messages = 0
     env_ids = np.arange(10, 10 + N)
     builders = [SegmentBuilder(1, int(e), LENGTH) for e in env_ids]
     buffers = SegmentBuffers(1, env_ids, LENGTH)
@@ -70,10 +74,14 @@ def test_packed_segments_are_the_per_env_builders_segments_through_the_bus():
                                   float(action.values[i]), action.policy_version, res, boundary)
             if seg is not None:
                 expected.append(seg)
-        if (batch := buffers.add(obs, action, result, boundary)) is not None:
+        for batch in buffers.add(obs, action, result, boundary):
             packed += decode_message(SegmentBatch, encode_message(batch)).segments()  # checked on the way
+            messages += 1
+            assert len(batch.env_ids) <= max(1, packed_bytes // (LENGTH * 4 * (D + K * A + 2 + 5)))  # 76 B a decision
         assert len(buffers) == sum(len(b) for b in builders)
     assert len(expected) == len(packed) > 40
+    per_message = max(1, packed_bytes // (LENGTH * 4 * (D + K * A + 2 + 5)))  # 3 at 1000 bytes
+    assert (messages >= len(packed) / per_message) if per_message < N else (messages < len(packed))
     assert {s.end for s in packed} == {"cut", "terminated", "truncated"}
     assert any(s.episode_successes == [None] for s in packed) and any(s.episode_successes == [True] for s in packed)
     for a, b in zip(expected, packed):
@@ -92,8 +100,8 @@ def test_a_replaced_group_process_drops_the_segments_in_progress():
 def packed(rng: np.random.Generator) -> SegmentBatch:
     buffers = SegmentBuffers(0, np.arange(N), LENGTH)
     for obs, action, result, _ in random_chunks(rng, 8):
-        if (batch := buffers.add(obs, action, result, boundary=True)) is not None:
-            return batch
+        if batches := buffers.add(obs, action, result, boundary=True):
+            return batches[0]
     raise AssertionError("no segments")
 
 

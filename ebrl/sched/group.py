@@ -228,8 +228,7 @@ class VectorGroupLoop(GroupLoop):
         if isinstance(result, WorkerFailed):
             return await self.recover(obs, result)
         await self.account(result, latency, chunk.policy_version)
-        segments = self.buffers.add(obs, chunk, result, boundary)
-        if segments is not None:
+        for segments in self.buffers.add(obs, chunk, result, boundary):
             await self.outbox.send(keys.traj_packed(self.run, g), segments)
             self.telemetry.count("sim/segments", len(segments.env_ids))
         return result.next_obs  # type: ignore[return-value]  (VectorWorker.chunk filled it in)

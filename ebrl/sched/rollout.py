@@ -89,9 +89,9 @@ class SegmentBuilder:
 class SegmentBuffers:
     """:class:`SegmentBuilder` for all ``n`` envs of a vectorized group at once, in arrays: each chunk's decisions
     go in with one write per field, and the segments that end at it (the same cuts, each env's own) come out as
-    one :class:`~ebrl.messages.SegmentBatch`. A builder per env costs a few microseconds of Python per env and
-    chunk, and a message per segment as much again on both sides of the bus: at a GPU batch's thousands of envs
-    that was most of a chunk's time (``benchmarks/vector_transfer.py``)."""
+    :class:`~ebrl.messages.SegmentBatch` messages of at most about ``PACKED_BYTES`` each. A builder per env costs a
+    few microseconds of Python per env and chunk, and a message per segment as much again on both sides of the bus:
+    at a GPU batch's thousands of envs that was most of a chunk's time (``benchmarks/vector_transfer.py``)."""
 
     def __init__(self, group: int, env_ids: np.ndarray, length: int):
         self.group, self.env_ids, self.length = group, np.asarray(env_ids, np.int64), length
@@ -99,7 +99,7 @@ class SegmentBuffers:
         self.fill = np.zeros(n, np.int64)  # decisions of each env's current segment
         self.episode = np.zeros(n, np.int64)  # the episode each env's current segment belongs to
         self.rows = np.arange(n)
-        self.bufs: dict[str, np.ndarray] = {}  # field -> [length, n, ...], made at the first chunk
+        self.bufs: dict[str, np.ndarray] = {}  # field -> [n, length, ...], made at the first chunk
 
     def __len__(self) -> int:
         """Decisions in the segments not yet emitted."""
@@ -111,10 +111,10 @@ class SegmentBuffers:
         return dropped
 
     def add(self, obs: np.ndarray, chunk: ActionChunk, result: VectorChunk, boundary: bool = False
-            ) -> SegmentBatch | None:
+            ) -> list[SegmentBatch]:
         """Record every env's decision (``obs`` [n, ...] before the chunk, ``chunk`` the actions that answered it,
-        ``result`` what the batch did); the segments that end here, or None. A segment ends as a builder's does:
-        at its episode's end, at ``length`` decisions, or at an iteration ``boundary`` (every env's)."""
+        ``result`` what the batch did); the segments that end here, packed (none: an empty list). A segment ends as
+        a builder's does: at its episode's end, at ``length`` decisions, or at an iteration ``boundary``."""
         n, fill, rows = len(self.env_ids), self.fill, self.rows
         per_decision = {"obs": obs, "actions": chunk.actions, "latents": chunk.latents, "logprobs": chunk.logprobs,
                         "values": chunk.values, "rewards": result.reward, "steps": result.steps,
@@ -132,41 +132,50 @@ class SegmentBuffers:
         truncated = np.asarray(result.truncated, bool) & ~terminated
         emit = np.flatnonzero(terminated | truncated | (fill >= self.length) | boundary)
         if not len(emit):
-            return None
-        return self._emit(emit, terminated, truncated, result)
+            return []
+        ends = np.where(terminated, 1, np.where(truncated, 2, 0)).astype(np.int8)
+        row = np.full(n, -1, np.int64)  # env -> its row of the chunk's ended envs (their final observations)
+        row[np.asarray(result.ended, np.int64)] = np.arange(len(result.ended))
+        decision_bytes = sum(buf[0, 0].nbytes for buf in self.bufs.values())
+        per_part = max(1, PACKED_BYTES // max(1, decision_bytes * self.length))
+        parts = [self._pack(emit[i:i + per_part], ends, row, result) for i in range(0, len(emit), per_part)]
+        self.fill[emit] = 0
+        return parts
 
-    def _emit(self, emit: np.ndarray, terminated: np.ndarray, truncated: np.ndarray, result: VectorChunk
-              ) -> SegmentBatch:
+    def _pack(self, emit: np.ndarray, ends: np.ndarray, row: np.ndarray, result: VectorChunk) -> SegmentBatch:
+        """The segments of envs ``emit`` (their decisions copied out of the buffers once) as one message."""
         lengths = self.fill[emit]
-        if int(lengths.min()) == int(lengths.max()):  # segments cut together (length, boundary): one copy each
-            every, t = len(emit) == len(self.env_ids), len(emit) * int(lengths[0])
-            fields = {name: (buf[:, :int(lengths[0])] if every else buf[emit, :int(lengths[0])]).reshape(
-                t, *buf.shape[2:]).copy() for name, buf in self.bufs.items()}
+        if int(lengths.min()) == int(lengths.max()):  # segments cut together (length, boundary)
+            length, t = int(lengths[0]), len(emit) * int(lengths[0])
+            every = len(emit) == len(self.env_ids)  # every env: a slice of the buffers, copied; else indexing copies
+            fields = {name: (np.array(buf[:, :length]) if every else buf[emit, :length]).reshape(t, *buf.shape[2:])
+                      for name, buf in self.bufs.items()}
         else:  # decision j of segment s is buffer row (emit[s], j)
             starts = np.cumsum(lengths) - lengths
             env_rows = np.repeat(emit, lengths)
             positions = np.arange(int(lengths.sum())) - np.repeat(starts, lengths)
             fields = {name: buf[env_rows, positions] for name, buf in self.bufs.items()}
-        row = np.full(len(self.env_ids), -1, np.int64)  # env -> its row of the chunk's ended envs
-        row[np.asarray(result.ended, np.int64)] = np.arange(len(result.ended))
         r = row[emit]
         ended = r >= 0
-        r_safe = np.where(ended, r, 0)
-        final = result.final_obs if len(result.ended) else None
         last_obs = np.asarray(result.next_obs, np.float32)[emit]
-        if final is not None and ended.any():
-            last_obs[ended] = final[r[ended]]
-        pick = (lambda values, empty: np.where(ended, np.asarray(values)[r_safe], empty)) if len(result.ended) else (
-            lambda values, empty: np.full(len(emit), empty))
-        self.fill[emit] = 0
+        if ended.any():
+            last_obs[ended] = result.final_obs[r[ended]]  # type: ignore[index]
+
+        def pick(values: np.ndarray, empty: float) -> np.ndarray:  # per segment: its episode's, where one ended
+            return np.where(ended, np.asarray(values)[np.where(ended, r, 0)], empty) if len(result.ended) else \
+                np.full(len(emit), empty)
+
         return SegmentBatch(
             group=self.group, env_ids=self.env_ids[emit], episodes=self.episode[emit].copy(),
-            lengths=lengths.astype(np.int32), ends=np.where(terminated[emit], 1, np.where(truncated[emit], 2, 0)
-                                                             ).astype(np.int8),
-            **fields, last_obs=last_obs,
+            lengths=lengths.astype(np.int32), ends=ends[emit], **fields, last_obs=last_obs,
             episode_returns=pick(result.episode_return, 0.0).astype(np.float32),
             episode_lengths=pick(result.episode_length, -1).astype(np.int32),
             episode_successes=pick(result.episode_success, -1).astype(np.int8))
+
+
+# A packed message's size, at most about (one segment more where one is larger): glibc allocates what is larger than
+# its mmap threshold (up to 32 MiB) fresh from the kernel each time, and filling fresh pages cost more than the copy.
+PACKED_BYTES = 8 << 20
 
 
 DTYPES = {"obs": np.float32, "actions": np.float32, "latents": np.float32, "logprobs": np.float32,

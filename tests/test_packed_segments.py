@@ -13,7 +13,7 @@ import pytest
 from ebrl import obswire
 from ebrl.bus import keys
 from ebrl.envs.obs import ObsField, ObsLayout
-from ebrl.envs.worker import VectorChunk
+from ebrl.envs.worker import VectorChunk, WorkerFailed
 from ebrl.messages import (ActionChunk, MessageError, SegmentBatch, TrajectorySegment, decode_message,
                            encode_message)
 from ebrl.meter import Meter
@@ -23,6 +23,7 @@ from ebrl.sched import rollout
 from ebrl.sched.rollout import Episodes, SegmentBuffers, SegmentBuilder
 
 N, K, A, D, LENGTH = 6, 3, 2, 5, 4
+FRESH = np.full((N, D), 7.0, np.float32)  # a replaced group process's first observations
 SEGMENT_FIELDS = ("obs", "actions", "latents", "logprobs", "values", "rewards", "steps", "versions", "last_obs")
 
 
@@ -158,10 +159,12 @@ class Sent:
 
 
 class OneBatch:
-    """A vectorized fleet whose batch answers from ``chunks`` in turn (``run_chunk`` as env by env)."""
+    """A vectorized fleet whose batch answers from ``chunks`` in turn (``run_chunk`` as env by env); ``fail_at``:
+    the group's process fails at that chunk and comes back with first observations ``FRESH``."""
 
-    def __init__(self, chunks: list) -> None:
-        self.chunks, self.episodes, self.at = chunks, Episodes(range(N)), 0
+    def __init__(self, chunks: list, fail_at: int = -1) -> None:
+        self.chunks, self.episodes, self.at, self.fail_at = chunks, Episodes(range(N)), 0, fail_at
+        self.recovered: list[tuple[int, int]] = []
 
     def env_ids(self, g: int) -> np.ndarray:
         return np.arange(N, dtype=np.int64)
@@ -172,9 +175,15 @@ class OneBatch:
     def saw_version(self, version: int) -> None:
         pass
 
-    async def run_vector_chunk(self, g: int, actions: np.ndarray) -> tuple[VectorChunk, float]:
+    async def run_vector_chunk(self, g: int, actions: np.ndarray) -> tuple[VectorChunk | WorkerFailed, float]:
         self.at += 1
+        if self.at - 1 == self.fail_at:
+            return WorkerFailed("the group's process died"), 0.0
         return self.chunks[self.at - 1][2], 0.01
+
+    async def recover(self, g: int, i: int, episode: int) -> np.ndarray:
+        self.recovered.append((i, episode))
+        return FRESH[i]
 
     async def run_chunk(self, g: int, active: list[int], actions: np.ndarray) -> tuple[list, list[float]]:
         result, latency = await self.run_vector_chunk(g, actions)
@@ -221,3 +230,23 @@ def test_a_vectorized_group_loop_counts_and_publishes_what_the_env_by_env_loop_d
     by_env = lambda segs: sorted(segs, key=lambda s: (s.env_id, s.episode, s.versions[0], len(s.obs)))  # noqa: E731
     for a, b in zip(by_env(segments), by_env(vsegments)):
         same_segment(a, b)
+
+
+def test_a_vectorized_group_whose_process_died_drops_the_segments_in_progress_and_carries_the_numbering_on():
+    chunks = random_chunks(np.random.default_rng(5), 12)
+    bus, meter, fleet = Sent(), Telemetry(spans=False), OneBatch(chunks, fail_at=6)
+    loop = VectorGroupLoop(0, fleet, Answers(chunks), SegmentOutbox(bus, meter, 1 << 20, lambda: True), RolloutStats(),
+                           meter, "r", Iterations(), LENGTH, lambda: 1)
+    for c in range(6):
+        obs = asyncio.run(loop.step(chunks[c][0]))
+    in_progress, before = len(loop.buffers), dict(fleet.episodes.index)
+    assert in_progress > 0
+    obs = asyncio.run(loop.step(obs))  # the process dies
+    assert np.array_equal(obs, FRESH) and len(loop.buffers) == 0
+    assert fleet.recovered == [(i, before[i] + 1) for i in range(N)]
+    assert fleet.episodes.index == {i: before[i] + 1 for i in range(N)}
+    assert meter.total("sim/worker_restarts") == 1 and meter.total("sim/partial_decisions_dropped") == in_progress
+    published = sum(len(msg.obs) for _, msg in bus.puts)
+    for c in range(7, 12):
+        asyncio.run(loop.step(chunks[c][0]))
+    assert sum(len(msg.obs) for _, msg in bus.puts) + len(loop.buffers) == published + 5 * N  # only what came after

@@ -204,7 +204,7 @@ class GroupLoop:
 class VectorGroupLoop(GroupLoop):
     """A vectorized group's loop (:class:`~ebrl.sched.fleet.VectorFleet`: one batch of all its envs, every env
     acting every chunk): what :class:`GroupLoop` does env by env, in arrays over the batch. Its segments are cut
-    where the per-env builders would cut them and go out packed, one :class:`~ebrl.messages.SegmentBatch` a chunk
+    where the per-env builders would cut them and go out packed, in :class:`~ebrl.messages.SegmentBatch` messages
     (:class:`~ebrl.sched.rollout.SegmentBuffers`)."""
 
     fleet: VectorFleet
@@ -227,13 +227,13 @@ class VectorGroupLoop(GroupLoop):
         self.seq += 1
         if isinstance(result, WorkerFailed):
             return await self.recover(obs, result)
-        await self.account(result, latency, chunk.policy_version)
+        self.account(result, latency, chunk.policy_version)
         for segments in self.buffers.add(obs, chunk, result, boundary):
             await self.outbox.send(keys.traj_packed(self.run, g), segments)
             self.telemetry.count("sim/segments", len(segments.env_ids))
         return result.next_obs  # type: ignore[return-value]  (VectorWorker.chunk filled it in)
 
-    async def account(self, result: VectorChunk, latency: float, version: int) -> None:
+    def account(self, result: VectorChunk, latency: float, version: int) -> None:
         """The chunk's counts, its latency, and each episode that ended in it."""
         count, stats, episodes = self.telemetry.count, self.stats, self.fleet.episodes
         stats.chunk_latency.append(latency)

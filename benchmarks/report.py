@@ -61,6 +61,8 @@ HISTORICAL = {
         "the first span transport; its command now writes overhead_e2e_quickstart.json",
     "pickcube_race_cpu_ab_envwise_s0":
         "the env-by-env group loop, run at 72e22ca beside the packed one; its command now runs the packed loop",
+    "pickcube_race_cpu_ab_envwise_s2":
+        "the env-by-env group loop, run at 72e22ca beside the packed one; its command now runs the packed loop",
     "pickcube_race_cpu_before_prox_fix":
         "decoupled PPO before log pi_prox was taken ahead of the normaliser (90f467b); its command measures the fix",
     "pickcube_race_cpu_colocated_before_prox_fix":

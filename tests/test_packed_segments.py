@@ -23,6 +23,7 @@ from ebrl.sched import rollout
 from ebrl.sched.rollout import Episodes, SegmentBuffers, SegmentBuilder
 
 N, K, A, D, LENGTH = 6, 3, 2, 5, 4
+DECISION_BYTES = 4 * (D + K * A + 2 + 4) + 8  # float32 obs, actions, latents, 4 scalars; the int64 version
 FRESH = np.full((N, D), 7.0, np.float32)  # a replaced group process's first observations
 SEGMENT_FIELDS = ("obs", "actions", "latents", "logprobs", "values", "rewards", "steps", "versions", "last_obs")
 
@@ -78,10 +79,10 @@ def test_packed_segments_are_the_per_env_builders_segments_through_the_bus(packe
         for batch in buffers.add(obs, action, result, boundary):
             packed += decode_message(SegmentBatch, encode_message(batch)).segments()  # checked on the way
             messages += 1
-            assert len(batch.env_ids) <= max(1, packed_bytes // (LENGTH * 4 * (D + K * A + 2 + 5)))  # 76 B a decision
+            assert len(batch.env_ids) <= max(1, packed_bytes // (LENGTH * DECISION_BYTES))
         assert len(buffers) == sum(len(b) for b in builders)
     assert len(expected) == len(packed) > 40
-    per_message = max(1, packed_bytes // (LENGTH * 4 * (D + K * A + 2 + 5)))  # 3 at 1000 bytes
+    per_message = max(1, packed_bytes // (LENGTH * DECISION_BYTES))  # 3 at 1000 bytes
     assert (messages >= len(packed) / per_message) if per_message < N else (messages < len(packed))
     assert {s.end for s in packed} == {"cut", "terminated", "truncated"}
     assert any(s.episode_successes == [None] for s in packed) and any(s.episode_successes == [True] for s in packed)

@@ -38,9 +38,10 @@
 #               Warp's compiled kernels come back as $OUT/warp-cache.tgz.0, .1, ... (put them in .whl-mjw/cache
 #               here and re-run prepare_mjwarp.sh: the next machine loads them instead of compiling)
 #   mjwarp_variants  (after mjwarp_tests, in a later call) what closes the gap to the peer (issue 33): ebrl up
-#               configs/mjwarp_pickcube.toml to 90 %, VARIANT_SECONDS (150) at most each, as one env step per
-#               decision without MPS, one group of 4096 worlds, and the defaults under an MPS daemon started and
-#               quit around the run (parts mjwarp_chunk1, mjwarp_group4096, mjwarp_mps)
+#               configs/mjwarp_pickcube.toml to 90 %, VARIANT_SECONDS (150) at most each, with algo.max_staleness
+#               = 0 (on 2 CPU cores staler data cost EBRL updates, BENCHMARKS.md), as one env step per decision
+#               without MPS, one group of 4096 worlds, and the defaults under an MPS daemon started and quit around
+#               the run (parts mjwarp_fresh, mjwarp_chunk1, mjwarp_group4096, mjwarp_mps)
 # Everything lands in $OUT (default ./gpu-out): summary.txt, gpu.txt and results.tgz (JSON results, logs).
 set -uo pipefail
 cd "$(dirname "$0")/../.."
@@ -199,7 +200,8 @@ while [ $i -lt ${#PARTS[@]} ]; do
                      part "mjwarp_peer_s$s" $((RACE_SECONDS + 90)) python3 benchmarks/peers/mjwarp_ppo.py --seed "$s" \
                          --max-seconds "$RACE_SECONDS" --json "$RES/peer_mjwarp_ppo_s$s.json"
                  done ;;
-    mjwarp_variants) set -- mjwarp_chunk1 mjwarp_group4096 mjwarp_mps; for b; do PARTS+=("$b"); done ;;
+    mjwarp_variants) set -- mjwarp_fresh mjwarp_chunk1 mjwarp_group4096 mjwarp_mps; for b; do PARTS+=("$b"); done ;;
+    mjwarp_fresh) variant fresh algo.max_staleness=0 ;;  # no decision acted by an older version than its update's
     mjwarp_chunk1) variant chunk1 policy.chunk=1 train.batch_size=65536 train.max_pending=131072 sim.segment_length=32 ;;
     mjwarp_group4096) variant group4096 sim.groups=1 sim.envs_per_group=4096 train.batch_size=32768 \
                           train.max_pending=65536 ;;

@@ -8,7 +8,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ebrl.envs.worker import ChunkResult, VectorChunk
-from ebrl.messages import ActionChunk, SegmentBatch, TrajectorySegment
+from ebrl.messages import SEGMENT_ENDS, ActionChunk, SegmentBatch, TrajectorySegment
 
 
 @dataclass
@@ -133,7 +133,8 @@ class SegmentBuffers:
         emit = np.flatnonzero(terminated | truncated | (fill >= self.length) | boundary)
         if not len(emit):
             return []
-        ends = np.where(terminated, 1, np.where(truncated, 2, 0)).astype(np.int8)
+        code = SEGMENT_ENDS.index
+        ends = np.where(terminated, code("terminated"), np.where(truncated, code("truncated"), code("cut"))).astype(np.int8)
         row = np.full(n, -1, np.int64)  # env -> its row of the chunk's ended envs (their final observations)
         row[np.asarray(result.ended, np.int64)] = np.arange(len(result.ended))
         decision_bytes = sum(buf[0, 0].nbytes for buf in self.bufs.values())

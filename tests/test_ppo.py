@@ -9,7 +9,7 @@ from types import SimpleNamespace
 
 from ebrl.config import PolicySection
 from ebrl.envs.obs import ObsLayout
-from ebrl.algos.ppo import PPO, BadBatch, Batch, build_batch, gae
+from ebrl.algos.ppo import PPO, BadBatch, Batch, build_batch, gae, gae_segments
 from ebrl.envs.worker import ChunkResult
 from ebrl.policies import load_arrays, make_policy, state_arrays
 from ebrl.sched.rollout import SegmentBuilder
@@ -32,6 +32,32 @@ def test_gae_matches_hand_computation():
     a0 = d0 + 0.9 * 0.5 * a1
     np.testing.assert_allclose(adv, [a0, a1, a2], rtol=1e-6)
     np.testing.assert_allclose(ret, adv + v, rtol=1e-6)
+
+
+def test_gae_of_many_segments_at_once_is_each_segments_gae_bit_for_bit():
+    """The backward recursion written out for one segment in plain Python floats (the definition), against
+    ``gae_segments`` over ragged segments laid one after another: the same float64 operations, so equal."""
+    def by_hand(r, v, d, last, lam):
+        adv, next_value, acc = [0.0] * len(r), float(last), 0.0
+        for t in reversed(range(len(r))):
+            acc = (float(r[t]) + float(d[t]) * next_value - float(v[t])) + float(d[t]) * lam * acc
+            adv[t], next_value = acc, float(v[t])
+        return np.array(adv)
+
+    rng = np.random.default_rng(7)
+    lengths = np.array([3, 1, 8, 8, 5, 1, 2, 8, 7])
+    n = int(lengths.sum())
+    r, v = rng.normal(size=n).astype(np.float32), rng.normal(size=n).astype(np.float32)
+    d, last = 0.97 ** rng.integers(1, 5, n).astype(np.float64), rng.normal(size=len(lengths)).astype(np.float32)
+    adv, ret = gae_segments(r, v, d, lengths, last, lam=0.95)
+    starts = np.cumsum(lengths) - lengths
+    for s, (a, length) in enumerate(zip(starts, lengths)):
+        part = slice(a, a + length)
+        expected = by_hand(r[part], v[part], d[part], last[s], 0.95)
+        assert np.array_equal(adv[part], expected), s
+        assert np.array_equal(ret[part], expected + v[part].astype(np.float64)), s
+        assert all(np.array_equal(x, y) for x, y in zip(gae(r[part], v[part], d[part], float(last[s]), 0.95),
+                                                         (adv[part], ret[part])))
 
 
 def result(steps=3, reward=1.0, terminated=False, truncated=False, ep=None):

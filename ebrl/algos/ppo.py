@@ -51,15 +51,32 @@ def gae(rewards: np.ndarray, values: np.ndarray, discounts: np.ndarray, last_val
     In float64 throughout (a float32 sum of large rewards overflows where float64 does not); the caller checks
     the result is finite before it is cast down.
     """
-    T = len(rewards)
+    return gae_segments(rewards, values, discounts, np.array([len(rewards)]), np.array([last_value]), lam)
+
+
+def gae_segments(rewards: np.ndarray, values: np.ndarray, discounts: np.ndarray, lengths: np.ndarray,
+                 last_values: np.ndarray, lam: float) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`gae` of many segments at once: the per-decision arrays hold the segments one after another
+    (``lengths[s]`` >= 1 decisions each), ``last_values[s]`` is segment ``s``'s V(s_T). The recursion runs
+    backwards from every segment's end together, one vector step per decision of the longest segment, with
+    the same float64 operations in the same order as one segment at a time: the results are identical. A batch
+    from vectorized groups holds thousands of short segments, and a Python loop per decision of each was most of
+    the host time training spent building it."""
     rewards, values = np.asarray(rewards, np.float64), np.asarray(values, np.float64)
-    advantages = np.zeros(T, dtype=np.float64)
-    next_value, lastgaelam = float(last_value), 0.0
-    for t in reversed(range(T)):
-        delta = rewards[t] + discounts[t] * next_value - values[t]
-        lastgaelam = delta + discounts[t] * lam * lastgaelam
-        advantages[t] = lastgaelam
-        next_value = values[t]
+    discounts, lengths = np.asarray(discounts, np.float64), np.asarray(lengths, np.int64)
+    order = np.argsort(-lengths, kind="stable")  # longest first: the segments still running are a prefix
+    ends = (np.cumsum(lengths) - 1)[order]  # each segment's last decision
+    running = len(lengths) - np.cumsum(np.bincount(lengths, minlength=int(lengths.max(initial=0)) + 1))
+    next_value = np.asarray(last_values, np.float64)[order]
+    lastgaelam = np.zeros(len(lengths), dtype=np.float64)
+    advantages = np.zeros(len(rewards), dtype=np.float64)
+    for back in range(int(lengths.max(initial=0))):  # the decision ``back`` before each segment's last
+        k = running[back]  # segments longer than ``back``
+        t = ends[:k] - back
+        delta = rewards[t] + discounts[t] * next_value[:k] - values[t]
+        lastgaelam[:k] = delta + discounts[t] * lam * lastgaelam[:k]
+        advantages[t] = lastgaelam[:k]
+        next_value[:k] = values[t]
     return advantages, advantages + values
 
 
@@ -126,43 +143,40 @@ def build_batch(segments: Sequence[TrajectorySegment], model: nn.Module, gamma: 
     the critic moved since the data was acted (0 on-policy).
     """
     device = _device(model)
+    lengths = np.array([len(s.obs) for s in segments], dtype=np.int64)
     needs_bootstrap = [i for i, s in enumerate(segments) if s.end != "terminated"]
     last_values = np.zeros(len(segments), dtype=np.float32)
-    behave_values = [s.values for s in segments]
+    obs = np.concatenate([s.obs for s in segments])
+    behave_values = np.concatenate([s.values for s in segments])
     with torch.no_grad():
         if needs_bootstrap:
             last_obs = torch.as_tensor(np.stack([segments[i].last_obs for i in needs_bootstrap])).to(device)
             last_values[needs_bootstrap] = model.value(last_obs).float().cpu().numpy()
         if values == "current":
-            obs = torch.as_tensor(np.concatenate([s.obs for s in segments])).to(device)
-            flat = model.value(obs).float().cpu().numpy().astype(np.float32)
-            current = np.split(flat, np.cumsum([len(s.obs) for s in segments])[:-1])
+            current = model.value(torch.as_tensor(obs).to(device)).float().cpu().numpy().astype(np.float32)
         elif values == "behaviour":
             current = behave_values
         else:
             raise ValueError(f"values = {values!r}: 'current' or 'behaviour'")
-    advs, rets, kept, used, behave, dropped = [], [], [], [], [], 0
-    for seg, seg_values, seg_behave, last_value in zip(segments, current, behave_values, last_values):
-        a, r = gae(seg.rewards, seg_values, gamma ** seg.steps.astype(np.float64), float(last_value), lam)
-        if not (np.isfinite(a).all() and np.isfinite(r).all() and np.all(np.abs(r) < FLOAT32_SAFE)):
-            dropped += len(a)  # nothing to learn from: left out of the batch, counted by the caller
-            continue
-        advs.append(a.astype(np.float32))
-        rets.append(r.astype(np.float32))
-        kept.append(seg)
-        used.append(seg_values)
-        behave.append(seg_behave)
-    if not kept:
+    steps = np.concatenate([s.steps for s in segments])
+    rewards = np.concatenate([s.rewards for s in segments])
+    advs, rets = gae_segments(rewards, current, gamma ** steps.astype(np.float64), lengths, last_values, lam)
+    bad = ~(np.isfinite(advs) & np.isfinite(rets) & (np.abs(rets) < FLOAT32_SAFE))
+    bad_segment = np.logical_or.reduceat(bad, np.cumsum(lengths) - lengths) if len(bad) else bad
+    dropped = int(lengths[bad_segment].sum())  # nothing to learn from: left out of the batch, counted by the caller
+    if dropped == len(bad):
         raise BadBatch(dropped)
+    keep = np.repeat(~bad_segment, lengths) if dropped else slice(None)
 
     def cat(name: str) -> torch.Tensor:
-        return torch.as_tensor(np.concatenate([getattr(s, name) for s in kept]))
+        return torch.as_tensor(np.concatenate([getattr(s, name) for s in segments])[keep])
 
-    used_values = np.concatenate(used)
-    drift = float(np.sqrt(np.mean((used_values - np.concatenate(behave)) ** 2)))
-    return Batch(obs=cat("obs"), actions=cat("actions"), latents=cat("latents"), logprobs=cat("logprobs"),
-                 advantages=torch.as_tensor(np.concatenate(advs)), returns=torch.as_tensor(np.concatenate(rets)),
-                 values=torch.as_tensor(used_values), versions=np.concatenate([s.versions for s in kept]),
+    used_values = current[keep]
+    drift = float(np.sqrt(np.mean((used_values - behave_values[keep]) ** 2)))
+    return Batch(obs=torch.as_tensor(obs[keep]), actions=cat("actions"), latents=cat("latents"),
+                 logprobs=cat("logprobs"), advantages=torch.as_tensor(advs[keep].astype(np.float32)),
+                 returns=torch.as_tensor(rets[keep].astype(np.float32)), values=torch.as_tensor(used_values),
+                 versions=np.concatenate([s.versions for s in segments])[keep],
                  diagnostics={"value_drift": drift}, dropped=dropped)
 
 

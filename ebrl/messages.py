@@ -291,17 +291,16 @@ class SegmentBatch:
         starts = ends - self.lengths
         out = []
         pixels = bool(self.images.size)
-        for s, (a, b) in enumerate(zip(starts.tolist(), ends.tolist())):
-            ended = int(self.episode_lengths[s]) >= 0
-            success = int(self.episode_successes[s])
+        rows = zip(starts.tolist(), ends.tolist(), self.env_ids.tolist(), self.episodes.tolist(), self.ends.tolist(),
+                   self.episode_returns.tolist(), self.episode_lengths.tolist(), self.episode_successes.tolist())
+        for s, (a, b, env, episode, end, ret, length, success) in enumerate(rows):
+            ended = length >= 0
             out.append(TrajectorySegment(
-                group=self.group, env_id=int(self.env_ids[s]), episode=int(self.episodes[s]), obs=self.obs[a:b],
-                actions=self.actions[a:b], latents=self.latents[a:b], logprobs=self.logprobs[a:b],
-                values=self.values[a:b], rewards=self.rewards[a:b], steps=self.steps[a:b],
-                versions=self.versions[a:b], end=SEGMENT_ENDS[int(self.ends[s])],  # type: ignore[arg-type]
-                last_obs=self.last_obs[s],
-                episode_returns=[float(self.episode_returns[s])] if ended else [],
-                episode_lengths=[int(self.episode_lengths[s])] if ended else [],
+                group=self.group, env_id=env, episode=episode, obs=self.obs[a:b], actions=self.actions[a:b],
+                latents=self.latents[a:b], logprobs=self.logprobs[a:b], values=self.values[a:b],
+                rewards=self.rewards[a:b], steps=self.steps[a:b], versions=self.versions[a:b],
+                end=SEGMENT_ENDS[end], last_obs=self.last_obs[s],  # type: ignore[arg-type]
+                episode_returns=[ret] if ended else [], episode_lengths=[length] if ended else [],
                 episode_successes=([None if success < 0 else bool(success)] if ended else []),
                 images=self.images[a:b] if pixels else _NO_BYTES.copy(),
                 last_images=self.last_images[s] if pixels else np.zeros(0, np.uint8)))

@@ -23,7 +23,7 @@ from ebrl import config
 from ebrl.config import Config
 from ebrl.envs import EnvSpec, describe
 from ebrl.envs.batch import BatchRunner, EnvBatch
-from ebrl.messages import TrajectorySegment
+from ebrl.messages import SegmentBatch, TrajectorySegment
 from ebrl.policies import state_arrays
 from ebrl.testing import StatsWatcher
 from helpers import up
@@ -90,6 +90,56 @@ def test_train_drops_a_segment_whose_rewards_no_sim_could_send(tmp_path):
     metrics = learn.metrics()  # what the launcher ends a run on: the episodes of the segments taken
     assert (metrics["train/episode_return_mean"], metrics["train/success_rate"], metrics["train/episodes"],
             metrics["train/episode_length_max"]) == (9e6, 1.0, 1.0, 10.0)
+
+
+def pack(segments: list[TrajectorySegment]) -> SegmentBatch:
+    """``segments`` (at most one finished episode each) as one packed message, as a vectorized group sends them."""
+    def cat(name):
+        return np.concatenate([getattr(s, name) for s in segments])
+
+    def ended(name, none, dtype):
+        return np.array([getattr(s, name)[0] if getattr(s, name) else none for s in segments], dtype)
+
+    return SegmentBatch(
+        group=0, env_ids=np.arange(len(segments)), episodes=np.zeros(len(segments), np.int64),
+        lengths=np.array([len(s.obs) for s in segments], np.int32), ends=np.zeros(len(segments), np.int8),
+        **{name: cat(name) for name in ("obs", "actions", "latents", "logprobs", "values", "rewards", "steps",
+                                         "versions")},
+        last_obs=np.stack([s.last_obs for s in segments]), episode_returns=ended("episode_returns", 0.0, np.float32),
+        episode_lengths=ended("episode_lengths", -1, np.int32),
+        episode_successes=np.array([-1 if not s.episode_successes or s.episode_successes[0] is None else
+                                    int(s.episode_successes[0]) for s in segments], np.int8))
+
+
+def test_a_packed_batch_is_judged_segment_by_segment_as_its_segments_would_be(tmp_path):
+    """Taking a vectorized group's packed segments in one go keeps and drops exactly what taking them one at a
+    time does: the same counts, the same pending decisions, the same episodes behind the stop rule."""
+    def finished(seg, ret, length, success):
+        seg.episode_returns, seg.episode_lengths, seg.episode_successes = [ret], [length], [success]
+        return seg
+
+    one_bad_decision = segment(reward=1.0)
+    one_bad_decision.rewards[3] = 3.0e38
+    future = segment(T=3)
+    future.versions[-1] = 1  # acted by a version this learner never published
+    segments = [finished(segment(T=5), 40.0, 30, True), segment(reward=3.0e38), one_bad_decision, future,
+                finished(segment(T=2), 1e9, 10, True), finished(segment(T=4), 7.0, 12, None),
+                finished(segment(T=1), -3.0, 77, False), segment(T=6), finished(segment(T=2), 2.0, 5, True)]
+    for i, seg in enumerate(segments):
+        seg.env_id, seg.obs = i, seg.obs + i  # each segment's own observations
+    one, one_counts = learner(tmp_path / "one")
+    taken = [one.accept(seg, pytest.fail) for seg in segments]
+    assert taken == [1, 0, 0, 0, 0, 1, 1, 1, 1]
+    packed_learner, packed_counts = learner(tmp_path / "packed")
+    batch = pack(segments)
+    batch.check()
+    assert packed_learner.accept(batch, pytest.fail) == sum(taken)
+    assert packed_counts.counts == one_counts.counts == {
+        "train/segments_received": 5, "train/reward_bound_dropped": 3, "train/future_version_dropped": 1}
+    assert packed_learner.metrics() == one.metrics()
+    assert (packed_learner.metrics()["train/episodes"], packed_learner.metrics()["train/success_rate"]) == (4, 2 / 3)
+    pending = [np.concatenate([s.obs for s in learned.collector.segments()]) for learned in (one, packed_learner)]
+    assert np.array_equal(*pending)
 
 
 def test_weights_that_turned_non_finite_are_never_published_and_the_last_good_ones_come_back(tmp_path):

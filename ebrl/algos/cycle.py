@@ -15,7 +15,7 @@ from typing import TYPE_CHECKING, Callable
 
 from ebrl.algos import saving
 from ebrl.algos.parallel import KEEPALIVE_S
-from ebrl.messages import TrajectorySegment
+from ebrl.messages import SegmentBatch, TrajectorySegment
 
 if TYPE_CHECKING:
     from ebrl.algos.learner import Learner
@@ -31,9 +31,10 @@ class UpdateCycle:
         if learner.ready:  # from what the learner before handed over
             self.enough.set()
 
-    def accept(self, seg: TrajectorySegment, malformed: Callable[[Exception], None]) -> None:
-        """One segment into the learner's bounded collector (``Learner.accept``: dropped, counted, if bad)."""
-        if self.learner.accept(seg, malformed) and self.learner.ready:
+    def accept(self, item: TrajectorySegment | SegmentBatch, malformed: Callable[[Exception], None]) -> None:
+        """A segment, or a group's packed segments, into the learner's bounded collector (``Learner.accept``:
+        dropped, counted, if bad)."""
+        if self.learner.accept(item, malformed) and self.learner.ready:
             self.enough.set()
 
     async def next_items(self) -> list:

@@ -31,7 +31,7 @@ def hand_over(run_dir: str, segments: list[TrajectorySegment]) -> int:
     return len(segments)
 
 
-def take_over(run_dir: str, accept: Callable[[TrajectorySegment], bool],
+def take_over(run_dir: str, accept: Callable[[TrajectorySegment], int],
               malformed: Callable[[Exception], None]) -> tuple[int, int]:
     """Take over what the learner before handed over, once (the file is removed): each segment goes to
     ``accept``; returns (taken, handed over). A learner killed while handing over left only the temporary

@@ -30,10 +30,10 @@ import torch
 from ebrl import devices
 from ebrl.algos import checkpoint, handover, saving
 from ebrl.algos.grpo import GroupCollector
+from ebrl.algos.intake import REFUSALS, TAKEN, judge, judge_packed
 from ebrl.algos.parallel import Command, DataParallel, shards
 from ebrl.algos.ppo import PPO, BadBatch, Batch, SegmentCollector
-from ebrl.envs.guard import decision_bound
-from ebrl.messages import RETURN_WINDOW, TrajectorySegment
+from ebrl.messages import RETURN_WINDOW, SegmentBatch, TrajectorySegment
 from ebrl.policies import load_arrays, make_policy, state_arrays
 from ebrl.policies.checkpoint import portable_metadata
 from ebrl.meter import Telemetry
@@ -83,25 +83,31 @@ class Learner:
     def ready(self) -> bool:
         return self.collector.ready_steps >= self.cfg.train.batch_size
 
-    def accept(self, seg: TrajectorySegment, malformed: Callable[[Exception], None]) -> bool:
-        """Check one segment against this policy and add it to the collector (False: dropped, counted); its own
-        consistency (fields T long, finite values) was checked as it was decoded (``TrajectorySegment.check``)."""
-        if seg.obs.shape[1:] != self.obs_shape or seg.actions.shape[1:] != self.action_shape \
-                or seg.latents.shape[1:] != self.latent_shape:
+    def accept(self, item: TrajectorySegment | SegmentBatch, malformed: Callable[[Exception], None]) -> int:
+        """Check a segment, or a vectorized group's packed segments, against this policy and add them to the
+        collector; returns how many were taken (the others dropped, counted: ``ebrl.algos.intake``). Their own
+        consistency (lengths, finite values) was checked as they were decoded."""
+        if item.obs.shape[1:] != self.obs_shape or item.actions.shape[1:] != self.action_shape \
+                or item.latents.shape[1:] != self.latent_shape:
             malformed(ValueError("segment shapes do not match the policy"))
-            return False
-        refused = ("train/reward_bound_dropped" if out_of_bound(seg, self.cfg.env.max_abs_reward) else
-                   "train/future_version_dropped" if int(seg.versions.max()) > self.version else None)
-        if refused:  # rewards no sim sends (env.max_abs_reward clips them), or acted by weights never published
-            self.telemetry.count(refused)
-            return False
-        self.collector.add(seg)
-        self.returns.extend(seg.episode_returns)
-        self.successes.extend(ok for ok in seg.episode_successes if ok is not None)
-        self.episodes += len(seg.episode_returns)
-        self.longest = max([self.longest, *seg.episode_lengths])
-        self.telemetry.count("train/segments_received")
-        return True
+            return 0
+        bound, version = self.cfg.env.max_abs_reward, self.version
+        verdict = judge_packed(item, bound, version) if isinstance(item, SegmentBatch) else judge(item, bound, version)
+        for code, name in REFUSALS.items():  # rewards no sim sends (env.max_abs_reward clips them), or acted by
+            if n := verdict.codes.count(code):  # weights never published
+                self.telemetry.count(name, n)
+        taken = 0
+        for seg, code in zip(verdict.segments, verdict.codes):
+            if code == TAKEN:
+                self.collector.add(seg)
+                taken += 1
+        self.returns.extend(verdict.returns)
+        self.successes.extend(ok for ok in verdict.successes if ok is not None)
+        self.episodes += len(verdict.returns)
+        self.longest = max([self.longest, *verdict.lengths])
+        if taken:
+            self.telemetry.count("train/segments_received", taken)
+        return taken
 
     def take(self) -> list:
         """The next update's items (maybe none: everything pending was too stale)."""
@@ -261,12 +267,3 @@ def count_skipped(out: dict[str, float], telemetry: Telemetry, version: int) -> 
         telemetry.count("train/decisions_dropped", dropped)
         log.warning("v%d: %d gradient step(s) skipped, their loss or gradient not finite; %d decisions dropped",
                     version, skipped, dropped)
-
-
-def out_of_bound(seg: TrajectorySegment, max_abs_reward: float) -> bool:
-    """Whether a segment carries a reward, or an episode return, larger than a sim that clips each step's reward
-    at ``max_abs_reward`` sends (an episode of n steps returns at most n times it)."""
-    if (np.abs(seg.rewards.astype(np.float64)) > decision_bound(max_abs_reward, seg.steps)).any():
-        return True
-    return any(abs(ret) > max_abs_reward * max(length, 1) * (1 + 1e-6)
-               for ret, length in zip(seg.episode_returns, seg.episode_lengths))

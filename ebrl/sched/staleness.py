@@ -16,9 +16,9 @@ def fresh_suffix(seg: TrajectorySegment, version: int, max_staleness: int) -> tu
     A decision made by policy version v is fresh if ``version - v <= max_staleness``. Versions never
     decrease along a segment, so the fresh decisions are a suffix; GAE of a suffix is exact (it only
     looks forward), so cutting the stale prefix loses nothing else."""
-    keep = int((version - seg.versions <= max_staleness).sum())
-    if keep == len(seg.obs):
+    if version - int(seg.versions.min()) <= max_staleness:  # all fresh (the common case, one reduction)
         return seg, 0
+    keep = int((version - seg.versions <= max_staleness).sum())
     if keep == 0:
         return None, len(seg.obs)
     start = len(seg.obs) - keep

@@ -107,8 +107,7 @@ class TrainService(Service):
         await asyncio.gather(drain(self.traj), drain(self.packed))
 
     def accept(self, key: str, msg: TrajectorySegment | SegmentBatch) -> None:
-        for seg in msg.segments() if isinstance(msg, SegmentBatch) else (msg,):
-            self.cycle.accept(seg, lambda exc: self.bus.count_malformed(key, exc))
+        self.cycle.accept(msg, lambda exc: self.bus.count_malformed(key, exc))
 
     async def publish_weights(self) -> None:
         """Send the weights the update thread took; packing and sending run on the publisher's thread."""

@@ -1,6 +1,6 @@
 """Training's host work per update besides the gradient steps: a config's batch arriving as segments, taken in.
 
-    python benchmarks/train_intake.py --config configs/mjwarp_pickcube.toml --out benchmarks/results/train_intake.json
+    python benchmarks/train_intake.py --out benchmarks/results/train_intake.json
 
 For one update's worth of decisions (``train.batch_size``) of the config's task and policy, arriving as its
 vectorized groups send them (``sim.groups`` x ``sim.envs_per_group`` envs, segments of up to
@@ -14,10 +14,11 @@ point of its episode), it times what the train service's host does with them:
 * ``build``: the collector building the batch (GAE, concatenation) with the critic answered at once, so only host
   work is timed (on a GPU the critic's forward pass is the device's).
 
-``--intake envwise`` accepts the segments one at a time (what the train service did with packed messages
-before, and what it does with the segments of groups that are not vectorized). ``EBRL_SRC=<checkout>`` times
-another checkout's ``ebrl`` (how the "before" row of BENCHMARKS.md was measured: the commit before this script,
-``--intake envwise``). Results: benchmarks/results/train_intake.json.
+``envwise`` (``--intakes``) accepts the segments one at a time: what the train service did with packed messages
+before, and what it does with the segments of groups that are not vectorized. The intakes run in interleaved
+rounds; each row is the median over its updates. ``EBRL_SRC=<checkout>`` times another checkout's ``ebrl``: how
+``train_intake_before.json`` was measured, at the commit before this script (``--intakes envwise``; a git worktree).
+Results: benchmarks/results/train_intake.json, benchmarks/results/train_intake_before.json.
 """
 
 from __future__ import annotations
@@ -96,8 +97,8 @@ def payloads(cfg, info, episode_decisions: int, updates: int, rng: np.random.Gen
     return out
 
 
-def measure(cfg, info, messages: list[bytes], envwise: bool, updates: int) -> dict[str, float]:
-    """Milliseconds per update (median over ``updates``) of each part."""
+def measure(cfg, info, messages: list[bytes], envwise: bool, updates: int) -> list[tuple[float, float, float]]:
+    """Seconds of each part, for each of ``updates`` updates, from a new learner."""
     learner, critic, parts = Learner(cfg, info, 1, Counts(), "/tmp/ebrl-train-intake"), Critic(), []
     queue = collections.deque(messages)
     for _ in range(updates):
@@ -112,8 +113,7 @@ def measure(cfg, info, messages: list[bytes], envwise: bool, updates: int) -> di
         learner.collector.build(items, critic)
         t3 = time.perf_counter()
         parts.append((t1 - t0, t2 - t1, t3 - t2))
-    ms = [1e3 * statistics.median(p[i] for p in parts) for i in range(3)]
-    return {"decode_accept_ms": ms[0], "take_ms": ms[1], "build_ms": ms[2], "total_ms": sum(ms)}
+    return parts
 
 
 def _commit(where: str) -> str:
@@ -126,30 +126,41 @@ def _commit(where: str) -> str:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--config", default="configs/mjwarp_pickcube.toml")
-    parser.add_argument("--intake", choices=["packed", "envwise"], default="packed")
-    parser.add_argument("--updates", type=int, default=15)
+    parser.add_argument("--intakes", default="packed,envwise", help="comma-separated: packed, envwise")
+    parser.add_argument("--updates", type=int, default=5, help="updates per intake and round")
+    parser.add_argument("--rounds", type=int, default=3, help="rounds, the intakes interleaved in each")
     parser.add_argument("--episode-steps", type=int, default=0,
                         help="env steps of an episode (default: env.max_episode_steps, else 100: PandaPickCube-v0's)")
-    parser.add_argument("--out", default=None, help="add this row to a JSON file of rows")
+    parser.add_argument("--out", default=None, help="write the results here (JSON)")
     args = parser.parse_args()
+    intakes = [name.strip() for name in args.intakes.split(",") if name.strip()]
+    if not intakes or set(intakes) - {"packed", "envwise"}:
+        parser.error(f"--intakes {args.intakes!r}: packed and/or envwise")
     torch.set_num_threads(1)
     cfg = config_mod.load(args.config, ['train.device="cpu"'])
     info = describe(EnvSpec.from_config(cfg.env))
     limit = args.episode_steps or cfg.env.max_episode_steps or 100
     episode_decisions = -(-limit // cfg.policy.chunk)
     messages = payloads(cfg, info, episode_decisions, args.updates + 1, np.random.default_rng(0))
-    src = os.environ.get("EBRL_SRC", str(ROOT))
-    row = {"config": args.config, "intake": args.intake, "commit": _commit(src),
-           "envs": cfg.sim.groups * cfg.sim.envs_per_group, "batch_size": cfg.train.batch_size,
+    parts: dict[str, list] = {name: [] for name in intakes}
+    for _ in range(args.rounds):
+        for name in intakes:
+            parts[name] += measure(cfg, info, messages, name == "envwise", args.updates)
+    rows = []
+    for name, measured in parts.items():
+        ms = [1e3 * statistics.median(p[i] for p in measured) for i in range(3)]
+        rows.append({"intake": name, "decode_accept_ms": ms[0], "take_ms": ms[1], "build_ms": ms[2],
+                     "total_ms": sum(ms)})
+        print(json.dumps(rows[-1]), flush=True)
+    prefix = [f"EBRL_SRC={os.environ['EBRL_SRC']}"] if "EBRL_SRC" in os.environ else []
+    out = {"command": " ".join([*prefix, "python", "benchmarks/train_intake.py", *sys.argv[1:]]),
+           "commit": _commit(os.environ.get("EBRL_SRC", str(ROOT))),
+           "machine": f"{platform.machine()}, {len(os.sched_getaffinity(0))} cores, torch {torch.__version__}",
+           "config": args.config, "envs": cfg.sim.groups * cfg.sim.envs_per_group, "batch_size": cfg.train.batch_size,
            "segment_length": cfg.sim.segment_length, "episode_decisions": episode_decisions,
-           **measure(cfg, info, messages, args.intake == "envwise", args.updates)}
-    print(json.dumps(row), flush=True)
+           "updates": args.updates * args.rounds, "rows": rows}
     if args.out:
-        path = Path(args.out)
-        old = json.loads(path.read_text()) if path.exists() else {"rows": []}
-        old["rows"].append({**row, "command": " ".join(["python", "benchmarks/train_intake.py", *sys.argv[1:]])})
-        old["machine"] = {"platform": platform.platform(), "cpus": os.cpu_count(), "torch": torch.__version__}
-        path.write_text(json.dumps(old, indent=1) + "\n")
+        Path(args.out).write_text(json.dumps(out, indent=1) + "\n")
 
 
 if __name__ == "__main__":

@@ -17,7 +17,8 @@ point of its episode), it times what the train service's host does with them:
 ``envwise`` (``--intakes``) accepts the segments one at a time: what the train service did with packed messages
 before, and what it does with the segments of groups that are not vectorized. The intakes run in interleaved
 rounds; each row is the median over its updates. ``EBRL_SRC=<checkout>`` times another checkout's ``ebrl``: how
-``train_intake_before.json`` was measured, at the commit before this script (``--intakes envwise``; a git worktree).
+``train_intake_before.json`` was measured, at 45fb9c6, before GAE over all segments at once and the packed intake
+(``--intakes envwise``, a git worktree of that commit).
 Results: benchmarks/results/train_intake.json, benchmarks/results/train_intake_before.json.
 """
 

@@ -69,12 +69,16 @@ class Critic(torch.nn.Module):
         return torch.zeros(len(obs))
 
 
+OFFSETS = "episode_offsets" in SegmentBatch.__dataclass_fields__  # training follows episodes by them (returns.py)
+
+
 def payloads(cfg, info, episode_decisions: int, updates: int, rng: np.random.Generator) -> list[bytes]:
     """Encoded packed messages, one per group per cut, until ``updates`` batches' worth of decisions."""
     n, length, k = cfg.sim.envs_per_group, cfg.sim.segment_length, cfg.policy.chunk
     obs_shape, action_dim, out, total = info.obs_shape, info.action_dim, [], 0
     position = rng.integers(0, episode_decisions, (cfg.sim.groups, n))  # each env's decision within its episode
     episode = np.zeros((cfg.sim.groups, n), np.int64)
+    so_far = np.zeros((cfg.sim.groups, n))  # each env's return so far (its first episode's: of what was sent)
 
     def f(*shape: int) -> np.ndarray:
         return rng.standard_normal(shape).astype(np.float32)
@@ -82,18 +86,23 @@ def payloads(cfg, info, episode_decisions: int, updates: int, rng: np.random.Gen
     while total < updates * cfg.train.batch_size:
         for g in range(cfg.sim.groups):
             lengths = np.minimum(length, episode_decisions - position[g]).astype(np.int32)
+            offsets = position[g] * k
             position[g] = (position[g] + lengths) % episode_decisions
             ended = position[g] == 0
             t = int(lengths.sum())
+            rewards = f(t)
+            so_far[g] += np.add.reduceat(rewards.astype(np.float64), np.cumsum(lengths) - lengths)
             out.append(encode_message(SegmentBatch(
                 group=g, env_ids=np.arange(n) + g * n, episodes=episode[g].copy(), lengths=lengths,
                 ends=np.where(ended, 2, 0).astype(np.int8), obs=f(t, *obs_shape), actions=f(t, k, action_dim),
-                latents=np.zeros((t, 0), np.float32), logprobs=f(t), values=f(t), rewards=f(t),
+                latents=np.zeros((t, 0), np.float32), logprobs=f(t), values=f(t), rewards=rewards,
                 steps=np.full(t, k, np.int32), versions=np.zeros(t, np.int64), last_obs=f(n, *obs_shape),
-                episode_returns=np.where(ended, 50.0, 0.0).astype(np.float32),
+                **({"episode_offsets": offsets.astype(np.int64)} if OFFSETS else {}),  # an older checkout: none
+                episode_returns=np.where(ended, so_far[g], 0.0).astype(np.float32),
                 episode_lengths=np.where(ended, episode_decisions * k, -1).astype(np.int32),
                 episode_successes=np.where(ended, rng.integers(0, 2, n), -1).astype(np.int8))))
             episode[g] += ended
+            so_far[g][ended] = 0.0
             total += t
     return out
 

@@ -167,6 +167,15 @@ class EnvSection(Section):
         "the largest reward magnitude of one env step that training takes: a larger one is clipped to it and a "
         "non-finite one counts as 0 (counted: sim/rewards_clipped, sim/rewards_nonfinite), and train drops a "
         "segment that carries more (train/reward_bound_dropped); inf: no bound", 1e6)
+    reward_bound: float | Literal["auto"] = doc(
+        "the largest reward magnitude of one env step that an episode may carry and still count toward the "
+        "return statistics a run reports and ends on (train/episode_return_mean, run.target_return): an episode "
+        "with a larger one is trained on but not counted (train/episodes_past_bound). \"auto\": the env's "
+        "declared reward range where it has one (a finite reward_range), else learned from the run's own "
+        "rewards: 1000 x the 90th percentile of the per-step magnitude of the first 1,000 nonzero decision "
+        "rewards (and of later ones, never lower); an episode with nonzero rewards waits for it to count. inf: no "
+        "bound",
+        "auto")
     obs_keys: list[str] = doc(
         "a Dict observation's keys the policy sees, in order, as key paths (\"observation\", \"camera/front\"; an "
         "inner Dict's path selects every key under it); empty: all of them. Each becomes a field by its space: a "
@@ -176,6 +185,8 @@ class EnvSection(Section):
     def _check(self) -> None:
         if not self.max_abs_reward > 0:  # NaN too
             raise ConfigError(f"env.max_abs_reward = {self.max_abs_reward}: must be > 0 (inf: no bound)")
+        if self.reward_bound != "auto" and not self.reward_bound > 0:
+            raise ConfigError(f"env.reward_bound = {self.reward_bound}: must be > 0, \"auto\" or inf")
 
 
 @dataclass

@@ -164,6 +164,9 @@ class TrajectorySegment:
     episode_successes: list[bool | None] = doc(
         "the task's success check at the end of each of those episodes (null where the task has none); empty: "
         "not reported", default_factory=list)
+    episode_offset: int = doc(
+        "env steps of its episode before this segment's first decision (0: the segment starts the episode; -1: "
+        "not reported). Training follows each env's episode by it and computes returns itself", default=-1)
     images: Annotated[np.ndarray, Array("uint8", 2)] = doc(
         "the uint8 fields of `obs` as bytes, shape [T, byte_size] (as Observation.images; `obs` and `last_obs` "
         "then hold the other fields); [0, 0] when the layout has none", default_factory=lambda: _NO_BYTES.copy())
@@ -204,6 +207,7 @@ class TrajectorySegment:
         if self.episode_successes and len(self.episode_successes) != len(self.episode_returns):
             raise MessageError(f"{name}: {len(self.episode_successes)} episode successes, "
                                f"{len(self.episode_returns)} returns")
+        _count(f"{name}.episode_offset", self.episode_offset, -1, 1 << 40)
 
 
 SEGMENT_ENDS: tuple[str, ...] = ("cut", "terminated", "truncated")  # SegmentBatch.ends codes, as TrajectorySegment.end
@@ -235,6 +239,9 @@ class SegmentBatch:
     versions: Annotated[np.ndarray, Array("int64", 1)] = doc("policy version that produced each chunk, shape [T]")
     last_obs: Annotated[np.ndarray, Array("float32")] = doc(
         "observation after each segment's last chunk, for bootstrapping, shape [S, *obs_shape]")
+    episode_offsets: Annotated[np.ndarray, Array("int64", 1)] = doc(
+        "env steps of each segment's episode before its first decision, shape [S] (0: it starts the episode; "
+        "TrajectorySegment.episode_offset)")
     episode_returns: Annotated[np.ndarray, Array("float32", 1)] = doc(
         "return of the episode that ended at a segment's last decision, shape [S] (0 where none did)")
     episode_lengths: Annotated[np.ndarray, Array("int32", 1)] = doc(
@@ -256,8 +263,8 @@ class SegmentBatch:
         name = "SegmentBatch"
         _count(f"{name}.group", self.group, 0, 1 << 20)
         s = len(self.env_ids)
-        per_segment = [len(getattr(self, f)) for f in ("episodes", "lengths", "ends", "last_obs", "episode_returns",
-                                                       "episode_lengths", "episode_successes")]
+        per_segment = [len(getattr(self, f)) for f in ("episodes", "lengths", "ends", "last_obs", "episode_offsets",
+                                                       "episode_returns", "episode_lengths", "episode_successes")]
         if s == 0 or any(n != s for n in per_segment):
             raise MessageError(f"{name}: per-segment fields differ in length (env_ids {s}; {per_segment})")
         if int(self.lengths.min()) < 1:
@@ -279,10 +286,13 @@ class SegmentBatch:
         for field_name, values, low, high in (
                 ("env_ids", self.env_ids, 0, 1 << 30), ("episodes", self.episodes, 0, MAX_VERSION),
                 ("ends", self.ends, 0, len(SEGMENT_ENDS) - 1), ("steps", self.steps, 0, self.actions.shape[1]),
+                ("episode_offsets", self.episode_offsets, -1, 1 << 40),
                 ("versions", self.versions, 0, MAX_VERSION), ("episode_lengths", self.episode_lengths, -1, 1 << 30),
                 ("episode_successes", self.episode_successes, -1, 1)):
             if values.size and (int(values.min()) < low or int(values.max()) > high):
                 raise MessageError(f"{name}.{field_name}: a value outside [{low}, {high}]")
+        if len(np.unique(self.env_ids)) != s:  # one chunk's segments: at most one per env
+            raise MessageError(f"{name}.env_ids: an env twice in one batch")
 
     def segments(self) -> list[TrajectorySegment]:
         """The TrajectorySegment of each packed segment, in order (views of this message's arrays; checked as
@@ -292,8 +302,9 @@ class SegmentBatch:
         out = []
         pixels = bool(self.images.size)
         rows = zip(starts.tolist(), ends.tolist(), self.env_ids.tolist(), self.episodes.tolist(), self.ends.tolist(),
-                   self.episode_returns.tolist(), self.episode_lengths.tolist(), self.episode_successes.tolist())
-        for s, (a, b, env, episode, end, ret, length, success) in enumerate(rows):
+                   self.episode_returns.tolist(), self.episode_lengths.tolist(), self.episode_successes.tolist(),
+                   self.episode_offsets.tolist())
+        for s, (a, b, env, episode, end, ret, length, success, offset) in enumerate(rows):
             ended = length >= 0
             out.append(TrajectorySegment(
                 group=self.group, env_id=env, episode=episode, obs=self.obs[a:b], actions=self.actions[a:b],
@@ -301,7 +312,7 @@ class SegmentBatch:
                 rewards=self.rewards[a:b], steps=self.steps[a:b], versions=self.versions[a:b],
                 end=SEGMENT_ENDS[end], last_obs=self.last_obs[s],  # type: ignore[arg-type]
                 episode_returns=[ret] if ended else [], episode_lengths=[length] if ended else [],
-                episode_successes=([None if success < 0 else bool(success)] if ended else []),
+                episode_successes=([None if success < 0 else bool(success)] if ended else []), episode_offset=offset,
                 images=self.images[a:b] if pixels else _NO_BYTES.copy(),
                 last_images=self.last_images[s] if pixels else np.zeros(0, np.uint8)))
         return out

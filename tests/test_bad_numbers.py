@@ -23,7 +23,7 @@ from ebrl import config
 from ebrl.config import Config
 from ebrl.envs import EnvSpec, describe
 from ebrl.envs.batch import BatchRunner, EnvBatch
-from ebrl.messages import SegmentBatch, TrajectorySegment
+from ebrl.messages import SEGMENT_ENDS, SegmentBatch, TrajectorySegment
 from ebrl.policies import state_arrays
 from ebrl.testing import StatsWatcher
 from helpers import up
@@ -81,15 +81,21 @@ def test_train_drops_a_segment_whose_rewards_no_sim_could_send(tmp_path):
     assert learn.accept(segment(reward=1e6 * CFG.policy.chunk), lambda exc: None)  # at the bound: taken
     assert not learn.accept(segment(reward=3.0e38), lambda exc: None)
     assert telemetry.counts == {"train/segments_received": 1, "train/reward_bound_dropped": 1}
-    # an episode of 10 steps returns at most 10 times the bound: one that claims more is no sim's
-    ok, forged = segment(reward=1.0), segment(reward=1.0)
-    ok.episode_returns, ok.episode_lengths, ok.episode_successes = [9e6], [10], [True]
-    forged.episode_returns, forged.episode_lengths = [1e9], [10]
+    # an episode of 32 steps returns at most 32 times the bound: one that claims more is no sim's
+    ok, forged = finished(segment(reward=0.0), 0.0, 32, True), finished(segment(reward=0.0), 1e9, 32, True)
+    ok.env_id = 1
     assert learn.accept(ok, lambda exc: None) and not learn.accept(forged, lambda exc: None)
     assert telemetry.counts["train/reward_bound_dropped"] == 2
     metrics = learn.metrics()  # what the launcher ends a run on: the episodes of the segments taken
     assert (metrics["train/episode_return_mean"], metrics["train/success_rate"], metrics["train/episodes"],
-            metrics["train/episode_length_max"]) == (9e6, 1.0, 1.0, 10.0)
+            metrics["train/episode_length_max"]) == (0.0, 1.0, 1.0, 32.0)
+
+
+def finished(seg: TrajectorySegment, ret: float, length: int, success: bool | None) -> TrajectorySegment:
+    """``seg`` as the whole of an episode that ended with these values (its own, or forged)."""
+    seg.end, seg.episode_offset = "terminated", 0
+    seg.episode_returns, seg.episode_lengths, seg.episode_successes = [ret], [length], [success]
+    return seg
 
 
 def pack(segments: list[TrajectorySegment]) -> SegmentBatch:
@@ -101,8 +107,10 @@ def pack(segments: list[TrajectorySegment]) -> SegmentBatch:
         return np.array([getattr(s, name)[0] if getattr(s, name) else none for s in segments], dtype)
 
     return SegmentBatch(
-        group=0, env_ids=np.arange(len(segments)), episodes=np.zeros(len(segments), np.int64),
-        lengths=np.array([len(s.obs) for s in segments], np.int32), ends=np.zeros(len(segments), np.int8),
+        group=0, env_ids=np.array([s.env_id for s in segments]), episodes=np.array([s.episode for s in segments]),
+        lengths=np.array([len(s.obs) for s in segments], np.int32),
+        ends=np.array([SEGMENT_ENDS.index(s.end) for s in segments], np.int8),
+        episode_offsets=np.array([s.episode_offset for s in segments], np.int64),
         **{name: cat(name) for name in ("obs", "actions", "latents", "logprobs", "values", "rewards", "steps",
                                          "versions")},
         last_obs=np.stack([s.last_obs for s in segments]), episode_returns=ended("episode_returns", 0.0, np.float32),
@@ -114,22 +122,20 @@ def pack(segments: list[TrajectorySegment]) -> SegmentBatch:
 def test_a_packed_batch_is_judged_segment_by_segment_as_its_segments_would_be(tmp_path):
     """Taking a vectorized group's packed segments in one go keeps and drops exactly what taking them one at a
     time does: the same counts, the same pending decisions, the same episodes behind the stop rule."""
-    def finished(seg, ret, length, success):
-        seg.episode_returns, seg.episode_lengths, seg.episode_successes = [ret], [length], [success]
-        return seg
-
     one_bad_decision = segment(reward=1.0)
     one_bad_decision.rewards[3] = 3.0e38
     future = segment(T=3)
     future.versions[-1] = 1  # acted by a version this learner never published
-    segments = [finished(segment(T=5), 40.0, 30, True), segment(reward=3.0e38), one_bad_decision, future,
-                finished(segment(T=2), 1e9, 10, True), finished(segment(T=4), 7.0, 12, None),
-                finished(segment(T=1), -3.0, 77, False), segment(T=6), finished(segment(T=2), 2.0, 5, True)]
+    # rewards of 0 (an episode of them counts at once, before a learned reward bound is known)
+    segments = [finished(segment(T=5, reward=0.0), 0.0, 20, True), segment(reward=3.0e38), one_bad_decision, future,
+                finished(segment(T=2, reward=0.0), 1e9, 8, True), finished(segment(T=4, reward=0.0), 0.0, 16, None),
+                finished(segment(T=1, reward=0.0), 0.0, 4, False), segment(T=6),
+                finished(segment(T=2, reward=0.0), 0.0, 8, True), finished(segment(T=3, reward=0.0), 5.0, 12, True)]
     for i, seg in enumerate(segments):
         seg.env_id, seg.obs = i, seg.obs + i  # each segment's own observations
     one, one_counts = learner(tmp_path / "one")
     taken = [one.accept(seg, pytest.fail) for seg in segments]
-    assert taken == [1, 0, 0, 0, 0, 1, 1, 1, 1]
+    assert taken == [1, 0, 0, 0, 0, 1, 1, 1, 1, 0]  # the last forges its episode's return
     packed_learner, packed_counts = learner(tmp_path / "packed")
     batch = pack(segments)
     batch.check()
@@ -137,7 +143,9 @@ def test_a_packed_batch_is_judged_segment_by_segment_as_its_segments_would_be(tm
     assert packed_counts.counts == one_counts.counts == {
         "train/segments_received": 5, "train/reward_bound_dropped": 3, "train/future_version_dropped": 1}
     assert packed_learner.metrics() == one.metrics()
-    assert (packed_learner.metrics()["train/episodes"], packed_learner.metrics()["train/success_rate"]) == (4, 2 / 3)
+    metrics = packed_learner.metrics()
+    assert (metrics["train/episodes"], metrics["train/success_rate"], metrics["train/episode_values_refused"]) == \
+        (4, 2 / 3, 1)
     pending = [np.concatenate([s.obs for s in learned.collector.segments()]) for learned in (one, packed_learner)]
     assert np.array_equal(*pending)
 
@@ -195,9 +203,8 @@ def buggy_run(tmp_path_factory):
     kwargs = '{absurd_every = 300, nan_every = 401, inf_every = 503, bad_obs_every = 101}'
     with pytest.MonkeyPatch.context() as patch:
         patch.setenv("PYTHONPATH", os.pathsep.join([str(TESTS), os.environ.get("PYTHONPATH", "")]))  # faulty_envs
-        # the target return is off: one clipped 1e38 reward (1e6) in an episode would reach it
-        with up(out, "configs/quickstart.toml", "run.iterations=10", "run.target_return=1e300",
-                "train.batch_size=256", 'viz.rerun="off"', 'env.id="faulty_envs:BuggyReward-v0"',
+        # the quickstart's own target return (900): one clipped 1e38 reward (1e6) in an episode must not reach it
+        with up(out, "configs/quickstart.toml", "run.iterations=10", "train.batch_size=256", 'viz.rerun="off"', 'env.id="faulty_envs:BuggyReward-v0"',
                 f"env.kwargs={kwargs}", name="buggy") as run, \
                 StatsWatcher(run) as stats:
             code = run.wait(300)
@@ -209,6 +216,10 @@ def test_a_run_on_a_buggy_env_finishes_every_iteration_with_no_restart_and_a_fin
     assert code == 0, run.output
     summary = json.loads((run.run_dir / "summary.json").read_text())
     assert summary["iterations"] == 10 and summary["restarts"] == {}
+    # no early end: the episodes with a clipped absurd reward were trained on but did not count
+    assert summary["target_reached"] is None and stats.latest("train/0", "train/episodes_past_bound", 0) > 0
+    assert all(v <= 1000.0 for v in stats.values("train/0", "train/episode_return_mean"))  # InvertedPendulum's most
+    assert summary["final_return"] is not None and summary["final_return"] <= 1000.0  # the real return
     for name in ("sim/rewards_clipped", "sim/rewards_nonfinite", "sim/obs_nonfinite"):
         assert stats.latest("sim/0", name, 0) > 0, name
     assert stats.latest("train/0", "train/reward_bound_dropped", 0) == 0  # the sim bounded them all

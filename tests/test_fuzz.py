@@ -124,13 +124,14 @@ FACTORY = {
     m.TrajectorySegment: lambda: m.TrajectorySegment(
         group=0, env_id=3, episode=1, obs=f32(2, 3), actions=f32(2, 4, 1), latents=f32(2, 0), logprobs=f32(2),
         values=f32(2), rewards=f32(2), steps=np.array([4, 2], np.int32), versions=np.array([5, 6], np.int64),
-        end="terminated", last_obs=f32(3), episode_returns=[1.5], episode_lengths=[6]),
+        end="terminated", last_obs=f32(3), episode_returns=[1.5], episode_lengths=[6], episode_offset=0),
     m.SegmentBatch: lambda: m.SegmentBatch(
         group=1, env_ids=np.array([3, 4], np.int64), episodes=np.array([1, 0], np.int64),
         lengths=np.array([2, 1], np.int32), ends=np.array([1, 0], np.int8), obs=f32(3, 3), actions=f32(3, 4, 1),
         latents=f32(3, 0), logprobs=f32(3), values=f32(3), rewards=f32(3), steps=np.array([4, 2, 4], np.int32),
         versions=np.array([5, 6, 6], np.int64), last_obs=f32(2, 3), episode_returns=np.array([1.5, 0], np.float32),
-        episode_lengths=np.array([6, -1], np.int32), episode_successes=np.array([1, -1], np.int8)),
+        episode_lengths=np.array([6, -1], np.int32), episode_successes=np.array([1, -1], np.int8),
+        episode_offsets=np.array([0, 8], np.int64)),
     m.Weights: lambda: m.Weights(version=3, params={"w": f32(2, 2), "b": f32(2)}, created_at=2.0),
     m.WeightsPart: lambda: m.WeightsPart(version=3, index=0, count=1, part_bytes=128, total_bytes=128, created_at=2.0,
                                          data=np.arange(128, dtype=np.uint8), names=["w", "b"],

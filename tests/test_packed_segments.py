@@ -53,7 +53,8 @@ def random_chunks(rng: np.random.Generator, chunks: int) -> list[tuple[np.ndarra
 
 
 def same_segment(a: TrajectorySegment, b: TrajectorySegment) -> None:
-    assert (a.group, a.env_id, a.episode, a.end) == (b.group, b.env_id, b.episode, b.end)
+    assert (a.group, a.env_id, a.episode, a.end, a.episode_offset) == (b.group, b.env_id, b.episode, b.end,
+                                                                        b.episode_offset)
     for name in SEGMENT_FIELDS:
         x, y = getattr(a, name), getattr(b, name)
         assert x.dtype == y.dtype and np.array_equal(x, y), name
@@ -88,6 +89,11 @@ def test_packed_segments_are_the_per_env_builders_segments_through_the_bus(packe
     assert any(s.episode_successes == [None] for s in packed) and any(s.episode_successes == [True] for s in packed)
     for a, b in zip(expected, packed):
         same_segment(a, b)
+    at: dict[tuple[int, int], int] = {}  # (env, episode) -> env steps sent: each segment starts where the last ended
+    for seg in packed:
+        assert seg.episode_offset == at.get((seg.env_id, seg.episode), 0)
+        at[(seg.env_id, seg.episode)] = seg.episode_offset + int(seg.steps.sum())
+    assert any(seg.episode_offset > 0 for seg in packed)
 
 
 def test_a_replaced_group_process_drops_the_segments_in_progress():

@@ -4,6 +4,7 @@ A segment's own consistency (fields T long, finite values, counts in range) was 
 (``TrajectorySegment.check``, ``SegmentBatch.check``). What only training can judge is here: a reward no sim sends
 (each env step's reward is clipped at ``env.max_abs_reward``, so a decision of k steps carries at most k times it,
 an episode of n steps returns at most n times it) and a decision acted by a version this learner never published.
+The episodes of the segments taken are followed, and their returns computed, by ``ebrl.algos.returns``.
 
 The rule is written twice, for speed, and a test holds the two to the same verdicts
 (``tests/test_bad_numbers.py``): :func:`judge` for one segment in a few scalar operations, :func:`judge_packed`
@@ -27,14 +28,10 @@ SLACK = 1 + 1e-6  # float32 sums of clipped rewards may round a little above the
 
 @dataclass
 class Verdict:
-    """Each segment and its verdict (:data:`TAKEN`, :data:`REWARD_BOUND`, :data:`FUTURE_VERSION`); the episodes
-    that finished in the segments taken: returns, lengths in env steps, success (None: the task reports none)."""
+    """Each segment and its verdict (:data:`TAKEN`, :data:`REWARD_BOUND`, :data:`FUTURE_VERSION`)."""
 
     segments: list[TrajectorySegment]
     codes: list[int]
-    returns: list[float]
-    lengths: list[int]
-    successes: list[bool | None]
 
 
 def judge(seg: TrajectorySegment, max_abs_reward: float, version: int) -> Verdict:
@@ -47,10 +44,7 @@ def judge(seg: TrajectorySegment, max_abs_reward: float, version: int) -> Verdic
         code = REWARD_BOUND
     elif int(seg.versions.max()) > version:
         code = FUTURE_VERSION
-    if code != TAKEN:
-        return Verdict([seg], [code], [], [], [])
-    successes = list(seg.episode_successes) or [None] * len(seg.episode_returns)
-    return Verdict([seg], [code], list(seg.episode_returns), list(seg.episode_lengths), successes)
+    return Verdict([seg], [code])
 
 
 def judge_packed(batch: SegmentBatch, max_abs_reward: float, version: int) -> Verdict:
@@ -62,7 +56,4 @@ def judge_packed(batch: SegmentBatch, max_abs_reward: float, version: int) -> Ve
         np.abs(batch.episode_returns.astype(np.float64)) > max_abs_reward * np.maximum(batch.episode_lengths, 1) * SLACK))
     future = np.maximum.reduceat(batch.versions, starts) > version
     codes = np.where(bound, REWARD_BOUND, np.where(future, FUTURE_VERSION, TAKEN))
-    kept = ended & (codes == TAKEN)
-    success = batch.episode_successes[kept].tolist()
-    return Verdict(batch.segments(), codes.tolist(), batch.episode_returns[kept].tolist(),
-                   batch.episode_lengths[kept].tolist(), [None if ok < 0 else bool(ok) for ok in success])
+    return Verdict(batch.segments(), codes.tolist())

@@ -8,6 +8,7 @@ import inspect
 import math
 from dataclasses import dataclass
 from types import ModuleType
+from typing import Any
 
 import gymnasium as gym
 
@@ -106,9 +107,21 @@ def describe(spec: EnvSpec) -> EnvInfo:
         if layout.size != math.prod(env.observation_space.shape):
             raise EnvError(f"{spec.id}: obs_layout {layout.describe()} has {layout.size} values, "
                            f"the observation space {env.observation_space.shape}")
-        return EnvInfo(env.observation_space, env.action_space, layout, getattr(base, "instruction", ""))
+        return EnvInfo(env.observation_space, env.action_space, layout, getattr(base, "instruction", ""),
+                       declared_reward_range(base))
     finally:
         env.close()
+
+
+def declared_reward_range(env: Any) -> tuple[float, float] | None:
+    """The range of one step's reward that ``env`` declares (``reward_range``: gym's attribute, which gymnasium
+    1.x dropped; EBRL's MuJoCo tasks declare theirs), where it is a finite ``(low, high)``; else None."""
+    declared = getattr(env, "reward_range", None)
+    try:
+        low, high = (float(v) for v in declared)  # type: ignore[union-attr]
+    except (TypeError, ValueError):
+        return None
+    return (low, high) if math.isfinite(low) and math.isfinite(high) and low <= high else None
 
 
 def _declared_layout(env: gym.Env) -> ObsLayout | None:

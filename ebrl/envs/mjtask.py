@@ -73,6 +73,7 @@ class MjTask:
     action_size: int = 0
     obs_size: int = 0
     instruction: str = ""
+    reward_range: tuple[float, float] | None = None  # one step's reward, where the task knows it (docs/security.md)
 
     def __init__(self, **kwargs: Any):
         if kwargs:
@@ -195,6 +196,7 @@ class MjTaskEnv(gym.Env):
         self.model = task.model
         self.data = mujoco.MjData(self.model)
         self.substeps = task.substeps
+        self.reward_range = task.reward_range
         self.metadata = {**self.metadata, "render_fps": int(round(1.0 / task.ctrl_dt))}
         self.vars = {name: np.zeros((1, *shape), np.float32) for name, shape in task.task_fields().items()}
         self.state = cpu_state(self.model, self.data, self.vars)

@@ -55,6 +55,7 @@ class EnvInfo:
     action_space: gym.spaces.Box
     layout: ObsLayout
     instruction: str = ""
+    reward_range: tuple[float, float] | None = None  # an env step's reward, where the env declares it (finite)
 
     @property
     def obs_shape(self) -> tuple[int, ...]:

@@ -30,6 +30,9 @@ class SegmentBuilder:
     _lengths: list[int] = field(default_factory=list)
     _successes: list[bool | None] = field(default_factory=list)
     _episode: int = 0
+    _offset: int = 0  # env steps of the episode before the segment being built
+    _in_episode: int = 0  # env steps of the episode so far
+    _last_episode: int = -1  # the episode of the latest decision
 
     def __len__(self) -> int:
         return len(self._obs)
@@ -40,7 +43,11 @@ class SegmentBuilder:
         ``boundary`` marks the last decision of an iteration: the segment is cut there so that every
         decision of the iteration reaches training."""
         if not self._obs:
-            self._episode = result.episode
+            if result.episode != self._last_episode:  # a new episode (or a replaced worker's next one)
+                self._in_episode = 0
+            self._episode, self._offset = result.episode, self._in_episode
+        self._last_episode = result.episode
+        self._in_episode += int(result.steps)
         self._obs.append(obs)
         self._actions.append(action)
         self._latents.append(latent)
@@ -79,6 +86,7 @@ class SegmentBuilder:
             episode_returns=list(self._returns),
             episode_lengths=list(self._lengths),
             episode_successes=list(self._successes),
+            episode_offset=self._offset,
         )
         for buf in (self._obs, self._actions, self._latents, self._logprobs, self._values, self._rewards, self._steps,
                     self._versions, self._returns, self._lengths, self._successes):
@@ -98,6 +106,9 @@ class SegmentBuffers:
         n = len(self.env_ids)
         self.fill = np.zeros(n, np.int64)  # decisions of each env's current segment
         self.episode = np.zeros(n, np.int64)  # the episode each env's current segment belongs to
+        self.offset = np.zeros(n, np.int64)  # env steps of that episode before the current segment
+        self.in_episode = np.zeros(n, np.int64)  # env steps of each env's episode so far
+        self.last_episode = np.full(n, -1, np.int64)  # the episode of each env's latest decision
         self.rows = np.arange(n)
         self.bufs: dict[str, np.ndarray] = {}  # field -> [n, length, ...], made at the first chunk
 
@@ -123,7 +134,12 @@ class SegmentBuffers:
             self.bufs = {name: np.zeros((n, self.length, *np.shape(value)[1:]), DTYPES[name])
                          for name, value in per_decision.items()}
         starting = fill == 0
-        self.episode[starting] = result.episode[starting]
+        episode = np.asarray(result.episode, np.int64)
+        self.in_episode[starting & (episode != self.last_episode)] = 0  # a new episode (or after a replacement)
+        self.episode[starting] = episode[starting]
+        self.offset[starting] = self.in_episode[starting]
+        self.last_episode[:] = episode
+        self.in_episode += np.asarray(result.steps, np.int64)
         at = (slice(None), int(fill[0])) if int(fill.min()) == int(fill.max()) else (rows, fill)  # in step: a slice
         for name, value in per_decision.items():
             self.bufs[name][at] = value
@@ -169,6 +185,7 @@ class SegmentBuffers:
         return SegmentBatch(
             group=self.group, env_ids=self.env_ids[emit], episodes=self.episode[emit].copy(),
             lengths=lengths.astype(np.int32), ends=ends[emit], **fields, last_obs=last_obs,
+            episode_offsets=self.offset[emit].copy(),
             episode_returns=pick(result.episode_return, 0.0).astype(np.float32),
             episode_lengths=pick(result.episode_length, -1).astype(np.int32),
             episode_successes=pick(result.episode_success, -1).astype(np.int8))

@@ -304,6 +304,12 @@ DATA_HEALTH = {
     "train/weights_refused": "updates whose weights were not finite, undone",
     "train/checkpoints_refused": "checkpoints not written (state not finite)",
     "train/future_version_dropped": "segments acted by a version train never made, dropped",
+    "train/episode_values_refused": "segments whose episode return or length is not what their rewards and steps "
+                                    "make, refused (training computes returns itself)",
+    "train/segments_replayed": "segments repeating an episode's steps train already had, refused",
+    "train/episodes_incomplete": "episodes not counted in the return: a segment of theirs missing or refused",
+    "train/episodes_past_bound": "episodes not counted in the return: a reward past env.reward_bound "
+                                 "(train/reward_bound)",
     "gen/version_resets": "times gen found itself ahead of train and went back to train's newest",
     "gen/obs_dropped": "observations whose shape does not fit the policy, dropped",
     "gen/weights_refused": "weight versions refused",

@@ -83,10 +83,12 @@ class Learner:
     def ready(self) -> bool:
         return self.collector.ready_steps >= self.cfg.train.batch_size
 
-    def accept(self, item: TrajectorySegment | SegmentBatch, malformed: Callable[[Exception], None]) -> int:
+    def accept(self, item: TrajectorySegment | SegmentBatch, malformed: Callable[[Exception], None],
+               handed: bool = False) -> int:
         """Check a segment, or a vectorized group's packed segments, against this policy and add them to the
         collector; returns how many were taken (the others dropped, counted: ``ebrl.algos.intake``). Their own
-        consistency (lengths, finite values) was checked as they were decoded."""
+        consistency (lengths, finite values) was checked as they were decoded. ``handed``: handed over by the
+        learner before (its segments and env steps were counted there, so not again)."""
         if item.obs.shape[1:] != self.obs_shape or item.actions.shape[1:] != self.action_shape \
                 or item.latents.shape[1:] != self.latent_shape:
             malformed(ValueError("segment shapes do not match the policy"))
@@ -94,7 +96,7 @@ class Learner:
         bound, version = self.cfg.env.max_abs_reward, self.version
         packed = isinstance(item, SegmentBatch)
         verdict = judge_packed(item, bound, version) if packed else judge(item, bound, version)
-        if item.group in self.by_group or len(self.by_group) < MAX_GROUPS_SHOWN:
+        if not handed and (item.group in self.by_group or len(self.by_group) < MAX_GROUPS_SHOWN):
             self.by_group[item.group] = self.by_group.get(item.group, 0) + len(verdict.segments)
         for code, name in REFUSALS.items():  # rewards no sim sends (env.max_abs_reward clips them), or acted by
             if n := verdict.codes.count(code):  # weights never published
@@ -111,7 +113,7 @@ class Learner:
                 self.collector.add(seg)
                 taken += 1
                 steps += int(seg.steps.sum())
-        if taken:
+        if taken and not handed:
             self.telemetry.count("train/segments_received", taken)
             self.env_steps += steps
         return taken
@@ -229,7 +231,8 @@ class Learner:
 
     def take_over(self, malformed: Callable[[Exception], None]) -> tuple[int, int]:
         """(taken, handed over) of what the learner before left (:func:`ebrl.algos.handover.take_over`)."""
-        taken, handed = handover.take_over(self.run_dir, lambda segment: self.accept(segment, malformed), malformed)
+        taken, handed = handover.take_over(self.run_dir, lambda segment: self.accept(segment, malformed, handed=True),
+                                          malformed)
         self.telemetry.count("train/segments_taken_over", taken)
         return taken, handed
 

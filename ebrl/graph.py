@@ -40,6 +40,9 @@ class Flow:
     message: str
     why: str = ""
     chart: bool = True  # drawn in the chart (a monitor that only counts what it hears is not)
+    # its one ``*`` chunk is a group of the environment: an instance's identity may send it for its own groups
+    # alone where the router knows them (sim/n has groups n*G .. n*G+G-1: ebrl.sched.fleet)
+    grouped: bool = False
 
 
 R, ROLE, I = "{run}", "{role}", "{instance}"
@@ -62,9 +65,10 @@ WEIGHTS_READER = (  # ebrl.weights.WeightsReceiver: new versions as published, a
 
 FLOWS: dict[str, tuple[Flow, ...]] = {
     "sim": (
-        Flow("put", keys.obs(R), "Observation", "a group's observations, when its chunk ends"),
-        Flow("put", keys.traj(R), "TrajectorySegment", "finished segments"),
-        Flow("put", keys.traj_packed(R), "SegmentBatch", "a vectorized group's finished segments, packed"),
+        Flow("put", keys.obs(R), "Observation", "a group's observations, when its chunk ends", grouped=True),
+        Flow("put", keys.traj(R), "TrajectorySegment", "finished segments", grouped=True),
+        Flow("put", keys.traj_packed(R), "SegmentBatch", "a vectorized group's finished segments, packed",
+             grouped=True),
         Flow("put", keys.episodes(R, ROLE), "EpisodeBatch", "finished episodes (returns, success)"),
         Flow("sub", keys.act(R), "ActionChunk", "each group's next chunk"),
         Flow("watch", keys.live_all(R), "-", "which gen and sim hosts are up (the iteration gate)"),
@@ -232,7 +236,8 @@ def username(role: str) -> str:
 ROUTING_ROLE = "launcher"  # a host's launcher routes every role's traffic between hosts: its identity sends all
 
 
-def access_control(run: str, roles: tuple[str, ...] | None = None, trusted_zids: list[str] | tuple[str, ...] = ()
+def access_control(run: str, roles: tuple[str, ...] | None = None, trusted_zids: list[str] | tuple[str, ...] = (),
+                   instances: tuple[tuple[str, int], ...] | list[tuple[str, int]] = (), groups: int = 0
                    ) -> dict[str, object]:
     """Zenoh's ``access_control`` block for run ``run``, default deny: what a peer signed in as a role's identity
     (:func:`username`) sends is taken in only where that role's flows declare it (each role's instance chunk
@@ -240,25 +245,35 @@ def access_control(run: str, roles: tuple[str, ...] | None = None, trusted_zids:
     checks what it takes in. ``roles``: the identities to admit (default: every role of the graph). Another
     host's launcher (:data:`ROUTING_ROLE`) forwards what its own clients were allowed to send, so its identity,
     and the sessions with the Zenoh ids ``trusted_zids`` (the far ends of links this router opened itself,
-    which identify no user), may send anything."""
+    which identify no user), may send anything.
+
+    ``instances`` (``(role, n)`` pairs: the services a client-mode launcher starts): each signs in as
+    :func:`instance_username` and takes in only its own instance's keys (``{instance}`` is ``n``: its token,
+    stats, status and control), and with ``groups`` (a simulator's groups) a simulator's data only on its own
+    groups' keys; the services' role identities are then not admitted (no process signs in with one), only
+    those of the roles that are not services (the launcher, observers)."""
     every = {"id": "anything", "permission": "allow", "flows": ["ingress"], "messages": ALL_ACL_MESSAGES,
              "key_exprs": ["**"]}
     rules: list[dict[str, object]] = [{"id": "send", "permission": "allow", "flows": ["egress"],
                                        "messages": ALL_ACL_MESSAGES, "key_exprs": ["**"]}, every]
     subjects, policies = [], []
-    for role in roles or tuple(FLOWS):
-        subjects.append({"id": role, "usernames": [username(role)]})
+    admitted = [(role, None) for role in roles or tuple(FLOWS) if not instances or role not in SERVICES]
+    for role, instance in admitted + [(role, int(n)) for role, n in instances]:
+        subject = role if instance is None else f"{role}-{instance}"
+        subjects.append({"id": subject, "usernames": [username(role) if instance is None
+                                                      else instance_username(role, instance)]})
         if role == ROUTING_ROLE:
-            policies.append({"id": role, "rules": ["anything"], "subjects": [role]})
+            policies.append({"id": subject, "rules": ["anything"], "subjects": [subject]})
             continue
         ids = [""]
         for direction in DIRECTIONS:
-            exprs = sorted({_concrete(f.pattern, run, role) for f in flows(role) if f.direction == direction})
+            exprs = sorted({e for f in flows(role) if f.direction == direction
+                            for e in _concrete(f, run, role, instance, groups)})
             if exprs:
-                ids.append(f"{role}-{direction}")
+                ids.append(f"{subject}-{direction}")
                 rules.append({"id": ids[-1], "permission": "allow", "flows": ["ingress"],
                               "messages": list(ACL_MESSAGES[direction]), "key_exprs": exprs})
-        policies.append({"id": role, "rules": ids[1:], "subjects": [role]})
+        policies.append({"id": subject, "rules": ids[1:], "subjects": [subject]})
     if trusted_zids:
         subjects.append({"id": "opened", "zids": list(trusted_zids)})
         policies.append({"id": "opened", "rules": ["anything"], "subjects": ["opened"]})
@@ -268,9 +283,24 @@ def access_control(run: str, roles: tuple[str, ...] | None = None, trusted_zids:
             "policies": policies}
 
 
-def _concrete(pattern: str, run: str, role: str) -> str:
-    """A flow's pattern for one run and role, any instance."""
-    return pattern.replace(R, run).replace(ROLE, role).replace(I, "*")
+def _concrete(flow: Flow, run: str, role: str, instance: int | None = None, groups: int = 0) -> list[str]:
+    """A flow's key expressions for one run and role: any instance (``instance`` None), or that instance's,
+    and a simulator's data on its own groups (``groups`` per host) when the flow is :attr:`Flow.grouped`."""
+    def concrete(pattern: str) -> str:
+        return pattern.replace(R, run).replace(ROLE, role).replace(I, "*" if instance is None else str(instance))
+
+    if instance is None or not groups or not flow.grouped:
+        return [concrete(flow.pattern)]
+    chunks = flow.pattern.split("/")
+    at = chunks.index("*")  # the group's chunk
+    return [concrete("/".join(chunks[:at] + [str(g)] + chunks[at + 1:]))
+            for g in range(instance * groups, (instance + 1) * groups)]
+
+
+def instance_username(role: str, instance: int) -> str:
+    """The Zenoh user name of service instance ``role/instance``: ``ebrl-<role>-<instance>`` (``ebrl.bus.auth``
+    makes its password)."""
+    return f"{username(role)}-{int(instance)}"
 
 
 def _instance(pattern: str, role: str) -> str:

@@ -50,6 +50,23 @@ class HostPlan:
             return range(cfg.train.world_size)
         return range(1)
 
+    def started(self, cfg: Config) -> tuple[tuple[str, int], ...]:
+        """Every service instance this host's launcher starts, ``(role, n)``: the ones its router admits, each
+        with its own identity (``ebrl.bus.auth``)."""
+        return tuple((role, n) for role in self.roles for n in self.instances(role, cfg))
+
+
+def sim_hosts(cfg: Config, plan: HostPlan) -> tuple[int, ...] | None:
+    """The simulator hosts the run has, by its plan: host 0 alone on one host; over ``[hosts]``, the number of
+    each entry that runs sim. None for hosts that join with ``--only`` (their numbers are the launchers': any
+    host whose launcher admits a simulator). Generation's batch and the iteration schedule count live simulators
+    of these hosts only (``ebrl.bus.peers``), so a token of another instance changes neither."""
+    if not plan.multi:
+        return (plan.instance,)
+    if cfg.hosts:
+        return tuple(i for i, entry in enumerate(cfg.hosts.values()) if "sim" in entry.services)
+    return None
+
 
 def enabled_roles(cfg: Config) -> tuple[str, ...]:
     """Every service the run has, in start order: viz and log first (they see the run from its start), the

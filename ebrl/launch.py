@@ -22,6 +22,7 @@ all/stop``); a host whose primary is gone for ``PRIMARY_LOST_S`` stops too.
 from __future__ import annotations
 
 import asyncio
+import collections
 import json
 import logging
 import signal
@@ -34,11 +35,12 @@ from ebrl import config as config_mod, prepare, procenv, stall
 from ebrl.bus import auth, keys
 from ebrl.bus.session import Bus, BusOptions
 from ebrl.bus.endpoints import address_in_use, config_file_listen, listen_endpoint
-from ebrl.hosts import PRIMARY_LOST_S, HostPlan, Membership, enabled_roles
+from ebrl.hosts import PRIMARY_LOST_S, HostPlan, Membership, enabled_roles, sim_hosts
 from ebrl.messages import Event, GpuShare, StatsReport, Stop
 from ebrl.weights import known_version
-from ebrl.runview import Console, RunView, write_report, write_summary
-from ebrl.service import STOP_TO_RESTART
+from ebrl.runview import Console, RunView, summary as run_summary, write_report, write_summary
+from ebrl.sched.modes import resolve
+from ebrl.service import STOP_TO_RESTART, bus_metrics, control_version_refused
 from ebrl.supervisor import Argv, RestartPolicy, Supervisor
 from ebrl.viz import record, web_url
 
@@ -55,6 +57,27 @@ def service_argv(config_path: Path, endpoint: str) -> Argv:
         cmd = [sys.executable, "-m", f"ebrl.services.{role}", "--config", str(config_path), "--instance", str(instance)]
         return cmd + (["--connect", endpoint] if endpoint else [])
     return argv
+
+
+def role_env(cfg: config_mod.Config, plan: HostPlan) -> dict[str, dict[str, str]]:
+    """The EBRL variables of each role's processes (``ebrl.procenv``): the allocator, whether this host
+    simulates (it plans this host); generation and the simulators, the run's simulator hosts (what they count as
+    serving: ``ebrl.hosts.sim_hosts``)."""
+    env = {"alloc": procenv.service_env(local_sim="sim" in plan.roles)}
+    hosts = sim_hosts(cfg, plan)
+    if hosts is not None:
+        env.update({role: procenv.service_env(sim_hosts=hosts) for role in ("gen", "sim")})
+    return env
+
+
+def instance_env(cfg: config_mod.Config, run_dir: Path) -> Callable[[str, int], dict[str, str]] | None:
+    """Each process's own bus identity (``ebrl.bus.auth.instance_line``), where the launcher's router admits
+    identities per instance (``bus.mode = "client"`` with ``bus.auth``); None elsewhere (a mesh signs in by
+    role)."""
+    secret = auth.secret_path(cfg.bus, run_dir)
+    if not secret or cfg.bus.mode != "client":
+        return None
+    return lambda role, instance: procenv.service_env(identity=auth.instance_line(secret, role, instance))
 
 
 def banner(cfg: config_mod.Config, plan: HostPlan, run_dir: Path, endpoint: str) -> str:
@@ -83,19 +106,28 @@ class LauncherBus:
     def __init__(self, cfg: config_mod.Config, plan: HostPlan, endpoint: str, run_dir: Path):
         self.run = cfg.run.name
         listen = [endpoint, *cfg.bus.listen[1:]] if endpoint else []
-        # the router of this host's services when they are its clients (each checked against its role's rights,
-        # ebrl.bus.auth), and between hosts
+        secret = auth.secret_path(cfg.bus, run_dir)
+        # the router of this host's services when they are its clients (each signed in as its own instance and
+        # checked against that instance's rights, ebrl.bus.auth), and between hosts
+        instances, dictionary, groups = (), "", 0
+        if secret and cfg.bus.mode == "client":
+            instances = plan.started(cfg)
+            dictionary = str(auth.write_router_dictionary(
+                secret, run_dir / auth.ROUTER_FILE.format(host=plan.instance), instances))
+            groups = resolve(cfg).groups  # a simulator's groups: sim/n has n*groups .. (ebrl.sched.fleet)
         self.bus = Bus(BusOptions(mode="router" if plan.multi or cfg.bus.mode == "client" else "peer",
                                   listen=listen, connect=list(cfg.bus.connect), config_file=cfg.bus.config_file,
-                                  secret_file=auth.secret_path(cfg.bus, run_dir), file_listen_wins=True,
-                                  role="launcher", run=self.run, host=plan.instance))
+                                  secret_file=secret, file_listen_wins=True, role="launcher", run=self.run,
+                                  host=plan.instance, instances=instances, dictionary_file=dictionary,
+                                  groups=groups))
         (run_dir / "bus.json").write_text(json.dumps({"listen": listen, "run": self.run}) + "\n")
         self.recorder = record.Recorder(run_dir / record.FILENAME) if cfg.viz.record else None
         if self.recorder is not None:
             self.bus.subscribe_raw(keys.stats_all(self.run), self.recorder.write)
         self._seq = 0
         self.ctl_unknown = 0  # control messages for a service this run does not have
-        self.gpu_shares_refused = 0  # GPU shares in a run without the allocator
+        # control messages refused (refuse): GPU shares in a run without the allocator, or numbered far ahead
+        self.refused = collections.Counter({"launcher/gpu_shares_refused": 0, "ctl/version_refused": 0})
 
     def count_unknown_controls(self, roles: tuple[str, ...] | list[str]) -> None:
         """Count control messages for a service this run does not have (every service ignores them)."""
@@ -107,6 +139,12 @@ class LauncherBus:
                                 key)
                 self.ctl_unknown += 1
         self.bus.subscribe_raw(keys.ctl(self.run, "*", "*", "*"), on_control)
+
+    def refuse(self, counter: str, line: str, say: Callable[[str], None]) -> None:
+        """Count a control message refused in ``refused[counter]`` (reported under that name); say ``line`` once."""
+        if not self.refused[counter]:
+            say(f"\nebrl: {line} (further ones only counted: {counter})")
+        self.refused[counter] += 1
 
     def consume(self, key: str, cls: type, handler, capacity: int) -> asyncio.Task:
         """Call ``handler(key, message)`` on the event loop for each message on ``key`` (the latest
@@ -121,6 +159,8 @@ class LauncherBus:
                             Event(time=time.time(), service="launcher", instance=0, kind=kind, text=text))
 
     def publish_stats(self, metrics: dict[str, float]) -> None:
+        """``metrics`` with what the bus dropped (``bus/*``) and the control messages refused, as its report."""
+        metrics = {**metrics, **bus_metrics(self.bus), **{name: float(n) for name, n in self.refused.items()}}
         self.bus.put_nowait(keys.stats(self.run, "launcher", 0), StatsReport(
             run=self.run, service="launcher", instance=0, time=time.time(), seq=self._seq, metrics=metrics))
         self._seq += 1
@@ -160,11 +200,17 @@ class FinalEvaluation:
 
 def run_instances(cfg: config_mod.Config, plan: HostPlan, members: Membership) -> Callable[[str, int], bool]:
     """Whether the run has service instance ``role/instance``: a train rank, the one instance of the others, or
-    a simulator or allocator of a host that is live (this one's, or another host's)."""
+    a simulator or allocator of a host that is live (this one's, or another host's): a simulator of a host the
+    run plans one on (:func:`ebrl.hosts.sim_hosts`; with hosts that join by ``--only``, one whose launcher is up),
+    so that a token of another instance does not make its reports count."""
+    hosts = sim_hosts(cfg, plan)
 
     def has(role: str, instance: int) -> bool:
         if role == "train":
             return 0 <= instance < cfg.train.world_size
+        if role == "sim" and instance != plan.instance:
+            planned = members.is_live("launcher", instance) if hosts is None else instance in hosts
+            return planned and members.is_live(role, instance)
         if role in ("sim", "alloc"):
             return instance == plan.instance or members.is_live(role, instance)
         return instance == 0
@@ -209,7 +255,8 @@ class Launcher:
         self.gpu_env = gpu_env or {}  # stage -> the CUDA variables it starts with (the allocator's first GPU share)
         self.failure: str | None = None
         self.stop_reason = ""
-        self.stalls = stall.StallWatch(cfg.run.stall_timeout)
+        # the groups of each sim instance name the one whose segments stopped (ebrl.sched.fleet: sim/<n>'s groups)
+        self.stalls = stall.StallWatch(cfg.run.stall_timeout, groups_per_sim=resolve(cfg).groups)
         self.started = time.monotonic()
         self.final_eval = FinalEvaluation(cfg.eval.final_timeout, cfg.run.iterations, self.console.say)
 
@@ -226,7 +273,7 @@ class Launcher:
             service_argv(self.run_dir / "config.toml", endpoint), self.run_dir / "logs",
             RestartPolicy(self.cfg.run.restart == "on-failure", self.cfg.run.max_restarts),
             say=self.console.say, event=self.link.event, gpu_env=self.gpu_env, train_ranks=self.cfg.train.world_size,
-            role_env={"alloc": procenv.service_env(local_sim="sim" in self.plan.roles)},  # it plans this host
+            role_env=role_env(self.cfg, self.plan), instance_env=instance_env(self.cfg, self.run_dir),
             version_floor=self.view.version_floor, optional=OPTIONAL_ROLES)
         self.link.bus.watch_liveliness(keys.live_all(self.run_name), self._on_liveliness)
         self.link.count_unknown_controls(self.roles)
@@ -331,7 +378,6 @@ class Launcher:
     def publish_stats(self) -> None:
         """The launcher's own stats report: restarts per service, services up."""
         metrics = {**self.supervisor.metrics(), "launcher/ctl_unknown_service": float(self.link.ctl_unknown),
-                   "launcher/gpu_shares_refused": float(self.link.gpu_shares_refused),
                    "launcher/services_live": float(self.members.services_live()),
                    "launcher/stats_refused": float(self.view.refused),
                    "launcher/returns_refused": float(self.view.returns_refused)}
@@ -348,9 +394,9 @@ class Launcher:
 
     def finish(self, code: int) -> None:
         """summary.json, its line, and the headless report."""
-        summary = self.view.summary(code, self.elapsed(), run_dir=self.run_dir, failure=self.failure,
-                                    restarts=self.supervisor.restarts(), host=self.plan.instance,
-                                    hosts=self.members.hosts())
+        summary = run_summary(self.view, code, self.elapsed(), run_dir=self.run_dir, failure=self.failure,
+                              restarts=self.supervisor.restarts(), host=self.plan.instance,
+                              hosts=self.members.hosts())
         self.console.say(write_summary(summary, self.run_dir / "summary.json"))
         if self.cfg.viz.report and self.link.recorder is not None and self.link.recorder.samples:
             self.console.say(write_report(self.run_dir))
@@ -359,14 +405,16 @@ class Launcher:
 
     def on_gpu_share(self, key: str, share: GpuShare) -> None:
         """A new GPU share for a stage of this host: its processes stop at their safe point (generation between
-        batches, training after its update, its state in a checkpoint) and start again with it. Only the
-        allocator makes shares, and only on a GPU, where the run started with its first ones: in a run that
-        started without (no allocator, or no GPU) one is refused (counted, said once)."""
+        batches, training after its update, its state in a checkpoint) and start again with it. Only the allocator
+        makes shares, only on a GPU: one is refused (counted, said once) in a run that started without (no allocator,
+        or no GPU), or numbered over ``ebrl.service.CONTROL_STEP`` past the stage's last (``ctl/version_refused``)."""
         if not self.gpu_env:
-            if not self.link.gpu_shares_refused:
-                self.console.say(f"\nebrl: a GPU share for {share.stage} refused: this run has no GPU shares "
-                                 "(no allocator on a GPU)")
-            self.link.gpu_shares_refused += 1
+            self.link.refuse("launcher/gpu_shares_refused", f"a GPU share for {share.stage} refused: this run has no "
+                             "GPU shares (no allocator on a GPU)", self.console.say)
+            return
+        if refused := control_version_refused(share.version, self.supervisor.share_versions.get(share.stage, 0)):
+            self.link.refuse("ctl/version_refused", f"a GPU share for {share.stage} refused: {refused}",
+                             self.console.say)
             return
         for child in self.supervisor.new_gpu_share(share.stage, share.env, share.version):
             self.link.bus.put_nowait(keys.ctl(self.run_name, child.role, child.instance, "stop"),

@@ -5,6 +5,10 @@ objects (``ebrl/stats/<run>/<service>/<instance>``) and answers the questions th
 launcher asks (the policy version reached, a metric over every instance, the
 mean return); :class:`Console` prints, rewriting the progress line in place on
 a terminal and every ``PROGRESS_EVERY_S`` seconds otherwise.
+
+The run's numbers (return, success rate, env steps, episodes, segments, their rates) are training's: what it
+received and checked (shared/DESIGN.md section 2: the simulator runs the user's env code, and its reports are its
+own word). The simulators' own numbers are kept apart, as theirs (``summary.json``'s ``sim``).
 """
 
 from __future__ import annotations
@@ -15,6 +19,7 @@ import math
 import os
 import shutil
 import time
+from collections import deque
 from pathlib import Path
 from typing import Any, Callable, TextIO
 
@@ -23,8 +28,17 @@ from ebrl.messages import RETURN_WINDOW, StatsReport
 from ebrl.weights import plausible
 
 PROGRESS_EVERY_S = 5.0  # a progress line this often when the output is not a terminal
-RETURN = "sim/episode_return_mean"
+RETURN = "sim/episode_return_mean"  # the simulators' own word: shown as theirs, never as the run's
 TRAIN_RETURN, TRAIN_SUCCESS = "train/episode_return_mean", "train/success_rate"  # what a run ends on
+# training's cumulative counts (train/0's report) that the run's numbers come from; each restarts from 0 with a
+# restarted trainer, which RunView carries over (``train_count``)
+TRAIN_COUNTS = ("train/env_steps", "train/episodes", "train/segments_received")
+# counters whose movement the stall watch reads (ebrl.stall), tracked over every report, not only the latest
+COUNTERS = frozenset({"sim/env_steps", "gen/envs_served", "gen/groups_served", "train/updates",
+                      "train/segments_received", "train/env_steps"})
+GROUP_SEGMENTS = "train/segments_g"  # + a group: segments training decoded from that group (taken or refused)
+RECENT_VALUES = 8  # a counter moved when a report brings a value not among its last this many distinct ones
+RATE_WINDOW_S = 10.0  # the progress line's env steps/s and traj/s: training's counts over this many seconds
 
 
 @dataclasses.dataclass(frozen=True)
@@ -35,6 +49,65 @@ class TargetReached:
     wall_s: float
     mean_return: float | None
     success_rate: float | None = None
+
+
+class Movement:
+    """Per report key and watched counter, the reports that moved it: that brought a value not among its last
+    ``RECENT_VALUES`` distinct ones (the first value seen is where it starts, no move). Frozen reports repeat a
+    value, so a flood of them neither hides the real reports' movement in between nor makes a stuck counter look
+    moving."""
+
+    def __init__(self) -> None:
+        self.moves: dict[tuple[str, str], int] = {}  # (key, counter) -> reports that moved it
+        self._recent: dict[tuple[str, str], deque[float]] = {}  # (key, counter) -> its latest distinct values
+
+    def note(self, key: str, name: str, value: float) -> None:
+        recent = self._recent.setdefault((key, name), deque(maxlen=RECENT_VALUES))
+        if value in recent:
+            recent.remove(value)  # the most recently seen last: a repeated value stays known
+        elif recent:
+            self.moves[(key, name)] = self.moves.get((key, name), 0) + 1
+        recent.append(value)
+
+
+class TrainingCounts:
+    """Training's cumulative counts (``TRAIN_COUNTS``, train/0's report) over the run: a restarted trainer counts
+    from 0 again (a value below the last one), and the counts before it are carried over, so the run's env steps,
+    episodes and segments neither drop nor jump; and the samples the progress line's rates come from."""
+
+    def __init__(self, clock: Callable[[], float]):
+        self.clock = clock
+        self._counts: dict[str, tuple[float, float]] = {}  # count -> (before the latest restart, latest)
+        self._samples: deque[tuple[float, float, float]] = deque()  # (time, env steps, segments)
+
+    def update(self, metrics: dict[str, float]) -> None:
+        for name in TRAIN_COUNTS:
+            if name in metrics:
+                before, last = self._counts.get(name, (0.0, 0.0))
+                self._counts[name] = (before + last if metrics[name] < last else before, metrics[name])
+        if "train/env_steps" in metrics or "train/segments_received" in metrics:
+            now = self.clock()
+            self._samples.append((now, self.count("train/env_steps") or 0.0,
+                                  self.count("train/segments_received") or 0.0))
+            while len(self._samples) > 2 and self._samples[1][0] <= now - RATE_WINDOW_S:
+                self._samples.popleft()  # the oldest kept is the last one at or before the window's start
+
+    def count(self, name: str) -> float | None:
+        """``name`` over the run; None before training reported it."""
+        if name not in self._counts:
+            return None
+        before, last = self._counts[name]
+        return before + last
+
+    def rates(self) -> tuple[float, float] | None:
+        """(env steps/s, segments/s) over the last ``RATE_WINDOW_S`` s (0 when the latest report is older than
+        that); None before training reported env steps or segments."""
+        if not self._samples:
+            return None
+        (t0, steps0, segs0), (t1, steps1, segs1) = self._samples[0], self._samples[-1]
+        if t1 <= t0 or self.clock() - t1 > RATE_WINDOW_S:
+            return 0.0, 0.0
+        return (steps1 - steps0) / (t1 - t0), (segs1 - segs0) / (t1 - t0)
 
 
 class RunView:
@@ -51,12 +124,22 @@ class RunView:
     success rate of the latest episodes of the segments it took, which it checked), never from a simulator's:
     on the bus only training's identity may send them. A return that moves further than the episodes finished
     since the last report could move it (each returns at most ``max_abs_reward`` per step) is not taken
-    (``returns_refused``)."""
+    (``returns_refused``). The progress line, ``summary.json`` and its end line take the return, success rate,
+    env steps, episodes and segments from training too (``train_count``, ``trained``); the simulators' own
+    numbers go into the summary as theirs (``sim``), so a simulator that reports 1e9 moves none of the run's.
+
+    For the stall watch, ``moves`` counts, per report key and watched counter (``COUNTERS``, training's
+    per-group segments), the reports that brought a value that counter did not have among its last
+    ``RECENT_VALUES`` distinct ones: movement seen in any report, not only in the latest one, which a flood of
+    frozen reports on the same key would stand in for at every look (and which cannot fake movement by
+    repeating itself)."""
 
     def __init__(self, run: str, iterations: int = 0, target_return: float | None = None,
                  instances: Callable[[str, int], bool] | None = None, floor: int = 0,
-                 target_success: float | None = None, max_abs_reward: float = math.inf):
+                 target_success: float | None = None, max_abs_reward: float = math.inf,
+                 clock: Callable[[], float] = time.monotonic):
         self.run, self.iterations, self.target_return = run, iterations, target_return
+        self.clock = clock
         self.target_success, self.max_abs_reward = target_success, max_abs_reward
         self.trained: dict[str, float] = {}  # training's episodes, return, success rate: what the run ends on
         self.returns_refused = 0
@@ -65,10 +148,12 @@ class RunView:
         self._train_version: dict[str, tuple[float, float]] = {}  # train key -> (version, monotonic time)
         self.stats: dict[str, StatsReport] = {}  # key -> latest report
         self.received: dict[str, int] = {}  # key -> reports taken from it (the stall watch: did one arrive?)
+        self.movement = Movement()  # the watched counters' moves, over every report (the stall watch)
+        self.training = TrainingCounts(clock)  # training's counts across its restarts, and their rates
         # the eval service's latest result: its periodic reports (eval/busy, ...) do not repeat it
         self.last_eval_metrics: dict[str, float] | None = None
         self.best_return: float | None = None
-        self.started = time.monotonic()
+        self.started = clock()
         self.reached: TargetReached | None = None
         self.note: str | None = None  # what the progress line says first (a stall being acted on: ebrl.stall)
 
@@ -84,24 +169,43 @@ class RunView:
                 return
             report = dataclasses.replace(report, metrics=finite)
         if report.service == "train" and "train/policy_version" in finite:
-            version, now = finite["train/policy_version"], time.monotonic()
+            version, now = finite["train/policy_version"], self.clock()
             last, since = self._train_version.get(key, (float(self.floor), self.started))
             if not plausible(int(version), int(last), now - since):
                 self.refused += 1
                 return
             self._train_version[key] = (version, now)
-        if key == keys.stats(self.run, "train", 0) and TRAIN_RETURN in finite:
-            if self._moves_plausibly(finite):
-                self.trained = {n: finite[n] for n in ("train/episodes", TRAIN_RETURN, TRAIN_SUCCESS) if n in finite}
-            else:
-                self.returns_refused += 1
+        if key == keys.stats(self.run, "train", 0):
+            if TRAIN_RETURN in finite:
+                if self._moves_plausibly(finite):
+                    self.trained = {n: finite[n] for n in ("train/episodes", TRAIN_RETURN, TRAIN_SUCCESS)
+                                    if n in finite}
+                    ret = finite[TRAIN_RETURN]
+                    self.best_return = ret if self.best_return is None else max(self.best_return, ret)
+                else:
+                    self.returns_refused += 1
+            self.training.update(finite)
         self.stats[key] = report
         self.received[key] = self.received.get(key, 0) + 1
+        for name, value in finite.items():
+            if name in COUNTERS or name.startswith(GROUP_SEGMENTS):
+                self.movement.note(key, name, value)
         if report.service == "eval" and "eval/version" in report.metrics:
             self.last_eval_metrics = report.metrics
-        ret = self.metric(RETURN, "mean")
-        if ret is not None:
-            self.best_return = ret if self.best_return is None else max(self.best_return, ret)
+
+    @property
+    def moves(self) -> dict[tuple[str, str], int]:
+        """(report key, counter) -> the reports that moved it (:class:`Movement`; the stall watch reads it)."""
+        return self.movement.moves
+
+    def train_count(self, name: str) -> float | None:
+        """Training's count ``name`` (``TRAIN_COUNTS``) over the run, across restarts of train; None before
+        training reported it."""
+        return self.training.count(name)
+
+    def train_rates(self) -> tuple[float, float] | None:
+        """(env steps/s, segments/s) that training received over the last ``RATE_WINDOW_S`` s."""
+        return self.training.rates()
 
     def _moves_plausibly(self, metrics: dict[str, float]) -> bool:
         """Whether training's return and success rate moved no further than the episodes finished since its
@@ -135,7 +239,12 @@ class RunView:
         return max(self.version(), int(self.metric("gen/policy_version", "max") or 0))
 
     def mean_return(self) -> float | None:
-        return self.metric(RETURN, "mean")
+        """The run's mean return: training's, of the latest episodes it took (checked); None before one."""
+        return self.trained.get(TRAIN_RETURN)
+
+    def success_rate(self) -> float | None:
+        """The run's success rate: training's, of the latest episodes it took; None where none reported one."""
+        return self.trained.get(TRAIN_SUCCESS)
 
     def iterations_done(self) -> bool:
         return bool(self.iterations) and self.version() >= self.iterations
@@ -156,20 +265,28 @@ class RunView:
 
     def progress(self, wall_s: float, restarts: int = 0, hosts: int | None = None) -> "Progress":
         """Where the run is: iterations done of ``run.iterations``, and the fields after them."""
-        ret, success = self.mean_return(), self.metric("sim/success_rate", "mean")
+        ret, success = self.mean_return(), self.success_rate()
         fields = [  # what matters most first: a narrow terminal cuts the end
             *([self.note] if self.note else []),
             f"return {ret:.1f}" if ret is not None else "return -",
             *([f"success {success:.0%}"] if success is not None else []),
             *([self.last_eval()] if self.last_eval() else []),
-            f"{self.metric('sim/env_steps_per_s') or 0:,.0f} env steps/s",
-            f"{self.metric('sim/segments_per_s') or 0:,.1f} traj/s",
+            *self._rate_fields(),
             f"policy v{max(int(self.metric('gen/policy_version', 'max') or 0), 0)}",
             f"staleness {self.metric('train/staleness_mean', 'mean') or 0:.2f}",
             *([f"restarts {restarts}"] if restarts else []),
             *([f"hosts {hosts}"] if hosts is not None else []),
         ]
         return Progress(self.version(), self.iterations or None, wall_s, " | ".join(fields))
+
+    def _rate_fields(self) -> list[str]:
+        """``1,500 env steps/s | 45.8 traj/s``: what training received. A trainer that does not report its env
+        steps (an older one) leaves the simulators' own rate, labelled as theirs (``sim 1,500 env steps/s``)."""
+        rates = self.train_rates() if self.training.count("train/env_steps") is not None else None
+        if rates is None and (sim := self.metric("sim/env_steps_per_s")) is not None:
+            return [f"sim {sim:,.0f} env steps/s", f"sim {self.metric('sim/segments_per_s') or 0:,.1f} traj/s"]
+        steps, segments = rates or (0.0, 0.0)
+        return [f"{steps:,.0f} env steps/s", f"{segments:,.1f} traj/s"]
 
     def last_eval(self) -> str | None:
         """``eval v40: success 80% [62-91%], return 512.3`` from the eval service's latest report; None before."""
@@ -193,33 +310,49 @@ class RunView:
         """The progress as one plain line (what a log file gets)."""
         return self.progress(wall_s, restarts, hosts).line()
 
-    def summary(self, code: int, wall_s: float, *, run_dir: Path, failure: str | None, restarts: dict[str, int],
-                host: int, hosts: list[int]) -> dict[str, Any]:
-        """The content of ``summary.json``."""
-        steps = self.metric("sim/env_steps") or 0
-        return {
-            "run": self.run,
-            "run_dir": str(run_dir),
-            "exit_code": code,
-            "failure": failure,
-            "iterations": self.version(),
-            "wall_s": round(wall_s, 2),
-            "env_steps": int(steps),
-            "env_steps_per_s": round(steps / wall_s, 1) if wall_s > 0 else 0.0,
-            "segments": int(self.metric("sim/segments") or 0),
-            "episodes": int(self.metric("sim/episodes") or 0),
-            "final_return": self.mean_return(),
-            "best_return": self.best_return,
-            "target_return": self.target_return,
-            "target_success": self.target_success,
-            "last_eval": self.last_eval_metrics,  # the eval service's latest result (eval/*), if it ran
-            "restarts": restarts,
-            "host": host,
-            "hosts": hosts,  # every host that took part
-            "target_reached": None if self.reached is None else
-            {"iteration": self.reached.iteration, "wall_s": round(self.reached.wall_s, 2),
-             "return": self.reached.mean_return, "success_rate": self.reached.success_rate},
-        }
+
+def summary(view: RunView, code: int, wall_s: float, *, run_dir: Path, failure: str | None, restarts: dict[str, int],
+            host: int, hosts: list[int]) -> dict[str, Any]:
+    """The content of ``summary.json`` of the run ``view`` shows: the run's numbers from training (what it received
+    and checked), the simulators' own under ``sim`` (their word: not checked, never the run's)."""
+    steps = view.train_count("train/env_steps") or 0
+    return {
+        "run": view.run,
+        "run_dir": str(run_dir),
+        "exit_code": code,
+        "failure": failure,
+        "iterations": view.version(),
+        "wall_s": round(wall_s, 2),
+        "env_steps": int(steps),
+        "env_steps_per_s": round(steps / wall_s, 1) if wall_s > 0 else 0.0,
+        "segments": int(view.train_count("train/segments_received") or 0),
+        "episodes": int(view.train_count("train/episodes") or 0),
+        "final_return": view.mean_return(),
+        "best_return": view.best_return,
+        "final_success_rate": view.success_rate(),
+        "target_return": view.target_return,
+        "target_success": view.target_success,
+        "last_eval": view.last_eval_metrics,  # the eval service's latest result (eval/*), if it ran
+        "restarts": restarts,
+        "host": host,
+        "hosts": hosts,  # every host that took part
+        "target_reached": None if view.reached is None else
+        {"iteration": view.reached.iteration, "wall_s": round(view.reached.wall_s, 2),
+         "return": view.reached.mean_return, "success_rate": view.reached.success_rate},
+        "sim": sim_numbers(view),
+    }
+
+def sim_numbers(view: RunView) -> dict[str, Any]:
+    """What the simulators say of themselves (their latest reports; env steps, episodes and segments summed
+    over instances, return and success rate averaged): the user's env code's own word, for comparison with
+    training's numbers, never taken as the run's."""
+    def number(name: str, how: str = "sum") -> float | None:
+        value = view.metric(name, how)
+        return None if value is None else round(value, 3)
+
+    return {"env_steps": number("sim/env_steps"), "episodes": number("sim/episodes"),
+            "segments": number("sim/segments"), "episode_return_mean": number(RETURN, "mean"),
+            "success_rate": number("sim/success_rate", "mean"), "env_steps_per_s": number("sim/env_steps_per_s")}
 
 
 def write_summary(summary: dict[str, Any], path: Path) -> str:

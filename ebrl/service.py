@@ -20,6 +20,7 @@ from __future__ import annotations
 import argparse
 import asyncio
 import contextlib
+import dataclasses
 import logging
 import os
 import signal
@@ -30,7 +31,7 @@ from typing import Any, Iterator
 
 import psutil
 
-from ebrl import config as config_mod, devices, threads
+from ebrl import config as config_mod, devices, procenv, sizes, threads
 from ebrl.bus import auth, keys
 from ebrl.bus.session import Bus, BusOptions
 from ebrl.messages import Affinity, Event, Quota, SpanBatch, StatsReport, Stop, encode_message
@@ -69,6 +70,7 @@ class Service:
                                                          "from now on"),
             on_full=self.flush_spans)
         self.reports = StatsReporter(self.run_name, self.role, instance, self.meter.started_at)
+        self.bounds: sizes.Bounds | None = None  # of the data keys it receives (message_bounds), before its bus opens
         self.device: Any = None  # the torch device of gen and train (``use_device``)
         self.memory_cap: float | None = None  # the fraction of the GPU's memory this process may allocate
 
@@ -87,6 +89,11 @@ class Service:
     def metrics(self) -> dict[str, float]:
         """Service-specific metrics for the stats report (namespaced: sim/, gen/, train/)."""
         return {}
+
+    async def message_bounds(self) -> sizes.Bounds | None:
+        """The bounds of the data keys this service receives (:mod:`ebrl.sizes`), or None: none. Read before its bus
+        opens (:func:`bounded`: Zenoh's receive limit is fixed then); kept in ``self.bounds``."""
+        return None
 
     def on_affinity(self, cores: list[int]) -> None:
         """Apply a CPU affinity; the default pins this process."""
@@ -157,7 +164,8 @@ class Service:
         if signals:
             for sig in (signal.SIGINT, signal.SIGTERM):
                 loop.add_signal_handler(sig, self.request_stop, f"signal {sig.name}")
-        self.bus = bus if bus is not None else Bus(self.bus_options)
+        self.bounds = self.bounds or await self.message_bounds()
+        self.bus = bus if bus is not None else Bus(bounded(self.bus_options, self.bounds))
         exit_code = 0
         try:
             await self.setup()
@@ -234,6 +242,33 @@ class Service:
         return self.reports.next(metrics)
 
 
+async def env_info(service: Service) -> Any:
+    """The run's :class:`~ebrl.envs.EnvInfo` for ``service`` (the env built once off the event loop, then closed),
+    read once: its bounds (``message_bounds``, before its bus opens) and its setup both need it."""
+    if getattr(service, "_env_info", None) is None:
+        from ebrl.envs import EnvSpec, describe
+
+        service._env_info = await asyncio.get_running_loop().run_in_executor(
+            None, describe, EnvSpec.from_config(service.cfg.env))
+    return service._env_info
+
+
+def bounded(options: BusOptions, bounds: sizes.Bounds | None) -> BusOptions:
+    """``options`` with Zenoh's receive limit lowered to the largest message of ``bounds`` (:mod:`ebrl.sizes`):
+    Zenoh then drops a larger message before it is whole, so it never costs more memory than that."""
+    if bounds is None:
+        return options
+    return dataclasses.replace(options, max_message_bytes=min(options.max_message_bytes, bounds.link))
+
+
+def bus_metrics(bus: Any) -> dict[str, float]:
+    """What a process's bus dropped (``bus/*``), for its stats report: malformed payloads (oversized ones among
+    them, also counted apart) and messages its full sender queue dropped. Services and the launcher report it."""
+    return {"bus/malformed": float(sum(bus.malformed.values())),
+            "bus/oversized": float(sum(bus.oversized.values())),
+            "bus/sender_dropped": float(bus.sender_dropped)}
+
+
 class StatsReporter:
     """A service's stats reports: numbered in order (``seq``), with what every process reports about itself
     (``bus/*`` drops, ``proc/*`` CPU, memory, uptime and event-loop lateness, ``quota/threads``)."""
@@ -253,9 +288,7 @@ class StatsReporter:
         self._loop_lag = max(self._loop_lag, seconds)
 
     def process_metrics(self, bus: Any) -> dict[str, float]:
-        metrics = {"bus/malformed": float(sum(bus.malformed.values())),
-                   "bus/oversized": float(sum(bus.oversized.values())),
-                   "bus/sender_dropped": float(bus.sender_dropped),
+        metrics = {**bus_metrics(bus),
                    "proc/cpu_percent": self._proc.cpu_percent(),
                    "proc/rss_mb": self._proc.memory_info().rss / 2**20,
                    "proc/uptime_s": time.time() - self.started_at,
@@ -273,14 +306,33 @@ class StatsReporter:
         return report
 
 
+CONTROL_STEP = 1000
+"""How far past the last applied version (0 before any) a control version may be: the allocator numbers its
+plans 1, 2, 3 ... (``ebrl.alloc.placement``), one per re-plan or revert, and each needs ``alloc.window`` +
+``alloc.patience`` stats reports (40 at the defaults: 40 s at run.stats_interval = 1) after the one before, so a
+real step of 1000 is over 11 hours of nothing but re-planning, and a service restarted that late still follows. A
+forged version of 2**53 would pin a service for good (every real plan after it "already applied"); one within the
+step can at worst hold it for the 1000 plans after it."""
+
+
+def control_version_refused(version: int, last: int) -> str | None:
+    """Why a control version (Quota, Affinity, GpuShare) is refused after ``last`` (the last applied, 0 before
+    any), or None: it may be at most :data:`CONTROL_STEP` past it."""
+    if version > last + CONTROL_STEP:
+        return f"version {version} is more than {CONTROL_STEP} past the last applied, {last}"
+    return None
+
+
 class ControlInbox:
     """A service's control keys (``ebrl/ctl/<run>/<role>/<instance>/<kind>``): ``stop``; ``affinity`` and
-    ``quota``, applied once per version (a repeated or older version is counted and ignored); ``status``, a
+    ``quota``, applied once per version (a repeated or older version is counted and ignored, one more than
+    :data:`CONTROL_STEP` past the last applied counted as ``ctl/version_refused`` and dropped); ``status``, a
     query answered with the service's stats report."""
 
     def __init__(self, service: Service):
         self.service = service
         self.versions: dict[str, int] = {}
+        self.refused = 0  # versions too far past the last applied (control_version_refused)
         self._tasks: set[asyncio.Task] = set()
         s = service
         self._consume("stop", Stop, lambda m: s.request_stop(m.reason))
@@ -310,8 +362,15 @@ class ControlInbox:
 
     def _versioned(self, kind: str, msg: Any, apply: Any) -> None:
         s = self.service
+        last = self.versions.get(kind, 0)
         if msg.version <= self.versions.get(kind, -1):
             s.count(f"ctl/{kind}_ignored")
+            return
+        if refused := control_version_refused(msg.version, last):
+            s.count("ctl/version_refused")
+            if not self.refused:
+                s.log.warning("control %s refused: %s (further ones only counted)", kind, refused)
+            self.refused += 1
             return
         apply()
         self.versions[kind] = msg.version
@@ -348,7 +407,7 @@ def service_main(cls: type[Service], argv: list[str] | None = None) -> None:
     options = BusOptions(mode=cfg.bus.mode, connect=args.connect or list(cfg.bus.connect),
                          listen=["tcp/127.0.0.1:0"], config_file=cfg.bus.config_file,
                          max_message_bytes=cfg.bus.max_message_bytes, secret_file=auth.secret_path(cfg.bus, run_dir),
-                         role=cls.role)
+                         role=cls.role, identity=procenv.take_identity())  # its instance's, from its launcher
     service = cls(cfg, args.instance, options, run_dir=run_dir)
 
     async def run_then_arm() -> int:

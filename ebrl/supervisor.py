@@ -13,7 +13,8 @@ at most ``run.max_restarts`` times when ``run.restart = "on-failure"``, then
 reported as the run's failure; an *optional* child (the tracking sinks: no other
 service needs it) is then given up and the run goes on without it. A child asked to stop for a new GPU share is
 started again with it as soon as it has exited: a *requota*, counted apart (``launcher/requotas``), not as a
-restart. Shutdown: a ``Stop`` over the bus (the caller sends it), SIGTERM after
+restart, and limited alike: a child is started again for a new share at most ``run.max_restarts`` times, then the
+run ends. Shutdown: a ``Stop`` over the bus (the caller sends it), SIGTERM after
 ``STOP_GRACE_S``, SIGKILL to the process group at ``SHUTDOWN_S``.
 """
 
@@ -101,6 +102,19 @@ class RestartPolicy:
         return min(self.first_delay_s * 2.0 ** restarts, self.MAX_DELAY_S)
 
 
+def requotas_spent(child: Child, limit: int, version: int, say: Callable[[str], None],
+                   event: Callable[[str, str], None]) -> str:
+    """The run's failure when a GPU share of ``version`` would start ``child`` again once more than ``limit``
+    (``run.max_restarts``) times: requotas count against it per child, as restarts do, so a flood of shares
+    cannot restart a stage forever. Said and recorded here."""
+    failure = (f"{child.name} was started again for a new GPU share {child.requotas} times, as many as "
+               f"run.max_restarts = {limit} allows; the share of version {version} is refused and the run ends (a "
+               "run whose allocator re-plans often needs a larger run.max_restarts)")
+    event("exited", failure)
+    say(f"\nebrl: {failure}")
+    return failure
+
+
 def _die_with_parent() -> None:  # runs in the child between fork and exec
     os.setpgrp()  # Ctrl-C reaches the launcher only; it stops the children in order
     libc = ctypes.CDLL("libc.so.6", use_errno=True)
@@ -122,17 +136,21 @@ class Supervisor:
     def __init__(self, argv: Argv, log_dir: Path, policy: RestartPolicy, *,
                  say: Callable[[str], None], event: Callable[[str, str], None],
                  gpu_env: dict[str, dict[str, str]] | None = None, role_env: dict[str, dict[str, str]] | None = None,
-                 train_ranks: int = 1, version_floor: Callable[[], int] = lambda: -1, optional: tuple[str, ...] = ()):
+                 train_ranks: int = 1, version_floor: Callable[[], int] = lambda: -1, optional: tuple[str, ...] = (),
+                 instance_env: Callable[[str, int], dict[str, str]] | None = None):
         self.argv, self.log_dir, self.policy = argv, log_dir, policy
         self.say, self.event, self.version_floor = say, event, version_floor
         self.gpu_env = dict(gpu_env or {})  # stage -> the CUDA variables its processes start with (its GPU share)
         self.share_versions: dict[str, int] = {}  # stage -> version of its last GPU share
         self.role_env = dict(role_env or {})  # role -> EBRL variables of its processes (ebrl.procenv)
+        # (role, instance) -> EBRL variables of that one process: its own bus identity (ebrl.bus.auth)
+        self.instance_env = instance_env or (lambda role, instance: {})
         self.train_ranks = train_ranks
         self.optional = optional  # roles whose death never ends the run
         # the training ranks' rendezvous, new for each start of the group
         self.dist_addr = self.rendezvous() if train_ranks > 1 else ""
         self.children: list[Child] = []
+        self.requota_failure: str | None = None  # the run's failure once a child used up its requotas
 
     def rendezvous(self) -> str:
         """Where the training ranks meet: a file store in the run's directory (its owner's alone, 0700), not a
@@ -147,7 +165,8 @@ class Supervisor:
 
     def _spawn(self, role: str, instance: int, log_path: Path, extra_env: dict[str, str] | None = None
                ) -> subprocess.Popen:
-        env = dict(os.environ, PYTHONUNBUFFERED="1", **self.gpu_env.get(role, {}), **self.role_env.get(role, {}))
+        env = dict(os.environ, PYTHONUNBUFFERED="1", **self.gpu_env.get(role, {}), **self.role_env.get(role, {}),
+                   **self.instance_env(role, instance))
         if role == "train":
             env.update(procenv.service_env(dist_addr=self.dist_addr))
             if self.train_ranks > 1:  # gloo's connections between the ranks stay on this host
@@ -162,6 +181,8 @@ class Supervisor:
     def check(self, restart: bool = True) -> str | None:
         """Notice a child that exited on its own: schedule its restart (when ``restart`` and the policy allows)
         or return the run's failure; start what is due (a scheduled restart, a requota). None: the run goes on."""
+        if self.requota_failure is not None:
+            return self.requota_failure
         now = time.monotonic()
         for child in self.children:
             if child.given_up:
@@ -234,7 +255,7 @@ class Supervisor:
     def new_gpu_share(self, role: str, env: dict[str, str], version: int) -> list[Child]:
         """``role``'s processes start with ``env`` from now on; returns those running now, which the caller asks
         to stop at their safe point (each starts again with it once it has exited: :meth:`check`). A share of a
-        version ``role`` already had, or the one it has, changes nothing."""
+        version ``role`` already had, or the one it has, changes nothing; nor one past :func:`requotas_spent`."""
         if version <= self.share_versions.get(role, 0):
             return []
         self.share_versions[role] = version
@@ -243,6 +264,9 @@ class Supervisor:
         if role == "train" and self.train_ranks > 1:
             log.warning("train: a new GPU share is not applied to %d data-parallel ranks (one rank only)",
                         self.train_ranks)
+            return []
+        if spent := [c for c in self.children if c.role == role and c.requotas >= self.policy.max_restarts]:
+            self.requota_failure = requotas_spent(spent[0], self.policy.max_restarts, version, self.say, self.event)
             return []
         self.gpu_env[role] = env
         asked = [c for c in self.children if c.role == role and c.running() and not c.requota]

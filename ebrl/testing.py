@@ -328,8 +328,9 @@ class InProcessRun:
 
 def run_session_config(run: Run, endpoint: str | None = None, role: str = "observer") -> zenoh.Config:
     """A Zenoh config that joins ``run``'s bus, a client of its launcher: signed in with the run's secret when
-    it has one, as ``role`` (``observer`` watches stats; a role of the service graph may send what that role
-    may, as an insider holding its line would), else open."""
+    it has one, as ``role`` (``observer`` watches stats; ``launcher`` may send anything, as another host's
+    launcher; a service's role line signs in only to a mesh, ``bus.mode = "peer"``: a client-mode launcher
+    admits the services' instance identities alone, ``ebrl.bus.auth``), else open."""
     secret = auth.secret_path(config_mod.load(run.run_dir / "config.toml").bus, run.run_dir)
     return zenoh_config(BusOptions(mode="client", connect=[endpoint or run.endpoint], listen=[], secret_file=secret,
                                    role=role))

@@ -306,8 +306,10 @@ class WeightsReceiver:
     trainer's reports all along (:meth:`follow_trainer`), so a receiver put ahead of it goes back."""
 
     def __init__(self, bus: BusBase, run: str, *, notify: asyncio.Event | None = None,
-                 layout: WeightsLayout | None = None, floor: int = -1, follow: bool = False):
+                 layout: WeightsLayout | None = None, floor: int = -1, follow: bool = False,
+                 max_bytes: int | None = None):
         self.bus, self.run, self._notify, self.layout = bus, run, notify, layout
+        self.max_bytes = max_bytes  # a weights message's bound in this run (ebrl.sizes); None: the bus's alone
         self.version = -1  # newest complete version so far
         self.completed = 0  # versions assembled or received whole
         self.discarded = 0  # incomplete versions given up for a newer one
@@ -323,7 +325,7 @@ class WeightsReceiver:
         self._assembly: _Assembly | None = None
         self._latest: Weights | None = None
         self._spare: np.ndarray | None = None  # the previous version's buffer, reused once it is free
-        bus.subscribe_raw(keys.weights_all(run), self._on_payload)
+        bus.subscribe_raw(keys.weights_all(run), self._on_payload, max_bytes)
         # made in a running event loop (gen's and eval's setup); the loop holds tasks weakly, so keep a reference
         self.follower = asyncio.get_running_loop().create_task(self.follow_trainer()) if follow else None
 
@@ -358,7 +360,7 @@ class WeightsReceiver:
         return self._latest is not None
 
     def _on_payload(self, key: str, payload: bytes) -> None:  # a bus thread, or the query's
-        if not self.bus.fits(key, len(payload)):
+        if not self.bus.fits(key, len(payload), self.max_bytes):  # for replies to request(); samples: checked already
             return
         try:
             if key == self._parts_key:

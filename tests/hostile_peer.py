@@ -6,15 +6,21 @@ launcher is gone, tries to read its data and to stop, poison and end it. Prints 
 It has no credentials: it tries to read RUN_DIR/bus.secret, as an outsider would, and joins without. It stops
 when its standard input closes.
 
-    python tests/hostile_peer.py --insider ROLE ENDPOINT RUN RUN_DIR
+    python tests/hostile_peer.py --insider ROLE[/N] ENDPOINT RUN RUN_DIR
 
-An insider: signed in with ROLE's line of the run's secret (a role's credential that leaked, or a user's env
-code in that role's process), it sends until its standard input closes what another role owns, each message
+An insider: signed in with ROLE/N's own line, as the run's launcher hands it to that process (a line that
+leaked, or a user's env code in that process), or with ROLE's line of the run's secret (what a service of a
+mesh signs in with), it sends until its standard input closes what another role owns, each message
 well formed and plausible, so that only the bus's access rules can stop it: the policy's own tensors zeroed at
 plausible versions (weights), training's and the simulators' reports of a return no run reaches, quotas,
 affinities and GPU shares at version 2**53, a GPU share naming CUDA_INJECTION64_PATH, stops for every service,
-a second trainer's liveliness token. Each forged message is marked (:func:`mark`, ``MARK_TIME``,
+a second trainer's liveliness token; and as 63 more instances of its own role (``OTHERS``, the run has one):
+their liveliness tokens (63 simulator hosts would stall generation's schedule) and their stats reports. Each forged message is marked (:func:`mark`, ``MARK_TIME``,
 ``MARK_REASON``) so the test can tell it apart. What ROLE owns itself (sim's reports, for a sim insider) passes the rules: the run must not believe it.
+
+    python tests/hostile_peer.py --claims ROLE[/N] ENDPOINT RUN RUN_DIR
+
+The same insider making only the claims to be 63 more instances of its role (their tokens and reports).
 
     python tests/hostile_peer.py --crafted ENDPOINT RUN SECONDS
 
@@ -158,12 +164,30 @@ def mark(role: str) -> int:
     return MARK_SEQ + sorted(auth.IDENTITIES).index(role)
 
 
-def main_insider(role: str, endpoint: str, run: str, run_dir: str) -> int:
-    """Send :func:`insider_attacks` signed in as ``role`` until standard input closes; print what it sent and
-    received, and how many sessions it had (it must have signed in: the test checks)."""
+OTHERS = range(1, 64)  # the instances of its own role an insider also claims to be (the run has instance 0)
+
+
+def other_instances(run: str, role: str) -> list[tuple[str, bytes]]:
+    """Reports of the instances :data:`OTHERS` of ``role``, marked: a simulator's claim a billion env steps and
+    a return no run reaches (the launcher would count them, were they the run's)."""
+    metrics = ({"sim/env_steps": 1e9, "sim/env_steps_per_s": 1e6, "sim/episode_return_mean": 1e9,
+                "sim/success_rate": 1.0} if role == "sim" else {f"{role}/policy_version": 1e6})
+    return [(keys.stats(run, role, n), encode_message(StatsReport(run=run, service=role, instance=n, time=time.time(),
+                                                                  seq=mark(role), metrics=metrics))) for n in OTHERS]
+
+
+def main_insider(who: str, endpoint: str, run: str, run_dir: str, claims_only: bool = False) -> int:
+    """Send :func:`insider_attacks` and :func:`other_instances` signed in as ``who`` (``ROLE/N``: that
+    instance's own line; ``ROLE``: the role's line of the secret) until standard input closes, holding the
+    tokens of a second trainer and of :data:`OTHERS` of its role; print what it sent and received, and how many
+    sessions it had (it must have signed in: the test checks). ``claims_only``: only the claims to be
+    :data:`OTHERS` (their tokens and reports), nothing that another role owns (a mesh takes that from any
+    service: ``bus.mode = "peer"`` trusts them)."""
+    role, _, instance = who.partition("/")
     secret = os.path.join(run_dir, auth.FILENAME)
+    identity = auth.instance_line(secret, role, int(instance)) if instance else ""  # as its launcher hands it
     session = zenoh.open(zenoh_config(BusOptions(mode="client", connect=[endpoint], listen=[], secret_file=secret,
-                                                 role=role)))
+                                                 role=role, identity=identity)))
     received: dict[str, int] = {}
 
     def on_sample(sample: zenoh.Sample) -> None:
@@ -171,28 +195,31 @@ def main_insider(role: str, endpoint: str, run: str, run_dir: str) -> int:
         received[key] = received.get(key, 0) + 1
 
     session.declare_subscriber("ebrl/**", on_sample)  # more than the role may read: dropped where it enters
-    token = session.liveliness().declare_token(keys.live(run, "train", 7))
-    batch = insider_attacks(run, run_dir, role)
+    claimed = ([] if claims_only else [keys.live(run, "train", 7)]) + [keys.live(run, role, n) for n in OTHERS]
+    tokens = [session.liveliness().declare_token(key) for key in claimed]
+    batch = ([] if claims_only else insider_attacks(run, run_dir, role)) + other_instances(run, role)
     done = threading.Event()
     threading.Thread(target=lambda: (sys.stdin.read(), done.set()), daemon=True).start()
-    sent, routers = 0, 0
+    sent, routers, peers = 0, 0, 0
     while not done.is_set():
         routers = max(routers, len(list(session.info.routers_zid())))
+        peers = max(peers, len(list(session.info.peers_zid())))
         for key, payload in batch:
             session.put(key, payload)
             sent += 1
         done.wait(0.1)
-    del token
-    print(json.dumps({"sent": sent, "kinds": len(batch), "routers": routers, "received": received,
-                      "own": sorted({key for key, _ in batch})}), flush=True)
+    del tokens
+    print(json.dumps({"sent": sent, "kinds": len(batch), "routers": routers, "peers": peers, "received": received,
+                      "own": sorted({key for key, _ in batch}), "tokens": claimed,
+                      "user": identity.partition(":")[0] or auth.load(secret, role).user}), flush=True)
     os._exit(0)
 
 
 def main() -> int:
     if sys.argv[1] == "--crafted":
         return main_crafted(*sys.argv[2:5])
-    if sys.argv[1] == "--insider":
-        return main_insider(*sys.argv[2:6])
+    if sys.argv[1] in ("--insider", "--claims"):
+        return main_insider(*sys.argv[2:6], claims_only=sys.argv[1] == "--claims")
     endpoint, run, run_dir = sys.argv[1:4]
     secret = os.path.join(run_dir, auth.FILENAME)
     try:

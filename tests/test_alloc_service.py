@@ -144,9 +144,10 @@ def test_a_new_gpu_share_restarts_training_at_a_safe_point_and_loses_nothing(tmp
         assert proc.poll() is None and time.monotonic() < deadline, "the launcher wrote no config.toml"
         time.sleep(0.1)
     secret = [str(path) for path in tmp_path.glob("requota-*/bus.secret")]  # with bus.auth = true
-    # as the run's allocator would publish a GPU share (signed in as alloc: its role may)
+    # as the run's allocator would publish a GPU share. This run starts no allocator, so its launcher admits no
+    # alloc instance (ebrl.bus.auth: an identity per instance) and no role line: sign in as a launcher, which may
     conf = zenoh_config(BusOptions(mode="client", connect=[f"tcp/127.0.0.1:{port}"], listen=[],
-                                   secret_file=secret[0] if secret else "", role="alloc"))
+                                   secret_file=secret[0] if secret else "", role="launcher"))
     versions: list[float] = []
 
     def on_stats(sample) -> None:

@@ -14,7 +14,7 @@ import time
 import pytest
 import zenoh
 
-from ebrl import config
+from ebrl import config, graph, procenv
 from ebrl import stats as stats_mod
 from ebrl.bus import auth, keys
 from ebrl.bus.session import BusOptions, zenoh_config
@@ -111,6 +111,161 @@ def test_a_router_that_opens_links_trusts_only_the_launchers_and_router_at_their
     opener = zenoh_config(BusOptions(mode="router", secret_file=str(path), role="launcher", run="r", host=1,
                                      connect=["tcp/127.0.0.1:7447"]))
     assert json.loads(opener.get_json("id")) != auth.host_zid(path, 1)  # one that opens a link keeps a random id
+
+
+# --- identities per instance ----------------------------------------------------------------------------------
+
+
+def test_each_instance_has_its_own_line_that_no_other_line_can_compute(tmp_path):
+    secret = auth.create(tmp_path / "bus.secret")
+    line = auth.instance_line(secret, "sim", 0)
+    user, password = line.split(":")
+    assert user == "ebrl-sim-0" and len(password) == 64
+    assert auth.instance_line(secret, "sim", 0) == line  # every launcher of the run (one secret) makes the same
+    made = {auth.instance_password(secret, role, n) for role in graph.SERVICES for n in range(4)}
+    assert len(made) == 4 * len(graph.SERVICES)  # one password per instance
+    assert password not in {auth.load(secret, role).password for role in auth.IDENTITIES}
+    assert auth.instance_password(auth.create(tmp_path / "other.secret"), "sim", 0) != password  # another run's
+    held = tmp_path / "sim-0.secret"  # what a process holding sim/0's line has: it cannot make sim/1's
+    held.write_text(line + "\n")
+    held.chmod(0o600)
+    with pytest.raises(auth.AuthError, match="no 'ebrl-launcher' line"):
+        auth.instance_password(held, "sim", 1)
+    assert auth.instance_of("ebrl-sim-0") == ("sim", 0) and auth.instance_of("ebrl-train-12") == ("train", 12)
+    assert all(auth.instance_of(u) is None for u in ("ebrl-sim", "observer", "ebrl-launcher-0", "ebrl-sim-x"))
+    with pytest.raises(auth.AuthError, match="no instance identity"):
+        auth.instance_user("launcher", 0)
+    # the launcher hands it over in the child's environment; the service takes it out as it reads it
+    env = procenv.service_env(identity=line)
+    assert procenv.take_identity(env) == line and procenv.IDENTITY not in env and procenv.take_identity(env) == ""
+    client = zenoh_config(BusOptions(mode="client", secret_file=str(secret), role="sim", identity=line))
+    assert json.loads(client.get_json("transport/auth/usrpwd/user")) == "ebrl-sim-0"
+    assert json.loads(client.get_json("transport/auth/usrpwd/dictionary_file")) is None
+    with pytest.raises(auth.AuthError, match="no identity of a gen instance"):
+        zenoh_config(BusOptions(mode="client", role="gen", identity=line))
+    with pytest.raises(auth.AuthError, match="not as a peer"):  # a mesh signs in by role
+        zenoh_config(BusOptions(mode="peer", role="sim", identity=line))
+
+
+def test_a_client_mode_router_admits_the_instances_it_starts_each_to_its_own_keys_alone(tmp_path):
+    secret = auth.create(tmp_path / "bus.secret")
+    instances = (("sim", 0), ("gen", 0), ("train", 0), ("train", 1))
+    dictionary = auth.write_router_dictionary(secret, tmp_path / "bus.router-0.secret", instances)
+    assert stat.S_IMODE(dictionary.stat().st_mode) == 0o600
+    users = [line.split(":")[0] for line in dictionary.read_text().splitlines()]
+    assert users == ["ebrl-launcher", "observer", "ebrl-sim-0", "ebrl-gen-0", "ebrl-train-0", "ebrl-train-1"]
+    before = dictionary.read_text()
+    assert auth.write_router_dictionary(secret, dictionary, instances).read_text() == before  # made anew, same
+    router = zenoh_config(BusOptions(mode="router", secret_file=str(secret), role="launcher", run="r",
+                                     instances=instances, dictionary_file=str(dictionary), groups=2))
+    assert json.loads(router.get_json("transport/auth/usrpwd/dictionary_file")) == str(dictionary.resolve())
+    acl = json.loads(router.get_json("access_control"))
+    subjects = {s["id"]: s.get("usernames") for s in acl["subjects"]}
+    assert subjects["sim-0"] == ["ebrl-sim-0"] and subjects["train-1"] == ["ebrl-train-1"]
+    assert subjects["launcher"] == ["ebrl-launcher"] and subjects["observer"] == ["observer"]
+    assert not {"sim", "gen", "train", "eval", "alloc", "log", "viz"} & set(subjects)  # no role-wide service line
+    rules = {r["id"]: r["key_exprs"] for r in acl["rules"]}
+    assert rules["sim-0-token"] == ["ebrl/live/r/sim/0"] and rules["train-1-token"] == ["ebrl/live/r/train/1"]
+    assert rules["sim-0-answer"] == ["ebrl/ctl/r/sim/0/status"]
+    assert {k for k in rules["sim-0-put"] if "/data/" in k} == {  # its own groups' data: sim/0 has groups 0 and 1
+        "ebrl/data/r/obs/0", "ebrl/data/r/obs/1", "ebrl/data/r/traj/0", "ebrl/data/r/traj/1",
+        "ebrl/data/r/traj/0/packed", "ebrl/data/r/traj/1/packed"}
+    # what each instance may send covers nothing of another instance's: token, stats, status, groups
+    for role, n in instances:
+        sends = [k for d in ("put", "answer", "token") for k in rules.get(f"{role}-{n}-{d}", [])]
+        others = [keys.live("r", role, m) for m in range(8) if m != n] + [keys.stats("r", role, m) for m in range(8)
+                                                                          if m != n]
+        others += [keys.ctl("r", role, 9, "status")] + [keys.obs("r", g) for g in range(2, 9)]
+        assert not [(k, o) for k in sends for o in others if graph.covers(k, o)], (role, n)
+    mesh = json.loads(zenoh_config(BusOptions(mode="router", secret_file=str(secret), role="launcher", run="r"))
+                      .get_json("access_control"))  # no instances: a mesh's launcher, every role's line, as before
+    assert next(s for s in mesh["subjects"] if s["id"] == "sim")["usernames"] == ["ebrl-sim"]
+    with pytest.raises(auth.AuthError, match="own dictionary file"):
+        zenoh_config(BusOptions(mode="router", secret_file=str(secret), role="launcher", instances=instances))
+
+
+def test_a_signed_in_instance_holds_only_its_own_token_and_role_lines_do_not_sign_in(tmp_path):
+    """Against a real router as a client-mode launcher makes it: sim/0, signed in with its own line, declares
+    the tokens of sim/1 .. sim/63 (63 more simulator hosts) and of train/0 and gen/0, then its own; puts reports
+    of other simulators and observations of another host's group, then its own. Only its own arrive. Neither
+    sim's role line, nor the line of an instance the launcher did not start, nor sim/0's line of another run
+    signs in at all."""
+    secret = auth.create(tmp_path / "bus.secret")
+    instances = (("sim", 0), ("gen", 0))
+    dictionary = auth.write_router_dictionary(secret, tmp_path / "bus.router-0.secret", instances)
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    launcher = zenoh.open(zenoh_config(BusOptions(mode="router", listen=[endpoint], secret_file=str(secret),
+                                                  role="launcher", run="r", instances=instances,
+                                                  dictionary_file=str(dictionary), groups=1)))
+
+    def client(identity: str = "", role: str = "sim") -> zenoh.Config:
+        return zenoh_config(BusOptions(mode="client", connect=[endpoint], listen=[], secret_file=str(secret),
+                                       role=role, identity=identity))
+
+    refused = {"sim's role line": client(), "sim/1's line": client(auth.instance_line(secret, "sim", 1)),
+               "another run's sim/0": client(auth.instance_line(auth.create(tmp_path / "other"), "sim", 0))}
+    for what, conf in refused.items():
+        with pytest.raises(zenoh.ZError, match="Unable to connect"):
+            zenoh.open(conf).close()
+            pytest.fail(f"{what} signed in")
+    sim = zenoh.open(client(auth.instance_line(secret, "sim", 0)))
+    try:
+        live: dict[str, bool] = {}
+        got: list[str] = []
+        launcher.liveliness().declare_subscriber(
+            "ebrl/live/**", lambda s: live.__setitem__(str(s.key_expr), s.kind == zenoh.SampleKind.PUT), history=True)
+        launcher.declare_subscriber("ebrl/**", lambda s: got.append(str(s.key_expr)))
+        claimed = [keys.live("r", "sim", n) for n in range(1, 64)] + [keys.live("r", "train", 0),
+                                                                       keys.live("r", "gen", 0)]
+        forged_tokens = [sim.liveliness().declare_token(key) for key in claimed]
+        own_token = sim.liveliness().declare_token(keys.live("r", "sim", 0))  # after them, on the same link
+        forged = [keys.stats("r", "sim", n) for n in range(1, 64)] + [keys.obs("r", 1), keys.traj("r", 5),
+                                                                       keys.ctl("r", "sim", 1, "status")]
+        own = [keys.stats("r", "sim", 0), keys.obs("r", 0), keys.traj("r", 0)]
+        deadline = time.monotonic() + 60  # a bound for a hang, not a timing window
+        while not set(own) <= set(got) or keys.live("r", "sim", 0) not in live:  # forged first, own after
+            for key in forged + own:
+                sim.put(key, b"x")
+            assert time.monotonic() < deadline, "sim/0's own token and reports never arrived"
+            time.sleep(0.05)
+        assert live == {keys.live("r", "sim", 0): True}, sorted(live)
+        assert not set(forged) & set(got), sorted(set(forged) & set(got))
+        del forged_tokens, own_token
+    finally:
+        sim.close()
+        launcher.close()
+
+
+def test_generation_and_the_simulators_count_only_the_simulator_hosts_the_run_has():
+    """Where tokens are not checked by instance (a mesh: bus.mode = "peer"), 63 tokens of simulators the run does
+    not have reach generation: it counts one simulator host (the run's plan: sim/0), and 63 unknown instances."""
+    from ebrl.bus.peers import LivePeers, plan_admits
+    from ebrl.hosts import HostPlan, plan, sim_hosts
+    from ebrl.launch import role_env
+    from helpers import bus_pair, until
+
+    cfg = config.load(str(ROOT / "configs" / "quickstart.toml"))
+    one = role_env(cfg, HostPlan(("sim", "gen", "train")))
+    assert procenv.sim_hosts(one["gen"]) == procenv.sim_hosts(one["sim"]) == frozenset({0})
+    joining = plan(cfg, only="sim", instance=3)[1]  # hosts that join by --only: any a launcher admits
+    assert sim_hosts(cfg, joining) is None and "sim" not in role_env(cfg, joining)
+    assert procenv.sim_hosts({}) is None and plan_admits(None)("sim", "7") and not plan_admits(None)("sim", "x")
+
+    async def scenario() -> None:
+        async with bus_pair("zenoh") as pair:
+            planned = LivePeers(pair.receiver, "r", "sim", admits=plan_admits(procenv.sim_hosts(one["gen"])))
+            tokens = [pair.sender.declare_token(keys.live("r", "sim", n)) for n in range(64)]
+            await until(lambda: len(planned.keys) + len(planned.unknown) == 64, 60, "every token")
+            assert planned.count("sim") == 1 and planned.has("sim") and planned.unknown_seen == 63
+            tokens[0].undeclare()  # the run's simulator leaves: none serves, whatever else is live
+            await until(lambda: not planned.keys, 60, "sim/0 gone")
+            assert planned.count("sim") == 0 and len(planned.unknown) == 63
+            for token in tokens[1:]:
+                token.undeclare()
+            await until(lambda: not planned.unknown, 60, "the others gone")
+            assert planned.unknown_seen == 63
+
+    asyncio.run(scenario())
 
 
 # --- endpoints ---------------------------------------------------------------------------------------------
@@ -351,8 +506,9 @@ def test_a_hostile_process_can_neither_read_nor_stop_nor_poison_a_run(tmp_path):
 
 
 def test_insiders_holding_sim_s_or_gen_s_credential_cannot_act_as_another_role(tmp_path):
-    """Two insiders, one signed in with sim's line of the run's secret and one with gen's, send for the whole run
-    what other roles own, each message plausible: the policy's own tensors zeroed at versions just ahead,
+    """Two insiders, one signed in with sim/0's own line (as the launcher hands it over) and one with gen/0's, send
+    for the whole run what other roles own, each message plausible: the policy's own tensors zeroed at versions
+    just ahead,
     training's report of a return of 1e9 (the run's target is 1e8), the simulators' (from gen), quotas,
     affinities and GPU shares at version 2**53 (one naming CUDA_INJECTION64_PATH), stops for every service, a
     second trainer's token. The launcher routes the run's services and takes from each identity only what its
@@ -388,8 +544,9 @@ def test_insiders_holding_sim_s_or_gen_s_credential_cannot_act_as_another_role(t
         for key in (keys.stats_all(run.name), keys.weights(run.name), keys.ctl(run.name, "*", "*", "*")):
             watcher.declare_subscriber(key, on_sample)
         observer = zenoh.open(run_session_config(run, role="observer"))
+        # each signed in with its instance's own line, as the launcher hands it to sim/0 and gen/0
         insiders = {role: subprocess.Popen([sys.executable, str(ROOT / "tests" / "hostile_peer.py"), "--insider",
-                                            role, run.endpoint, run.name, str(run.run_dir)],
+                                            f"{role}/0", run.endpoint, run.name, str(run.run_dir)],
                                            stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True, env=env)
                     for role in ("sim", "gen")}
         with StatsWatcher(run) as stats:
@@ -400,9 +557,11 @@ def test_insiders_holding_sim_s_or_gen_s_credential_cannot_act_as_another_role(t
         observer.close()
     assert code == 0, run.output[-4000:]
     for role, got in out.items():
+        assert got["user"] == f"ebrl-{role}-0", got["user"]  # its instance's identity, not its role's
         assert got["routers"] == 1 and got["sent"] > 10 * got["kinds"], (role, got)  # signed in, and kept at it
-    # sim's reports about itself are sim's to send: they arrived (and did not end the run); nothing else did
-    sims = (keys.stats(run.name, "sim", 0), keys.stats(run.name, "sim", 1), keys.episodes(run.name, "sim"))
+    # sim/0's reports about itself are its to send: they arrived (and did not end the run); nothing else did,
+    # not another simulator instance's (sim/1 .. sim/63)
+    sims = (keys.stats(run.name, "sim", 0), keys.episodes(run.name, "sim"))
     assert {a for a in arrived if a[1] != hostile.mark("sim") or a[0] not in sims} == set(), arrived
     assert any(a[1] == hostile.mark("sim") for a in arrived)
     assert stats.latest("train/0", "train/policy_version") == 30  # every iteration: no forged report ended it
@@ -416,6 +575,72 @@ def test_insiders_holding_sim_s_or_gen_s_credential_cannot_act_as_another_role(t
     assert weights_replies == [] and stats.reports("train/0")  # the observer reads stats, gets no weights
     for got in out.values():  # nothing of the run reached them: its session hears only its own puts
         assert set(got["received"]) <= set(got["own"]), got["received"]
+
+
+@pytest.mark.slow  # in the fast suite: tests/test_untrusted_sim.py, every case in one run
+@pytest.mark.parametrize("mode", ["client", "peer"])
+def test_a_simulator_claiming_63_more_simulator_hosts_moves_neither_generation_nor_the_run(tmp_path, mode):
+    """A process signed in as the simulator (sim/0's own line under a client-mode launcher, the default; sim's
+    line in a mesh, where services sign in by role) holds, for the whole quickstart run, the liveliness tokens of
+    sim/1 .. sim/63 and sends their reports (a billion env steps each, a return of 1e9). Generation once counted
+    live simulator tokens as hosts that serve: it believed 64, mapped every chunk to a later iteration and waited
+    for a policy training could never make (env steps/s 2,200 -> 0, the run failed after 75 s). Now the launcher's
+    router refuses them (none reaches anyone), and where nothing refuses them (the mesh) generation and the
+    simulator count them as unknown instances (gen/unknown_instances, sim/unknown_instances) and one host serves,
+    and the launcher refuses their reports (launcher/stats_refused). Either way the run finishes every iteration,
+    nothing restarts, and no forged number is taken as the run's."""
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    with up(tmp_path, "configs/quickstart.toml", "run.iterations=30", 'viz.rerun="off"', f'bus.mode="{mode}"',
+            name=f"claims-{mode}") as run:  # the quickstart's own settings otherwise, bus.auth the default
+        claimed = {keys.live(run.name, "sim", n) for n in hostile.OTHERS}
+        # the insider joins as the launcher listens, before the services meet; it keeps its claims to the end
+        run.wait_for_line(lambda line: line.startswith(f"run {run.name}: "), 120, what="the launcher's banner")
+        live: set[str] = set()  # the run's tokens as a launcher's session sees them (what got past the router)
+        arrived: set[str] = set()  # the forged reports that did
+        watcher = zenoh.open(run_session_config(run, role="launcher"))
+        watcher.liveliness().declare_subscriber(keys.live_all(run.name), lambda s: live.add(str(s.key_expr)),
+                                                history=True)
+
+        def on_report(sample: zenoh.Sample) -> None:
+            try:
+                msg = decode_stats_sample(str(sample.key_expr), sample.payload.to_bytes())
+            except Exception:
+                return
+            if getattr(msg, "seq", None) == hostile.mark("sim"):
+                arrived.add(str(sample.key_expr))
+
+        watcher.declare_subscriber(keys.stats(run.name, "sim", "*"), on_report)
+        insider = subprocess.Popen([sys.executable, str(ROOT / "tests" / "hostile_peer.py"), "--claims",
+                                    "sim/0" if mode == "client" else "sim", run.endpoint, run.name,
+                                    str(run.run_dir)], stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True,
+                                   env=env)
+        with StatsWatcher(run) as stats:
+            if mode == "peer":  # nothing refuses them on a mesh: generation sees all 63 while the run goes on
+                stats.wait_for(lambda: stats.latest("gen/0", "gen/unknown_instances", 0) >= 63
+                               and stats.latest("sim/0", "sim/unknown_instances", 0) >= 63, 300,
+                               "generation and the simulator counting the 63 tokens")
+            code = run.wait(600)
+        out = json.loads(insider.communicate("", timeout=120)[0])
+        watcher.close()
+    assert code == 0, run.output[-4000:]
+    assert set(out["tokens"]) == claimed and out["sent"] > 10 * out["kinds"], out  # signed in, and kept at it
+    if mode == "client":
+        assert out["user"] == "ebrl-sim-0" and out["routers"] == 1
+        assert not live & claimed and not arrived, (sorted(live & claimed)[:4], sorted(arrived)[:4])
+        assert stats.latest("gen/0", "gen/unknown_instances") == 0  # nothing reached generation to count
+        assert stats.latest("sim/0", "sim/unknown_instances") == 0
+    else:
+        assert out["user"] == "ebrl-sim" and live >= claimed and arrived  # a mesh took the claims in
+        assert stats.latest("gen/0", "gen/unknown_instances") >= 63  # ... counted where a user sees them
+        assert stats.latest("sim/0", "sim/unknown_instances") >= 63
+        assert stats.latest("launcher/0", "launcher/stats_refused") > 0  # their reports not taken
+    assert max(stats.values("gen/0", "gen/sim_hosts")) == 1  # one simulator host served, all along
+    assert stats.latest("train/0", "train/policy_version") == 30  # every iteration
+    summary = json.loads((run.run_dir / "summary.json").read_text())
+    assert summary["restarts"] == {} and summary["target_reached"] is None, summary
+    assert summary["iterations"] == 30 and summary["hosts"] == [0]
+    assert summary["sim"]["env_steps"] < 1e8 and summary["sim"]["episode_return_mean"] < 1e8, summary["sim"]
+    assert "restart" not in run.output
 
 
 @pytest.mark.slow

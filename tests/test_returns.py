@@ -135,7 +135,7 @@ def test_a_reward_past_the_bound_keeps_its_episode_out_of_the_statistics_but_in_
     m = learn.metrics()
     assert m["train/reward_bound"] == pytest.approx(1000.0)  # 1000 x the 90th percentile of 1 per step
     assert m["train/episodes_past_bound"] == 1 and m["train/episode_return_mean"] == 8.0 * K
-    assert max(learn.ledger.returns) < 1e6
+    assert max(learn.intake.ledger.returns) < 1e6
     assert counts.counts["train/segments_received"] == 2 + 2 * (env - 2)  # every segment, the absurd one too
     counts_before = learn.metrics()["train/episodes_past_bound"]
     for seg in episode(env, 0, [K * 1.0, 1e6]):

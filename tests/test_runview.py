@@ -17,7 +17,7 @@ from pathlib import Path
 from ebrl.bus import keys
 from ebrl.hosts import HostChange, Membership
 from ebrl.messages import StatsReport
-from ebrl.runview import Console, Progress, RunView, write_summary
+from ebrl.runview import Console, Progress, RunView, summary as run_summary, write_summary
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -35,23 +35,35 @@ def fed(*reports: tuple[str, StatsReport], **kw) -> RunView:
     return view
 
 
-def test_metrics_add_up_over_instances_and_the_progress_line_says_them():
+def test_metrics_add_up_over_instances_and_the_progress_line_says_training_s_numbers():
+    """The progress line's return and rates are training's (issue 52): before its first report the simulators'
+    rate is shown labelled as theirs, never their return."""
+    now = [100.0]
     view = fed(report("sim", 0, sim__env_steps_per_s=1000.0, sim__episode_return_mean=10.0),
                report("sim", 1, sim__env_steps_per_s=500.0, sim__episode_return_mean=20.0),
-               report("gen", gen__policy_version=3.0), report("train", train__policy_version=4.0,
-                                                               train__staleness_mean=0.5), iterations=10)
-    assert view.metric("sim/env_steps_per_s") == 1500.0 and view.mean_return() == 15.0
+               report("gen", gen__policy_version=3.0), iterations=10, clock=lambda: now[0])
+    assert view.metric("sim/env_steps_per_s") == 1500.0 and view.metric("sim/episode_return_mean", "mean") == 15.0
+    assert view.mean_return() is None  # the simulators' own word is not the run's return
+    assert "| return - | sim 1,500 env steps/s | sim 0.0 traj/s | policy v3 |" in view.progress_line(1.0)
+    for i in range(3):  # training's reports 2 s apart: 3,000 env steps and 8 segments more each time
+        view.on_report(*report("train", train__policy_version=4.0, train__staleness_mean=0.5,
+                               train__env_steps=3000.0 * i, train__segments_received=8.0 * i,
+                               train__episode_return_mean=15.0, train__episodes=10.0 + i))
+        now[0] += 2.0
     assert view.version() == 4 and view.version_floor() == 4 and not view.iterations_done()
     line = view.progress_line(3725.0, restarts=2, hosts=3)
-    assert line == ("iter 4/10 (40%) | 1:02:05<1:33:07, 931.25s/it | return 15.0 | 1,500 env steps/s | 0.0 traj/s | "
+    assert line == ("iter 4/10 (40%) | 1:02:05<1:33:07, 931.25s/it | return 15.0 | 1,500 env steps/s | 4.0 traj/s | "
                     "policy v3 | staleness 0.50 | restarts 2 | hosts 3")
+    now[0] += 30.0  # training silent for longer than the rate's window: no rate made up
+    assert "| 0 env steps/s | 0.0 traj/s |" in view.progress_line(3755.0)
     assert RunView("r").progress_line(0.0) == ("iter 0 | 00:00, ?it/s | return - | 0 env steps/s | 0.0 traj/s | "
                                                "policy v0 | staleness 0.00")
 
 
 def test_the_progress_says_training_success_and_the_last_evaluation():
-    view = fed(report("sim", sim__episode_return_mean=10.0, sim__success_rate=0.35),
-               report("train", train__policy_version=40.0), iterations=50)
+    view = fed(report("sim", sim__episode_return_mean=900.0, sim__success_rate=0.99),
+               report("train", train__policy_version=40.0, train__episode_return_mean=10.0, train__success_rate=0.35,
+                      train__episodes=50.0), iterations=50)
     assert "| return 10.0 | success 35% | " in view.progress_line(10.0) and "eval" not in view.progress_line(10.0)
     view.on_report(*report("eval", eval__version=40.0, eval__success_rate=0.8, eval__success_rate_lo=0.62,
                            eval__success_rate_hi=0.91, eval__return=512.34))
@@ -63,22 +75,26 @@ def test_the_progress_says_training_success_and_the_last_evaluation():
 
 
 def test_a_newer_report_replaces_the_instance_s_last_and_the_best_return_is_kept():
-    view = fed(report("sim", sim__episode_return_mean=50.0), report("sim", sim__episode_return_mean=20.0))
+    view = fed(report("train", train__episode_return_mean=50.0, train__episodes=100.0),
+               report("train", train__episode_return_mean=20.0, train__episodes=200.0),
+               report("sim", sim__episode_return_mean=1e9))  # the simulator's own word moves neither
     assert view.mean_return() == 20.0 and view.best_return == 50.0
 
 
 def test_the_target_return_ends_the_run_on_training_s_report_and_goes_into_the_summary(tmp_path):
     view = fed(report("sim", sim__episode_return_mean=850.0, sim__env_steps=4000.0, sim__segments=12.0),
                report("train", train__policy_version=7.0, train__episode_return_mean=840.0, train__episodes=30.0,
-                      train__episode_length_max=1000.0), target_return=900.0)
+                      train__episode_length_max=1000.0, train__env_steps=3968.0, train__segments_received=12.0),
+               target_return=900.0)
     assert view.target_reached(10.0) is None and view.reached is None
     view.on_report(*report("sim", sim__episode_return_mean=905.5, sim__env_steps=8000.0, sim__segments=30.0))
     assert view.target_reached(15.0) is None  # the simulators' own word does not end a run: training's does
     view.on_report(*report("train", train__policy_version=7.0, train__episode_return_mean=905.5,
-                           train__episodes=40.0, train__episode_length_max=1000.0))
+                           train__episodes=40.0, train__episode_length_max=1000.0, train__env_steps=8000.0,
+                           train__segments_received=30.0))
     assert view.target_reached(20.0) == ("reached run.target_return = 900: mean return 905.5 at iteration 7 "
                                          "after 20 s")
-    summary = view.summary(0, 40.0, run_dir=tmp_path, failure=None, restarts={"gen/0": 1}, host=0, hosts=[0, 1])
+    summary = run_summary(view, 0, 40.0, run_dir=tmp_path, failure=None, restarts={"gen/0": 1}, host=0, hosts=[0, 1])
     line = write_summary(summary, tmp_path / "summary.json")
     assert json.loads((tmp_path / "summary.json").read_text()) == summary
     assert summary["target_reached"] == {"iteration": 7, "wall_s": 20.0, "return": 905.5, "success_rate": None}
@@ -97,7 +113,7 @@ def test_the_target_success_ends_the_run_too(tmp_path):
     view.on_report(*report("train", train__policy_version=30.0, train__episode_return_mean=3.0,
                            train__success_rate=0.95, train__episodes=104.0))
     assert view.target_reached(60.0) == "reached run.target_success = 0.9: success rate 95% at iteration 30 after 60 s"
-    summary = view.summary(0, 61.0, run_dir=tmp_path, failure=None, restarts={}, host=0, hosts=[0])
+    summary = run_summary(view, 0, 61.0, run_dir=tmp_path, failure=None, restarts={}, host=0, hosts=[0])
     assert summary["target_success"] == 0.9 and summary["target_reached"]["success_rate"] == 0.95
 
 
@@ -121,8 +137,75 @@ def test_a_return_that_moves_further_than_the_episodes_since_could_is_not_taken(
     assert view.target_reached(2.0) is None
 
 
+def test_the_run_s_numbers_are_training_s_and_the_simulator_s_are_shown_as_its_own(tmp_path):
+    """Issue 52: a simulator that reports a return of 1e9 and frozen env steps (its credential may) moves none of
+    the run's numbers: the progress line, summary.json and its end line take them from training; the summary
+    keeps the simulator's own under ``sim``, as its word."""
+    view = fed(report("train", train__policy_version=12.0, train__episode_return_mean=150.0, train__episodes=80.0,
+                      train__success_rate=0.25, train__episode_length_max=200.0, train__env_steps=24_576.0,
+                      train__segments_received=768.0),
+               report("sim", sim__episode_return_mean=1e9, sim__success_rate=1.0, sim__env_steps=10.0,
+                      sim__episodes=1e6, sim__segments=3.0, sim__env_steps_per_s=1e7),
+               iterations=30, max_abs_reward=1.0)
+    line = view.progress_line(12.0)
+    assert "| return 150.0 | success 25% | " in line and "1e9" not in line and "1,000,000,000" not in line
+    summary = run_summary(view, 0, 12.0, run_dir=tmp_path, failure=None, restarts={}, host=0, hosts=[0])
+    assert (summary["env_steps"], summary["episodes"], summary["segments"], summary["env_steps_per_s"]) == \
+        (24_576, 80, 768, 2048.0)
+    assert (summary["final_return"], summary["best_return"], summary["final_success_rate"]) == (150.0, 150.0, 0.25)
+    assert summary["sim"] == {"env_steps": 10.0, "episodes": 1e6, "segments": 3.0, "episode_return_mean": 1e9,
+                              "success_rate": 1.0, "env_steps_per_s": 1e7}
+    end = write_summary(summary, tmp_path / "summary.json")
+    assert "24,576 env steps (2,048/s), mean return 150.0 (best 150.0)" in end
+
+
+def test_a_restarted_trainer_neither_drops_nor_jumps_the_run_s_counts(tmp_path):
+    """A restarted train counts from 0 again: the run's env steps, episodes and segments go on from where the
+    last trainer's ended, and the rate on the progress line neither goes negative nor leaps."""
+    now = [0.0]
+    view = RunView("r", clock=lambda: now[0])
+
+    def train(steps: float, episodes: float, ret: float = 100.0) -> None:
+        view.on_report(*report("train", train__policy_version=3.0, train__env_steps=steps,
+                               train__segments_received=steps / 32, train__episodes=episodes,
+                               train__episode_return_mean=ret))
+        now[0] += 1.0
+
+    for i in range(6):
+        train(1024.0 * i, 4.0 * i)
+    assert view.train_count("train/env_steps") == 5120.0 and view.train_count("train/episodes") == 20.0
+    train(0.0, 0.0, ret=90.0)  # the restarted trainer's first report
+    assert view.train_count("train/env_steps") == 5120.0 and view.train_count("train/episodes") == 20.0
+    for i in range(1, 4):
+        train(1024.0 * i, 4.0 * i, ret=90.0)
+        assert view.train_count("train/env_steps") == 5120.0 + 1024.0 * i
+        rate = float(view.progress_line(now[0]).split(" env steps/s")[0].rsplit("| ", 1)[1].replace(",", ""))
+        assert 800.0 <= rate <= 1024.0, rate  # the second without steps (the restart) in it, no drop below 0
+    summary = run_summary(view, 0, 10.0, run_dir=tmp_path, failure=None, restarts={"train/0": 1}, host=0, hosts=[0])
+    assert (summary["env_steps"], summary["episodes"], summary["segments"]) == (8192, 32, 256)
+    assert (summary["final_return"], summary["best_return"]) == (90.0, 100.0)
+
+
+def test_a_counter_moves_in_any_report_between_looks_and_not_by_repeating_itself():
+    """For the stall watch (``RunView.moves``): the real reports' new values count though a flood of frozen ones
+    on the same key is the latest at every look; two values that alternate (a frozen flood between the real,
+    stuck ones) are no movement; the first value is where the counter starts."""
+    view, key = RunView("r"), keys.stats("r", "gen", 0)
+    for served in range(5):
+        view.on_report(*report("gen", gen__envs_served=float(served)))
+        for _ in range(50):
+            view.on_report(*report("gen", gen__envs_served=7.0))
+    assert view.stats[key].metrics["gen/envs_served"] == 7.0 and view.moves[(key, "gen/envs_served")] == 5
+    for _ in range(100):
+        view.on_report(*report("gen", gen__envs_served=4.0))
+        view.on_report(*report("gen", gen__envs_served=7.0))
+    assert view.moves[(key, "gen/envs_served")] == 5
+    fresh = fed(report("gen", gen__envs_served=3.0))
+    assert (key, "gen/envs_served") not in fresh.moves
+
+
 def test_a_stopped_run_says_so_and_has_no_return_yet(tmp_path):
-    summary = RunView("r").summary(143, 0.0, run_dir=tmp_path, failure="x", restarts={}, host=0, hosts=[0])
+    summary = run_summary(RunView("r"), 143, 0.0, run_dir=tmp_path, failure="x", restarts={}, host=0, hosts=[0])
     line = write_summary(summary, tmp_path / "summary.json")
     assert summary["env_steps_per_s"] == 0.0 and summary["target_reached"] is None
     assert line.startswith("run r stopped: 0 iterations") and "mean return - (best -)" in line

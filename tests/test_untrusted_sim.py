@@ -1,7 +1,15 @@
-"""The simulator is untrusted (issue 52): what a process signed in with the simulator's own line sends on the
-simulator's own keys cannot end a run as reached, halt it or fail it. Here: episode values forged in segments
-(tests/forging_sim.py), against a live quickstart with its own target return (900). The other cases of the
-hostile suite (fake instances, a flood of frozen reports, an oversized observation) are in tests/test_auth.py."""
+"""The simulator is untrusted (issue 52): what processes signed in with the simulator's own line send on the
+simulator's own keys cannot end a run as reached, halt it or fail it. One live quickstart with its own settings
+(its target return of 900, no test-only targets) meets every case at once, each for the whole run:
+
+* episode values forged in segments (``tests/forging_sim.py``);
+* a flood of the simulator's own frozen reports, a return of 1e9 in them (``tests/sim_report_flood.py``);
+* the tokens and reports of 63 simulator instances the run does not have (``tests/hostile_peer.py --claims``);
+* a 600 kB and a 240 MiB observation, then junk (``tests/oversize_peer.py``).
+
+Each case also has a test of its own in the slow suite (``-m slow``): ``tests/test_stall.py`` (the flood),
+``tests/test_auth.py`` (the 63 instances, in client mode and in the mesh), ``tests/test_sizes.py`` (the observation)
+and here (the forged returns)."""
 
 from __future__ import annotations
 
@@ -10,24 +18,93 @@ import os
 import subprocess
 import sys
 
+import pytest
+
+import oversize_peer
+import sim_report_flood as flood
+from ebrl.bus import keys
 from ebrl.testing import StatsWatcher
 from helpers import ROOT, up
+from test_sizes import _service_pids
+
+ENV = {**os.environ, "PYTHONPATH": os.pathsep.join([str(ROOT), str(ROOT / "tests")])}
 
 
+def attacker(*argv: str) -> subprocess.Popen:
+    """A script of tests/ that sends until its standard input closes."""
+    return subprocess.Popen([sys.executable, *argv], stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True, env=ENV)
+
+
+def finished(process: subprocess.Popen) -> dict:
+    return json.loads(process.communicate("", timeout=120)[0].splitlines()[-1])
+
+
+def test_a_simulator_s_credential_can_neither_end_halt_nor_fail_a_run(tmp_path):
+    with up(tmp_path, "configs/quickstart.toml", "run.iterations=30", 'viz.rerun="off"', name="untrusted") as run:
+        run.wait_for_line("all services live", 300)
+        where = [run.endpoint, run.name, str(run.run_dir)]
+        with StatsWatcher(run) as stats:
+            forger = attacker(str(ROOT / "tests" / "forging_sim.py"), *where)
+            flooder = attacker(str(ROOT / "tests" / "sim_report_flood.py"), "sim/0", *where, "140")
+            claims = attacker(str(ROOT / "tests" / "hostile_peer.py"), "--claims", "sim/0", *where)
+            stats.wait_for(lambda: (stats.latest("train/0", "train/policy_version") or 0) >= 5, 300, "policy v5")
+            pids = _service_pids(run)
+
+            def send(*sizes: str) -> dict:
+                sender = subprocess.run([sys.executable, str(ROOT / "tests" / "oversize_peer.py"), "send", "sim/0",
+                                         run.endpoint, str(run.run_dir), keys.obs(run.name, 0), *sizes],
+                                        capture_output=True, text=True, env=ENV, timeout=300)
+                assert sender.returncode == 0, sender.stderr[-3000:]
+                return json.loads(sender.stdout)
+
+            send("600000", "junk")  # over the key's bound, under gen's receive limit: counted (bus/oversized)
+            stats.wait_for(lambda: (stats.latest("gen/0", "bus/malformed") or 0) >= 2, 120, "gen counting the junk")
+            before = {role: oversize_peer.peak_kb(pid) for role, pid in pids.items()}
+            big = send(str(240 << 20), "junk")
+            stats.wait_for(lambda: (stats.latest("gen/0", "bus/malformed") or 0) >= 3, 120, "gen counting the junk")
+            after = {role: oversize_peer.peak_kb(pid) for role, pid in pids.items()}
+            code = run.wait(400)
+        sent = {name: finished(p) for name, p in (("forger", forger), ("flood", flooder), ("claims", claims))}
+    assert code == 0, run.output[-4000:]
+    assert all(out["routers"] == 1 for out in [*sent.values(), big]), (sent, big)  # each signed in as sim/0
+    assert sent["flood"]["rate"] > 100 and sent["forger"]["sent"] > 10 * sent["forger"]["kinds"], sent
+    summary = json.loads((run.run_dir / "summary.json").read_text())
+    # it finished every iteration, restarted nothing, reached nothing
+    assert summary["iterations"] == 30 and summary["restarts"] == {} and summary["failure"] is None, summary
+    assert summary["target_reached"] is None and "stalled" not in run.output and "restart" not in run.output
+    # every number the run shows is training's (InvertedPendulum returns at most 1000)
+    returns = stats.values("train/0", "train/episode_return_mean")
+    assert returns and max(returns) <= 1000.0 and summary["final_return"] in returns, summary
+    assert summary["best_return"] <= 1000.0 and summary["env_steps"] >= 1024 * 30, summary
+    assert summary["env_steps"] in {int(v) for v in stats.values("train/0", "train/env_steps")}
+    assert summary["sim"]["episode_return_mean"] == pytest.approx(1e9)  # the flood's word, kept as the sim's
+    # the forged episodes refused, counted where a user sees them
+    assert stats.latest("train/0", "train/episode_values_refused") > 0
+    assert stats.latest("train/0", "train/segments_replayed") > 0
+    assert "train/episode_values_refused" in (run.run_dir / "report" / "report.md").read_text()
+    # the 63 instances: generation counted one simulator host, saw no other (the router dropped them)
+    assert stats.latest("gen/0", "gen/sim_hosts") == 1 and stats.latest("gen/0", "gen/unknown_instances", 0) == 0
+    assert not any(stats.reports(f"sim/{n}") for n in range(1, 64))
+    assert [r for r in stats.reports("sim/0") if r.seq == flood.SEQ]  # sim's own key: its reports arrive
+    # the observations: the 600 kB one counted, the 240 MiB one moved no peak memory (measured: gen +1.3 MB)
+    assert stats.latest("gen/0", "bus/oversized") == 1 and stats.latest("train/0", "bus/oversized") == 0
+    assert big["puts"][0]["bytes"] > 240 << 20
+    for role in ("gen", "train"):
+        assert (after[role] - before[role]) / 1024 < 10, (role, before, after)
+
+
+@pytest.mark.slow
 def test_episode_returns_forged_in_a_simulator_s_segments_never_reach_the_run_s_numbers(tmp_path):
     """For the whole run the forger sends, 5 times a second, segments whose rewards sum to 44 claiming 20 episodes
     of 5000, one of 5000, an episode that did not end, and replays: training refuses them all (counted), the run
     finishes every iteration with no restart, reaches nothing it did not, and every return it shows is a real
     one (InvertedPendulum returns at most 1000)."""
-    env = {**os.environ, "PYTHONPATH": str(ROOT)}
     with up(tmp_path, "configs/quickstart.toml", "run.iterations=30", 'viz.rerun="off"', name="forger") as run:
         run.wait_for_line("all services live", 300)
-        forger = subprocess.Popen([sys.executable, str(ROOT / "tests" / "forging_sim.py"), run.endpoint, run.name,
-                                   str(run.run_dir)], stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True,
-                                  env=env)
+        forger = attacker(str(ROOT / "tests" / "forging_sim.py"), run.endpoint, run.name, str(run.run_dir))
         with StatsWatcher(run) as stats:
             code = run.wait(400)
-        out = json.loads(forger.communicate("", timeout=120)[0])
+        out = finished(forger)
     assert code == 0, run.output[-4000:]
     assert out["routers"] == 1 and out["sent"] > 10 * out["kinds"], out  # signed in, and kept at it
     summary = json.loads((run.run_dir / "summary.json").read_text())

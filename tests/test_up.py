@@ -30,7 +30,7 @@ def check_tracking_outputs(run_dir, summary, command=("ebrl", "up")) -> None:
     acc.Reload()
     returns = acc.Scalars("episode/return")
     assert len(returns) >= summary["episodes"] > 0  # every episode (sim's last batch may land after the summary)
-    assert all(0 < e.step <= summary["env_steps"] for e in returns)
+    assert all(0 < e.step <= summary["sim"]["env_steps"] for e in returns)  # episodes sit at the sims' env steps
     assert [e.step for e in returns] == sorted(e.step for e in returns)
     assert {"sim/episode_return_mean", "train/policy_loss", "train/value_loss", "train/approx_kl",
             "train/staleness_mean", "run/env_steps"} <= set(acc.Tags()["scalars"])

@@ -18,12 +18,15 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ebrl.algos.returns import EpisodeLedger, Pieces
 from ebrl.envs.guard import decision_bound
+from ebrl.meter import Telemetry
 from ebrl.messages import SegmentBatch, TrajectorySegment
 
 TAKEN, REWARD_BOUND, FUTURE_VERSION = 0, 1, 2
 REFUSALS = {REWARD_BOUND: "train/reward_bound_dropped", FUTURE_VERSION: "train/future_version_dropped"}
 SLACK = 1 + 1e-6  # float32 sums of clipped rewards may round a little above the bound
+MAX_GROUPS_SHOWN = 256  # groups with their own train/segments_g<group> count (a report's names are bounded)
 
 
 @dataclass
@@ -57,3 +60,41 @@ def judge_packed(batch: SegmentBatch, max_abs_reward: float, version: int) -> Ve
     future = np.maximum.reduceat(batch.versions, starts) > version
     codes = np.where(bound, REWARD_BOUND, np.where(future, FUTURE_VERSION, TAKEN))
     return Verdict(batch.segments(), codes.tolist())
+
+
+class Intake:
+    """What training takes in: each segment judged (:func:`judge`, :func:`judge_packed`) and its episode followed,
+    its return computed, by the ``ledger`` (``ebrl.algos.returns``: a replay or a forged return is refused there);
+    the env steps of the segments taken (``train/env_steps``) and the segments decoded from each group, taken or
+    not (``train/segments_g<group>``: evidence the stall watch judges a simulator on)."""
+
+    def __init__(self, max_abs_reward: float, ledger: EpisodeLedger, telemetry: Telemetry):
+        self.max_abs_reward, self.ledger, self.telemetry = max_abs_reward, ledger, telemetry
+        self.env_steps = 0
+        self.by_group: dict[int, int] = {}
+
+    def take(self, item: TrajectorySegment | SegmentBatch, version: int, handed: bool = False
+             ) -> list[TrajectorySegment]:
+        """The segments of ``item`` to learn from, the others dropped and counted. ``handed``: handed over by the
+        learner before (counted there: not again)."""
+        packed = isinstance(item, SegmentBatch)
+        verdict = (judge_packed if packed else judge)(item, self.max_abs_reward, version)  # type: ignore[arg-type]
+        if not handed and (item.group in self.by_group or len(self.by_group) < MAX_GROUPS_SHOWN):
+            self.by_group[item.group] = self.by_group.get(item.group, 0) + len(verdict.segments)
+        for code, name in REFUSALS.items():  # rewards no sim sends (env.max_abs_reward clips them), or acted by
+            if n := verdict.codes.count(code):  # weights never published
+                self.telemetry.count(name, n)
+        ok = np.asarray(verdict.codes) == TAKEN
+        per_step = np.abs(item.rewards) / np.maximum(item.steps, 1)  # a learned reward bound reads these
+        if not ok.all():
+            per_step = per_step[np.repeat(ok, item.lengths) if packed else np.zeros(0, np.int64)]
+        followed = self.ledger.follow(Pieces.of_batch(item) if packed else Pieces.of_segment(item), ok, per_step)
+        taken = [seg for seg, good in zip(verdict.segments, (ok & (followed == 0)).tolist()) if good]
+        if taken and not handed:
+            self.telemetry.count("train/segments_received", len(taken))
+            self.env_steps += sum(int(seg.steps.sum()) for seg in taken)
+        return taken
+
+    def metrics(self) -> dict[str, float]:
+        return {**self.ledger.metrics(), "train/env_steps": float(self.env_steps),
+                **{f"train/segments_g{group}": float(n) for group, n in self.by_group.items()}}

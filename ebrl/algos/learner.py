@@ -29,8 +29,8 @@ import torch
 from ebrl import devices
 from ebrl.algos import checkpoint, handover, saving
 from ebrl.algos.grpo import GroupCollector
-from ebrl.algos.intake import REFUSALS, TAKEN, judge, judge_packed
-from ebrl.algos.returns import EpisodeLedger, Pieces, RewardBound
+from ebrl.algos.intake import Intake
+from ebrl.algos.returns import EpisodeLedger, RewardBound
 from ebrl.algos.parallel import Command, DataParallel, shards
 from ebrl.algos.ppo import PPO, BadBatch, Batch, SegmentCollector
 from ebrl.messages import SegmentBatch, TrajectorySegment
@@ -39,7 +39,6 @@ from ebrl.policies.checkpoint import portable_metadata
 from ebrl.meter import Telemetry
 
 log = logging.getLogger(__name__)
-MAX_GROUPS_SHOWN = 256  # groups with their own train/segments_g<group> count (a report's names are bounded)
 
 
 class Learner:
@@ -61,9 +60,8 @@ class Learner:
         collector = GroupCollector if cfg.algo.name == "grpo" else SegmentCollector
         self.collector = collector(cfg.algo, cfg.train.max_pending, max_staleness, telemetry.count)
         # every env's episodes as training received them: the returns it computed, the ones the run ends on
-        self.ledger = EpisodeLedger(RewardBound(cfg.env.reward_bound, info.reward_range))
-        self.env_steps = 0  # env steps of the segments taken
-        self.by_group: dict[int, int] = {}  # group -> segments decoded from it, taken or not (the stall watch)
+        self.intake = Intake(cfg.env.max_abs_reward, EpisodeLedger(RewardBound(cfg.env.reward_bound,
+                                                                                 info.reward_range)), telemetry)
         self.staleness_hist = np.zeros(max_staleness + 1, dtype=np.int64)  # decisions per lag
         self.arrays: dict[str, np.ndarray] = {}  # the full weights rank 0 publishes
         self.train_state: tuple[int, dict, dict] | None = None  # sharded: (version, model, optimizer) gathered
@@ -93,30 +91,10 @@ class Learner:
                 or item.latents.shape[1:] != self.latent_shape:
             malformed(ValueError("segment shapes do not match the policy"))
             return 0
-        bound, version = self.cfg.env.max_abs_reward, self.version
-        packed = isinstance(item, SegmentBatch)
-        verdict = judge_packed(item, bound, version) if packed else judge(item, bound, version)
-        if not handed and (item.group in self.by_group or len(self.by_group) < MAX_GROUPS_SHOWN):
-            self.by_group[item.group] = self.by_group.get(item.group, 0) + len(verdict.segments)
-        for code, name in REFUSALS.items():  # rewards no sim sends (env.max_abs_reward clips them), or acted by
-            if n := verdict.codes.count(code):  # weights never published
-                self.telemetry.count(name, n)
-        # each segment's episode followed, its return computed here: a replay or a forged return is refused
-        ok = np.asarray(verdict.codes) == TAKEN
-        per_step = np.abs(item.rewards) / np.maximum(item.steps, 1)  # a learned reward bound reads these
-        if not ok.all():
-            per_step = per_step[np.repeat(ok, item.lengths) if packed else np.zeros(0, np.int64)]
-        followed = self.ledger.follow(Pieces.of_batch(item) if packed else Pieces.of_segment(item), ok, per_step)
-        taken = steps = 0
-        for seg, good in zip(verdict.segments, (ok & (followed == 0)).tolist()):
-            if good:
-                self.collector.add(seg)
-                taken += 1
-                steps += int(seg.steps.sum())
-        if taken and not handed:
-            self.telemetry.count("train/segments_received", taken)
-            self.env_steps += steps
-        return taken
+        taken = self.intake.take(item, self.version, handed)
+        for seg in taken:
+            self.collector.add(seg)
+        return len(taken)
 
     def take(self) -> list:
         """The next update's items (maybe none: everything pending was too stale)."""
@@ -242,9 +220,7 @@ class Learner:
             return out
         # batch_ready: a full batch waits, which the stall watch reads (ebrl.stall)
         out.update({"train/pending_steps": float(self.collector.pending_steps), "train/batch_ready": float(self.ready)})
-        out.update(self.ledger.metrics())  # the returns training computed (ebrl.algos.returns)
-        out["train/env_steps"] = float(self.env_steps)
-        out.update({f"train/segments_g{group}": float(n) for group, n in self.by_group.items()})
+        out.update(self.intake.metrics())  # the returns training computed (ebrl.algos.returns), its intake
         for lag, n in enumerate(self.staleness_hist):
             out[f"train/staleness_hist_{lag}"] = float(n)
         return out

@@ -23,6 +23,13 @@ identity: one per role of the service graph (``ebrl-sim``, ``ebrl-gen``, ``ebrl-
   connects, but rights per role cannot hold on a mesh: services trust each other, and observers only read.
 * A process that does not hold a line of the file cannot open a session with any of them: nothing it sends
   arrives, and it receives nothing.
+* Each process the launcher starts (``bus.mode = "client"``) signs in with an identity of its own instance,
+  ``ebrl-<role>-<n>`` (:func:`instance_user`), whose password is derived from the launcher's
+  (:func:`instance_password`): the launcher hands each child its line alone (``ebrl.procenv``), and its router
+  admits exactly the instances it started (:func:`write_router_dictionary`), each taking only its own
+  instance's keys (its token, stats, status and control: ``ebrl.graph.access_control``). A process holding
+  sim/0's line cannot compute sim/1's, nor hold ``ebrl/live/<run>/sim/1``. The role lines of the services
+  are for a mesh (``bus.mode = "peer"``); a client-mode launcher does not admit them.
 * A script that watches the run (``ebrl stats``, ``ebrl bench``, ``examples/subscribe_stats.py``) signs in as
   ``observer``: it may read the run's stats and nothing else. ``ebrl secret --observer`` writes a file with that
   line alone, to hand to another user.
@@ -57,7 +64,7 @@ class AuthError(ValueError):
 class Credentials:
     user: str
     password: str
-    path: Path  # the dictionary file every service checks peers against
+    path: Path | None  # the dictionary file every service checks peers against (None: an instance's line alone)
 
 
 def _new_lines(users) -> str:
@@ -156,6 +163,70 @@ def host_zid(secret: str | os.PathLike, host: int | str) -> str:
     return ("1" + digest[1:]) if digest[0] == "0" else digest
 
 
+# --- identities per instance -----------------------------------------------------------------------------------
+
+ROUTER_FILE = "bus.router-{host}.secret"  # in the run's directory: the dictionary a client-mode launcher admits
+
+
+def instance_user(role: str, instance: int) -> str:
+    """The Zenoh user name of service instance ``role/instance``: ``ebrl-<role>-<instance>``."""
+    if role not in graph.SERVICES or int(instance) < 0:
+        raise AuthError(f"no instance identity for {role}/{instance}: roles are {', '.join(graph.SERVICES)}")
+    return graph.instance_username(role, instance)
+
+
+def instance_password(secret: str | os.PathLike, role: str, instance: int) -> str:
+    """The password of ``role/instance``'s identity: an HMAC of its user name under the launcher's password, so
+    the launcher (and every launcher of the run, which shares the secret) can make it, and a holder of another
+    instance's line, or of a role's line, cannot (64 hex digits)."""
+    key = load(secret, "launcher").password.encode()
+    return hmac.new(key, f"ebrl-instance:{instance_user(role, instance)}".encode(), hashlib.sha256).hexdigest()
+
+
+def instance_line(secret: str | os.PathLike, role: str, instance: int) -> str:
+    """``user:password`` of ``role/instance``: what the launcher hands that process (``ebrl.procenv``)."""
+    return f"{instance_user(role, instance)}:{instance_password(secret, role, instance)}"
+
+
+def parse_line(line: str) -> Credentials:
+    """The credentials of one ``user:password`` line (an instance's, as the launcher hands it over)."""
+    user, sep, password = line.strip().partition(":")
+    if not sep or not user or len(password) < 16:
+        raise AuthError("a bus identity is USER:PASSWORD (16 characters or more)")
+    return Credentials(user=user, password=password, path=None)
+
+
+def instance_of(user: str) -> tuple[str, int] | None:
+    """``(role, instance)`` of an instance identity's user name, None for any other (a role's, observer)."""
+    prefix, _, number = user.rpartition("-")
+    role = prefix.removeprefix("ebrl-")
+    if not prefix.startswith("ebrl-") or role not in graph.SERVICES or not number.isdigit():
+        return None
+    return role, int(number)
+
+
+def write_router_dictionary(secret: str | os.PathLike, path: str | os.PathLike,
+                            instances: list[tuple[str, int]] | tuple[tuple[str, int], ...]) -> Path:
+    """Write at ``path`` (0600, fsynced, replacing any older one at once) the user-password dictionary of a
+    client-mode launcher's router: the launcher's and the observer's lines of ``secret`` (other hosts'
+    launchers, scripts watching) and one line per service instance of ``instances`` it starts. The services'
+    role lines are left out: no process it starts signs in with one. Derived from ``secret`` alone, so written
+    anew at each start."""
+    path = Path(path)
+    users = _users(Path(secret))
+    lines = [f"{user}:{users[user]}" for user in (graph.username("launcher"), OBSERVER_USER) if user in users]
+    lines += [instance_line(secret, role, instance) for role, instance in instances]
+    temporary = path.with_name(f".{path.name}.{secrets.token_hex(4)}")
+    fd = os.open(temporary, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
+    try:
+        os.write(fd, "".join(line + "\n" for line in lines).encode())
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+    os.replace(temporary, path)
+    return path
+
+
 TRUSTED_HOSTS = 256  # launchers numbered below this, and the router, are trusted at the end of a link opened
 
 
@@ -177,27 +248,36 @@ def peer_access_control() -> dict[str, object]:
     }
 
 
-def zenoh_settings(credentials: Credentials, mode: str, run: str = "*", connects: bool = False
-                   ) -> dict[str, object]:
+def zenoh_settings(credentials: Credentials, mode: str, run: str = "*", connects: bool = False,
+                   instances: tuple[tuple[str, int], ...] = (), dictionary: str | os.PathLike | None = None,
+                   groups: int = 0) -> dict[str, object]:
     """Zenoh config entries (path -> value) for a session that signs in with ``credentials``, of Zenoh
     ``mode``:
 
     * ``router`` (a launcher, ``ebrl router``): checks whoever connects against the file and takes from each
       identity only what its role declares in run ``run`` (:func:`ebrl.graph.access_control`); ``connects``:
       it opens links itself (``bus.connect``), whose far ends are trusted by their Zenoh ids (:func:`host_zid`;
-      one that opens none takes its own host's id: ``ebrl.bus.session.zenoh_config``).
+      one that opens none takes its own host's id: ``ebrl.bus.session.zenoh_config``). With ``instances`` (a
+      client-mode launcher: the service instances it starts), it checks sign-ins against ``dictionary``
+      (:func:`write_router_dictionary`) instead, and each instance takes only its own instance's keys (and,
+      with ``groups`` per simulator, a simulator its own groups' data keys).
     * ``peer`` (a service of a mesh): checks whoever connects; observers only read.
     * ``client`` (a service of a launcher's, a script watching): signs in, nothing more.
     """
     usrpwd: dict[str, str] = {"user": credentials.user, "password": credentials.password}
     if mode == "client":
         return {"transport/auth/usrpwd": usrpwd}
-    usrpwd["dictionary_file"] = str(credentials.path)
+    if credentials.path is None:
+        raise AuthError(f"a {mode} checks others against the run's secret file: an instance's line alone cannot")
+    usrpwd["dictionary_file"] = str(Path(dictionary).resolve() if dictionary else credentials.path)
+    if instances and (mode != "router" or not dictionary):
+        raise AuthError("identities per instance are admitted by a router with its own dictionary file")
     if mode == "peer":
         return {"transport/auth/usrpwd": usrpwd, "access_control": peer_access_control()}
     trusted = ([host_zid(credentials.path, h) for h in range(TRUSTED_HOSTS)]
                + [host_zid(credentials.path, "router")]) if connects else []
-    return {"transport/auth/usrpwd": usrpwd, "access_control": graph.access_control(run, trusted_zids=trusted)}
+    return {"transport/auth/usrpwd": usrpwd, "access_control": graph.access_control(
+        run, trusted_zids=trusted, instances=instances, groups=groups)}
 
 
 # --- endpoints ---------------------------------------------------------------------------------------------

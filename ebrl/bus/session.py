@@ -77,6 +77,15 @@ class BusOptions:
     # takes that host's Zenoh id (ebrl.bus.auth.host_zid), which the hosts that connect to it trust
     host: int | str | None = None
     file_listen_wins: bool = False  # the listen endpoints of config_file, when it has some, replace ``listen``
+    # ``user:password`` of this process's own instance identity, handed over by its launcher (ebrl.procenv): a
+    # client signs in with it rather than with its role's line of secret_file (ebrl.bus.auth)
+    identity: str = ""
+    # a client-mode launcher's router: the service instances it starts ((role, n) pairs), each admitted with its
+    # own identity and rights, checked against dictionary_file (ebrl.bus.auth.write_router_dictionary); and the
+    # groups each simulator has (its data keys are its own groups'); empty: every role's line, any instance
+    instances: tuple[tuple[str, int], ...] = ()
+    dictionary_file: str = ""
+    groups: int = 0
 
 
 # Zenoh's default has both peers of a pair connect to each other as soon as gossip tells them of the other.
@@ -89,7 +98,8 @@ AUTOCONNECT_STRATEGY = {"peer": {"to_router": "always", "to_peer": "greater-zid"
 
 def zenoh_config(options: BusOptions) -> zenoh.Config:
     """A Zenoh config: loopback-only peer unless told otherwise, multicast scouting off; with a
-    ``secret_file``, signed in as ``role`` and, as a router or peer, access-controlled (:mod:`ebrl.bus.auth`).
+    ``secret_file``, signed in as ``role`` and, as a router or peer, access-controlled (:mod:`ebrl.bus.auth`);
+    with an ``identity`` (a service its launcher started), signed in as its own instance.
 
     Peers learn each other's loopback locators by gossip through the endpoint they
     connect to (the launcher's), so services talk directly, without a relay. Of two peers that learn of each
@@ -107,13 +117,22 @@ def zenoh_config(options: BusOptions) -> zenoh.Config:
         conf.insert_json5("connect/endpoints", json.dumps(options.connect))
     # Zenoh reassembles no message larger than this (it drops it, the link stays): the same bound as ours
     conf.insert_json5("transport/link/rx/max_message_size", json.dumps(options.max_message_bytes))
-    if options.secret_file:
+    if options.identity:
+        credentials = auth.parse_line(options.identity)
+        own = auth.instance_of(credentials.user)
+        if options.mode != "client" or own is None or (options.role and own[0] != options.role):
+            raise auth.AuthError(f"{credentials.user!r} is no identity of a {options.role or 'service'} instance "
+                                 f"(it signs in as a client of its launcher, not as a {options.mode})")
+        conf.insert_json5("transport/auth/usrpwd", json.dumps(auth.zenoh_settings(credentials, "client")
+                                                               ["transport/auth/usrpwd"]))
+    elif options.secret_file:
         if not options.role:
             raise auth.AuthError("signing in needs a role (BusOptions.role): a role of the service graph or "
                                  "observer")
         credentials = auth.load(options.secret_file, options.role)
         connects = options.mode == "router" and bool(options.connect or config_file_connect(options.config_file))
-        for path, value in auth.zenoh_settings(credentials, options.mode, options.run, connects).items():
+        for path, value in auth.zenoh_settings(credentials, options.mode, options.run, connects, options.instances,
+                                               options.dictionary_file or None, options.groups).items():
             conf.insert_json5(path, json.dumps(value))
         if options.mode == "router" and not connects and options.host is not None:
             conf.insert_json5("id", json.dumps(auth.host_zid(options.secret_file, options.host)))
@@ -301,23 +320,27 @@ class BusBase(abc.ABC):
 
     def subscribe(self, key: str, cls: type[T] | Callable[[str, bytes], T], *,
                   policy: Literal["block", "latest"] = "block", capacity: int = 64,
-                  notify: asyncio.Event | None = None) -> Subscription[T]:
+                  notify: asyncio.Event | None = None, max_bytes: int | None = None) -> Subscription[T]:
         """A bounded, typed async iterator of ``(key, message)`` for samples on ``key``.
 
         ``cls`` is a message class, or a function ``(key, payload) -> message`` for keys that
         carry several types (``messages.decode_stats_sample``); either raises ``MessageError``
         on a malformed payload. ``notify`` is set too when a sample arrives, so one task can
-        wait on several subscriptions."""
-        sub = Subscription(self, key, cls, policy, capacity, notify)
+        wait on several subscriptions. ``max_bytes``: the key's bound in this run (``ebrl.sizes``), below the
+        bus's; a larger payload is counted and dropped before it is copied or decoded (:meth:`fits`)."""
+        sub = Subscription(self, key, cls, policy, capacity, notify, max_bytes)
         sub._source = self._feed(key, sub.offer)
         self._subscriptions.append(sub)
         return sub
 
-    def subscribe_raw(self, key: str, callback: Callable[[str, bytes], None]) -> Any:
+    def subscribe_raw(self, key: str, callback: Callable[[str, bytes], None], max_bytes: int | None = None) -> Any:
         """Call ``callback(key, payload)`` on a transport thread for every sample: no decoding, no queue.
-        For recorders that must stay cheap; the callback must be fast and never raise."""
+        For recorders that must stay cheap; the callback must be fast and never raise. ``max_bytes``: as
+        :meth:`subscribe`'s."""
 
         def on_sample(sample_key: str, payload: Any) -> None:
+            if not self.fits(sample_key, len(payload), max_bytes):  # before the copy
+                return
             try:
                 callback(sample_key, bytes(payload))
             except Exception as exc:  # never let an exception escape into the transport
@@ -325,13 +348,17 @@ class BusBase(abc.ABC):
 
         return self._feed(key, on_sample)
 
-    def fits(self, key: str, size: int) -> bool:
-        """False, counted as oversized and malformed, for a payload over ``options.max_message_bytes``."""
-        limit = self.options.max_message_bytes
+    def fits(self, key: str, size: int, max_bytes: int | None = None) -> bool:
+        """False, counted as oversized and malformed, for a payload over ``options.max_message_bytes`` or over
+        ``max_bytes`` (its key's bound in this run, ``ebrl.sizes``). Asked with the length Zenoh reports before
+        the payload is copied out of it, so a refused payload costs no copy."""
+        limit = self.options.max_message_bytes if max_bytes is None else min(max_bytes,
+                                                                             self.options.max_message_bytes)
         if size <= limit:
             return True
         self.oversized[key] += 1
-        self.count_malformed(key, ValueError(f"{size} bytes, over bus.max_message_bytes = {limit}"))
+        self.count_malformed(key, ValueError(f"{size} bytes, over its limit of {limit} (the key's bound in this run, "
+                                             "or bus.max_message_bytes)"))
         return False
 
     def count_malformed(self, key: str, error: Exception) -> None:
@@ -476,10 +503,11 @@ class Subscription(Generic[T]):
     """Bounded bridge from a bus's transport thread to the event loop (see module docstring)."""
 
     def __init__(self, bus: BusBase, key: str, cls: type[T] | Callable[[str, bytes], T], policy: str, capacity: int,
-                 notify: asyncio.Event | None = None):
+                 notify: asyncio.Event | None = None, max_bytes: int | None = None):
         if policy not in ("block", "latest"):
             raise ValueError(f"unknown queue policy {policy!r}")
         self.bus, self.key, self.policy, self.capacity = bus, key, policy, capacity
+        self.max_bytes = max_bytes  # the key's bound in this run (ebrl.sizes); None: the bus's alone
         if isinstance(cls, type):
             self._decode: Callable[[str, bytes], T] = lambda _key, payload: messages.decode_message(cls, payload)
         else:
@@ -498,7 +526,7 @@ class Subscription(Generic[T]):
 
     def offer(self, key: str, payload: Any) -> None:  # a transport thread; payload: bytes-like
         """Check, decode and queue one sample; for a full ``block`` queue, wait for room (back-pressure)."""
-        if self._closed or not self.bus.fits(key, len(payload)):
+        if self._closed or not self.bus.fits(key, len(payload), self.max_bytes):  # len: no copy yet
             return
         try:
             msg = self._decode(key, bytes(payload))

@@ -45,11 +45,13 @@ class ActionExchange:
 
     def __init__(self, bus: Any, run: str, groups: list[int], telemetry: Telemetry,
                  timeout_s: float = ACTION_TIMEOUT_S, action_shape: tuple[int, int] | None = None,
-                 layout: ObsLayout | None = None):
+                 layout: ObsLayout | None = None, max_bytes: int | None = None):
         self.bus, self.run, self.telemetry, self.timeout_s = bus, run, telemetry, timeout_s
         self.action_shape = action_shape  # (chunk, action dim): a chunk of another shape is dropped, counted
         self.layout = layout  # images of its uint8 fields travel as bytes (ebrl.obswire)
-        self.actions = {g: bus.subscribe(keys.act(run, g), ActionChunk, capacity=4) for g in groups}
+        # max_bytes: an action chunk's bound in this run (ebrl.sizes)
+        self.actions = {g: bus.subscribe(keys.act(run, g), ActionChunk, capacity=4, max_bytes=max_bytes)
+                        for g in groups}
         self.gen_epoch = 0
 
     def generation_restarted(self) -> None:

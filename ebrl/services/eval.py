@@ -15,12 +15,11 @@ import dataclasses
 import os
 import time
 
-from ebrl import threads
-from ebrl.envs import EnvSpec, describe
+from ebrl import sizes, threads
 from ebrl.evaluate import BestPolicy, EvalPool, EvalResult, EvalSchedule, lower_priority
 from ebrl.policies import load_arrays, make_policy
 from ebrl.policies.checkpoint import policy_metadata, portable_metadata
-from ebrl.service import Service, service_main
+from ebrl.service import Service, env_info, service_main
 from ebrl.weights import WeightsLayout, WeightsReceiver, known_version
 
 
@@ -31,7 +30,8 @@ class EvalService(Service):
         cfg, loop = self.cfg, asyncio.get_running_loop()
         priority = lower_priority()  # before the workers start: they inherit it
         threads.set_threads(1)
-        info = await loop.run_in_executor(None, describe, EnvSpec.from_config(cfg.env))
+        info = await env_info(self)
+        bounds = self.bounds or await self.message_bounds()
         self.model = make_policy(dataclasses.replace(cfg.policy, checkpoint=""), info.layout, info.action_dim)
         self.metadata = {**policy_metadata(self.model), **portable_metadata(cfg.policy, cfg.env, info),
                          "run": self.run_name}
@@ -46,9 +46,16 @@ class EvalService(Service):
         self.wake, self.due = asyncio.Event(), asyncio.Event()
         self.weights = WeightsReceiver(self.bus, self.run_name, notify=self.wake,
                                        layout=WeightsLayout.of_model(self.model), floor=known_version(self.run_dir),
-                                       follow=True)  # back to train's weights if a forged version put eval ahead
+                                       follow=True,  # back to train's weights if a forged version put eval ahead
+                                       max_bytes=bounds.weights)
         self.log.info("evaluating every %d versions, %d episodes from seed %d, %d worker(s) at %s", cfg.eval.every,
                       cfg.eval.episodes, cfg.eval.seeds, self.workers.workers, priority)
+
+    async def message_bounds(self) -> sizes.Bounds:
+        """Weights: the run's bound (ebrl.sizes), from the policy's tensors."""
+        info = await env_info(self)
+        return await asyncio.get_running_loop().run_in_executor(None, lambda: sizes.of_run(self.cfg, info,
+                                                                                           weights=True))
 
     async def run(self) -> None:
         collector = asyncio.create_task(self.collect())

@@ -12,17 +12,16 @@ import os
 import numpy as np
 import torch
 
-from ebrl import devices, meta, obswire, threads
+from ebrl import devices, meta, obswire, procenv, sizes, threads
 from ebrl.bus import keys
-from ebrl.bus.peers import LivePeers
-from ebrl.envs import EnvSpec, describe
+from ebrl.bus.peers import LivePeers, plan_admits
 from ebrl.messages import Observation, Quota
 from ebrl.policies import load_arrays, make_policy
 from ebrl.policies.graphs import Actor
 from ebrl.sched.batching import ObservationQueue
 from ebrl.sched.forward import Forward, answers
 from ebrl.sched.modes import resolve
-from ebrl.service import Service, service_main
+from ebrl.service import Service, env_info, service_main
 from ebrl.weights import WeightsLayout, WeightsReceiver, known_version
 
 
@@ -35,7 +34,8 @@ class GenService(Service):
         if self.schedule.gen_cores:
             os.sched_setaffinity(0, self.schedule.gen_cores)
         threads.set_threads(cfg.gen.threads)
-        info = await asyncio.get_running_loop().run_in_executor(None, describe, EnvSpec.from_config(cfg.env))
+        info = await env_info(self)
+        bounds = self.bounds or await self.message_bounds()
         self.use_device(devices.resolve(cfg.gen.device, "gen.device"))
         self.policy = make_policy(cfg.policy, info.layout, info.action_dim).to(self.device)
         self.policy.eval()
@@ -43,7 +43,9 @@ class GenService(Service):
         torch.manual_seed(meta.gen_seed(cfg.run.seed, self.instance))  # the actions' sampling (every device)
         self.version = -1
         self.batch_groups = cfg.gen.max_batch_groups  # 0: every group of every live sim host
-        self.sims = LivePeers(self.bus, self.run_name, "sim", warn=lambda: False)
+        # the sim hosts that serve: live ones of the run's plan only (a token of another instance moves nothing)
+        self.sims = LivePeers(self.bus, self.run_name, "sim", warn=lambda: False,
+                              admits=plan_admits(procenv.sim_hosts()))
         self.waiting = ObservationQueue(self.schedule, info.obs_shape)  # those whose iteration needs a newer policy
         self.pool = threads.TorchPool("gen-forward")  # passes and weight loads, with gen's torch threads
         self.forward = Forward(self.actor, self.device, self.pool)  # short CPU passes on the loop itself
@@ -51,11 +53,18 @@ class GenService(Service):
         # A group has at most one observation in flight; room for the groups of many sim hosts.
         decode = obswire.decoder(Observation, info.layout, info.obs_shape)  # camera images arrive as bytes
         self.obs = self.bus.subscribe(keys.obs(self.run_name), decode, capacity=4 * self.schedule.groups * 16,
-                                      notify=self.wake)
+                                      notify=self.wake, max_bytes=bounds.obs)
         # assembles off the event loop; takes only versions of this policy's tensors, finite, plausibly numbered
         self.weights = WeightsReceiver(self.bus, self.run_name, notify=self.wake,
                                        layout=WeightsLayout.of_model(self.policy), floor=known_version(self.run_dir),
-                                       follow=True)  # back to train's weights if a forged version put gen ahead
+                                       follow=True,  # back to train's weights if a forged version put gen ahead
+                                       max_bytes=bounds.weights)
+
+    async def message_bounds(self) -> sizes.Bounds:
+        """Observations and weights: the run's bounds (ebrl.sizes), the policy's tensors included."""
+        info = await env_info(self)
+        return await asyncio.get_running_loop().run_in_executor(None, lambda: sizes.of_run(self.cfg, info,
+                                                                                           weights=True))
 
     @property
     def max_groups(self) -> int:
@@ -117,6 +126,7 @@ class GenService(Service):
 
     def metrics(self) -> dict[str, float]:
         return {"gen/policy_version": float(self.version), "gen/obs_queue": float(len(self.obs)),
+                "gen/sim_hosts": float(self.sims.count("sim")), "gen/unknown_instances": float(self.sims.unknown_seen),
                 **{f"gen/{k}": float(v) for k, v in {**self.waiting.counters(), **self.weights.counters(),
                                                      **self.actor.counters()}.items()}}
 

@@ -11,15 +11,16 @@ import os
 
 import psutil
 
+from ebrl import procenv, sizes
 from ebrl.bus import keys
-from ebrl.bus.peers import LivePeers
-from ebrl.envs import EnvSpec, describe
+from ebrl.bus.peers import LivePeers, plan_admits
+from ebrl.envs import EnvSpec
 from ebrl.resources.nvml import GpuMonitor
 from ebrl.sched.fleet import RolloutStats, make_fleet
 from ebrl.sched.group import ActionExchange, SegmentOutbox, group_loop
 from ebrl.sched.modes import resolve
 from ebrl.sched.stepchoice import NAMES
-from ebrl.service import Service, service_main
+from ebrl.service import Service, env_info, service_main
 
 
 class SimService(Service):
@@ -29,7 +30,8 @@ class SimService(Service):
         cfg = self.cfg
         self.schedule = sched = resolve(cfg)
         spec = EnvSpec.from_config(cfg.env)
-        info = await asyncio.get_running_loop().run_in_executor(None, describe, spec)  # clear error before spawning
+        info = await env_info(self)  # clear error before spawning
+        bounds = self.bounds or await self.message_bounds()
         if sched.mode == "async":
             os.sched_setaffinity(0, sched.sim_cores)  # rollout's share of the machine
         # sim/<instance> runs on host <instance> of a multi-host run: its groups follow the other hosts'
@@ -41,9 +43,11 @@ class SimService(Service):
                               on_decision=self.stepping_decided)
         self.stats = RolloutStats(cfg.sim.step_timeout)
         self.fleet.stepping.timeout = self.stats.step_timeout()  # refreshed with every stats report
-        self.peers = LivePeers(self.bus, self.run_name, warn=lambda: not self.stopping.is_set())
+        self.peers = LivePeers(self.bus, self.run_name, warn=lambda: not self.stopping.is_set(),
+                               admits=plan_admits(procenv.sim_hosts()))  # the iteration's length: planned hosts
         self.exchange = ActionExchange(self.bus, self.run_name, self.fleet.groups, self,
-                                       action_shape=(cfg.policy.chunk, info.action_dim), layout=info.layout)
+                                       action_shape=(cfg.policy.chunk, info.action_dim), layout=info.layout,
+                                       max_bytes=bounds.act)
         self.outbox = SegmentOutbox(self.bus, self, cfg.train.max_pending, lambda: self.peers.has("train"),
                                     layout=info.layout)
         # a (re)started gen has none of the observations in flight: publish them again
@@ -55,6 +59,10 @@ class SimService(Service):
         psutil.cpu_percent(percpu=True)
         self.gpus = GpuMonitor()
         self.log.info("schedule: %s", sched)
+
+    async def message_bounds(self) -> sizes.Bounds:
+        """Action chunks: the run's bound (ebrl.sizes; without the policy's weights, so without torch)."""
+        return sizes.of_run(self.cfg, await env_info(self), weights=False)
 
     async def run(self) -> None:
         while not (self.peers.has("gen") and self.peers.has("train")):  # nobody would hear us yet
@@ -77,6 +85,7 @@ class SimService(Service):
         out = {"sim/envs": float(self.fleet.count()),
                "sim/cores": float(len(self.cores_in_use())),  # what an allocator on another host plans with
                "sim/segments_held": float(len(self.outbox.held)), "sim/envs_given_up": float(self.fleet.given_up),
+               "sim/unknown_instances": float(self.peers.unknown_seen),
                **self.stats.metrics()}
         if (rebinding := self.fleet.rebinding) is not None:
             out.update(rebinding.metrics())

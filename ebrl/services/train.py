@@ -12,17 +12,16 @@ import os
 import time
 from typing import Any
 
-from ebrl import obswire, procenv, threads
+from ebrl import obswire, procenv, sizes, threads
 from ebrl.algos import saving
 from ebrl.algos.cycle import UpdateCycle, wind_down
 from ebrl.algos.handover import HANDOVER_FILE
 from ebrl.algos.learner import Learner
 from ebrl.algos.ranks import Ranks
 from ebrl.bus import keys
-from ebrl.envs import EnvSpec, describe
 from ebrl.messages import SegmentBatch, TrajectorySegment
 from ebrl.sched.modes import resolve
-from ebrl.service import STOP_TO_RESTART, Service, service_main
+from ebrl.service import STOP_TO_RESTART, Service, env_info, service_main
 from ebrl.weights import WeightsPublisher
 
 
@@ -36,7 +35,7 @@ class TrainService(Service):
         if cores:  # ranks share the training cores: each its own slice when there are enough
             os.sched_setaffinity(0, cores[rank::world] if len(cores) >= world else cores)
         threads.set_threads(cfg.train.threads)
-        info = await loop.run_in_executor(None, describe, EnvSpec.from_config(cfg.env))
+        info = await env_info(self)
         self.learner = learner = Learner(cfg, info, schedule.max_staleness, self, self.run_dir, rank, world)
         self.use_device(learner.device)
         if cfg.policy.checkpoint:
@@ -54,16 +53,22 @@ class TrainService(Service):
         self.last: dict[str, float] = {}
         if rank > 0:
             return
+        bounds = self.bounds or await self.message_bounds()
         decode = obswire.decoder(TrajectorySegment, info.layout, info.obs_shape)  # camera images arrive as bytes
-        self.traj = self.bus.subscribe(keys.traj(self.run_name), decode, capacity=256)
+        self.traj = self.bus.subscribe(keys.traj(self.run_name), decode, capacity=256, max_bytes=bounds.traj)
         self.packed = self.bus.subscribe(keys.traj_packed(self.run_name),  # vectorized groups' segments, packed
-                                         obswire.decoder(SegmentBatch, info.layout, info.obs_shape), capacity=32)
+                                         obswire.decoder(SegmentBatch, info.layout, info.obs_shape), capacity=32,
+                                         max_bytes=bounds.packed)
         self.weights = WeightsPublisher(self.bus, self.run_name)  # also answers late joiners with the newest
         handover = os.path.join(self.run_dir, HANDOVER_FILE)
         taken, handed = learner.take_over(lambda exc: self.bus.count_malformed(handover, exc))
         if handed:
             self.log.info("took over %d of %d segments handed over", taken, handed)
         self.cycle = UpdateCycle(learner, self.pool, self.ranks)
+
+    async def message_bounds(self) -> sizes.Bounds:
+        """Segments, one by one and packed: the run's bounds (ebrl.sizes)."""
+        return sizes.of_run(self.cfg, await env_info(self), weights=False)
 
     async def run(self) -> None:
         if self.instance > 0:

@@ -160,9 +160,12 @@ def learning_curves(rec: record.Recording) -> dict[str, list]:
 
 # (panel title, [(key, label, colour)]) of learning.png, top to bottom
 LEARNING_PANELS = (
-    ("return", [("sim/episode_return_mean", "mean of the last 20 episodes", "tab:blue"),
+    # training's numbers (returns it computed from the rewards it received), the simulators' own word beside them
+    ("return", [("train/episode_return_mean", "training: mean of the last 20 episodes", "tab:blue"),
+                ("sim/episode_return_mean", "as the simulators report it", "tab:gray"),
                 ("eval/return", "evaluated (deterministic)", "tab:red")]),
-    ("success rate", [("sim/success_rate", "training (last 20 episodes)", "tab:blue"),
+    ("success rate", [("train/success_rate", "training (last 20 episodes)", "tab:blue"),
+                      ("sim/success_rate", "as the simulators report it", "tab:gray"),
                       ("eval/success_rate", "evaluated, 95 % interval", "tab:red")]),
     ("value loss", [("train/value_loss", "value loss", "tab:green")]),
     ("policy loss and KL", [("train/policy_loss", "policy loss", "tab:purple"),
@@ -190,8 +193,8 @@ def learning_plot(series: dict[str, list], t0: float, path: Path, title: str) ->
             ax = axes[row][column]
             if panel == "return" and series.get("episode/return"):
                 eps = series["episode/return"]
-                ax.scatter([x_of(p) for p in eps], [p.value for p in eps], s=4, alpha=0.25, color="tab:blue",
-                           linewidths=0, label="each episode")
+                ax.scatter([x_of(p) for p in eps], [p.value for p in eps], s=4, alpha=0.25, color="tab:gray",
+                           linewidths=0, label="each episode (the simulators' word)")
             if panel == "success rate" and series.get("episode/success"):
                 ax.set_ylim(-0.05, 1.05)
             handles = []
@@ -217,7 +220,7 @@ def learning_plot(series: dict[str, list], t0: float, path: Path, title: str) ->
             ax.set_xlabel(axis_name)
             ax.grid(alpha=0.3)
             if ax.has_data():
-                scatter = [h for h in ax.collections if h.get_label() == "each episode"]
+                scatter = [h for h in ax.collections if h.get_label().startswith("each episode")]
                 ax.legend(handles=scatter + handles, fontsize=8, loc="best")
             else:
                 ax.text(0.5, 0.5, "not recorded", ha="center", va="center", transform=ax.transAxes, color="gray")

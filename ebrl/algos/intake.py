@@ -89,10 +89,11 @@ class Intake:
         if not ok.all():
             per_step = per_step[np.repeat(ok, item.lengths) if packed else np.zeros(0, np.int64)]
         followed = self.ledger.follow(Pieces.of_batch(item) if packed else Pieces.of_segment(item), ok, per_step)
-        taken = [seg for seg, good in zip(verdict.segments, (ok & (followed == 0)).tolist()) if good]
+        good = ok & (followed == 0)
+        taken = [seg for seg, keep in zip(verdict.segments, good.tolist()) if keep]
         if taken and not handed:
             self.telemetry.count("train/segments_received", len(taken))
-            self.env_steps += sum(int(seg.steps.sum()) for seg in taken)
+            self.env_steps += int(item.steps[np.repeat(good, item.lengths)].sum() if packed else item.steps.sum())
         return taken
 
     def metrics(self) -> dict[str, float]:

@@ -134,10 +134,6 @@ class RewardBound:
         self.value = learned
         return True
 
-    def allows(self, peaks: np.ndarray) -> np.ndarray:
-        """Which per-step peaks are within the bound (all, where there is none: inf)."""
-        return peaks <= (math.inf if self.value is None else self.value)
-
 
 class EpisodeLedger:
     """Each env's current episode as training received it, and the episodes that count: the latest
@@ -226,7 +222,7 @@ class EpisodeLedger:
 
     def _judge(self, total: float, peak: float, length: int, success: int) -> None:
         """A whole episode, its values training's own: counted, or past the bound."""
-        if not self.bound.allows(np.array([peak]))[0]:
+        if self.bound.value is not None and peak > self.bound.value:
             self.counts["train/episodes_past_bound"] += 1
             return
         self.returns.append(total)

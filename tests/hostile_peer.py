@@ -15,8 +15,9 @@ well formed and plausible, so that only the bus's access rules can stop it: the 
 plausible versions (weights), training's and the simulators' reports of a return no run reaches, quotas,
 affinities and GPU shares at version 2**53, a GPU share naming CUDA_INJECTION64_PATH, stops for every service,
 a second trainer's liveliness token; and as 63 more instances of its own role (``OTHERS``, the run has one):
-their liveliness tokens (63 simulator hosts would stall generation's schedule) and their stats reports. Each forged message is marked (:func:`mark`, ``MARK_TIME``,
-``MARK_REASON``) so the test can tell it apart. What ROLE owns itself (sim's reports, for a sim insider) passes the rules: the run must not believe it.
+their liveliness tokens (63 simulator hosts would stall generation's schedule) and their stats reports. Each
+forged message is marked (:func:`mark`, ``MARK_TIME``, ``MARK_REASON``) so the test can tell it apart. What ROLE
+owns itself (sim's reports, for a sim insider) passes the rules: the run must not believe it.
 
     python tests/hostile_peer.py --claims ROLE[/N] ENDPOINT RUN RUN_DIR
 

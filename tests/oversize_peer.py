@@ -115,6 +115,49 @@ def main_send(who: str, endpoint: str, run_dir: str, key: str, *sizes_: str) -> 
     os._exit(0)
 
 
+def service_pids(run) -> dict[str, int]:
+    """The pids of a live run's gen and train processes (children of its launcher)."""
+    import psutil
+
+    pids = {}
+    for child in psutil.Process(run.proc.pid).children(recursive=True):
+        try:
+            cmdline = child.cmdline()
+        except psutil.NoSuchProcess:
+            continue
+        for role in ("gen", "train"):
+            if f"ebrl.services.{role}" in cmdline:
+                pids[role] = child.pid
+    return pids
+
+
+def attack(run, stats, env: dict[str, str]) -> dict:
+    """For a test against a live quickstart (``run``, its ``stats`` watcher): once training is under way, sim/0
+    sends an observation of 600 kB and junk, then one of 240 MiB and junk; gen's and train's peak memory read
+    before the 240 MiB one and once gen counted the junk after it (one key, one publisher: in order). The 600 kB
+    one goes first and apart: under gen's receive limit and over its key's bound, Zenoh reassembles it and it is
+    dropped before it is copied, about 19 MB of gen's peak once. Returns what was sent and the memory read."""
+    import subprocess
+
+    from ebrl.bus import keys
+
+    def send(*sizes_: str) -> dict:
+        sender = subprocess.run([sys.executable, __file__, "send", "sim/0", run.endpoint, str(run.run_dir),
+                                 keys.obs(run.name, 0), *sizes_], capture_output=True, text=True, env=env, timeout=300)
+        assert sender.returncode == 0, sender.stderr[-3000:]
+        return json.loads(sender.stdout)
+
+    stats.wait_for(lambda: (stats.latest("train/0", "train/policy_version") or 0) >= 5, 300, "policy v5")
+    pids = service_pids(run)
+    first = send("600000", "junk")
+    stats.wait_for(lambda: (stats.latest("gen/0", "bus/malformed") or 0) >= 2, 120, "gen counting the junk")
+    before = {role: peak_kb(pid) for role, pid in pids.items()}
+    big = send(str(240 << 20), "junk")
+    stats.wait_for(lambda: (stats.latest("gen/0", "bus/malformed") or 0) >= 3, 120, "gen counting the junk")
+    return {"first": first, "big": big, "pids": pids, "before": before,
+            "after": {role: peak_kb(pid) for role, pid in pids.items()}}
+
+
 if __name__ == "__main__":
     mode, args = sys.argv[1], sys.argv[2:]
     sys.exit(main_probe(*args) if mode == "probe" else main_send(*args))

@@ -15,8 +15,9 @@ from ebrl.algos.returns import LEARN_AFTER, EpisodeLedger, Pieces, RewardBound
 from ebrl.config import Config
 from ebrl.envs import EnvSpec, describe
 from ebrl.envs.worker import ChunkResult
-from ebrl.messages import SEGMENT_ENDS, SegmentBatch, TrajectorySegment
+from ebrl.messages import TrajectorySegment
 from ebrl.sched.rollout import SegmentBuilder
+from test_bad_numbers import pack  # a vectorized group's packed message of these segments
 
 CFG = Config()  # InvertedPendulum-v5: 1 per step, no declared range
 INFO = describe(EnvSpec.from_config(CFG.env))
@@ -159,26 +160,6 @@ def test_the_bound_comes_from_the_env_s_declared_range_or_the_config_or_is_learn
     assert not learned.observe(np.full(LEARN_AFTER, 0.001))  # ... never shrinks
     sparse = RewardBound("auto")
     assert not sparse.observe(np.zeros(10 * LEARN_AFTER))  # zero rewards teach nothing
-
-
-def pack(segments: list[TrajectorySegment]) -> SegmentBatch:
-    def cat(name):
-        return np.concatenate([getattr(s, name) for s in segments])
-
-    def one(name, none, dtype):
-        return np.array([getattr(s, name)[0] if getattr(s, name) else none for s in segments], dtype)
-
-    return SegmentBatch(
-        group=0, env_ids=np.array([s.env_id for s in segments]), episodes=np.array([s.episode for s in segments]),
-        lengths=np.array([len(s.obs) for s in segments], np.int32),
-        ends=np.array([SEGMENT_ENDS.index(s.end) for s in segments], np.int8),
-        **{name: cat(name) for name in ("obs", "actions", "latents", "logprobs", "values", "rewards", "steps",
-                                         "versions")},
-        last_obs=np.stack([s.last_obs for s in segments]),
-        episode_offsets=np.array([s.episode_offset for s in segments], np.int64),
-        episode_returns=one("episode_returns", 0.0, np.float32), episode_lengths=one("episode_lengths", -1, np.int32),
-        episode_successes=np.array([-1 if not s.episode_successes or s.episode_successes[0] is None else
-                                    int(s.episode_successes[0]) for s in segments], np.int8))
 
 
 def test_packed_segments_are_followed_as_the_same_segments_one_at_a_time():

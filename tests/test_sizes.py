@@ -22,8 +22,7 @@ from ebrl.bus.memory import MemoryBus, MemoryNetwork
 from ebrl.bus.session import BusOptions, zenoh_config
 from ebrl.envs.obs import ObsField, ObsLayout
 from ebrl.envs.worker import VectorChunk
-from ebrl.messages import (ActionChunk, Observation, TrajectorySegment, Weights, WeightsPart, decode_message,
-                           encode_message)
+from ebrl.messages import ActionChunk, TrajectorySegment, Weights, WeightsPart, decode_message, encode_message
 from ebrl.sched import rollout
 from ebrl.weights import PART_BYTES, WeightsLayout
 from helpers import ROOT, StatsWatcher, free_port, until, up
@@ -74,7 +73,8 @@ def _packed(layout: ObsLayout, envs: int, rng) -> list:
                             latents=rng.random((envs, K * A), np.float32))
         none = np.zeros(0, np.int64)
         result = VectorChunk(reward=rng.random(envs, np.float32), steps=np.full(envs, K),
-                             terminated=np.zeros(envs, bool), truncated=np.zeros(envs, bool), episode=np.zeros(envs, np.int64),
+                             terminated=np.zeros(envs, bool), truncated=np.zeros(envs, bool),
+                             episode=np.zeros(envs, np.int64),
                              next_obs=rng.random((envs, layout.size), np.float32), ended=none,
                              final_obs=np.zeros((0, layout.size), np.float32), episode_return=np.zeros(0),
                              episode_length=none, episode_success=np.zeros(0, np.int8), busy_s=0.0, step_s=(0.0,) * K)
@@ -231,22 +231,6 @@ def test_without_the_runs_bounds_the_same_observation_costs_hundreds_of_mb(tmp_p
     assert moved_mb > 200 and got["seqs"] == [0, 1, 2] and got["oversized"] == 0, got
 
 
-def _service_pids(run) -> dict[str, int]:
-    """The pids of a live run's gen and train processes (children of its launcher)."""
-    import psutil
-
-    pids = {}
-    for child in psutil.Process(run.proc.pid).children(recursive=True):
-        try:
-            cmdline = child.cmdline()
-        except psutil.NoSuchProcess:
-            continue
-        for role in ("gen", "train"):
-            if f"ebrl.services.{role}" in cmdline:
-                pids[role] = child.pid
-    return pids
-
-
 @pytest.mark.slow  # in the fast suite: tests/test_untrusted_sim.py, every case in one run
 def test_an_insider_sending_a_240_mib_observation_with_the_simulators_credential_moves_nothing(tmp_path):
     """A live quickstart run with its real settings: a process signed in with sim/0's own line (as its launcher hands
@@ -257,27 +241,12 @@ def test_an_insider_sending_a_240_mib_observation_with_the_simulators_credential
     10 MB. (The 600 kB one, under gen's receive limit and over its key's bound, is reassembled by Zenoh and dropped
     before it is copied: about 19 MB of gen's peak once, measured apart; that is why it goes first.)"""
     env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(ROOT), str(ROOT / "tests")])}
-
-    def send(*sizes_: str) -> dict:
-        sender = subprocess.run([sys.executable, str(ROOT / "tests" / "oversize_peer.py"), "send", "sim/0",
-                                 run.endpoint, str(run.run_dir), keys.obs(run.name, 0), *sizes_],
-                                capture_output=True, text=True, env=env, timeout=300)
-        assert sender.returncode == 0, sender.stderr[-3000:]
-        return json.loads(sender.stdout)
-
     with up(tmp_path, "configs/quickstart.toml", "run.iterations=30", 'viz.rerun="off"', name="oversize") as run:
         run.wait_for_line("all services live", 300)
         with StatsWatcher(run) as stats:
-            stats.wait_for(lambda: (stats.latest("train/0", "train/policy_version") or 0) >= 5, 300, "policy v5")
-            pids = _service_pids(run)
-            first = send("600000", "junk")
-            stats.wait_for(lambda: (stats.latest("gen/0", "bus/malformed") or 0) >= 2, 120, "gen counting the junk")
-            before = {role: oversize_peer.peak_kb(pid) for role, pid in pids.items()}
-            big = send(str(240 << 20), "junk")
-            # the junk after it counted: gen has had the 240 MiB one (one key, one publisher: in order)
-            stats.wait_for(lambda: (stats.latest("gen/0", "bus/malformed") or 0) >= 3, 120, "gen counting the junk")
-            after = {role: oversize_peer.peak_kb(pid) for role, pid in pids.items()}
+            got = oversize_peer.attack(run, stats, env)
             code = run.wait(300)
+    first, big, pids, before, after = (got[k] for k in ("first", "big", "pids", "before", "after"))
     assert first["routers"] == 1 and big["routers"] == 1
     assert [p["bytes"] > (240 << 20) for p in first["puts"] + big["puts"]] == [False, False, True, False], big
     print(f"240 MiB put took {big['puts'][0]['seconds']} s; peak memory (kB) before {before}, after {after}")

@@ -22,10 +22,8 @@ import pytest
 
 import oversize_peer
 import sim_report_flood as flood
-from ebrl.bus import keys
 from ebrl.testing import StatsWatcher
 from helpers import ROOT, up
-from test_sizes import _service_pids
 
 ENV = {**os.environ, "PYTHONPATH": os.pathsep.join([str(ROOT), str(ROOT / "tests")])}
 
@@ -47,25 +45,11 @@ def test_a_simulator_s_credential_can_neither_end_halt_nor_fail_a_run(tmp_path):
             forger = attacker(str(ROOT / "tests" / "forging_sim.py"), *where)
             flooder = attacker(str(ROOT / "tests" / "sim_report_flood.py"), "sim/0", *where, "140")
             claims = attacker(str(ROOT / "tests" / "hostile_peer.py"), "--claims", "sim/0", *where)
-            stats.wait_for(lambda: (stats.latest("train/0", "train/policy_version") or 0) >= 5, 300, "policy v5")
-            pids = _service_pids(run)
-
-            def send(*sizes: str) -> dict:
-                sender = subprocess.run([sys.executable, str(ROOT / "tests" / "oversize_peer.py"), "send", "sim/0",
-                                         run.endpoint, str(run.run_dir), keys.obs(run.name, 0), *sizes],
-                                        capture_output=True, text=True, env=ENV, timeout=300)
-                assert sender.returncode == 0, sender.stderr[-3000:]
-                return json.loads(sender.stdout)
-
-            send("600000", "junk")  # over the key's bound, under gen's receive limit: counted (bus/oversized)
-            stats.wait_for(lambda: (stats.latest("gen/0", "bus/malformed") or 0) >= 2, 120, "gen counting the junk")
-            before = {role: oversize_peer.peak_kb(pid) for role, pid in pids.items()}
-            big = send(str(240 << 20), "junk")
-            stats.wait_for(lambda: (stats.latest("gen/0", "bus/malformed") or 0) >= 3, 120, "gen counting the junk")
-            after = {role: oversize_peer.peak_kb(pid) for role, pid in pids.items()}
+            got = oversize_peer.attack(run, stats, ENV)  # 600 kB, then 240 MiB, with memory read around it
             code = run.wait(400)
         sent = {name: finished(p) for name, p in (("forger", forger), ("flood", flooder), ("claims", claims))}
     assert code == 0, run.output[-4000:]
+    big, before, after = got["big"], got["before"], got["after"]
     assert all(out["routers"] == 1 for out in [*sent.values(), big]), (sent, big)  # each signed in as sim/0
     assert sent["flood"]["rate"] > 100 and sent["forger"]["sent"] > 10 * sent["forger"]["kinds"], sent
     summary = json.loads((run.run_dir / "summary.json").read_text())

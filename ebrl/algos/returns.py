@@ -180,7 +180,7 @@ class EpisodeLedger:
         verdict of this module per segment: 0 followed, 1 a replay, 2 episode values that are not training's
         (both refused)."""
         rows = self._rows(pieces.env_ids)
-        episode, expect, closed = self.episode[rows], self.expect[rows], self.closed[rows]
+        expect, closed = self.expect[rows], self.closed[rows]
         offsets, same = pieces.offsets, self.episode[rows] == pieces.episodes
         # steps already received; an episode's first segment again too, except in episode 0, which a simulator
         # that started again numbers from anew

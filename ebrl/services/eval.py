@@ -27,7 +27,7 @@ class EvalService(Service):
     role = "eval"
 
     async def setup(self) -> None:
-        cfg, loop = self.cfg, asyncio.get_running_loop()
+        cfg = self.cfg
         priority = lower_priority()  # before the workers start: they inherit it
         threads.set_threads(1)
         info = await env_info(self)

@@ -237,8 +237,8 @@ ROUTING_ROLE = "launcher"  # a host's launcher routes every role's traffic betwe
 
 
 def access_control(run: str, roles: tuple[str, ...] | None = None, trusted_zids: list[str] | tuple[str, ...] = (),
-                   instances: tuple[tuple[str, int], ...] | list[tuple[str, int]] = (), groups: int = 0
-                   ) -> dict[str, object]:
+                   instances: tuple[tuple[str, int], ...] | list[tuple[str, int]] = (), groups: int = 0,
+                   planned: tuple[tuple[str, int], ...] | None = None) -> dict[str, object]:
     """Zenoh's ``access_control`` block for run ``run``, default deny: what a peer signed in as a role's identity
     (:func:`username`) sends is taken in only where that role's flows declare it (each role's instance chunk
     any instance's: one identity per role); what a session sends out is not filtered, since every receiver
@@ -251,11 +251,27 @@ def access_control(run: str, roles: tuple[str, ...] | None = None, trusted_zids:
     :func:`instance_username` and takes in only its own instance's keys (``{instance}`` is ``n``: its token,
     stats, status and control), and with ``groups`` (a simulator's groups) a simulator's data only on its own
     groups' keys; the services' role identities are then not admitted (no process signs in with one), only
-    those of the roles that are not services (the launcher, observers)."""
+    those of the roles that are not services (the launcher, observers).
+
+    ``planned`` (with ``instances``: every instance of the run on every host, launchers included, where the run's
+    plan names them): an instance may then declare a liveliness token anywhere in the run's ``live`` keys but on
+    another planned instance's, and tokens leave this router only on planned instances' keys. A token of an
+    instance the run does not have thus reaches this router's own session alone, where its launcher counts it
+    (``launcher/unknown_instances``), and no other process sees it; one on a real instance's key is refused
+    where it enters. Without ``planned`` (hosts that join by ``--only``: no plan names the others), an instance
+    declares its own token only, and Zenoh drops any other uncounted."""
     every = {"id": "anything", "permission": "allow", "flows": ["ingress"], "messages": ALL_ACL_MESSAGES,
              "key_exprs": ["**"]}
+    counted = bool(instances) and planned is not None  # tokens of unplanned instances stop here, counted
+    sent = [m for m in ALL_ACL_MESSAGES if m != "liveliness_token"] if counted else ALL_ACL_MESSAGES
     rules: list[dict[str, object]] = [{"id": "send", "permission": "allow", "flows": ["egress"],
-                                       "messages": ALL_ACL_MESSAGES, "key_exprs": ["**"]}, every]
+                                       "messages": sent, "key_exprs": ["**"]}, every]
+    sending = ["send"]
+    real = sorted({keys.live(run, role, int(n)) for role, n in planned or ()})
+    if counted:
+        rules.append({"id": "send-tokens", "permission": "allow", "flows": ["egress"],
+                      "messages": ["liveliness_token"], "key_exprs": real})
+        sending.append("send-tokens")
     subjects, policies = [], []
     admitted = [(role, None) for role in roles or tuple(FLOWS) if not instances or role not in SERVICES]
     for role, instance in admitted + [(role, int(n)) for role, n in instances]:
@@ -265,22 +281,37 @@ def access_control(run: str, roles: tuple[str, ...] | None = None, trusted_zids:
         if role == ROUTING_ROLE:
             policies.append({"id": subject, "rules": ["anything"], "subjects": [subject]})
             continue
-        ids = [""]
-        for direction in DIRECTIONS:
-            exprs = sorted({e for f in flows(role) if f.direction == direction
-                            for e in _concrete(f, run, role, instance, groups)})
-            if exprs:
-                ids.append(f"{subject}-{direction}")
-                rules.append({"id": ids[-1], "permission": "allow", "flows": ["ingress"],
-                              "messages": list(ACL_MESSAGES[direction]), "key_exprs": exprs})
-        policies.append({"id": subject, "rules": ids[1:], "subjects": [subject]})
+        ids = _subject_rules(rules, subject, run, role, instance, groups, real if counted else None)
+        policies.append({"id": subject, "rules": ids, "subjects": [subject]})
     if trusted_zids:
         subjects.append({"id": "opened", "zids": list(trusted_zids)})
         policies.append({"id": "opened", "rules": ["anything"], "subjects": ["opened"]})
     subjects.append({"id": "anyone"})  # no attribute: every peer
-    policies.append({"id": "send", "rules": ["send"], "subjects": ["anyone"]})
+    policies.append({"id": "send", "rules": sending, "subjects": ["anyone"]})
     return {"enabled": True, "default_permission": "deny", "rules": rules, "subjects": subjects,
             "policies": policies}
+
+
+def _subject_rules(rules: list[dict[str, object]], subject: str, run: str, role: str, instance: int | None,
+                   groups: int, real: list[str] | None) -> list[str]:
+    """Append to ``rules`` what ``subject`` (``role``, or its ``instance``) may send; their ids. ``real``: the
+    run's planned tokens (:func:`access_control`'s ``planned``), or None: an instance declares its own alone."""
+    ids = []
+    for direction in DIRECTIONS:
+        exprs = sorted({e for f in flows(role) if f.direction == direction
+                        for e in _concrete(f, run, role, instance, groups)})
+        if direction == "token" and instance is not None and real is not None:
+            exprs = [keys.live_all(run)]  # anywhere but on another real instance's key (denied below)
+        if exprs:
+            ids.append(f"{subject}-{direction}")
+            rules.append({"id": ids[-1], "permission": "allow", "flows": ["ingress"],
+                          "messages": list(ACL_MESSAGES[direction]), "key_exprs": exprs})
+    others = [k for k in real or () if instance is not None and k != keys.live(run, role, instance)]
+    if others:  # deny wins over allow in Zenoh's access control
+        ids.append(f"{subject}-impersonate")
+        rules.append({"id": ids[-1], "permission": "deny", "flows": ["ingress"], "messages": ["liveliness_token"],
+                      "key_exprs": others})
+    return ids
 
 
 def _concrete(flow: Flow, run: str, role: str, instance: int | None = None, groups: int = 0) -> list[str]:

@@ -148,9 +148,23 @@ class Membership:
         self.hosts_joined: set[int] = set()  # ... and every one that ever joined
         self.ending = False  # this host is stopping: hosts that leave now are not news
         self.train_seen_at: float | None = None  # when a train was last live
+        # the tokens of the run's instances (planned_instances), where its router passes on only theirs: any
+        # other reached the router alone and is not taken in, only counted (unknown_seen, each time it appears)
+        self.planned: frozenset[str] | None = None
+        self.unknown: set[str] = set()
+        self.unknown_seen = 0
+
+    def admit_only(self, instances: tuple[tuple[str, int], ...]) -> None:
+        """Take in only the tokens of ``instances`` from now on (see :attr:`planned`)."""
+        self.planned = frozenset(keys.live(self.run, role, n) for role, n in instances)
 
     def update(self, key: str, alive: bool) -> HostChange | None:
         """A token appeared or vanished; a change when it was another host's launcher."""
+        if self.planned is not None and key not in self.planned:
+            if alive and key not in self.unknown:
+                self.unknown_seen += 1
+            (self.unknown.add if alive else self.unknown.discard)(key)
+            return None
         if alive:
             self.live.add(key)
         else:
@@ -197,3 +211,19 @@ class Membership:
             self.train_seen_at = now
             return False
         return self.train_seen_at is not None and now - self.train_seen_at >= self.lost_after_s
+
+
+def planned_instances(cfg: Config, here: HostPlan) -> tuple[tuple[str, int], ...] | None:
+    """Every process instance the run has on every host, ``(role, n)`` with each host's launcher: this host's
+    alone on one host, each ``[hosts]`` entry's over several. None for hosts that join with ``--only`` (no plan
+    names the others). A client-mode router passes liveliness tokens on only for these
+    (``ebrl.graph.access_control``); its launcher counts any other as ``launcher/unknown_instances``."""
+    if not here.multi:
+        return here.started(cfg) + (("launcher", here.instance),)
+    if not cfg.hosts:
+        return None
+    every: list[tuple[str, int]] = []
+    for name in cfg.hosts:
+        host_cfg, host_plan = plan(cfg, host=name)
+        every += [*host_plan.started(host_cfg), ("launcher", host_plan.instance)]
+    return tuple(every)

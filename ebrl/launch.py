@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import asyncio
 import collections
+import functools
 import json
 import logging
 import signal
@@ -35,7 +36,7 @@ from ebrl import config as config_mod, prepare, procenv, stall
 from ebrl.bus import auth, keys
 from ebrl.bus.session import Bus, BusOptions
 from ebrl.bus.endpoints import address_in_use, config_file_listen, listen_endpoint
-from ebrl.hosts import PRIMARY_LOST_S, HostPlan, Membership, enabled_roles, sim_hosts
+from ebrl.hosts import PRIMARY_LOST_S, HostPlan, Membership, enabled_roles, planned_instances, sim_hosts
 from ebrl.messages import Event, GpuShare, StatsReport, Stop
 from ebrl.weights import known_version
 from ebrl.runview import Console, RunView, summary as run_summary, write_report, write_summary
@@ -110,8 +111,10 @@ class LauncherBus:
         # the router of this host's services when they are its clients (each signed in as its own instance and
         # checked against that instance's rights, ebrl.bus.auth), and between hosts
         instances, dictionary, groups = (), "", 0
+        # every instance of the run, where this router passes on only their tokens (the launcher counts others)
+        self.planned: tuple[tuple[str, int], ...] | None = None
         if secret and cfg.bus.mode == "client":
-            instances = plan.started(cfg)
+            instances, self.planned = plan.started(cfg), planned_instances(cfg, plan)
             dictionary = str(auth.write_router_dictionary(
                 secret, run_dir / auth.ROUTER_FILE.format(host=plan.instance), instances))
             groups = resolve(cfg).groups  # a simulator's groups: sim/n has n*groups .. (ebrl.sched.fleet)
@@ -119,7 +122,7 @@ class LauncherBus:
                                   listen=listen, connect=list(cfg.bus.connect), config_file=cfg.bus.config_file,
                                   secret_file=secret, file_listen_wins=True, role="launcher", run=self.run,
                                   host=plan.instance, instances=instances, dictionary_file=dictionary,
-                                  groups=groups))
+                                  groups=groups, planned=self.planned))
         (run_dir / "bus.json").write_text(json.dumps({"listen": listen, "run": self.run}) + "\n")
         self.recorder = record.Recorder(run_dir / record.FILENAME) if cfg.viz.record else None
         if self.recorder is not None:
@@ -269,13 +272,16 @@ class Launcher:
         except OSError as exc:
             self.console.say(f"ebrl: {exc}")
             return 2
+        if self.link.planned is not None:
+            self.members.admit_only(self.link.planned)
         self.supervisor = Supervisor(
             service_argv(self.run_dir / "config.toml", endpoint), self.run_dir / "logs",
             RestartPolicy(self.cfg.run.restart == "on-failure", self.cfg.run.max_restarts),
             say=self.console.say, event=self.link.event, gpu_env=self.gpu_env, train_ranks=self.cfg.train.world_size,
             role_env=role_env(self.cfg, self.plan), instance_env=instance_env(self.cfg, self.run_dir),
             version_floor=self.view.version_floor, optional=OPTIONAL_ROLES)
-        self.link.bus.watch_liveliness(keys.live_all(self.run_name), self._on_liveliness)
+        self.link.bus.watch_liveliness(keys.live_all(self.run_name),
+                                       functools.partial(follow_liveliness, self.members, self.console, self.link))
         self.link.count_unknown_controls(self.roles)
         self.console.say(banner(self.cfg, self.plan, self.run_dir, endpoint))
         if self.plan.multi and await self.members.number_taken():
@@ -379,6 +385,7 @@ class Launcher:
         """The launcher's own stats report: restarts per service, services up."""
         metrics = {**self.supervisor.metrics(), "launcher/ctl_unknown_service": float(self.link.ctl_unknown),
                    "launcher/services_live": float(self.members.services_live()),
+                   "launcher/unknown_instances": float(self.members.unknown_seen),
                    "launcher/stats_refused": float(self.view.refused),
                    "launcher/returns_refused": float(self.view.returns_refused)}
         self.link.publish_stats(metrics)
@@ -432,13 +439,23 @@ class Launcher:
     def _on_signal(self, sig: signal.Signals) -> None:
         self.stop(f"signal {sig.name}", f"\nebrl: {sig.name} received, stopping every service")
 
-    def _on_liveliness(self, key: str, alive: bool) -> None:
-        change = self.members.update(key, alive)
-        if change is None:
-            return
-        what = f"host {change.host} {'joined' if change.joined else 'left'} the run"
-        self.console.say(f"\nebrl: {what}" + ("" if change.joined else "; nothing waits for its groups"))
-        self.link.event("host", what)
+
+def follow_liveliness(members: Membership, console: Console, link: LauncherBus, key: str, alive: bool) -> None:
+    """A token of the run appeared or vanished: ``members`` follows it; another host joining or leaving, and the
+    first token of an instance the run does not have (every one counted: ``launcher/unknown_instances``), are
+    said and recorded as events."""
+    unknown = members.unknown_seen
+    change = members.update(key, alive)
+    if members.unknown_seen and not unknown:
+        what = (f"a liveliness token of an instance this run does not have ({key}) reached this host's router; "
+                "it stops there, counted in launcher/unknown_instances")
+        console.say(f"\nebrl: {what}")
+        link.event("unknown_instance", what)
+    if change is None:
+        return
+    what = f"host {change.host} {'joined' if change.joined else 'left'} the run"
+    console.say(f"\nebrl: {what}" + ("" if change.joined else "; nothing waits for its groups"))
+    link.event("host", what)
 
 
 def up(config_path: str, overrides: list[str], viz: str | None = None, resume: str | None = None,

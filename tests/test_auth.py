@@ -177,6 +177,19 @@ def test_a_client_mode_router_admits_the_instances_it_starts_each_to_its_own_key
                                                                           if m != n]
         others += [keys.ctl("r", role, 9, "status")] + [keys.obs("r", g) for g in range(2, 9)]
         assert not [(k, o) for k in sends for o in others if graph.covers(k, o)], (role, n)
+    send = next(r for r in acl["rules"] if r["id"] == "send")
+    assert "liveliness_token" in send["messages"] and "send-tokens" not in rules  # without a plan: as above
+    planned = instances + (("launcher", 0),)  # with the run's plan: tokens elsewhere reach the router alone
+    counted = json.loads(zenoh_config(BusOptions(
+        mode="router", secret_file=str(secret), role="launcher", run="r", instances=instances,
+        dictionary_file=str(dictionary), groups=2, planned=planned)).get_json("access_control"))
+    by_id = {r["id"]: r for r in counted["rules"]}
+    assert by_id["sim-0-token"]["key_exprs"] == ["ebrl/live/r/**"]
+    assert by_id["sim-0-impersonate"]["permission"] == "deny" and by_id["sim-0-impersonate"]["key_exprs"] == [
+        keys.live("r", role, n) for role, n in sorted(planned, key=lambda rn: keys.live("r", *rn))
+        if (role, n) != ("sim", 0)]
+    assert "liveliness_token" not in by_id["send"]["messages"]
+    assert by_id["send-tokens"]["key_exprs"] == sorted(keys.live("r", role, n) for role, n in planned)
     mesh = json.loads(zenoh_config(BusOptions(mode="router", secret_file=str(secret), role="launcher", run="r"))
                       .get_json("access_control"))  # no instances: a mesh's launcher, every role's line, as before
     assert next(s for s in mesh["subjects"] if s["id"] == "sim")["usernames"] == ["ebrl-sim"]
@@ -184,19 +197,22 @@ def test_a_client_mode_router_admits_the_instances_it_starts_each_to_its_own_key
         zenoh_config(BusOptions(mode="router", secret_file=str(secret), role="launcher", instances=instances))
 
 
-def test_a_signed_in_instance_holds_only_its_own_token_and_role_lines_do_not_sign_in(tmp_path):
+@pytest.mark.parametrize("counted", [True, False], ids=["planned", "joined-by-only"])
+def test_a_signed_in_instance_holds_only_its_own_token_and_role_lines_do_not_sign_in(tmp_path, counted):
     """Against a real router as a client-mode launcher makes it: sim/0, signed in with its own line, declares
-    the tokens of sim/1 .. sim/63 (63 more simulator hosts) and of train/0 and gen/0, then its own; puts reports
-    of other simulators and observations of another host's group, then its own. Only its own arrive. Neither
-    sim's role line, nor the line of an instance the launcher did not start, nor sim/0's line of another run
-    signs in at all."""
+    the tokens of sim/1 .. sim/63 (63 more simulator hosts), of train/0 and of gen/0, then its own; puts reports
+    of other simulators and observations of another host's group, then its own. Only its own reports arrive.
+    Of the simulators' tokens, gen/0 (a client like every service) sees sim/0's own alone; the launcher (the router's own
+    session) sees sim/0's and, where the run's plan names every instance (``planned``), the 64 of instances
+    the run does not have, to count them, never the one on gen/0's key. Neither sim's role line, nor the line of
+    an instance the launcher did not start, nor sim/0's line of another run signs in at all."""
     secret = auth.create(tmp_path / "bus.secret")
     instances = (("sim", 0), ("gen", 0))
     dictionary = auth.write_router_dictionary(secret, tmp_path / "bus.router-0.secret", instances)
     endpoint = f"tcp/127.0.0.1:{free_port()}"
-    launcher = zenoh.open(zenoh_config(BusOptions(mode="router", listen=[endpoint], secret_file=str(secret),
-                                                  role="launcher", run="r", instances=instances,
-                                                  dictionary_file=str(dictionary), groups=1)))
+    launcher = zenoh.open(zenoh_config(BusOptions(
+        mode="router", listen=[endpoint], secret_file=str(secret), role="launcher", run="r", instances=instances,
+        dictionary_file=str(dictionary), groups=1, planned=instances + (("launcher", 0),) if counted else None)))
 
     def client(identity: str = "", role: str = "sim") -> zenoh.Config:
         return zenoh_config(BusOptions(mode="client", connect=[endpoint], listen=[], secret_file=str(secret),
@@ -209,29 +225,40 @@ def test_a_signed_in_instance_holds_only_its_own_token_and_role_lines_do_not_sig
             zenoh.open(conf).close()
             pytest.fail(f"{what} signed in")
     sim = zenoh.open(client(auth.instance_line(secret, "sim", 0)))
+    gen = zenoh.open(client(auth.instance_line(secret, "gen", 0), "gen"))
     try:
         live: dict[str, bool] = {}
+        seen_by_gen: dict[str, bool] = {}
         got: list[str] = []
-        launcher.liveliness().declare_subscriber(
-            "ebrl/live/**", lambda s: live.__setitem__(str(s.key_expr), s.kind == zenoh.SampleKind.PUT), history=True)
+
+        def watch(into: dict[str, bool]):
+            return lambda s: into.__setitem__(str(s.key_expr), s.kind == zenoh.SampleKind.PUT)
+
+        launcher.liveliness().declare_subscriber("ebrl/live/**", watch(live), history=True)
+        gen.liveliness().declare_subscriber(keys.live("r", "sim"), watch(seen_by_gen), history=True)  # its right
         launcher.declare_subscriber("ebrl/**", lambda s: got.append(str(s.key_expr)))
-        claimed = [keys.live("r", "sim", n) for n in range(1, 64)] + [keys.live("r", "train", 0),
-                                                                       keys.live("r", "gen", 0)]
-        forged_tokens = [sim.liveliness().declare_token(key) for key in claimed]
+        unknown = [keys.live("r", "sim", n) for n in range(1, 64)] + [keys.live("r", "train", 0)]
+        forged_tokens = [sim.liveliness().declare_token(key) for key in unknown + [keys.live("r", "gen", 0)]]
         own_token = sim.liveliness().declare_token(keys.live("r", "sim", 0))  # after them, on the same link
         forged = [keys.stats("r", "sim", n) for n in range(1, 64)] + [keys.obs("r", 1), keys.traj("r", 5),
                                                                        keys.ctl("r", "sim", 1, "status")]
         own = [keys.stats("r", "sim", 0), keys.obs("r", 0), keys.traj("r", 0)]
         deadline = time.monotonic() + 60  # a bound for a hang, not a timing window
-        while not set(own) <= set(got) or keys.live("r", "sim", 0) not in live:  # forged first, own after
-            for key in forged + own:
+        while not set(own) <= set(got) or keys.live("r", "sim", 0) not in live or not seen_by_gen:
+            for key in forged + own:  # forged first, own after
                 sim.put(key, b"x")
             assert time.monotonic() < deadline, "sim/0's own token and reports never arrived"
             time.sleep(0.05)
-        assert live == {keys.live("r", "sim", 0): True}, sorted(live)
+        expected = {keys.live("r", "sim", 0)} | (set(unknown) if counted else set())
+        while set(live) != expected:  # tokens declared before sim/0's own, on the same link: here already
+            assert time.monotonic() < deadline, sorted(set(live) ^ expected)
+            time.sleep(0.05)
+        assert all(live.values()) and keys.live("r", "gen", 0) not in live
+        assert seen_by_gen == {keys.live("r", "sim", 0): True}, sorted(seen_by_gen)
         assert not set(forged) & set(got), sorted(set(forged) & set(got))
         del forged_tokens, own_token
     finally:
+        gen.close()
         sim.close()
         launcher.close()
 
@@ -585,7 +612,9 @@ def test_a_simulator_claiming_63_more_simulator_hosts_moves_neither_generation_n
     sim/1 .. sim/63 and sends their reports (a billion env steps each, a return of 1e9). Generation once counted
     live simulator tokens as hosts that serve: it believed 64, mapped every chunk to a later iteration and waited
     for a policy training could never make (env steps/s 2,200 -> 0, the run failed after 75 s). Now the launcher's
-    router refuses them (none reaches anyone), and where nothing refuses them (the mesh) generation and the
+    router stops them (they reach no other process; the launcher counts them: launcher/unknown_instances, a
+    session signed in as the launcher like a user's script sees none), and where nothing stops them (the mesh)
+    generation and the
     simulator count them as unknown instances (gen/unknown_instances, sim/unknown_instances) and one host serves,
     and the launcher refuses their reports (launcher/stats_refused). Either way the run finishes every iteration,
     nothing restarts, and no forged number is taken as the run's."""
@@ -629,6 +658,7 @@ def test_a_simulator_claiming_63_more_simulator_hosts_moves_neither_generation_n
         assert not live & claimed and not arrived, (sorted(live & claimed)[:4], sorted(arrived)[:4])
         assert stats.latest("gen/0", "gen/unknown_instances") == 0  # nothing reached generation to count
         assert stats.latest("sim/0", "sim/unknown_instances") == 0
+        assert stats.latest("launcher/0", "launcher/unknown_instances") == 63  # ... counted where they stopped
     else:
         assert out["user"] == "ebrl-sim" and live >= claimed and arrived  # a mesh took the claims in
         assert stats.latest("gen/0", "gen/unknown_instances") >= 63  # ... counted where a user sees them

@@ -15,7 +15,7 @@ import pytest
 
 import helpers
 from ebrl import config
-from ebrl.hosts import plan
+from ebrl.hosts import plan, planned_instances
 
 ROOT = helpers.ROOT
 QUICK = str(ROOT / "configs" / "quickstart.toml")
@@ -44,6 +44,17 @@ def test_a_hosts_table_places_services_and_numbers_hosts():
     assert sim.roles == ("sim",) and sim.instance == 1 and not sim.primary
     assert sim_cfg.bus.connect == ["tcp/127.1.0.1:7447"] and sim_cfg.sim.cores == [0]
     assert plan(cfg, host="sim-b")[1].instance == 2
+
+
+def test_the_run_s_planned_instances_are_every_host_s_with_its_launcher():
+    cfg = load(hosts=HOSTS, alloc={"enabled": True})
+    learner_cfg, learner = plan(cfg, host="learner")
+    assert planned_instances(learner_cfg, learner) == (("train", 0), ("gen", 0), ("alloc", 0), ("launcher", 0),
+                                                       ("sim", 1), ("launcher", 1), ("sim", 2), ("launcher", 2))
+    assert planned_instances(*plan(cfg, host="sim-b")) == planned_instances(learner_cfg, learner)  # the same on each
+    one_cfg, one = plan(load(train={"world_size": 2}))
+    assert planned_instances(one_cfg, one) == (("train", 0), ("train", 1), ("gen", 0), ("sim", 0), ("launcher", 0))
+    assert planned_instances(*plan(load(), only="sim", instance=3)) is None  # hosts that join by --only
 
 
 def test_the_allocator_goes_with_train_and_plans_that_hosts_cores():

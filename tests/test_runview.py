@@ -280,6 +280,21 @@ def test_membership_reports_hosts_joining_and_leaving_and_a_lost_primary():
     assert members.update(keys.live("r", "launcher", 2), False) is None  # leaving while this host stops
 
 
+def test_membership_admitting_only_the_planned_instances_counts_every_other_token_and_takes_none_in():
+    members = Membership("r", me=0, multi=True)
+    members.admit_only((("sim", 0), ("train", 0), ("launcher", 0), ("launcher", 1)))
+    members.update(keys.live("r", "sim", 0), True)
+    for n in (1, 2, 2):  # a host that is not in the plan, twice
+        assert members.update(keys.live("r", "sim", n), True) is None
+    assert members.update(keys.live("r", "launcher", 5), True) is None  # no host joined: not planned
+    assert members.update("ebrl/live/r/**", True) is None  # a wildcard token
+    assert members.unknown_seen == 4 and members.services_live() == 1 and members.hosts() == [0]
+    members.update(keys.live("r", "sim", 2), False)
+    members.update(keys.live("r", "sim", 2), True)  # it came back: counted again
+    assert members.unknown_seen == 5 and not members.is_live("sim", 2)
+    assert members.update(keys.live("r", "launcher", 1), True) == HostChange(1, joined=True)
+
+
 def test_a_host_number_is_taken_when_another_launcher_has_it_live():
     members = Membership("r", me=1, multi=True)
     assert not asyncio.run(members.number_taken(wait_s=0.0))

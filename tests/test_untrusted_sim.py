@@ -66,8 +66,12 @@ def test_a_simulator_s_credential_can_neither_end_halt_nor_fail_a_run(tmp_path):
     assert stats.latest("train/0", "train/episode_values_refused") > 0
     assert stats.latest("train/0", "train/segments_replayed") > 0
     assert "train/episode_values_refused" in (run.run_dir / "report" / "report.md").read_text()
-    # the 63 instances: generation counted one simulator host, saw no other (the router dropped them)
+    # the 63 instances: generation counted one simulator host, saw no other (they stopped at the launcher's router,
+    # which counted them where a user sees them: its stats, the console, the report)
     assert stats.latest("gen/0", "gen/sim_hosts") == 1 and stats.latest("gen/0", "gen/unknown_instances", 0) == 0
+    assert stats.latest("launcher/0", "launcher/unknown_instances") == 63
+    assert "launcher/unknown_instances" in run.output and "launcher/unknown_instances" in (
+        run.run_dir / "report" / "report.md").read_text()
     assert not any(stats.reports(f"sim/{n}") for n in range(1, 64))
     assert [r for r in stats.reports("sim/0") if r.seq == flood.SEQ]  # sim's own key: its reports arrive
     # the observations: the 600 kB one counted, the 240 MiB one moved no peak memory (measured: gen +1.3 MB)

@@ -86,6 +86,9 @@ class BusOptions:
     instances: tuple[tuple[str, int], ...] = ()
     dictionary_file: str = ""
     groups: int = 0
+    # ... and every instance of the run on every host (launchers included), where its plan names them: tokens of
+    # any other instance then reach this router's own session alone, where the launcher counts them
+    planned: tuple[tuple[str, int], ...] | None = None
 
 
 # Zenoh's default has both peers of a pair connect to each other as soon as gossip tells them of the other.
@@ -132,7 +135,8 @@ def zenoh_config(options: BusOptions) -> zenoh.Config:
         credentials = auth.load(options.secret_file, options.role)
         connects = options.mode == "router" and bool(options.connect or config_file_connect(options.config_file))
         for path, value in auth.zenoh_settings(credentials, options.mode, options.run, connects, options.instances,
-                                               options.dictionary_file or None, options.groups).items():
+                                               options.dictionary_file or None, options.groups,
+                                               options.planned).items():
             conf.insert_json5(path, json.dumps(value))
         if options.mode == "router" and not connects and options.host is not None:
             conf.insert_json5("id", json.dumps(auth.host_zid(options.secret_file, options.host)))

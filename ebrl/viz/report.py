@@ -317,6 +317,10 @@ DATA_HEALTH = {
     "gen/obs_dropped": "observations whose shape does not fit the policy, dropped",
     "gen/weights_refused": "weight versions refused",
     "bus/malformed": "messages that failed validation, dropped (every service)",
+    "bus/oversized": "messages past their key's size bound, dropped before decoding (every service)",
+    "launcher/unknown_instances": "liveliness tokens of instances the run does not have, stopped at the "
+                                  "launcher's router",
+    "gen/unknown_instances": "liveliness tokens of simulators the run does not have (a mesh), not counted as hosts",
 }
 
 

@@ -89,6 +89,12 @@ class RunSection(Section):
         "a service that dies is started again (on-failure, with backoff, at most max_restarts times per service) "
         "or the run stops (never)", "on-failure")
     max_restarts: int = doc("most restarts of one service before the run stops", 3)
+    processes: list[list[str]] = doc(
+        "services that share one process on their host, e.g. [[\"sim\", \"gen\", \"train\"]]: the messages between "
+        "them never leave it (one bus session, no router hop, no socket), each keeps its own stats, lanes, token "
+        "and rights, and a process that dies is started again with every service in it. A simulator that shares "
+        "a process shares its memory: the env's code can then reach the others (docs/processes.md). Empty: each "
+        "service in a process of its own", factory=list)
 
     def _check(self) -> None:
         try:
@@ -100,6 +106,16 @@ class RunSection(Section):
         if self.iterations < 0 or self.max_restarts < 0:
             raise ConfigError(f"run.iterations ({self.iterations}) and run.max_restarts ({self.max_restarts}) must "
                               "be >= 0")
+        seen: set[str] = set()
+        for group in self.processes:
+            if len(group) < 2:
+                raise ConfigError(f"run.processes: {group}: a shared process holds at least two services")
+            for role in group:
+                if role not in ROLES:
+                    raise ConfigError(f"run.processes: unknown service {role!r}; services are {', '.join(ROLES)}")
+                if role in seen:
+                    raise ConfigError(f"run.processes: {role} is named twice; a service runs in one process")
+                seen.add(role)
         if self.slowdown:
             try:
                 parse_slowdown(self.slowdown)
@@ -721,6 +737,7 @@ def _check_across(cfg: Config) -> None:
         raise ConfigError(f"sim.cores_per_env = {cfg.sim.cores_per_env}: pins each env worker to a set of cores, "
                           "which sim.core_rebinding = true does not use (rebinding hands out single cores); set "
                           "sim.cores_per_env = 1, or leave sim.core_rebinding to the mode")
+    _check_processes(cfg)
     if cfg.algo.name == "grpo":
         envs = cfg.num_envs
         if cfg.algo.group_size < 2 or envs % cfg.algo.group_size:
@@ -730,6 +747,14 @@ def _check_across(cfg: Config) -> None:
             raise ConfigError(f"algo.name = \"grpo\" with run.mode = {cfg.run.mode!r}: grpo learns from whole "
                               "episodes, which a rollout -> train barrier of fixed length cannot wait for; use "
                               "run.mode = \"ebrl\" or \"async\" (or train.overlap = true)")
+
+
+def _check_processes(cfg: Config) -> None:
+    """``run.processes`` against the services the run has and where they run."""
+    shared = {role for group in cfg.run.processes for role in group}
+    if "train" in shared and cfg.train.world_size > 1:
+        raise ConfigError(f"run.processes: train with train.world_size = {cfg.train.world_size}: each training "
+                          "rank runs in a process of its own; share a process only with one rank")
 
 
 def _check_batching(cfg: Config) -> None:

@@ -238,7 +238,8 @@ ROUTING_ROLE = "launcher"  # a host's launcher routes every role's traffic betwe
 
 def access_control(run: str, roles: tuple[str, ...] | None = None, trusted_zids: list[str] | tuple[str, ...] = (),
                    instances: tuple[tuple[str, int], ...] | list[tuple[str, int]] = (), groups: int = 0,
-                   planned: tuple[tuple[str, int], ...] | None = None) -> dict[str, object]:
+                   planned: tuple[tuple[str, int], ...] | None = None,
+                   shares: tuple[tuple[tuple[str, int], ...], ...] = ()) -> dict[str, object]:
     """Zenoh's ``access_control`` block for run ``run``, default deny: what a peer signed in as a role's identity
     (:func:`username`) sends is taken in only where that role's flows declare it (each role's instance chunk
     any instance's: one identity per role); what a session sends out is not filtered, since every receiver
@@ -259,19 +260,16 @@ def access_control(run: str, roles: tuple[str, ...] | None = None, trusted_zids:
     instance the run does not have thus reaches this router's own session alone, where its launcher counts it
     (``launcher/unknown_instances``), and no other process sees it; one on a real instance's key is refused
     where it enters. Without ``planned`` (hosts that join by ``--only``: no plan names the others), an instance
-    declares its own token only, and Zenoh drops any other uncounted."""
+    declares its own token only, and Zenoh drops any other uncounted.
+
+    ``shares``: processes of several services (``run.processes``; each the instances in it, the first of which
+    is in ``instances`` and signs in for all): that identity may send what each service of its process may."""
     every = {"id": "anything", "permission": "allow", "flows": ["ingress"], "messages": ALL_ACL_MESSAGES,
              "key_exprs": ["**"]}
     counted = bool(instances) and planned is not None  # tokens of unplanned instances stop here, counted
-    sent = [m for m in ALL_ACL_MESSAGES if m != "liveliness_token"] if counted else ALL_ACL_MESSAGES
-    rules: list[dict[str, object]] = [{"id": "send", "permission": "allow", "flows": ["egress"],
-                                       "messages": sent, "key_exprs": ["**"]}, every]
-    sending = ["send"]
     real = sorted({keys.live(run, role, int(n)) for role, n in planned or ()})
-    if counted:
-        rules.append({"id": "send-tokens", "permission": "allow", "flows": ["egress"],
-                      "messages": ["liveliness_token"], "key_exprs": real})
-        sending.append("send-tokens")
+    rules = _egress_rules(real if counted else None) + [every]
+    sending = [str(rule["id"]) for rule in rules if rule is not every]
     subjects, policies = [], []
     admitted = [(role, None) for role in roles or tuple(FLOWS) if not instances or role not in SERVICES]
     for role, instance in admitted + [(role, int(n)) for role, n in instances]:
@@ -281,7 +279,15 @@ def access_control(run: str, roles: tuple[str, ...] | None = None, trusted_zids:
         if role == ROUTING_ROLE:
             policies.append({"id": subject, "rules": ["anything"], "subjects": [subject]})
             continue
-        ids = _subject_rules(rules, subject, run, role, instance, groups, real if counted else None)
+        members = next((share for share in shares if share[0] == (role, instance)), ((role, instance),))
+        ids = [rule for member, n in members
+               for rule in _subject_rules(rules, f"{member}-{n}" if instance is not None else subject, run, member,
+                                          n, groups, counted)]
+        own = {keys.live(run, member, n) for member, n in members}
+        if counted and instance is not None and (others := [k for k in real if k not in own]):
+            ids.append(f"{subject}-impersonate")  # deny wins over allow in Zenoh's access control
+            rules.append({"id": ids[-1], "permission": "deny", "flows": ["ingress"],
+                          "messages": ["liveliness_token"], "key_exprs": others})
         policies.append({"id": subject, "rules": ids, "subjects": [subject]})
     if trusted_zids:
         subjects.append({"id": "opened", "zids": list(trusted_zids)})
@@ -292,25 +298,33 @@ def access_control(run: str, roles: tuple[str, ...] | None = None, trusted_zids:
             "policies": policies}
 
 
-def _subject_rules(rules: list[dict[str, object]], subject: str, run: str, role: str, instance: int | None,
-                   groups: int, real: list[str] | None) -> list[str]:
-    """Append to ``rules`` what ``subject`` (``role``, or its ``instance``) may send; their ids. ``real``: the
-    run's planned tokens (:func:`access_control`'s ``planned``), or None: an instance declares its own alone."""
+def _egress_rules(real: list[str] | None) -> list[dict[str, object]]:
+    """What this router sends on: everything, or with ``real`` (the run's planned tokens) liveliness tokens only
+    on those keys."""
+    if real is None:
+        return [{"id": "send", "permission": "allow", "flows": ["egress"], "messages": ALL_ACL_MESSAGES,
+                 "key_exprs": ["**"]}]
+    return [{"id": "send", "permission": "allow", "flows": ["egress"], "key_exprs": ["**"],
+             "messages": [m for m in ALL_ACL_MESSAGES if m != "liveliness_token"]},
+            {"id": "send-tokens", "permission": "allow", "flows": ["egress"], "messages": ["liveliness_token"],
+             "key_exprs": real}]
+
+
+def _subject_rules(rules: list[dict[str, object]], prefix: str, run: str, role: str, instance: int | None,
+                   groups: int, counted: bool) -> list[str]:
+    """Append to ``rules`` what ``role`` (or its ``instance``) may send, ids starting with ``prefix``; their ids.
+    ``counted``: its tokens anywhere in the run's ``live`` keys (:func:`access_control`'s ``planned``; the real
+    instances' denied apart), else its own alone."""
     ids = []
     for direction in DIRECTIONS:
         exprs = sorted({e for f in flows(role) if f.direction == direction
                         for e in _concrete(f, run, role, instance, groups)})
-        if direction == "token" and instance is not None and real is not None:
-            exprs = [keys.live_all(run)]  # anywhere but on another real instance's key (denied below)
+        if direction == "token" and instance is not None and counted:
+            exprs = [keys.live_all(run)]  # anywhere but on another real instance's key (denied apart)
         if exprs:
-            ids.append(f"{subject}-{direction}")
+            ids.append(f"{prefix}-{direction}")
             rules.append({"id": ids[-1], "permission": "allow", "flows": ["ingress"],
                           "messages": list(ACL_MESSAGES[direction]), "key_exprs": exprs})
-    others = [k for k in real or () if instance is not None and k != keys.live(run, role, instance)]
-    if others:  # deny wins over allow in Zenoh's access control
-        ids.append(f"{subject}-impersonate")
-        rules.append({"id": ids[-1], "permission": "deny", "flows": ["ingress"], "messages": ["liveliness_token"],
-                      "key_exprs": others})
     return ids
 
 

@@ -50,6 +50,30 @@ class HostPlan:
             return range(cfg.train.world_size)
         return range(1)
 
+    def processes(self, cfg: Config) -> list[tuple[tuple[str, int], ...]]:
+        """The processes this host's launcher starts, in start order: each the service instances in it, ``(role,
+        n)``, the first the one whose identity it signs in with. Services that ``run.processes`` groups (those of
+        them the run has) share one; every other instance has its own. ConfigError where a group is split
+        between this host and another."""
+        shared: dict[str, tuple[tuple[str, int], ...]] = {}
+        for group in cfg.run.processes:
+            members = [role for role in self.roles if role in group]  # in start order
+            wanted = [role for role in group if role in enabled_roles(cfg)]  # those the run has
+            if members and set(members) != set(wanted):
+                raise ConfigError(f"run.processes: {group} is split between hosts (this one runs {members} of "
+                                  "them): the services of one process run on one host")
+            if len(members) < 2:
+                continue
+            unit = tuple((role, n) for role in members for n in self.instances(role, cfg))
+            shared.update({role: unit for role in members})
+        units: list[tuple[tuple[str, int], ...]] = []
+        for role in self.roles:  # each process where its first service starts
+            if role not in shared:
+                units += [((role, n),) for n in self.instances(role, cfg)]
+            elif shared[role] not in units:
+                units.append(shared[role])
+        return units
+
     def started(self, cfg: Config) -> tuple[tuple[str, int], ...]:
         """Every service instance this host's launcher starts, ``(role, n)``: the ones its router admits, each
         with its own identity (``ebrl.bus.auth``)."""

@@ -42,7 +42,7 @@ from ebrl.weights import known_version
 from ebrl.runview import Console, RunView, summary as run_summary, write_report, write_summary
 from ebrl.sched.modes import resolve
 from ebrl.service import STOP_TO_RESTART, bus_metrics, control_version_refused
-from ebrl.supervisor import Argv, RestartPolicy, Supervisor
+from ebrl.supervisor import Argv, RestartPolicy, Supervisor, not_up
 from ebrl.viz import record, web_url
 
 log = logging.getLogger("ebrl.launch")
@@ -56,6 +56,15 @@ def service_argv(config_path: Path, endpoint: str) -> Argv:
     """``python -m ebrl.services.<role> --config ... --instance N [--connect <the launcher's endpoint>]``."""
     def argv(role: str, instance: int) -> list[str]:
         cmd = [sys.executable, "-m", f"ebrl.services.{role}", "--config", str(config_path), "--instance", str(instance)]
+        return cmd + (["--connect", endpoint] if endpoint else [])
+    return argv
+
+
+def process_argv(config_path: Path, endpoint: str) -> Callable[[tuple[tuple[str, int], ...]], list[str]]:
+    """``python -m ebrl.process --config ... --service ROLE/N ... [--connect ...]``: services sharing a process."""
+    def argv(services: tuple[tuple[str, int], ...]) -> list[str]:
+        cmd = [sys.executable, "-m", "ebrl.process", "--config", str(config_path)]
+        cmd += [arg for role, n in services for arg in ("--service", f"{role}/{n}")]
         return cmd + (["--connect", endpoint] if endpoint else [])
     return argv
 
@@ -113,8 +122,11 @@ class LauncherBus:
         instances, dictionary, groups = (), "", 0
         # every instance of the run, where this router passes on only their tokens (the launcher counts others)
         self.planned: tuple[tuple[str, int], ...] | None = None
+        shares: tuple[tuple[tuple[str, int], ...], ...] = ()
         if secret and cfg.bus.mode == "client":
-            instances, self.planned = plan.started(cfg), planned_instances(cfg, plan)
+            processes = plan.processes(cfg)  # the first service of each signs in for it
+            instances, self.planned = tuple(unit[0] for unit in processes), planned_instances(cfg, plan)
+            shares = tuple(unit for unit in processes if len(unit) > 1)
             dictionary = str(auth.write_router_dictionary(
                 secret, run_dir / auth.ROUTER_FILE.format(host=plan.instance), instances))
             groups = resolve(cfg).groups  # a simulator's groups: sim/n has n*groups .. (ebrl.sched.fleet)
@@ -122,7 +134,7 @@ class LauncherBus:
                                   listen=listen, connect=list(cfg.bus.connect), config_file=cfg.bus.config_file,
                                   secret_file=secret, file_listen_wins=True, role="launcher", run=self.run,
                                   host=plan.instance, instances=instances, dictionary_file=dictionary,
-                                  groups=groups, planned=self.planned))
+                                  groups=groups, planned=self.planned, shares=shares))
         (run_dir / "bus.json").write_text(json.dumps({"listen": listen, "run": self.run}) + "\n")
         self.recorder = record.Recorder(run_dir / record.FILENAME) if cfg.viz.record else None
         if self.recorder is not None:
@@ -171,6 +183,11 @@ class LauncherBus:
     async def stop(self, role: str, instance: int | str, reason: str) -> None:
         await self.bus.put(keys.ctl(self.run, role, instance, "stop"), Stop(reason=reason))
 
+    async def stop_all(self, services: tuple[tuple[str, int], ...], reason: str) -> None:
+        """Ask each of ``services`` (a process's) to stop."""
+        for role, instance in services:
+            await self.stop(role, instance, reason)
+
     async def close(self) -> None:
         await self.bus.close()
         if self.recorder is not None:
@@ -187,7 +204,7 @@ class FinalEvaluation:
         self.deadline: float | None = None  # monotonic
 
     def pending(self, view: RunView, children: list) -> bool:
-        if (not any(c.role == "eval" and not c.given_up for c in children) or self.timeout <= 0
+        if (not any(c.has("eval") and not c.given_up for c in children) or self.timeout <= 0
                 or (view.evaluated_version() or 0) >= self.final):
             return False
         now = time.monotonic()
@@ -279,7 +296,8 @@ class Launcher:
             RestartPolicy(self.cfg.run.restart == "on-failure", self.cfg.run.max_restarts),
             say=self.console.say, event=self.link.event, gpu_env=self.gpu_env, train_ranks=self.cfg.train.world_size,
             role_env=role_env(self.cfg, self.plan), instance_env=instance_env(self.cfg, self.run_dir),
-            version_floor=self.view.version_floor, optional=OPTIONAL_ROLES)
+            version_floor=self.view.version_floor, optional=OPTIONAL_ROLES,
+            process_argv=process_argv(self.run_dir / "config.toml", endpoint))
         self.link.bus.watch_liveliness(keys.live_all(self.run_name),
                                        functools.partial(follow_liveliness, self.members, self.console, self.link))
         self.link.count_unknown_controls(self.roles)
@@ -299,9 +317,8 @@ class Launcher:
                                                    self.on_primary_ended, 4))
         code = 1
         try:
-            for role in self.plan.roles:
-                for instance in self.plan.instances(role, self.cfg):
-                    self.supervisor.start(role, instance)
+            for services in self.plan.processes(self.cfg):
+                self.supervisor.start(*services[0], members=services)
             if await self.wait_live():
                 code = await self.supervise()
         finally:
@@ -320,16 +337,17 @@ class Launcher:
     async def wait_live(self) -> bool:
         """Wait for every service the run needs. An optional one (log, eval) is not waited for: at idle priority
         on a busy machine, eval can take minutes to start, and nothing waits on it; it joins when it is up."""
-        children = [c for c in self.supervisor.children if c.role not in OPTIONAL_ROLES]
+        children = [c for c in self.supervisor.children if not all(r in OPTIONAL_ROLES for r, _ in c.services)]
         deadline = time.monotonic() + self.cfg.run.startup_timeout
-        while missing := [c for c in children if not self.members.is_live(c.role, c.instance) and not c.given_up]:
+        while missing := [c for c in children if not c.given_up
+                          and not all(self.members.is_live(role, n) for role, n in c.services)]:
             if self.stopping.is_set():
                 return False
             self.failure = self.supervisor.check(restart=False)
             if self.failure is not None:
                 return False
             if time.monotonic() > deadline:
-                self.failure = self.supervisor.not_up(missing, self.cfg.run.startup_timeout)
+                self.failure = not_up(missing, self.cfg.run.startup_timeout, self.console.say)
                 return False
             await asyncio.sleep(0.05)
         names = ", ".join(c.name for c in children)
@@ -337,8 +355,8 @@ class Launcher:
         self.link.event("live", f"{names} live after {self.elapsed():.1f} s")
         for kind, text in self.notes:
             self.link.event(kind, text)
-        if later := [c.name for c in self.supervisor.children
-                     if c.role in OPTIONAL_ROLES and not self.members.is_live(c.role, c.instance)]:
+        if later := [c.name for c in self.supervisor.children if all(r in OPTIONAL_ROLES for r, _ in c.services)
+                     and not self.members.is_live(c.role, c.instance)]:
             self.console.say(f"{', '.join(later)} still starting (optional: the run does not wait for it)")
         if self.cfg.viz.rerun != "off":
             self.console.say(viz_line(self.cfg.viz, self.run_dir))
@@ -396,8 +414,7 @@ class Launcher:
         if self.plan.multi and self.plan.primary:  # every host ends with the primary
             await self.link.stop("launcher", EVERY_HOST, self.failure or self.stop_reason or "run finished")
         self.console.end_progress()
-        await self.supervisor.shutdown(
-            lambda child: self.link.stop(child.role, child.instance, self.stop_reason or "run finished"))
+        await self.supervisor.shutdown(lambda child: self.link.stop_all(child.services, self.stop_reason or "run finished"))
 
     def finish(self, code: int) -> None:
         """summary.json, its line, and the headless report."""
@@ -424,8 +441,10 @@ class Launcher:
                              self.console.say)
             return
         for child in self.supervisor.new_gpu_share(share.stage, share.env, share.version):
-            self.link.bus.put_nowait(keys.ctl(self.run_name, child.role, child.instance, "stop"),
-                                     Stop(reason=STOP_TO_RESTART))
+            for role, instance in child.services:  # a process of several stops with its stage
+                if role == share.stage:
+                    self.link.bus.put_nowait(keys.ctl(self.run_name, role, instance, "stop"),
+                                             Stop(reason=STOP_TO_RESTART))
 
     def on_primary_ended(self, key: str, stop: Stop) -> None:
         self.stop(PRIMARY_ENDED, f"\nebrl: {PRIMARY_ENDED}; stopping this host's services")

@@ -412,13 +412,13 @@ def service_main(cls: type[Service], argv: list[str] | None = None) -> None:
 
     async def run_then_arm() -> int:
         code = await service.main()
-        _exit_within(EXIT_GRACE_S, code, f"{cls.role}/{args.instance}")
+        exit_within(EXIT_GRACE_S, code, f"{cls.role}/{args.instance}")
         return code
 
     sys.exit(asyncio.run(run_then_arm()))
 
 
-def _exit_within(seconds: float, code: int, name: str) -> None:
+def exit_within(seconds: float, code: int, name: str) -> None:
     """Once a service has stopped (its state saved, its bus closed), its process exits within ``seconds``
     even if a thread would hold interpreter exit; which threads did is written to its log."""
 

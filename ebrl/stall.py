@@ -238,8 +238,9 @@ def watch(stalls: StallWatch, view: RunView, supervisor: Supervisor, say: Callab
     if view.iterations_done():  # train idles by design from here on
         return None
     now = stalls.clock()
-    judge = {c.name for c in supervisor.children  # this host's, running, started long enough ago
-             if not c.given_up and c.restart_at is None and c.running() and now - c.started >= stalls.timeout}
+    judge = {name for c in supervisor.children  # this host's, running, started long enough ago
+             if not c.given_up and c.restart_at is None and c.running() and now - c.started >= stalls.timeout
+             for name in c.names}
     stall = stalls.check(view, judge)
     view.note = stalls.note()
     if stall is None:

@@ -43,6 +43,7 @@ KILL_WAIT_S = 10.0  # for a SIGKILLed child to be gone (a process in uninterrupt
 LOG_TAIL = 20
 
 Argv = Callable[[str, int], list[str]]  # (role, instance) -> the command line of that child
+ProcessArgv = Callable[[tuple[tuple[str, int], ...]], list[str]]  # the command line of a process of several
 
 
 @dataclasses.dataclass
@@ -57,10 +58,25 @@ class Child:
     requotas: int = 0  # times it was started again with a new GPU share (launcher/requotas)
     given_up: bool = False  # an optional child that exited for good: the run goes on without it
     started: float = dataclasses.field(default_factory=time.monotonic)  # when its process was last started
+    # the service instances of a process of several (run.processes), ``role/instance`` the first; empty: that one
+    members: tuple[tuple[str, int], ...] = ()
+
+    @property
+    def services(self) -> tuple[tuple[str, int], ...]:
+        """The service instances in this child's process."""
+        return self.members or ((self.role, self.instance),)
+
+    @property
+    def names(self) -> list[str]:
+        """``role/instance`` of each service in its process."""
+        return [f"{role}/{instance}" for role, instance in self.services]
 
     @property
     def name(self) -> str:
-        return f"{self.role}/{self.instance}"
+        return "+".join(self.names)
+
+    def has(self, role: str) -> bool:
+        return any(r == role for r, _ in self.services)
 
     def running(self) -> bool:
         """Whether the child still runs. Once it has exited, its process group (whatever it started and left
@@ -115,6 +131,31 @@ def requotas_spent(child: Child, limit: int, version: int, say: Callable[[str], 
     return failure
 
 
+def child_env(child: Child, gpu_env: dict[str, dict[str, str]], role_env: dict[str, dict[str, str]],
+              identity_env: dict[str, str], dist_addr: str, train_ranks: int) -> dict[str, str]:
+    """The environment of ``child``'s process: each of its services' variables (those of several agree), the
+    identity of the first (``identity_env``), which signs in for the process; training's rendezvous."""
+    env = dict(os.environ, PYTHONUNBUFFERED="1")
+    for role, _ in child.services:
+        env.update(**gpu_env.get(role, {}), **role_env.get(role, {}))
+    env.update(identity_env)
+    if child.has("train"):
+        env.update(procenv.service_env(dist_addr=dist_addr))
+        if train_ranks > 1:  # gloo's connections between the ranks stay on this host
+            env.setdefault("GLOO_SOCKET_IFNAME", "lo")
+    env["PYTHONPATH"] = str(Path(__file__).resolve().parent.parent) + os.pathsep + env.get("PYTHONPATH", "")
+    return env
+
+
+def not_up(missing: list[Child], after_s: float, say: Callable[[str], None]) -> str:
+    """The failure of a start that timed out, said with the last lines of each missing child's log."""
+    failure = f"not up after {after_s:.0f} s: " + ", ".join(sorted(c.name for c in missing))
+    say("ebrl: " + failure)
+    for child in missing:
+        say(f"--- last lines of {child.log_path}:\n{child.tail()}")
+    return failure
+
+
 def _die_with_parent() -> None:  # runs in the child between fork and exec
     os.setpgrp()  # Ctrl-C reaches the launcher only; it stops the children in order
     libc = ctypes.CDLL("libc.so.6", use_errno=True)
@@ -137,8 +178,10 @@ class Supervisor:
                  say: Callable[[str], None], event: Callable[[str, str], None],
                  gpu_env: dict[str, dict[str, str]] | None = None, role_env: dict[str, dict[str, str]] | None = None,
                  train_ranks: int = 1, version_floor: Callable[[], int] = lambda: -1, optional: tuple[str, ...] = (),
-                 instance_env: Callable[[str, int], dict[str, str]] | None = None):
+                 instance_env: Callable[[str, int], dict[str, str]] | None = None,
+                 process_argv: ProcessArgv | None = None):
         self.argv, self.log_dir, self.policy = argv, log_dir, policy
+        self.process_argv = process_argv  # for a child of several services (run.processes)
         self.say, self.event, self.version_floor = say, event, version_floor
         self.gpu_env = dict(gpu_env or {})  # stage -> the CUDA variables its processes start with (its GPU share)
         self.share_versions: dict[str, int] = {}  # stage -> version of its last GPU share
@@ -157,25 +200,23 @@ class Supervisor:
         TCP store (torch's listens on every interface, with no secret); each start of the group a new one."""
         return f"file://{self.log_dir.parent.resolve()}/.dist-{secrets.token_hex(8)}"
 
-    def start(self, role: str, instance: int) -> Child:
-        log_path = self.log_dir / f"{role}-{instance}.log"
-        child = Child(role, instance, self._spawn(role, instance, log_path), log_path)
+    def start(self, role: str, instance: int, members: tuple[tuple[str, int], ...] = ()) -> Child:
+        """Start service ``role/instance``, or a process of the services ``members`` (the first of which it is)."""
+        stem = "+".join(f"{r}-{n}" for r, n in members) if len(members) > 1 else f"{role}-{instance}"
+        log_path = self.log_dir / f"{stem}.log"
+        child = Child(role, instance, None, log_path, members=members if len(members) > 1 else ())  # type: ignore
+        child.proc = self._spawn(child, log_path)
         self.children.append(child)
         return child
 
-    def _spawn(self, role: str, instance: int, log_path: Path, extra_env: dict[str, str] | None = None
-               ) -> subprocess.Popen:
-        env = dict(os.environ, PYTHONUNBUFFERED="1", **self.gpu_env.get(role, {}), **self.role_env.get(role, {}),
-                   **self.instance_env(role, instance))
-        if role == "train":
-            env.update(procenv.service_env(dist_addr=self.dist_addr))
-            if self.train_ranks > 1:  # gloo's connections between the ranks stay on this host
-                env.setdefault("GLOO_SOCKET_IFNAME", "lo")
+    def _spawn(self, child: Child, log_path: Path, extra_env: dict[str, str] | None = None) -> subprocess.Popen:
+        env = child_env(child, self.gpu_env, self.role_env, self.instance_env(child.role, child.instance),
+                        self.dist_addr, self.train_ranks)
         env.update(extra_env or {})
-        root = str(Path(__file__).resolve().parent.parent)
-        env["PYTHONPATH"] = root + os.pathsep + env.get("PYTHONPATH", "")  # `services` beside `ebrl`
+        argv = self.process_argv(child.members) if child.members and self.process_argv else self.argv(
+            child.role, child.instance)
         with open(log_path, "ab") as fh:
-            return subprocess.Popen(self.argv(role, instance), stdout=fh, stderr=subprocess.STDOUT,
+            return subprocess.Popen(argv, stdout=fh, stderr=subprocess.STDOUT,
                                     stdin=subprocess.DEVNULL, env=env, preexec_fn=_die_with_parent)
 
     def check(self, restart: bool = True) -> str | None:
@@ -202,7 +243,7 @@ class Supervisor:
                 self._schedule_restart(child, what, now)
                 continue
             failure = what + (f" (after {child.restarts} restarts)" if child.restarts else "")
-            if child.role in self.optional:
+            if all(role in self.optional for role, _ in child.services):
                 child.given_up = True
                 self.event("exited", f"{failure}; the run goes on without it")
                 self.say(f"\nebrl: {failure}; the run goes on without it; last lines of {child.log_path}:\n"
@@ -240,12 +281,12 @@ class Supervisor:
         extra = {}
         # never reuse a version: a new train starts past every one seen; a new gen or eval takes the next
         # versions as plausible from there (ebrl.weights.plausible)
-        if child.role in ("train", "gen", "eval"):
+        if any(child.has(role) for role in ("train", "gen", "eval")):
             extra = procenv.service_env(version_floor=self.version_floor())
         why = f"with GPU share {self.gpu_env.get(child.role)}" if requota else f"restart {child.restarts}"
         with open(child.log_path, "ab") as fh:
             fh.write(f"\n--- {why} by the launcher ---\n".encode())
-        child.proc = self._spawn(child.role, child.instance, child.log_path, extra)
+        child.proc = self._spawn(child, child.log_path, extra)
         child.started = time.monotonic()
         if requota:
             self.event("requota", f"{child.name} started again {why}")
@@ -259,17 +300,17 @@ class Supervisor:
         if version <= self.share_versions.get(role, 0):
             return []
         self.share_versions[role] = version
-        if env == self.gpu_env.get(role) or not any(c.role == role for c in self.children):
+        if env == self.gpu_env.get(role) or not any(c.has(role) for c in self.children):
             return []
         if role == "train" and self.train_ranks > 1:
             log.warning("train: a new GPU share is not applied to %d data-parallel ranks (one rank only)",
                         self.train_ranks)
             return []
-        if spent := [c for c in self.children if c.role == role and c.requotas >= self.policy.max_restarts]:
+        if spent := [c for c in self.children if c.has(role) and c.requotas >= self.policy.max_restarts]:
             self.requota_failure = requotas_spent(spent[0], self.policy.max_restarts, version, self.say, self.event)
             return []
         self.gpu_env[role] = env
-        asked = [c for c in self.children if c.role == role and c.running() and not c.requota]
+        asked = [c for c in self.children if c.has(role) and c.running() and not c.requota]
         for child in asked:
             child.requota = True
         return asked
@@ -278,16 +319,8 @@ class Supervisor:
         """Kill a stuck child's process group (``"gen/0"``: the stall watch, ``ebrl.stall``); :meth:`check` then
         sees it exited and restarts it like any failed child."""
         for child in self.children:
-            if child.name == name and child.running():
+            if name in child.names and child.running():  # a process of several: every service in it
                 _kill_group(child)
-
-    def not_up(self, missing: list[Child], after_s: float) -> str:
-        """The failure of a start that timed out, said with the last lines of each missing child's log."""
-        failure = f"not up after {after_s:.0f} s: " + ", ".join(sorted(c.name for c in missing))
-        self.say("ebrl: " + failure)
-        for child in missing:
-            self.say(f"--- last lines of {child.log_path}:\n{child.tail()}")
-        return failure
 
     def restarts(self) -> dict[str, int]:
         """Restarts after a failure, per child that had any."""
@@ -298,8 +331,9 @@ class Supervisor:
         launcher's stats report."""
         out = {"launcher/restarts": float(sum(c.restarts for c in self.children))}
         for c in self.children:
-            key = f"launcher/restarts_{c.role}"
-            out[key] = out.get(key, 0.0) + c.restarts
+            for role, _ in c.services:
+                key = f"launcher/restarts_{role}"
+                out[key] = out.get(key, 0.0) + c.restarts
         out["launcher/requotas"] = float(sum(c.requotas for c in self.children))
         return out
 

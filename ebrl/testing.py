@@ -14,7 +14,6 @@ and how the run ended.
 from __future__ import annotations
 
 import asyncio
-import importlib
 import json
 import os
 import re
@@ -34,6 +33,7 @@ from ebrl.bus.session import BusOptions, zenoh_config
 from ebrl.bus.endpoints import free_port
 from ebrl.bus.memory import MemoryBus, MemoryNetwork
 from ebrl.messages import MessageError, StatsReport, decode_stats_sample
+from ebrl.process import service_class
 
 __all__ = ["InProcessRun", "Output", "Run", "RunError", "StatsWatcher", "free_port", "run_name", "service_class",
            "source", "up_command", "up_sets"]
@@ -249,12 +249,6 @@ class Run:
             self.proc.wait()
         self._output.join()
         return self.proc.returncode
-
-
-def service_class(role: str) -> type:
-    """The service class of ``role``, from ``ebrl/services/<role>.py``."""
-    module = importlib.import_module(f"ebrl.services.{role}")
-    return next(v for v in vars(module).values() if isinstance(v, type) and getattr(v, "role", None) == role)
 
 
 class InProcessRun:

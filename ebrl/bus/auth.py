@@ -250,7 +250,8 @@ def peer_access_control() -> dict[str, object]:
 
 def zenoh_settings(credentials: Credentials, mode: str, run: str = "*", connects: bool = False,
                    instances: tuple[tuple[str, int], ...] = (), dictionary: str | os.PathLike | None = None,
-                   groups: int = 0, planned: tuple[tuple[str, int], ...] | None = None) -> dict[str, object]:
+                   groups: int = 0, planned: tuple[tuple[str, int], ...] | None = None,
+                   shares: tuple[tuple[tuple[str, int], ...], ...] = ()) -> dict[str, object]:
     """Zenoh config entries (path -> value) for a session that signs in with ``credentials``, of Zenoh
     ``mode``:
 
@@ -261,7 +262,8 @@ def zenoh_settings(credentials: Credentials, mode: str, run: str = "*", connects
       client-mode launcher: the service instances it starts), it checks sign-ins against ``dictionary``
       (:func:`write_router_dictionary`) instead, and each instance takes only its own instance's keys (and,
       with ``groups`` per simulator, a simulator its own groups' data keys); with ``planned`` (every instance of
-      the run), the tokens of instances the run does not have reach this router alone, to be counted.
+      the run), the tokens of instances the run does not have reach this router alone, to be counted; with
+      ``shares`` (processes of several services, ``run.processes``), the first service's identity sends for all.
     * ``peer`` (a service of a mesh): checks whoever connects; observers only read.
     * ``client`` (a service of a launcher's, a script watching): signs in, nothing more.
     """
@@ -278,7 +280,7 @@ def zenoh_settings(credentials: Credentials, mode: str, run: str = "*", connects
     trusted = ([host_zid(credentials.path, h) for h in range(TRUSTED_HOSTS)]
                + [host_zid(credentials.path, "router")]) if connects else []
     return {"transport/auth/usrpwd": usrpwd, "access_control": graph.access_control(
-        run, trusted_zids=trusted, instances=instances, groups=groups, planned=planned)}
+        run, trusted_zids=trusted, instances=instances, groups=groups, planned=planned, shares=shares)}
 
 
 # --- endpoints ---------------------------------------------------------------------------------------------

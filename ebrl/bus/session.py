@@ -22,6 +22,7 @@ import abc
 import asyncio
 import atexit
 import collections
+import contextlib
 import functools
 import json
 import logging
@@ -89,6 +90,9 @@ class BusOptions:
     # ... and every instance of the run on every host (launchers included), where its plan names them: tokens of
     # any other instance then reach this router's own session alone, where the launcher counts them
     planned: tuple[tuple[str, int], ...] | None = None
+    # ... and the processes of several services it starts (run.processes): the first service of each, one of
+    # ``instances``, signs in for all of them and may send what each may
+    shares: tuple[tuple[tuple[str, int], ...], ...] = ()
 
 
 # Zenoh's default has both peers of a pair connect to each other as soon as gossip tells them of the other.
@@ -136,7 +140,7 @@ def zenoh_config(options: BusOptions) -> zenoh.Config:
         connects = options.mode == "router" and bool(options.connect or config_file_connect(options.config_file))
         for path, value in auth.zenoh_settings(credentials, options.mode, options.run, connects, options.instances,
                                                options.dictionary_file or None, options.groups,
-                                               options.planned).items():
+                                               options.planned, options.shares).items():
             conf.insert_json5(path, json.dumps(value))
         if options.mode == "router" and not connects and options.host is not None:
             conf.insert_json5("id", json.dumps(auth.host_zid(options.secret_file, options.host)))
@@ -425,10 +429,13 @@ class BusBase(abc.ABC):
 
 
 class Bus(BusBase):
-    """One Zenoh session bridged to one asyncio loop. Create it inside the running loop."""
+    """One Zenoh session bridged to one asyncio loop. Create it inside the running loop. ``session``: an open one
+    to use (services sharing a process share theirs: ``ebrl.process``), which this bus then does not close; it
+    withdraws only what it declared itself."""
 
     def __init__(self, options: BusOptions | None = None, *, session: zenoh.Session | None = None):
         options = options or BusOptions()
+        self._owns_session = session is None
         self.session = session or zenoh.open(zenoh_config(options))
         super().__init__(options)
         self._publishers: dict[tuple[str, bool], zenoh.Publisher] = {}
@@ -497,6 +504,14 @@ class Bus(BusBase):
         _open_buses.discard(self)
         for sub in self._subscriptions:
             sub.close()
+        if not self._owns_session:  # a shared session: withdraw this bus's own declarations alone
+            for declared in self._declared:
+                with contextlib.suppress(Exception):
+                    declared.undeclare()
+            for pub in self._publishers.values():
+                with contextlib.suppress(Exception):
+                    pub.undeclare()
+            return
         try:
             self.session.close()
         except Exception as exc:

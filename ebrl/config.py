@@ -89,12 +89,14 @@ class RunSection(Section):
         "a service that dies is started again (on-failure, with backoff, at most max_restarts times per service) "
         "or the run stops (never)", "on-failure")
     max_restarts: int = doc("most restarts of one service before the run stops", 3)
-    processes: list[list[str]] = doc(
+    processes: list[list[str]] | Literal["auto"] = doc(
         "services that share one process on their host, e.g. [[\"sim\", \"gen\", \"train\"]]: the messages between "
         "them never leave it (one bus session, no router hop, no socket), each keeps its own stats, lanes, token "
         "and rights, and a process that dies is started again with every service in it. A simulator that shares "
         "a process shares its memory: the env's code can then reach the others (docs/processes.md). Empty: each "
-        "service in a process of its own", factory=list)
+        "service in a process of its own. \"auto\": sim, gen and train in one process on a host with a GPU that "
+        "runs all three with a GPU simulator EBRL ships (env.backend = \"mjwarp\"), else each alone; decided at "
+        "start, written into the run's config.toml", "auto")
 
     def _check(self) -> None:
         try:
@@ -107,7 +109,7 @@ class RunSection(Section):
             raise ConfigError(f"run.iterations ({self.iterations}) and run.max_restarts ({self.max_restarts}) must "
                               "be >= 0")
         seen: set[str] = set()
-        for group in self.processes:
+        for group in [] if self.processes == "auto" else self.processes:
             if len(group) < 2:
                 raise ConfigError(f"run.processes: {group}: a shared process holds at least two services")
             for role in group:
@@ -749,9 +751,14 @@ def _check_across(cfg: Config) -> None:
                               "run.mode = \"ebrl\" or \"async\" (or train.overlap = true)")
 
 
+def processes(cfg: Config) -> list[list[str]]:
+    """``run.processes`` as lists (``"auto"``, before the launcher decided it: none shared)."""
+    return [] if cfg.run.processes == "auto" else cfg.run.processes
+
+
 def _check_processes(cfg: Config) -> None:
     """``run.processes`` against the services the run has and where they run."""
-    shared = {role for group in cfg.run.processes for role in group}
+    shared = {role for group in processes(cfg) for role in group}
     if "train" in shared and cfg.train.world_size > 1:
         raise ConfigError(f"run.processes: train with train.world_size = {cfg.train.world_size}: each training "
                           "rank runs in a process of its own; share a process only with one rank")

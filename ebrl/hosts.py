@@ -25,7 +25,7 @@ import time
 from dataclasses import dataclass
 
 from ebrl.bus import keys
-from ebrl.config import ROLES, Config, ConfigError
+from ebrl.config import ROLES, Config, ConfigError, processes
 
 PRIMARY_LOST_S = 30.0  # a secondary host stops when no train has been live for this long
 
@@ -56,7 +56,7 @@ class HostPlan:
         them the run has) share one; every other instance has its own. ConfigError where a group is split
         between this host and another."""
         shared: dict[str, tuple[tuple[str, int], ...]] = {}
-        for group in cfg.run.processes:
+        for group in processes(cfg):
             members = [role for role in self.roles if role in group]  # in start order
             wanted = [role for role in group if role in enabled_roles(cfg)]  # those the run has
             if members and set(members) != set(wanted):
@@ -235,6 +235,30 @@ class Membership:
             self.train_seen_at = now
             return False
         return self.train_seen_at is not None and now - self.train_seen_at >= self.lost_after_s
+
+
+GPU_SIMULATORS = ("mjwarp",)  # env.backend values whose worlds step on the GPU, with env code EBRL ships
+
+
+def decide_processes(cfg: Config, here: HostPlan, gpu: bool) -> tuple[Config, str]:
+    """``cfg`` with ``run.processes = "auto"`` decided for this host (``gpu``: it has one), and the line that says
+    what it became ("" where it was not "auto"). Shared: sim, gen and train in one process, where this host runs
+    the three with one training rank and a GPU simulator of :data:`GPU_SIMULATORS` on a task EBRL ships (no
+    ``module:EnvId``: a user's env code never shares training's memory unasked), so that the three stages share
+    one CUDA context and no message between them leaves the process. Else every service alone, as on a CPU
+    host, where separate processes keep each stage's cores its own."""
+    if cfg.run.processes != "auto":
+        return cfg, ""
+    stages = {"sim", "gen", "train"}
+    why = ("no GPU on this host" if not gpu
+           else "not every stage on this host" if not stages <= set(here.roles)
+           else f"env.backend = {cfg.env.backend!r} steps on the CPU" if cfg.env.backend not in GPU_SIMULATORS
+           else f"env.id = {cfg.env.id!r} is your own code" if ":" in cfg.env.id
+           else "several training ranks" if cfg.train.world_size > 1
+           else "")
+    chosen = [] if why else [["sim", "gen", "train"]]
+    cfg = dataclasses.replace(cfg, run=dataclasses.replace(cfg.run, processes=chosen))
+    return cfg, (f"auto: run.processes = {chosen} ({why or 'a GPU simulator, generation and training on one GPU'})")
 
 
 def planned_instances(cfg: Config, here: HostPlan) -> tuple[tuple[str, int], ...] | None:

@@ -22,7 +22,7 @@ from typing import Any
 from ebrl import autotune, config as config_mod, devices, meta, tracking
 from ebrl.bus import auth
 from ebrl.bus.endpoints import config_file_acl, config_file_endpoints
-from ebrl.hosts import HostPlan, plan as plan_host
+from ebrl.hosts import HostPlan, decide_processes, plan as plan_host
 
 
 class NotStarted(Exception):
@@ -69,6 +69,11 @@ def prepare(config_path: str, overrides: list[str], *, viz: str | None = None, r
     if decision is not None and decision.line:
         print(decision.line, flush=True)
     notes = [("auto", decision.line)] if decision is not None and decision.line else []
+    gpu = cfg.run.processes == "auto" and autotune.host_has_gpu()
+    cfg, placed = decide_processes(cfg, plan, gpu)  # run.processes: written into config.toml with the rest
+    if placed and gpu:  # on a CPU host nothing changes: said nowhere but config.toml
+        print(placed, flush=True)
+        notes.append(("auto", placed))
     run = PreparedRun(cfg, plan, Path(), {}, notes)
     try:
         if "alloc" in plan.roles:  # profile (or reuse a profile) and start every service inside Algorithm 1's plan
@@ -85,7 +90,8 @@ def prepare(config_path: str, overrides: list[str], *, viz: str | None = None, r
     (run.run_dir / "config.toml").write_text(config_mod.dump_toml(run.cfg))
     # a resumed run's env steps go on from where its tracking stopped
     extra = {"env_steps_before": tracking.steps_so_far(run.run_dir)} if resume else {}
-    meta.write(run.cfg, run.run_dir, extra={**extra, "auto": decision.to_dict()} if decision else extra or None)
+    extra = {**extra, "auto": decision.to_dict()} if decision else extra
+    meta.write(run.cfg, run.run_dir, extra={**extra, "processes": run.cfg.run.processes})
     return run
 
 

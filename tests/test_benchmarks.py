@@ -153,3 +153,34 @@ def test_the_pickcube_race_medians_count_a_seed_that_missed_as_its_whole_run():
     assert "--set run.seed=3" in shown and "scratch" not in shown
     peer = race.shown(race.peer_command(3, False, 900, Path("/scratch/p.json")), "--json")
     assert peer == "python benchmarks/peers/mjwarp_ppo.py --device cpu --num-envs 128 --seed 3 --max-seconds 900"
+
+
+def test_the_gpu_race_summary_gives_medians_and_issue_51_s_ratios(tmp_path):
+    """check.sh mjwarp_race's verdict from the files it leaves: each side's seconds to 90 % per seed (a seed that
+    did not reach it has none), medians, and the two ratios of the acceptance."""
+    def ebrl(folder: str, seed: int, in_run: float | None, rate: float) -> None:
+        run = tmp_path / f"{folder}-s{seed}" / "mjwarp_pickcube-20261128-120000"
+        run.mkdir(parents=True)
+        reached = None if in_run is None else {"iteration": 40, "wall_s": in_run, "success_rate": 0.9}
+        (run / "summary.json").write_text(json.dumps({"target_reached": reached, "env_steps_per_s": rate}))
+
+    for seed, in_run, rate in ((0, 20.0, 200_000.0), (1, 24.0, 190_000.0), (2, None, 210_000.0)):
+        ebrl("mjwarp-race", seed, in_run, rate)
+    ebrl("mjwarp-race-separate", 0, 36.0, 90_000.0)
+    for seed, to90 in ((0, 31.0), (1, 34.0), (2, 33.0)):
+        (tmp_path / f"peer_mjwarp_ppo_s{seed}.json").write_text(json.dumps({"summary": {
+            "target_reached": {"wall_s": to90}, "rollout_env_steps_per_s": 215_000.0}}))
+    times = ["ebrl 0 24.5", "peer 0 33.0", "ebrl 1 27.5", "peer 1 36.0", "ebrl 2 120.3", "peer 2 35.0",
+             "ebrl_separate 0 48.0"]
+    (tmp_path / "times.txt").write_text("\n".join(times) + "\n")
+    out = subprocess.run([sys.executable, str(ROOT / "benchmarks" / "gpu" / "race_summary.py"), str(tmp_path),
+                          "--seeds", "0 1 2", "--json", str(tmp_path / "verdict.json")],
+                         capture_output=True, text=True, check=True).stdout
+    verdict = json.loads((tmp_path / "verdict.json").read_text())
+    ebrl_m, peer_m = verdict["medians"]["ebrl"], verdict["medians"]["peer"]
+    assert ebrl_m["whole"] == 26.0 and ebrl_m["reached"] == 2 and ebrl_m["in_run"] == 22.0  # seed 2 never got there
+    assert peer_m["whole"] == 35.0 and peer_m["rate"] == 215_000.0
+    assert verdict["ebrl"]["whole_ratio"] == pytest.approx(26.0 / 35.0) and verdict["ebrl"]["whole_holds"]
+    assert verdict["ebrl"]["rate_ratio"] == pytest.approx(200_000 / 215_000) and verdict["ebrl"]["rate_holds"]
+    assert not verdict["ebrl_separate"]["whole_holds"] and not verdict["ebrl_separate"]["rate_holds"]
+    assert "ebrl / peer: whole command 0.743x (acceptance <= 0.75: holds)" in out, out

@@ -16,10 +16,10 @@ import zenoh
 from ebrl import config, graph
 from ebrl.bus import auth, keys
 from ebrl.bus.session import BusOptions, zenoh_config
-from ebrl.hosts import plan
+from ebrl.hosts import decide_processes, plan
 from ebrl.testing import StatsWatcher
 from ebrl.viz import record
-from helpers import free_port, up
+from helpers import ROOT, free_port, up
 
 SHARED = 'run.processes=[["sim", "gen", "train"]]'
 
@@ -66,6 +66,27 @@ def test_a_wrong_placement_names_the_problem(processes, message):
 def test_training_ranks_never_share_a_process():
     with pytest.raises(config.ConfigError, match="each training rank runs in a process of its own"):
         load(run={"processes": [["gen", "train"]]}, train={"world_size": 2, "batch_size": 2048})
+
+
+def test_auto_shares_a_process_only_for_a_gpu_simulator_ebrl_ships_with_every_stage_on_a_gpu_host():
+    mjwarp = config.load(str(ROOT / "configs" / "mjwarp_pickcube.toml"), ['viz.rerun="off"'])
+    assert mjwarp.run.processes == "auto"  # the default
+    cfg, here = plan(mjwarp)
+    shared, line = decide_processes(cfg, here, gpu=True)
+    assert shared.run.processes == [["sim", "gen", "train"]] and "one GPU" in line
+    assert (("train", 0), ("gen", 0), ("sim", 0)) in here.processes(shared)
+    cases = {"no GPU on this host": (mjwarp, {}, False),
+             "steps on the CPU": (load(), {}, True),  # the quickstart's gymnasium env
+             "is your own code": (mjwarp, {"env": {"id": "mytasks:Pick-v0"}}, True),
+             "not every stage on this host": (mjwarp, {"only": "sim"}, True)}
+    for why, (base, change, gpu) in cases.items():
+        only = change.pop("only", None)
+        changed = config.from_dict({**base.to_dict(), **{k: {**base.to_dict()[k], **v} for k, v in change.items()}})
+        cfg, here = plan(changed, only=only)
+        kept, line = decide_processes(cfg, here, gpu)
+        assert kept.run.processes == [] and why in line, (why, line)
+    explicit = config.from_dict({**mjwarp.to_dict(), "run": {**mjwarp.to_dict()["run"], "processes": []}})
+    assert decide_processes(*plan(explicit), gpu=True) == (explicit, "")  # a user's choice is kept, unsaid
 
 
 # --- rights --------------------------------------------------------------------------------------------------------

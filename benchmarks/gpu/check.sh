@@ -33,8 +33,11 @@
 #               compile Warp's kernels before anything is timed), a group's chunk time at 1024-4096 worlds with
 #               and without CUDA graphs (mjwarp_step), the race: ebrl to 90 % success on PandaPickCube, then the
 #               one-process GPU PPO peer, RACE_SECONDS each, a pair for each of SEEDS ("0"; "0 1 2" gives the
-#               spread, which single pairs hide) (mjwarp_race), and 2 pipelined groups of 1024 worlds
-#               vs one group of 2048 (mjwarp_groups);
+#               spread, which single pairs hide) (mjwarp_race: it ends with each side's median seconds to 90 %,
+#               in the run and by the whole command, and the ratios of issue 51's acceptance, from
+#               benchmarks/gpu/race_summary.py), and 2 pipelined groups of 1024 worlds vs one group of 2048
+#               (mjwarp_groups); mjwarp_race_separate, in a call of its own, races EBRL's side again with every
+#               service a process of its own (run.processes = []) to show what sharing one buys;
 #               Warp's compiled kernels come back as $OUT/warp-cache.tgz.0, .1, ... (put them in .whl-mjw/cache
 #               here and re-run prepare_mjwarp.sh: the next machine loads them instead of compiling)
 #   mjwarp_variants  (after mjwarp_tests, in a later call) what closes the gap to the peer (issue 33): ebrl up
@@ -111,6 +114,18 @@ part() {  # part NAME LIMIT_S COMMAND...: runs it with a time limit, logs to $RE
     local rc=$?
     tail -n 15 "$RES/$name.log"
     echo "$name: exit $rc in $(($(date +%s) - t))s" | tee -a "$SUMMARY"
+}
+
+timed() {  # timed SIDE SEED COMMAND...: runs it, appends "SIDE SEED SECONDS" (its whole wall clock) to times.txt
+    local side=$1 seed=$2; shift 2
+    local t=$(date +%s.%N)
+    "$@"
+    echo "$side $seed $(python3 -c "import sys; print(round($(date +%s.%N) - $t, 2))")" >> "$RES/times.txt"
+}
+
+race_summary() {  # the race's medians and ratios (benchmarks/gpu/race_summary.py), into the summary
+    python3 benchmarks/gpu/race_summary.py "$RES" --seeds "$SEEDS" --json "$RES/mjwarp_race_summary.json" \
+        | tee -a "$SUMMARY"
 }
 
 variant() {  # variant NAME KEY=VALUE...: ebrl up configs/mjwarp_pickcube.toml to 90 %, VARIANT_SECONDS at most
@@ -193,13 +208,24 @@ while [ $i -lt ${#PARTS[@]} ]; do
     # the learning race, back to back (after the tests: Warp's kernels compiled and cached for both sides):
     # ebrl to 90 % success on PandaPickCube, then the one-process GPU PPO peer
     # (SEEDS: one pair a seed, ebrl first; updates to 90 % vary about 2x from seed to seed on either side)
+    # (issue 51: the config as it is, run.processes = "auto": sim, gen and train in one process on a GPU host);
+    # each command's whole wall clock into times.txt; then race_summary.py prints the medians and the ratios
     mjwarp_race) for s in $SEEDS; do
-                     part "mjwarp_ebrl_s$s" $((RACE_SECONDS + 90)) timeout "$RACE_SECONDS" python3 -m ebrl.cli up \
-                         configs/mjwarp_pickcube.toml --set 'viz.rerun="off"' --set "run.seed=$s" \
-                         --set "run.output_dir=\"$RES/mjwarp-race-s$s\""
-                     part "mjwarp_peer_s$s" $((RACE_SECONDS + 90)) python3 benchmarks/peers/mjwarp_ppo.py --seed "$s" \
-                         --max-seconds "$RACE_SECONDS" --json "$RES/peer_mjwarp_ppo_s$s.json"
-                 done ;;
+                     timed ebrl "$s" part "mjwarp_ebrl_s$s" $((RACE_SECONDS + 90)) timeout "$RACE_SECONDS" \
+                         python3 -m ebrl.cli up configs/mjwarp_pickcube.toml --set 'viz.rerun="off"' \
+                         --set "run.seed=$s" --set "run.output_dir=\"$RES/mjwarp-race-s$s\""
+                     timed peer "$s" part "mjwarp_peer_s$s" $((RACE_SECONDS + 90)) python3 benchmarks/peers/mjwarp_ppo.py \
+                         --seed "$s" --max-seconds "$RACE_SECONDS" --json "$RES/peer_mjwarp_ppo_s$s.json"
+                 done
+                 race_summary ;;
+    # the same EBRL side with every service a process of its own (run.processes = []): what sharing one buys
+    mjwarp_race_separate) for s in $SEEDS; do
+                     timed ebrl_separate "$s" part "mjwarp_ebrl_separate_s$s" $((RACE_SECONDS + 90)) \
+                         timeout "$RACE_SECONDS" python3 -m ebrl.cli up configs/mjwarp_pickcube.toml \
+                         --set 'viz.rerun="off"' --set 'run.processes=[]' --set "run.seed=$s" \
+                         --set "run.output_dir=\"$RES/mjwarp-race-separate-s$s\""
+                 done
+                 race_summary ;;
     mjwarp_variants) set -- mjwarp_fresh mjwarp_chunk1 mjwarp_group4096 mjwarp_mps; for b; do PARTS+=("$b"); done ;;
     mjwarp_fresh) variant fresh algo.max_staleness=0 ;;  # no decision acted by an older version than its update's
     mjwarp_chunk1) variant chunk1 policy.chunk=1 train.batch_size=65536 train.max_pending=131072 sim.segment_length=32 ;;

@@ -5,6 +5,11 @@ side by side on one machine, ``ebrl bench`` of the ebrl mode alternating between
     python benchmarks/overhead_ab.py --base /tmp/base --config configs/quickstart.toml --duration 30 --rounds 3 \\
         --out benchmarks/results/untrusted_sim_overhead_quickstart.json
 
+Or one checkout against itself with settings for the new side (``--base`` left out, ``--set-new``)::
+
+    python benchmarks/overhead_ab.py --config configs/quickstart.toml --duration 30 --rounds 3 \\
+        --set-new 'run.processes=[["sim","gen","train"]]' --out benchmarks/results/shared_process_quickstart_cpu.json
+
 Each run is ``python -m ebrl.cli bench CONFIG --modes ebrl --duration D --repeat 1 --raw-seconds 0`` with
 ``PYTHONPATH`` set to the checkout it measures (so its services, started from the same interpreter, run that
 checkout's code); the base runs first in each round. It writes both sides' runs and their medians (env steps/s,
@@ -34,10 +39,10 @@ def commit(where: Path) -> str:
         return "unknown"
 
 
-def bench(checkout: Path, config: str, duration: float, out: Path) -> dict:
-    """One ``ebrl bench`` of the ebrl mode with ``checkout``'s code; its result."""
+def bench(checkout: Path, config: str, duration: float, out: Path, sets: list[str] = ()) -> dict:
+    """One ``ebrl bench`` of the ebrl mode with ``checkout``'s code (and ``sets``: overrides); its result."""
     cmd = [sys.executable, "-m", "ebrl.cli", "bench", config, "--modes", "ebrl", "--duration", str(duration),
-           "--repeat", "1", "--raw-seconds", "0", "--json", str(out)]
+           "--repeat", "1", "--raw-seconds", "0", "--json", str(out), *[a for kv in sets for a in ("--set", kv)]]
     subprocess.run(cmd, cwd=ROOT, env={**os.environ, "PYTHONPATH": str(checkout)}, check=True, timeout=1800,
                    stdout=subprocess.DEVNULL)
     return json.loads(out.read_text())["results"]["ebrl"][0]
@@ -45,7 +50,10 @@ def bench(checkout: Path, config: str, duration: float, out: Path) -> dict:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--base", required=True, help="the other checkout (a git worktree of the commit before)")
+    parser.add_argument("--base", default=str(ROOT), help="the other checkout (a git worktree of the commit "
+                        "before); default: this one (then --set-new makes the difference)")
+    parser.add_argument("--set-new", action="append", default=[], metavar="SECTION.KEY=VALUE",
+                        help="an override for the new side's runs only")
     parser.add_argument("--config", default="configs/quickstart.toml")
     parser.add_argument("--duration", type=float, default=30.0, help="measured seconds per run")
     parser.add_argument("--rounds", type=int, default=3)
@@ -56,13 +64,14 @@ def main() -> None:
     with tempfile.TemporaryDirectory() as tmp:
         for r in range(args.rounds):
             for side, checkout in sides.items():
-                result = bench(checkout, args.config, args.duration, Path(tmp) / f"{side}_{r}.json")
+                result = bench(checkout, args.config, args.duration, Path(tmp) / f"{side}_{r}.json",
+                               args.set_new if side == "new" else [])
                 runs[side].append({m: result[m] for m in METRICS})
                 print(side, r, {m: round(result[m], 2) for m in METRICS}, flush=True)
     medians = {side: {m: statistics.median(run[m] for run in rs) for m in METRICS} for side, rs in runs.items()}
     out = {"command": " ".join(["python", "benchmarks/overhead_ab.py", *sys.argv[1:]]),
            "machine": f"{len(os.sched_getaffinity(0))} usable cores", "platform": platform.machine(),
-           "config": args.config, "duration_s": args.duration, "rounds": args.rounds,
+           "config": args.config, "duration_s": args.duration, "rounds": args.rounds, "set_new": args.set_new,
            "commits": {side: commit(path) for side, path in sides.items()}, "runs": runs, "medians": medians,
            "ratio": {m: medians["new"][m] / medians["base"][m] for m in METRICS}}
     print(json.dumps(out["ratio"]))

@@ -243,7 +243,8 @@ GPU_SIMULATORS = ("mjwarp",)  # env.backend values whose worlds step on the GPU,
 def decide_processes(cfg: Config, here: HostPlan, gpu: bool) -> tuple[Config, str]:
     """``cfg`` with ``run.processes = "auto"`` decided for this host (``gpu``: it has one), and the line that says
     what it became ("" where it was not "auto"). Shared: sim, gen and train in one process, where this host runs
-    the three with one training rank and a GPU simulator of :data:`GPU_SIMULATORS` on a task EBRL ships (no
+    the three with one training rank, no allocator (its quotas and GPU shares are a process's each) and a GPU
+    simulator of :data:`GPU_SIMULATORS` on a task EBRL ships (no
     ``module:EnvId``: a user's env code never shares training's memory unasked), so that the three stages share
     one CUDA context and no message between them leaves the process. Else every service alone, as on a CPU
     host, where separate processes keep each stage's cores its own."""
@@ -255,6 +256,7 @@ def decide_processes(cfg: Config, here: HostPlan, gpu: bool) -> tuple[Config, st
            else f"env.backend = {cfg.env.backend!r} steps on the CPU" if cfg.env.backend not in GPU_SIMULATORS
            else f"env.id = {cfg.env.id!r} is your own code" if ":" in cfg.env.id
            else "several training ranks" if cfg.train.world_size > 1
+           else "the allocator shares cores and the GPU out per process" if cfg.alloc.enabled
            else "")
     chosen = [] if why else [["sim", "gen", "train"]]
     cfg = dataclasses.replace(cfg, run=dataclasses.replace(cfg.run, processes=chosen))

@@ -57,10 +57,12 @@ class SharedProcess:
 
     def __init__(self, services: list[Service], options: BusOptions):
         self.services, self.options = services, options
+        for service in services:
+            service.shares_process = len(services) > 1  # the simulator's vectorized groups then step in it too
         self.loops: dict[int, asyncio.AbstractEventLoop] = {}
         self.codes: dict[int, int] = {}
         self.stop_reason: str | None = None  # once set, every service stops (or stops as soon as it starts)
-        self._lock = threading.Lock()
+        self._lock = threading.RLock()  # stop_all runs in signal handlers too, which may interrupt it
 
     def open_session(self) -> zenoh.Session:
         """The process's session: Zenoh's receive limit the largest of its services' bounds (each service's bus

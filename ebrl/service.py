@@ -73,6 +73,7 @@ class Service:
         self.bounds: sizes.Bounds | None = None  # of the data keys it receives (message_bounds), before its bus opens
         self.device: Any = None  # the torch device of gen and train (``use_device``)
         self.memory_cap: float | None = None  # the fraction of the GPU's memory this process may allocate
+        self.shares_process = False  # run with other services in one process (run.processes: ebrl.process)
 
     # --- to override ---------------------------------------------------------------
 

@@ -3,7 +3,8 @@
 A child is ``python -m ebrl.services.<role>`` (or any command line: tests start small
 Python scripts) in a process group of its own, so that Ctrl-C reaches only the
 launcher, which stops the children in order; it dies with the launcher
-(``PR_SET_PDEATHSIG``) and appends its output to ``logs/<role>-<instance>.log``.
+(``PR_SET_PDEATHSIG``) and appends its output to ``logs/<role>-<instance>.log`` (a process of several services,
+``run.processes``: ``logs/train-0+gen-0+sim-0.log``).
 Whatever a child started in its group is killed as soon as the child is seen to
 have exited (before it is started again, or given up; at shutdown), so no
 orphaned grandchild of an old child outlives it.

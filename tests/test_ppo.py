@@ -377,4 +377,6 @@ def test_on_a_gpu_an_update_waits_for_the_device_once_per_epoch_and_skips_a_bad_
 
     (few, out), (many, _) = update(2), update(16)
     assert out["steps_skipped"] == 1 and out["decisions_dropped"] == 1
-    assert few == many and few <= 2 * ALGO.epochs + 8, (few, many)
+    # A wait per minibatch would add 14 per epoch from 2 to 16 minibatches; the H200 read (11, 10): which minibatch
+    # holds the bad decision moves a wait or two, so "does not grow" is within 2, not equal
+    assert abs(few - many) <= 2 and max(few, many) <= 2 * ALGO.epochs + 8, (few, many)

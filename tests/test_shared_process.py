@@ -4,6 +4,7 @@ rights for the process than its services have."""
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 import signal
@@ -85,6 +86,9 @@ def test_auto_shares_a_process_only_for_a_gpu_simulator_ebrl_ships_with_every_st
         cfg, here = plan(changed, only=only)
         kept, line = decide_processes(cfg, here, gpu)
         assert kept.run.processes == [] and why in line, (why, line)
+    cfg, here = plan(mjwarp)  # a GPU simulator with the allocator (none of EBRL's can have one today)
+    with_alloc = dataclasses.replace(cfg, alloc=dataclasses.replace(cfg.alloc, enabled=True))
+    assert decide_processes(with_alloc, here, gpu=True)[0].run.processes == []
     explicit = config.from_dict({**mjwarp.to_dict(), "run": {**mjwarp.to_dict()["run"], "processes": []}})
     assert decide_processes(*plan(explicit), gpu=True) == (explicit, "")  # a user's choice is kept, unsaid
 
@@ -146,17 +150,19 @@ def shared_process(run) -> psutil.Process:
 
 
 def test_services_sharing_a_process_train_report_as_themselves_and_restart_together(tmp_path):
-    """The quickstart with sim, gen and train in one process: one child process for the three; a user's stats
-    subscriber sees each service's own reports and Gantt lanes as from three processes; a kill -9 of the process
-    is noticed, it is started again with all three, and the run finishes every iteration."""
+    """The quickstart with sim, gen and train in one process, its envs a vectorized group (which then steps on a
+    thread of that process): one child process for the three and no other; a user's stats subscriber sees each
+    service's own reports and Gantt lanes as from three processes; a kill -9 of the process is noticed, it is
+    started again with all three, and the run finishes every iteration."""
     with up(tmp_path, "configs/quickstart.toml", "run.iterations=16", 'viz.rerun="off"', SHARED,
-            name="shared") as run:
+            "sim.vectorized=true", name="shared") as run:
         line = run.wait_for_line("all services live", 300)
         assert "train/0+gen/0+sim/0" in line
         with StatsWatcher(run) as stats:
             stats.wait_for(lambda: (stats.latest("train/0", "train/policy_version") or 0) >= 4, 300, "4 updates")
             victim = shared_process(run)
             assert [c for c in psutil.Process(run.proc.pid).children() if "ebrl.services.sim" in c.cmdline()] == []
+            assert victim.children() == [], victim.children()  # the group steps on a thread, not in a process
             os.kill(victim.pid, signal.SIGKILL)
             code = run.wait(400)
     assert code == 0, run.output[-4000:]

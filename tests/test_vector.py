@@ -21,7 +21,7 @@ from ebrl.config import ConfigError
 from ebrl.envs import EnvSpec, EnvWorker
 from ebrl.envs import maniskill
 from ebrl.envs.batch import BatchRunner, EnvBatch, ManiSkillBatch, make_batch
-from ebrl.envs.vector import VectorWorker
+from ebrl.envs.vector import InlineVectorWorker, VectorWorker
 from ebrl.envs.worker import WorkerFailed
 from ebrl.sched.fleet import MAX_REPLACEMENTS, VectorFleet, make_fleet
 from ebrl.sched.modes import Schedule, resolve
@@ -220,12 +220,61 @@ def test_a_vectorized_group_process_answers_and_fails_like_a_worker(obs_size):
     asyncio.run(scenario())
 
 
-def vector_fleet(fault: str, bad_env: int) -> VectorFleet:
+def test_a_vectorized_group_on_a_thread_of_the_sim_s_process_answers_and_fails_like_its_process():
+    """InlineVectorWorker (the simulator sharing a process, run.processes): the same answers as the group's
+    process, in this process's own thread (no child process); a malformed request is the batch's answer, a
+    batch that raises is a failed group, and a failed group takes no more requests."""
+    chunks = chunks_of_actions(2, 4, 6, seed=1)
+    runner = BatchRunner(EnvBatch(PENDULUM, [1, 2]))
+    first = runner.reset(np.zeros(2, np.int64))
+    expected = [runner.chunk(actions) for actions in chunks]
+    runner.batch.close()
+
+    async def scenario():
+        import psutil
+
+        children = set(p.pid for p in psutil.Process().children())
+        worker = InlineVectorWorker(PENDULUM, [1, 2], sorted(os.sched_getaffinity(0))[:1])
+        try:
+            obs = await worker.reset(np.zeros(2, np.int64))
+            assert np.array_equal(obs, first)
+            assert set(p.pid for p in psutil.Process().children()) == children  # no process of its own
+            for actions, want in zip(chunks, expected):
+                got = await worker.chunk(actions, timeout=30)
+                assert np.array_equal(got.next_obs, want.next_obs) and np.array_equal(got.final_obs, want.final_obs)
+                assert got.steps.tolist() == want.steps.tolist() and got.busy_s >= 0
+            assert worker.chunks_done == len(chunks) and worker.thread_id is not None
+            assert os.sched_getaffinity(worker.thread_id) == set(sorted(os.sched_getaffinity(0))[:1])
+            with pytest.raises(ValueError, match="a chunk for 3 envs"):  # a malformed request: said, not fatal
+                await worker.chunk(np.zeros((3, 3, 1), np.float32), timeout=30)
+            worker.runner.chunk = lambda actions: 1 / 0  # the batch itself fails: the group is lost
+            with pytest.raises(WorkerFailed, match="ZeroDivisionError"):
+                await worker.chunk(np.zeros((2, 3, 1), np.float32), timeout=30)
+            with pytest.raises(WorkerFailed, match="is gone"):
+                await worker.chunk(np.zeros((2, 3, 1), np.float32), timeout=30)
+        finally:
+            worker.close()
+
+    asyncio.run(scenario())
+
+
+def test_an_inline_vectorized_group_whose_env_fails_at_every_step_is_given_up_and_the_other_goes_on(caplog):
+    fleet = vector_fleet("raise", bad_env=1, inline=True)
+    try:
+        assert all(isinstance(w, InlineVectorWorker) for w in fleet.vectors.values())
+        answered = asyncio.run(drive(fleet, chunks=MAX_REPLACEMENTS + 4))
+        assert answered == {0: 0, 1: 0, 2: MAX_REPLACEMENTS + 4, 3: MAX_REPLACEMENTS + 4}
+        assert fleet.given_up_envs == {0, 1} and fleet.count() == 2
+    finally:
+        fleet.close()
+
+
+def vector_fleet(fault: str, bad_env: int, inline: bool = False) -> VectorFleet:
     spec = EnvSpec("faulty_envs:Faulty-v0", kwargs={"fault": fault, "bad_env": bad_env})
     schedule = Schedule(mode="ebrl", groups=2, envs_per_group=2, stepping="batch", core_rebinding=False,
                         overlap=True, max_staleness=1, rollout_length=8, sim_cores=sorted(os.sched_getaffinity(0))[:1],
                         gen_cores=[], train_cores=[], vectorized=True)
-    fleet = make_fleet(spec, schedule, host=0, seed=0)
+    fleet = make_fleet(spec, schedule, host=0, seed=0, inline=inline)
     assert isinstance(fleet, VectorFleet)
     return fleet
 

@@ -21,14 +21,20 @@ observation of those whose episode ended (the only ones that differ from it).
 
 from __future__ import annotations
 
+import asyncio
+import logging
 import os
+import threading
+from concurrent.futures import ThreadPoolExecutor
 from multiprocessing.connection import Connection
 from typing import Any
 
 import numpy as np
 
 from ebrl.envs.spec import EnvError, EnvSpec
-from ebrl.envs.worker import VectorChunk, WorkerProcess, adopt, worker_context
+from ebrl.envs.worker import VectorChunk, WorkerFailed, WorkerProcess, adopt, worker_context
+
+log = logging.getLogger(__name__)
 
 
 def _vector_main(conn: Connection, spec: EnvSpec, seeds: list[int], shared: Any = None,
@@ -95,3 +101,83 @@ class VectorWorker(WorkerProcess):
             result.final_obs = self.shared[1, :len(result.ended)].copy()  # type: ignore[index]
         self.chunks_done += 1
         return result
+
+
+class InlineVectorWorker:
+    """A vectorized group stepped on a thread of the sim service's own process, not a process of its own: where
+    the simulator shares a process with generation and training (``run.processes``), its physics then runs in
+    their CUDA context, not in one more. The same interface as :class:`VectorWorker` (``reset``, ``chunk``,
+    ``pin``, ``kill``, ``close``): a request that raises ``ValueError`` or ``EnvError`` is the batch's answer; any
+    other failure, or no answer within the chunk's timeout, is a :class:`~ebrl.envs.worker.WorkerFailed`, after
+    which the group is replaced by a new one (a thread that hangs cannot be killed: it is left, logged, and the
+    stall watch restarts the process if the group stops moving)."""
+
+    def __init__(self, spec: EnvSpec, seeds: list[int], cores: list[int], obs_size: int = 0):
+        self.num_envs = len(seeds)
+        self.cores: list[int] = []
+        self.chunks_done = 0
+        self.dead = False
+        self._closing = False
+        self.thread_id: int | None = None
+        self.runner: Any = None
+        self.executor = ThreadPoolExecutor(1, thread_name_prefix="ebrl-vector")
+        self.built = self.executor.submit(self._build, spec, list(seeds))
+        self.pin(cores)
+
+    def _build(self, spec: EnvSpec, seeds: list[int]) -> None:
+        from ebrl.envs.batch import BatchRunner, make_batch
+
+        self.thread_id = threading.get_native_id()
+        if self.cores:
+            os.sched_setaffinity(self.thread_id, set(self.cores))
+        self.runner = BatchRunner(make_batch(spec, seeds), spec.max_abs_reward)
+
+    def pin(self, cores: list[int]) -> None:
+        """Run the group's thread on ``cores`` (as :meth:`VectorWorker.pin` its process)."""
+        self.cores = sorted(cores)
+        if self.thread_id is not None and cores:
+            os.sched_setaffinity(self.thread_id, set(cores))
+
+    async def _request(self, what: str, arg: np.ndarray, timeout: float | None) -> Any:
+        if self.dead:
+            raise WorkerFailed(f"vectorized group thread is gone (it failed or hung before {what!r})")
+
+        def run() -> Any:
+            self.built.result()  # a batch that failed to build fails every request
+            return self.runner.reset(arg) if what == "reset" else self.runner.chunk(arg)
+
+        future = asyncio.wrap_future(self.executor.submit(run))
+        try:
+            return await asyncio.wait_for(asyncio.shield(future), timeout)
+        except asyncio.TimeoutError:
+            self.dead = True
+            log.error("vectorized group thread did not answer %r within %.1f s; it is left behind", what, timeout)
+            raise WorkerFailed(f"vectorized group did not answer {what!r} within {timeout:.1f} s") from None
+        except (ValueError, EnvError):
+            raise
+        except Exception as exc:
+            self.dead = True
+            raise WorkerFailed(f"vectorized group failed: {exc!r}") from exc
+
+    async def reset(self, episodes: np.ndarray) -> np.ndarray:
+        return await self._request("reset", np.asarray(episodes, np.int64), None)
+
+    async def chunk(self, actions: np.ndarray, timeout: float | None = None) -> VectorChunk:
+        result = await self._request("chunk", np.asarray(actions, np.float32), timeout)
+        self.chunks_done += 1
+        return result
+
+    def kill(self, close_pipe: bool = True) -> None:
+        """Take no more requests; the batch is closed on its thread once the one in flight (if any) returns."""
+        self.dead = True
+        if not self._closing:  # once: the fleet kills a failed group, then again as it replaces it
+            self._closing = True
+            self.executor.submit(self._close)
+            self.executor.shutdown(wait=False)
+
+    def close(self, timeout: float = 2.0) -> None:
+        self.kill()
+
+    def _close(self) -> None:
+        if self.runner is not None:
+            self.runner.batch.close()

@@ -22,7 +22,7 @@ from typing import Callable
 import numpy as np
 
 from ebrl.envs import EnvSpec, EnvWorker
-from ebrl.envs.vector import VectorWorker
+from ebrl.envs.vector import InlineVectorWorker, VectorWorker
 from ebrl.envs.worker import ChunkResult, VectorChunk, WorkerFailed
 from ebrl.messages import EPISODES_MAX, RETURN_WINDOW, EpisodeBatch
 from ebrl.sched.corepool import CorePool
@@ -198,8 +198,11 @@ class VectorFleet(EnvFleet):
     on). A group whose process fails ``MAX_REPLACEMENTS + 1`` times in a row without answering a chunk is given up."""
 
     def __init__(self, spec: EnvSpec, schedule: Schedule, host: int, seed: int, share: int = 1, obs_size: int = 0,
-                 **_: object):
-        """``obs_size``: values per observation; observations then come back through shared memory."""
+                 inline: bool = False, **_: object):
+        """``obs_size``: values per observation; observations then come back through shared memory. ``inline``:
+        each group steps on a thread of this process instead (:class:`~ebrl.envs.vector.InlineVectorWorker`: the
+        simulator shares a process with generation and training)."""
+        self.inline = inline
         if share > 1:
             raise ValueError("vectorized groups cannot promise GRPO's shared initial states (sim.vectorized)")
         self._place(spec, schedule, host, seed, share)
@@ -210,9 +213,10 @@ class VectorFleet(EnvFleet):
         self.vectors = {g: self._start_group(g) for g in self.groups}
         self.workers = {}  # no process per env
 
-    def _start_group(self, g: int) -> VectorWorker:
-        return VectorWorker(self.spec, [self.env_seed(int(env)) for env in self.env_ids(g)], self.schedule.sim_cores,
-                            self.obs_size)
+    def _start_group(self, g: int) -> VectorWorker | InlineVectorWorker:
+        worker = InlineVectorWorker if self.inline else VectorWorker
+        return worker(self.spec, [self.env_seed(int(env)) for env in self.env_ids(g)], self.schedule.sim_cores,
+                      self.obs_size)
 
     async def reset_group(self, g: int) -> np.ndarray:
         return await self.vectors[g].reset(np.zeros(self.per_group, np.int64))
@@ -288,11 +292,11 @@ class VectorFleet(EnvFleet):
 
 
 def make_fleet(spec: EnvSpec, schedule: Schedule, host: int, seed: int, share: int = 1, obs_size: int = 0,
-               **hooks: Callable) -> EnvFleet:
+               inline: bool = False, **hooks: Callable) -> EnvFleet:
     """The fleet of the schedule: vectorized groups (their observations through shared memory when ``obs_size``
-    is given), or a worker process per env."""
+    is given; each on a thread of this process with ``inline``), or a worker process per env."""
     if schedule.vectorized:
-        return VectorFleet(spec, schedule, host=host, seed=seed, share=share, obs_size=obs_size)
+        return VectorFleet(spec, schedule, host=host, seed=seed, share=share, obs_size=obs_size, inline=inline)
     return EnvFleet(spec, schedule, host=host, seed=seed, share=share, **hooks)
 
 

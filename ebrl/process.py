@@ -59,6 +59,10 @@ class SharedProcess:
         self.services, self.options = services, options
         for service in services:
             service.shares_process = len(services) > 1  # the simulator's vectorized groups then step in it too
+        if len(services) > 1 and any(s.role == "gen" for s in services):  # its chunk forward may be captured
+            from ebrl.policies import graphs
+
+            graphs.CAPTURE_ERROR_MODE = "thread_local"
         self.loops: dict[int, asyncio.AbstractEventLoop] = {}
         self.codes: dict[int, int] = {}
         self.stop_reason: str | None = None  # once set, every service stops (or stops as soon as it starts)
@@ -86,8 +90,10 @@ class SharedProcess:
                    for i, s in enumerate(self.services)]
         for sig in (signal.SIGINT, signal.SIGTERM):
             signal.signal(sig, lambda signum, _: self.stop_all(f"signal {signal.Signals(signum).name}"))
-        for thread in threads:
-            thread.start()
+        for index in self.start_order():  # one at a time: no CUDA capture of one meets another's set-up
+            threads[index].start()
+            while threads[index].is_alive() and not self.services[index].ready.wait(0.2):
+                pass
         for thread in threads:
             while thread.is_alive():
                 thread.join(0.2)  # the main thread stays free for the signal handlers
@@ -96,6 +102,11 @@ class SharedProcess:
         except Exception as exc:
             log.debug("session close: %s", exc)
         return max(self.codes.values(), default=1)
+
+    def start_order(self) -> list[int]:
+        """The simulator first (its vectorized groups build their batches, and capture their CUDA graphs, while
+        nothing else of the process uses the GPU), then the others in their order."""
+        return sorted(range(len(self.services)), key=lambda i: self.services[i].role != "sim")
 
     def _serve(self, index: int, session: zenoh.Session) -> None:
         service = self.services[index]

@@ -74,6 +74,7 @@ class Service:
         self.device: Any = None  # the torch device of gen and train (``use_device``)
         self.memory_cap: float | None = None  # the fraction of the GPU's memory this process may allocate
         self.shares_process = False  # run with other services in one process (run.processes: ebrl.process)
+        self.ready = threading.Event()  # set once setup() is done: a process of several starts the next then
 
     # --- to override ---------------------------------------------------------------
 
@@ -170,6 +171,7 @@ class Service:
         exit_code = 0
         try:
             await self.setup()
+            self.ready.set()
             self.controls = ControlInbox(self)
             self.bus.declare_token(keys.live(self.run_name, self.role, self.instance))
             self.log.info("%s/%d ready", self.role, self.instance)

@@ -339,3 +339,23 @@ def test_a_gpu_group_of_1024_worlds_steps_chunks_with_partial_resets():
         chunk = runner.chunk(rng.uniform(-1, 1, (1024, 4, 4)).astype(np.float32))
         assert np.isfinite(chunk.next_obs).all() and np.isfinite(chunk.reward).all()
     assert (runner.episodes >= 2).all()
+
+
+@pytest.mark.gpu
+@needs_cuda
+def test_the_gpu_config_with_no_flags_runs_simulator_generation_and_training_in_one_process(tmp_path):
+    """issue 51: on a GPU host `ebrl up configs/mjwarp_pickcube.toml` shares one process among sim, gen and train
+    (run.processes = "auto"), its groups stepping on that process's thread: the decision said and kept, one
+    process for the three, and the run trains (its CUDA graphs captured while nothing else of the process used
+    the GPU)."""
+    import psutil
+
+    with up(tmp_path, "configs/mjwarp_pickcube.toml", "run.iterations=4", 'viz.rerun="off"', name="shared-gpu") as run:
+        run.wait_for_line("all services live", 600)
+        shared = [c for c in psutil.Process(run.proc.pid).children() if "ebrl.process" in c.cmdline()]
+        assert len(shared) == 1 and shared[0].children() == []  # the groups step on its thread
+        code = run.wait(600)
+    assert code == 0, run.output[-4000:]
+    assert "auto: run.processes = [['sim', 'gen', 'train']]" in run.output
+    assert load(str(run.run_dir / "config.toml"), []).run.processes == [["sim", "gen", "train"]]
+    assert json.loads((run.run_dir / "summary.json").read_text())["iterations"] == 4

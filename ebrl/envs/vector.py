@@ -22,6 +22,7 @@ observation of those whose episode ended (the only ones that differ from it).
 from __future__ import annotations
 
 import asyncio
+import concurrent.futures
 import logging
 import os
 import threading
@@ -106,52 +107,59 @@ class VectorWorker(WorkerProcess):
 class InlineVectorWorker:
     """A vectorized group stepped on a thread of the sim service's own process, not a process of its own: where
     the simulator shares a process with generation and training (``run.processes``), its physics then runs in
-    their CUDA context, not in one more. The same interface as :class:`VectorWorker` (``reset``, ``chunk``,
-    ``pin``, ``kill``, ``close``): a request that raises ``ValueError`` or ``EnvError`` is the batch's answer; any
-    other failure, or no answer within the chunk's timeout, is a :class:`~ebrl.envs.worker.WorkerFailed`, after
-    which the group is replaced by a new one (a thread that hangs cannot be killed: it is left, logged, and the
-    stall watch restarts the process if the group stops moving)."""
+    their CUDA context, not in one more. Every group of the process steps on one thread (:data:`PHYSICS`), one
+    chunk at a time: MuJoCo Warp crashed with two groups stepping on two threads of one process, and on one GPU
+    the groups' kernels queue one after another anyway; the groups still pipeline (one steps while another
+    waits for its actions). The same interface as :class:`VectorWorker` (``reset``, ``chunk``, ``pin``, ``kill``,
+    ``close``): a request that raises ``ValueError`` or ``EnvError`` is the batch's answer; any other failure, or
+    no answer within the chunk's timeout, is a :class:`~ebrl.envs.worker.WorkerFailed`, after which the group is
+    replaced by a new one. A thread that hangs cannot be killed: the groups behind it stop moving, and the stall
+    watch restarts the whole process."""
 
     def __init__(self, spec: EnvSpec, seeds: list[int], cores: list[int], obs_size: int = 0):
         self.num_envs = len(seeds)
         self.cores: list[int] = []
         self.chunks_done = 0
         self.dead = False
-        self._closing = False
-        self.thread_id: int | None = None
         self.runner: Any = None
-        self.executor = ThreadPoolExecutor(1, thread_name_prefix="ebrl-vector")
-        self.built = self.executor.submit(self._build, spec, list(seeds))
+        self.built = physics().submit(self._build, spec, list(seeds))
+        concurrent.futures.wait([self.built])  # built (and its CUDA graphs captured) before the caller goes on
         self.pin(cores)
+
+    @property
+    def thread_id(self) -> int | None:
+        return _PHYSICS_THREAD[0]
 
     def _build(self, spec: EnvSpec, seeds: list[int]) -> None:
         from ebrl.envs.batch import BatchRunner, make_batch
 
-        self.thread_id = threading.get_native_id()
-        if self.cores:
-            os.sched_setaffinity(self.thread_id, set(self.cores))
-        self.runner = BatchRunner(make_batch(spec, seeds), spec.max_abs_reward)
+        runner = BatchRunner(make_batch(spec, seeds), spec.max_abs_reward)
+        if self.dead:  # killed while it was being built
+            runner.batch.close()
+        else:
+            self.runner = runner
 
     def pin(self, cores: list[int]) -> None:
-        """Run the group's thread on ``cores`` (as :meth:`VectorWorker.pin` its process)."""
+        """Run the physics thread on ``cores`` (as :meth:`VectorWorker.pin` its process; every group of the process
+        is on the simulator's cores)."""
         self.cores = sorted(cores)
-        if self.thread_id is not None and cores:
-            os.sched_setaffinity(self.thread_id, set(cores))
+        if cores:
+            physics().submit(os.sched_setaffinity, 0, set(cores)).result()  # 0: the calling thread, on Linux
 
     async def _request(self, what: str, arg: np.ndarray, timeout: float | None) -> Any:
         if self.dead:
-            raise WorkerFailed(f"vectorized group thread is gone (it failed or hung before {what!r})")
+            raise WorkerFailed(f"vectorized group is gone (it failed or hung before {what!r})")
 
         def run() -> Any:
             self.built.result()  # a batch that failed to build fails every request
             return self.runner.reset(arg) if what == "reset" else self.runner.chunk(arg)
 
-        future = asyncio.wrap_future(self.executor.submit(run))
+        future = asyncio.wrap_future(physics().submit(run))
         try:
             return await asyncio.wait_for(asyncio.shield(future), timeout)
         except asyncio.TimeoutError:
             self.dead = True
-            log.error("vectorized group thread did not answer %r within %.1f s; it is left behind", what, timeout)
+            log.error("vectorized group did not answer %r within %.1f s on the physics thread", what, timeout)
             raise WorkerFailed(f"vectorized group did not answer {what!r} within {timeout:.1f} s") from None
         except (ValueError, EnvError):
             raise
@@ -168,16 +176,23 @@ class InlineVectorWorker:
         return result
 
     def kill(self, close_pipe: bool = True) -> None:
-        """Take no more requests; the batch is closed on its thread once the one in flight (if any) returns."""
+        """Take no more requests; the batch is closed on the physics thread after what is queued there."""
         self.dead = True
-        if not self._closing:  # once: the fleet kills a failed group, then again as it replaces it
-            self._closing = True
-            self.executor.submit(self._close)
-            self.executor.shutdown(wait=False)
+        runner, self.runner = self.runner, None
+        if runner is not None:
+            physics().submit(runner.batch.close)
 
     def close(self, timeout: float = 2.0) -> None:
         self.kill()
 
-    def _close(self) -> None:
-        if self.runner is not None:
-            self.runner.batch.close()
+
+_PHYSICS: list[ThreadPoolExecutor] = []
+_PHYSICS_THREAD: list[int | None] = [None]
+
+
+def physics() -> ThreadPoolExecutor:
+    """The one thread of this process the in-process vectorized groups step on (:class:`InlineVectorWorker`)."""
+    if not _PHYSICS:
+        _PHYSICS.append(ThreadPoolExecutor(1, thread_name_prefix="ebrl-physics"))
+        _PHYSICS[0].submit(lambda: _PHYSICS_THREAD.__setitem__(0, threading.get_native_id())).result()
+    return _PHYSICS[0]

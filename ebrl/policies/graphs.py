@@ -24,6 +24,10 @@ from ebrl import devices
 from ebrl.policies.base import ChunkPolicy, to_host
 
 log = logging.getLogger("ebrl.policies")
+# torch's "global" checks every thread of the process while a graph is captured: right for a process of its own;
+# services sharing a process (ebrl.process) set "thread_local", so that the simulator's and training's work on
+# their own threads and streams does not fail generation's capture, nor the capture theirs
+CAPTURE_ERROR_MODE = "global"
 
 MAX_GRAPHS = 16  # batch sizes with a captured graph
 WARMUP = 2  # eager passes on a side stream before a capture (cuBLAS handles, autotuning, the allocator)
@@ -84,7 +88,8 @@ class Actor:
                 self.policy.sample(static_in)
         torch.cuda.current_stream(self.device).wait_stream(side)
         graph = torch.cuda.CUDAGraph()
-        with torch.cuda.graph(graph, pool=self.pool), torch.no_grad(), devices.autocast(self.device, self.dtype):
+        with torch.cuda.graph(graph, pool=self.pool, capture_error_mode=CAPTURE_ERROR_MODE), torch.no_grad(), \
+                devices.autocast(self.device, self.dtype):
             outs = self.policy.sample(static_in)
         entry = (static_in, graph, tuple(outs))
         self.graphs[obs.shape[0]] = entry

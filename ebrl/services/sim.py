@@ -36,9 +36,9 @@ class SimService(Service):
             os.sched_setaffinity(0, sched.sim_cores)  # rollout's share of the machine
         # sim/<instance> runs on host <instance> of a multi-host run: its groups follow the other hosts'
         share = cfg.algo.group_size if cfg.algo.name == "grpo" else 1
-        # sharing a process (run.processes): vectorized groups step on its threads, in its one CUDA context
+        # sharing a process (run.processes), GPU physics steps on its thread, in its one CUDA context
         self.fleet = make_fleet(spec, sched, host=self.instance, seed=cfg.run.seed, share=share,
-                                obs_size=math.prod(info.obs_shape), inline=self.shares_process,
+                                obs_size=math.prod(info.obs_shape), inline=self.shares_process and spec.gpu_physics,
                               on_core_step=lambda core, s: self.count(f"sim/core{core}_busy_s", s),
                               on_mode=lambda mode, a, b: self.publish_span("stepping", NAMES[mode], a, b, False),
                               on_decision=self.stepping_decided)

@@ -199,6 +199,7 @@ def test_the_launcher_waits_for_the_final_evaluation_only_while_it_can_come(monk
     from ebrl import launch
     from ebrl.messages import StatsReport
     from ebrl.runview import RunView
+    from ebrl.supervisor import Child
 
     def result(version: float) -> tuple:
         return "ebrl/stats/r/eval/0", StatsReport(run="r", service="eval", instance=0, time=0.0, seq=0,
@@ -206,7 +207,7 @@ def test_the_launcher_waits_for_the_final_evaluation_only_while_it_can_come(monk
 
     said, now = [], [100.0]
     monkeypatch.setattr(launch.time, "monotonic", lambda: now[0])
-    view, evaluator = RunView("r", iterations=4), SimpleNamespace(role="eval", given_up=False)
+    view, evaluator = RunView("r", iterations=4), Child("eval", 0, None, Path("eval-0.log"))
     wait = launch.FinalEvaluation(60.0, 4, said.append)
     assert wait.pending(view, [evaluator]) and "waiting for the evaluation of the final policy v4" in said[0]
     view.on_report(*result(2.0))
@@ -216,8 +217,10 @@ def test_the_launcher_waits_for_the_final_evaluation_only_while_it_can_come(monk
     view.on_report(*result(4.0))
     assert not wait.pending(view, [evaluator])
     assert not launch.FinalEvaluation(60.0, 5, said.append).pending(view, [])  # no eval service on this host
-    assert not launch.FinalEvaluation(60.0, 5, said.append).pending(view, [SimpleNamespace(role="eval",
-                                                                                             given_up=True)])
+    assert not launch.FinalEvaluation(60.0, 5, said.append).pending(view, [Child("eval", 0, None, Path("e.log"),
+                                                                                   given_up=True)])
+    shared = Child("train", 0, None, Path("p.log"), members=(("train", 0), ("eval", 0)))  # a process of several
+    assert launch.FinalEvaluation(60.0, 5, said.append).pending(view, [shared])
     assert not launch.FinalEvaluation(0.0, 5, said.append).pending(view, [evaluator])
     late = launch.FinalEvaluation(60.0, 5, said.append)
     assert late.pending(view, [evaluator])

@@ -492,6 +492,7 @@ def _other_user():
     return (entry.pw_uid, entry.pw_gid) if probe.returncode == 0 else None
 
 
+@pytest.mark.slow  # the fast suite's 10 minutes; a hostile signed-in simulator in the fast suite: tests/test_untrusted_sim.py
 def test_a_hostile_process_can_neither_read_nor_stop_nor_poison_a_run(tmp_path):
     """An outsider (another user id where the test can switch to one) attacks a live run without pause, with
     well-formed messages: stops for every service, a far-ahead weights version, a made-up training report of a
@@ -532,6 +533,7 @@ def test_a_hostile_process_can_neither_read_nor_stop_nor_poison_a_run(tmp_path):
     assert stats.reports("sim/0") and stats.reports("gen/0")  # the owner's observer saw the run
 
 
+@pytest.mark.slow  # the fast suite's 10 minutes; the rights per role and instance against a real router stay fast (this file)
 def test_insiders_holding_sim_s_or_gen_s_credential_cannot_act_as_another_role(tmp_path):
     """Two insiders, one signed in with sim/0's own line (as the launcher hands it over) and one with gen/0's, send
     for the whole run what other roles own, each message plausible: the policy's own tensors zeroed at versions

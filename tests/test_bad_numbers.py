@@ -229,6 +229,7 @@ def test_a_run_on_a_buggy_env_finishes_every_iteration_with_no_restart_and_a_fin
     assert "sim/rewards_clipped" in report
 
 
+@pytest.mark.slow  # the fast suite's 10 minutes; the weights' plausibility unit tests stay fast
 def test_one_forged_weights_version_ahead_of_train_does_not_stall_the_run(tmp_path):
     """The issue's case: one plausible weights message -- train's newest tensors numbered its version + 60 --
     put gen ahead of train, train dropped every later segment as acted by a future version, and the run stood

@@ -83,6 +83,7 @@ def test_a_hung_env_worker_is_killed_after_the_step_timeout(tmp_path):
     assert not hung.is_running() or hung.status() == psutil.STATUS_ZOMBIE  # killed, not left stopped
 
 
+@pytest.mark.slow  # the fast suite's 10 minutes; a killed process restarted, in the fast suite: tests/test_shared_process.py
 def test_a_killed_gen_is_restarted_and_every_group_is_served_again(tmp_path):
     # train.max_pending = one batch: training cannot have the rest of the run's data buffered when gen dies (with
     # the default 8192 it could finish every iteration before the restart, and there was nothing to restart for)

@@ -253,6 +253,7 @@ def test_zero_turns_it_off():
     assert run_for(watch, clock, reports, 100, silent=("gen/0",)) is None
 
 
+@pytest.mark.slow  # the fast suite's 10 minutes; the stall rules' unit tests stay fast
 def test_a_stopped_gen_is_reported_by_name_restarted_and_the_run_finishes(tmp_path):
     """SIGSTOP on gen mid-run: no error, no exit, only silence -- named within a minute (here within the 10 s
     timeout and a few seconds), killed, restarted, and every iteration done."""

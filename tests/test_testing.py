@@ -23,6 +23,7 @@ def test_a_run_name_among_the_overrides_wins_over_the_name_asked_for(tmp_path):
     assert cmd[-2:] == ["--set", "run.name=mine"]  # last, as ebrl up applies them: in order
 
 
+@pytest.mark.slow  # the fast suite's 10 minutes; the fast suite's time
 def test_a_renamed_run_is_watched_under_its_real_name_and_stops_on_sigint(tmp_path):
     with Run(QUICKSTART, "run.iterations=0", "train.batch_size=256", 'viz.rerun="off"', "run.name=renamed",
              name="asked", out_dir=tmp_path) as run, StatsWatcher(run) as stats:

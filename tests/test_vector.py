@@ -185,15 +185,22 @@ def test_maniskill_batches_step_together_partially_reset_and_count_each_envs_own
     assert chunk.episode_length[chunk.ended.tolist().index(2)] == 5  # its episode ran over two chunks
 
 
-@pytest.mark.parametrize("obs_size", [0, 4], ids=["pipe", "shared_memory"])
-def test_a_vectorized_group_process_answers_and_fails_like_a_worker(obs_size):
-    """Observations through the pipe or through shared memory: the same answers (the pendulum falls inside the
-    chunks, so final observations travel too)."""
+def pendulum_answers() -> tuple[list[np.ndarray], np.ndarray, list]:
+    """Six chunks of actions for two pendulums, and what a batch in this process answers: the first observations
+    and each chunk's result (the pendulum falls inside the chunks, so final observations travel too)."""
     chunks = chunks_of_actions(2, 4, 6, seed=1)
     runner = BatchRunner(EnvBatch(PENDULUM, [1, 2]))
     first = runner.reset(np.zeros(2, np.int64))
     expected = [runner.chunk(actions) for actions in chunks]
     runner.batch.close()
+    return chunks, first, expected
+
+
+@pytest.mark.parametrize("obs_size", [0, 4], ids=["pipe", "shared_memory"])
+def test_a_vectorized_group_process_answers_and_fails_like_a_worker(obs_size):
+    """Observations through the pipe or through shared memory: the same answers (the pendulum falls inside the
+    chunks, so final observations travel too)."""
+    chunks, first, expected = pendulum_answers()
 
     async def scenario():
         worker = VectorWorker(PENDULUM, [1, 2], sorted(os.sched_getaffinity(0))[:1], obs_size)
@@ -224,11 +231,7 @@ def test_a_vectorized_group_on_a_thread_of_the_sim_s_process_answers_and_fails_l
     """InlineVectorWorker (the simulator sharing a process, run.processes): the same answers as the group's
     process, in this process's own thread (no child process); a malformed request is the batch's answer, a
     batch that raises is a failed group, and a failed group takes no more requests."""
-    chunks = chunks_of_actions(2, 4, 6, seed=1)
-    runner = BatchRunner(EnvBatch(PENDULUM, [1, 2]))
-    first = runner.reset(np.zeros(2, np.int64))
-    expected = [runner.chunk(actions) for actions in chunks]
-    runner.batch.close()
+    chunks, first, expected = pendulum_answers()
 
     async def scenario():
         import psutil

@@ -28,6 +28,7 @@ from ebrl.bus import keys
 from ebrl.config import ROLES, Config, ConfigError, processes
 
 PRIMARY_LOST_S = 30.0  # a secondary host stops when no train has been live for this long
+UNKNOWN_KEPT = 4096  # tokens of instances the run does not have, remembered to count each once (memory bounded)
 
 
 @dataclass(frozen=True)
@@ -187,7 +188,8 @@ class Membership:
         if self.planned is not None and key not in self.planned:
             if alive and key not in self.unknown:
                 self.unknown_seen += 1
-            (self.unknown.add if alive else self.unknown.discard)(key)
+            if not alive or len(self.unknown) < UNKNOWN_KEPT:  # past it, each appearance counts anew
+                (self.unknown.add if alive else self.unknown.discard)(key)
             return None
         if alive:
             self.live.add(key)
@@ -254,13 +256,20 @@ def decide_processes(cfg: Config, here: HostPlan, gpu: bool) -> tuple[Config, st
     why = ("no GPU on this host" if not gpu
            else "not every stage on this host" if not stages <= set(here.roles)
            else f"env.backend = {cfg.env.backend!r} steps on the CPU" if cfg.env.backend not in GPU_SIMULATORS
-           else f"env.id = {cfg.env.id!r} is your own code" if ":" in cfg.env.id
+           else f"env.id = {cfg.env.id!r} is your own code" if not _shipped_task(cfg.env.id)
            else "several training ranks" if cfg.train.world_size > 1
            else "the allocator shares cores and the GPU out per process" if cfg.alloc.enabled
            else "")
     chosen = [] if why else [["sim", "gen", "train"]]
     cfg = dataclasses.replace(cfg, run=dataclasses.replace(cfg.run, processes=chosen))
     return cfg, (f"auto: run.processes = {chosen} ({why or 'a GPU simulator, generation and training on one GPU'})")
+
+
+def _shipped_task(env_id: str) -> bool:
+    """Whether ``env_id`` is a MuJoCo Warp task EBRL ships (``ebrl.envs.mjtask.TASKS``), not a user's module."""
+    from ebrl.envs.mjtask import TASKS  # MuJoCo: only where a GPU simulator is about to run
+
+    return env_id in TASKS
 
 
 def planned_instances(cfg: Config, here: HostPlan) -> tuple[tuple[str, int], ...] | None:

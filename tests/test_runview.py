@@ -15,7 +15,7 @@ import termios
 from pathlib import Path
 
 from ebrl.bus import keys
-from ebrl.hosts import HostChange, Membership
+from ebrl.hosts import UNKNOWN_KEPT, HostChange, Membership
 from ebrl.messages import StatsReport
 from ebrl.runview import Console, Progress, RunView, summary as run_summary, write_summary
 
@@ -293,6 +293,9 @@ def test_membership_admitting_only_the_planned_instances_counts_every_other_toke
     members.update(keys.live("r", "sim", 2), True)  # it came back: counted again
     assert members.unknown_seen == 5 and not members.is_live("sim", 2)
     assert members.update(keys.live("r", "launcher", 1), True) == HostChange(1, joined=True)
+    for n in range(100, 100 + UNKNOWN_KEPT + 500):  # a flood of them: counted, remembered only so far
+        members.update(keys.live("r", "sim", n), True)
+    assert members.unknown_seen == 5 + UNKNOWN_KEPT + 500 and len(members.unknown) == UNKNOWN_KEPT
 
 
 def test_a_host_number_is_taken_when_another_launcher_has_it_live():

@@ -144,7 +144,8 @@ class InlineVectorWorker:
         is on the simulator's cores)."""
         self.cores = sorted(cores)
         if cores:
-            physics().submit(os.sched_setaffinity, 0, set(cores)).result()  # 0: the calling thread, on Linux
+            physics().submit(os.sched_setaffinity, 0, set(cores))  # 0: the calling thread, on Linux; before the
+            # next request on that thread, without waiting for the chunk in flight
 
     async def _request(self, what: str, arg: np.ndarray, timeout: float | None) -> Any:
         if self.dead:

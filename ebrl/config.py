@@ -95,8 +95,8 @@ class RunSection(Section):
         "and rights, and a process that dies is started again with every service in it. A simulator that shares "
         "a process shares its memory: the env's code can then reach the others (docs/processes.md). Empty: each "
         "service in a process of its own. \"auto\": sim, gen and train in one process on a host with a GPU that "
-        "runs all three with a GPU simulator EBRL ships (env.backend = \"mjwarp\"), else each alone; decided at "
-        "start, written into the run's config.toml", "auto")
+        "runs all three (one training rank, no allocator) with a GPU simulator EBRL ships (env.backend = \"mjwarp\", "
+        "its own task), else each alone; decided at start, written into the run's config.toml", "auto")
 
     def _check(self) -> None:
         try:

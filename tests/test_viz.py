@@ -4,6 +4,7 @@ and (slow) a real headless rerun viewer screenshotted during a real run."""
 from __future__ import annotations
 
 import os
+import re
 import subprocess
 import sys
 import time
@@ -312,12 +313,19 @@ def viewer(tmp_path, monkeypatch):
     client.quit()
 
 
+ITERATIONS_SHOWN = 12
+
+
 @pytest.mark.slow
 def test_live_gantt_in_a_headless_viewer_shows_every_lane(tmp_path, viewer):
     port = int(viewer.url.rsplit(":", 1)[1].split("/")[0])
     # Two groups of 4: twice the forward passes of one group of 8, enough gen bars for the pixel count below.
     with helpers.up(tmp_path / "runs", "configs/quickstart.toml", "run.iterations=0", f"viz.port={port}",
                     'viz.rerun="spawn"', *TWO_GROUPS, name="vizlive") as run:
+        # Wait on progress, not on time: a loaded machine's first seconds hold few updates (CI's once drew 220
+        # green pixels at 8 s), so the screenshot waits until training has made ITERATIONS_SHOWN updates.
+        run.wait_for_line(lambda line: (m := re.match(r"iter (\d+)", line)) is not None
+                          and int(m.group(1)) >= ITERATIONS_SHOWN, 300, f"iteration {ITERATIONS_SHOWN}")
         deadline = time.monotonic() + 300
         view = None
         while time.monotonic() < deadline:  # wait for the run's spans to reach the viewer

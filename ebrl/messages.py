@@ -610,6 +610,31 @@ def decode_message(cls: type[T], payload: bytes | memoryview) -> T:
     return from_wire(cls, raw)
 
 
+def accept(cls: type[T], msg: Any) -> T:
+    """The in-process counterpart of :func:`decode_message`, for a message handed over by reference between
+    services of one process (``ebrl.bus.local``): ``msg`` must be a ``cls``; it is checked exactly as a decoded
+    one (types, shapes, meaning) and comes back as a new ``cls`` whose arrays are read-only views of the
+    sender's: nothing is copied, and neither side can change what the other holds through it."""
+    if type(msg) is not cls:
+        raise MessageError(f"{cls.__name__}: got a {type(msg).__name__} in the process")
+    raw = {f.name: _read_only(getattr(msg, f.name)) for f in dataclasses.fields(cls)}
+    raw["v"] = SCHEMA_VERSION
+    return from_wire(cls, raw)
+
+
+def _read_only(value: Any) -> Any:
+    if isinstance(value, np.ndarray):
+        value = value.view()
+        value.flags.writeable = False
+    return value
+
+
+def array_bytes(msg: Any) -> int:
+    """The bytes of a message's arrays: what its payload would be, less the small header (a bound on a message
+    passed by reference is checked on it before it is accepted)."""
+    return sum(v.nbytes for v in vars(msg).values() if isinstance(v, np.ndarray))
+
+
 def from_wire(cls: type[T], raw: Any) -> T:
     if not isinstance(raw, dict):
         raise MessageError(f"{cls.__name__}: expected a map, got {type(raw).__name__}")
@@ -654,13 +679,20 @@ STATS_FAMILIES: dict[str, type] = {"spans": SpanBatch, "events": Event, "episode
 def decode_stats_sample(key: str, payload: bytes | memoryview) -> "StatsReport | SpanBatch | Event | EpisodeBatch":
     """Decode a sample from ``ebrl/stats/<run>/**``: a ``SpanBatch`` on ``spans/<lane>``, an ``Event``
     on ``events/<service>``, an ``EpisodeBatch`` on ``episodes/<service>``, else a ``StatsReport``; raise
-    :class:`MessageError` if it is none."""
+    :class:`MessageError` if it is none. Its ``local`` accepts one handed over in the process
+    (``ebrl.bus.local``)."""
+    return decode_message(_stats_class(key), payload)  # type: ignore[return-value]
+
+
+def _stats_class(key: str) -> type:
     try:
         family = keys.parse(key).family
     except ValueError:
         family = "report"
-    cls = STATS_FAMILIES.get(family, StatsReport)
-    return decode_message(cls, payload)  # type: ignore[return-value]
+    return STATS_FAMILIES.get(family, StatsReport)
+
+
+decode_stats_sample.local = lambda key, msg: accept(_stats_class(key), msg)  # type: ignore[attr-defined]
 
 
 # --- JSON Schema ------------------------------------------------------------------------

@@ -16,7 +16,7 @@ from typing import Callable, TypeVar
 import numpy as np
 
 from ebrl.envs.obs import ObsLayout
-from ebrl.messages import MessageError, Observation, SegmentBatch, TrajectorySegment, decode_message
+from ebrl.messages import MessageError, Observation, SegmentBatch, TrajectorySegment, accept, decode_message
 
 M = TypeVar("M", Observation, TrajectorySegment, SegmentBatch)
 S = TypeVar("S", TrajectorySegment, SegmentBatch)
@@ -46,10 +46,10 @@ def segment(layout: ObsLayout, seg: S) -> S:
 
 def decoder(cls: type[M], layout: ObsLayout, obs_shape: tuple[int, ...]) -> Callable[[str, bytes], M]:
     """``(key, payload) -> message`` for ``bus.subscribe``: decode, then join the bytes back into observations of
-    ``obs_shape`` (MessageError, dropped and counted, for parts that do not fit ``layout``)."""
+    ``obs_shape`` (MessageError, dropped and counted, for parts that do not fit ``layout``). Its ``local`` does
+    the same for a message handed over by reference in the process (``ebrl.bus.local``)."""
 
-    def decode(_key: str, payload: bytes) -> M:
-        msg = decode_message(cls, payload)
+    def join(msg: M) -> M:
         if not layout.byte_size and not msg.images.size:
             return msg
         try:
@@ -66,4 +66,8 @@ def decoder(cls: type[M], layout: ObsLayout, obs_shape: tuple[int, ...]) -> Call
         except ValueError as exc:
             raise MessageError(f"{cls.__name__}: {exc}") from None
 
+    def decode(_key: str, payload: bytes) -> M:
+        return join(decode_message(cls, payload))
+
+    decode.local = lambda _key, msg: join(accept(cls, msg))  # type: ignore[attr-defined]
     return decode

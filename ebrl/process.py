@@ -5,8 +5,8 @@ The launcher starts one of these for each group of services that ``run.processes
 (on a thread of its own, so that one service's work never holds another's loop), its liveliness token, stats
 reports, Gantt lanes, control keys and version numbers. What they share is the process and one Zenoh session,
 signed in with the first service's identity, to which the launcher's router grants what each service of the
-process may send (``ebrl.graph.access_control``). Zenoh hands a message between two services of one session
-over without a socket or the router's hop.
+process may send (``ebrl.graph.access_control``). Between the services of the process, messages go by reference
+(:mod:`ebrl.bus.local`): no encoding, no copy, no socket; Zenoh carries only what other processes subscribe to.
 
 The process ends when its services have: once one stops (a ``Stop``, a failure), the others are asked to stop
 too, so that the launcher sees one process exit and starts it again with every service in it, as it does one
@@ -29,7 +29,8 @@ import zenoh
 
 from ebrl import config as config_mod, procenv, sizes
 from ebrl.bus import auth
-from ebrl.bus.session import Bus, BusOptions, zenoh_config
+from ebrl.bus.local import LocalBus, LocalHub
+from ebrl.bus.session import BusOptions, zenoh_config
 from ebrl.service import EXIT_GRACE_S, Service, exit_within, bounded
 
 log = logging.getLogger("ebrl.process")
@@ -63,6 +64,7 @@ class SharedProcess:
             from ebrl.policies import graphs
 
             graphs.CAPTURE_ERROR_MODE = "thread_local"
+        self.hub = LocalHub(services[0].run_name)  # who in the process subscribes to what
         self.loops: dict[int, asyncio.AbstractEventLoop] = {}
         self.codes: dict[int, int] = {}
         self.stop_reason: str | None = None  # once set, every service stops (or stops as soon as it starts)
@@ -117,7 +119,8 @@ class SharedProcess:
                 if self.stop_reason is not None:  # asked before this loop was there: stop once started
                     self.loops[index].call_soon(service.request_stop, self.stop_reason)
             options = bounded(dataclasses.replace(service.bus_options, role=service.role), service.bounds)
-            return await service.main(bus=Bus(options, session=session), signals=False)
+            bus = LocalBus(options, session=session, hub=self.hub, instance=service.instance)
+            return await service.main(bus=bus, signals=False)
 
         try:
             code = asyncio.run(serve())

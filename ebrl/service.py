@@ -266,10 +266,15 @@ def bounded(options: BusOptions, bounds: sizes.Bounds | None) -> BusOptions:
 
 def bus_metrics(bus: Any) -> dict[str, float]:
     """What a process's bus dropped (``bus/*``), for its stats report: malformed payloads (oversized ones among
-    them, also counted apart) and messages its full sender queue dropped. Services and the launcher report it."""
-    return {"bus/malformed": float(sum(bus.malformed.values())),
-            "bus/oversized": float(sum(bus.oversized.values())),
-            "bus/sender_dropped": float(bus.sender_dropped)}
+    them, also counted apart) and messages its full sender queue dropped; in a process of several services, the
+    messages handed over in it and those its role may not send. Services and the launcher report it."""
+    metrics = {"bus/malformed": float(sum(bus.malformed.values())),
+               "bus/oversized": float(sum(bus.oversized.values())),
+               "bus/sender_dropped": float(bus.sender_dropped)}
+    if hasattr(bus, "local"):  # a service sharing its process (ebrl.bus.local)
+        metrics["bus/local"] = float(bus.local)
+        metrics["bus/refused"] = float(sum(bus.refused.values()))
+    return metrics
 
 
 class StatsReporter:

@@ -21,13 +21,13 @@ class RecordingBus(MemoryBus):
         super().__init__(network)
         self.used = used
 
-    def _put(self, key, payload, express):
+    def _put(self, key, payload, express, msg=None):
         self.used.add(("put", key))
-        super()._put(key, payload, express)
+        super()._put(key, payload, express, msg)
 
-    def _feed(self, key, callback):
+    def _feed(self, key, callback, subscription=None):
         self.used.add(("sub", key))
-        return super()._feed(key, callback)
+        return super()._feed(key, callback, subscription)
 
     def declare_token(self, key):
         self.used.add(("token", key))

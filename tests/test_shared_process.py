@@ -151,7 +151,8 @@ def shared_process(run) -> psutil.Process:
 
 def test_services_sharing_a_process_train_report_as_themselves_and_restart_together(tmp_path):
     """The quickstart with sim, gen and train in one process: one child process for the three; a user's stats
-    subscriber sees each service's own reports and Gantt lanes as from three processes; a kill -9 of the process
+    subscriber sees each service's own reports and Gantt lanes as from three processes, while observations, actions
+    and segments go by reference between them; a kill -9 of the process
     is noticed, it is started again with all three, and the run finishes every iteration."""
     with up(tmp_path, "configs/quickstart.toml", "run.iterations=16", 'viz.rerun="off"', SHARED,
             name="shared") as run:
@@ -169,5 +170,8 @@ def test_services_sharing_a_process_train_report_as_themselves_and_restart_toget
     assert "train/0+gen/0+sim/0 exited with status -9" in run.output
     for source, metric in (("sim/0", "sim/env_steps"), ("gen/0", "gen/batches"), ("train/0", "train/updates")):
         assert stats.reports(source) and stats.latest(source, metric) is not None, (source, metric)
+    # observations, actions and segments went by reference in the process (ebrl.bus.local), nothing refused
+    for source in ("sim/0", "gen/0"):
+        assert stats.latest(source, "bus/local") > 0 and stats.latest(source, "bus/refused") == 0, source
     assert {"sim.g0", "gen", "train", "weights"} <= set(record.read(run.run_dir).lanes)  # a process's own each
     assert (run.run_dir / "logs" / "train-0+gen-0+sim-0.log").exists()

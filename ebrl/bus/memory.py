@@ -116,11 +116,11 @@ class MemoryBus(BusBase):
         self._declarations.append(decl)
         return decl
 
-    def _put(self, key: str, payload: bytes, express: bool) -> None:
-        if not self._crashed:
+    def _put(self, key: str, payload: bytes | None, express: bool, msg: Any = None) -> None:
+        if not self._crashed and payload is not None:
             self.network.deliver(key, payload)
 
-    def _feed(self, key: str, callback: Callable[[str, Any], None]) -> Declaration:
+    def _feed(self, key: str, callback: Callable[[str, Any], None], subscription: Any = None) -> Declaration:
         return self._declare("subscriber", key, callback)
 
     def declare_token(self, key: str) -> Declaration:

@@ -174,19 +174,25 @@ class Query:
         self._finish()
 
 
+Outgoing = tuple[str, "bytes | None", bool, Any]
+"""One sample on its way: key, payload (None: no one needs the bytes, ``ebrl.bus.local``), express, and the message
+itself (None: only its bytes were published)."""
+
+
 class Sender:
     """A bus's one sender thread: what is published, from the event loop or any thread, goes in order through
     a bounded queue (``SENDER_QUEUE``) to the transport's blocking ``put``, so that no publisher waits on the
     network; ``put`` waits for room, ``offer`` drops (counted) when there is none."""
 
-    def __init__(self, put: Callable[[str, bytes, bool], None], closed: Callable[[], bool], settle_s: float):
+    def __init__(self, put: Callable[[str, bytes | None, bool, Any], None], closed: Callable[[], bool],
+                 settle_s: float):
         self._put, self._closed, self.settle_s = put, closed, settle_s
         self.queue: queue.Queue = queue.Queue(maxsize=SENDER_QUEUE)
         self.dropped = 0
         self.thread = threading.Thread(target=self._loop, name="ebrl-bus-sender", daemon=True)
         self.thread.start()
 
-    def offer(self, item: tuple[str, bytes, bool]) -> bool:
+    def offer(self, item: Outgoing) -> bool:
         try:
             self.queue.put_nowait(item)
             return True
@@ -194,7 +200,7 @@ class Sender:
             self.dropped += 1
             return False
 
-    async def put(self, loop: asyncio.AbstractEventLoop, item: tuple[str, bytes, bool]) -> None:
+    async def put(self, loop: asyncio.AbstractEventLoop, item: Outgoing) -> None:
         try:
             self.queue.put_nowait(item)
         except queue.Full:
@@ -205,9 +211,9 @@ class Sender:
             item = self.queue.get()
             if item is None:
                 return
-            key, payload, express = item
+            key, payload, express, msg = item
             try:
-                self._put(key, payload, express)
+                self._put(key, payload, express, msg)
             except Exception as exc:  # a closed session at shutdown, mostly
                 if not self._closed():
                     log.warning("put on %s failed: %s", key, exc)
@@ -266,12 +272,19 @@ class BusBase(abc.ABC):
     # --- the transport --------------------------------------------------------------------
 
     @abc.abstractmethod
-    def _put(self, key: str, payload: bytes, express: bool) -> None:
-        """Hand one sample to the transport, blocking while a subscriber applies back-pressure."""
+    def _put(self, key: str, payload: bytes | None, express: bool, msg: Any = None) -> None:
+        """Hand one sample to the transport, blocking while a subscriber applies back-pressure. ``msg``: the
+        message encoded as ``payload``, where it was published as one (a transport may hand it over as it is)."""
 
     @abc.abstractmethod
-    def _feed(self, key: str, callback: Callable[[str, Any], None]) -> Any:
-        """Call ``callback(key, payload)`` on a transport thread per sample on ``key`` (payload: bytes-like)."""
+    def _feed(self, key: str, callback: Callable[[str, Any], None], subscription: Subscription | None = None) -> Any:
+        """Call ``callback(key, payload)`` on a transport thread per sample on ``key`` (payload: bytes-like).
+        ``subscription``: the typed subscription ``callback`` feeds, if it is one."""
+
+    def _outgoing(self, key: str, msg: Any, express: bool) -> Outgoing:
+        """What :meth:`put` hands the sender for ``msg``: encoded here, on the publisher's thread, so that the
+        message may change once published."""
+        return key, messages.encode_message(msg), express, None
 
     @abc.abstractmethod
     def declare_token(self, key: str) -> Any:
@@ -302,15 +315,15 @@ class BusBase(abc.ABC):
 
     async def put(self, key: str, msg: Any, *, express: bool = False) -> None:
         """Publish ``msg`` (a message dataclass) on ``key``; waits only if the sender queue is full."""
-        await self.put_bytes(key, messages.encode_message(msg), express=express)
+        await self.sender.put(self.loop, self._outgoing(key, msg, express))
 
     async def put_bytes(self, key: str, payload: bytes, *, express: bool = False) -> None:
         """Publish an already encoded payload (encode once, send and serve many times)."""
-        await self.sender.put(self.loop, (key, payload, express))
+        await self.sender.put(self.loop, (key, payload, express, None))
 
     def put_nowait(self, key: str, msg: Any, *, express: bool = False) -> bool:
         """Publish from any thread without waiting; a full sender queue drops it (counted)."""
-        return self.sender.offer((key, messages.encode_message(msg), express))
+        return self.sender.offer(self._outgoing(key, msg, express))
 
     def put_bytes_blocking(self, key: str, payload: bytes) -> None:
         """Publish from a worker thread, past the sender queue (so unordered with ``put``): returns once the
@@ -318,7 +331,7 @@ class BusBase(abc.ABC):
         sends (weights) use it to know when each part has left."""
         if threading.get_ident() == self._loop_thread:
             raise RuntimeError("put_bytes_blocking blocks its thread: call it from a worker thread")
-        self._put(key, payload, False)
+        self._put(key, payload, False, None)
 
     async def flush(self, timeout: float = 2.0) -> None:
         """Wait until the sender queue is empty (best effort, bounded by ``timeout``)."""
@@ -337,7 +350,7 @@ class BusBase(abc.ABC):
         wait on several subscriptions. ``max_bytes``: the key's bound in this run (``ebrl.sizes``), below the
         bus's; a larger payload is counted and dropped before it is copied or decoded (:meth:`fits`)."""
         sub = Subscription(self, key, cls, policy, capacity, notify, max_bytes)
-        sub._source = self._feed(key, sub.offer)
+        sub._source = self._feed(key, sub.offer, sub)
         self._subscriptions.append(sub)
         return sub
 
@@ -443,18 +456,25 @@ class Bus(BusBase):
         self._declared: list[Any] = []  # zenoh-python undeclares what is no longer referenced
         _open_buses.add(self)
 
-    def _put(self, key: str, payload: bytes, express: bool) -> None:
+    def _put(self, key: str, payload: bytes | None, express: bool, msg: Any = None) -> None:
+        if payload is not None:
+            self._publisher(key, express).put(payload)
+
+    def _publisher(self, key: str, express: bool) -> zenoh.Publisher:
         with self._publishers_lock:
             pub = self._publishers.get((key, express))
             if pub is None:
-                pub = self.session.declare_publisher(
-                    key, congestion_control=zenoh.CongestionControl.BLOCK, express=express
-                )
+                pub = self.session.declare_publisher(key, congestion_control=zenoh.CongestionControl.BLOCK,
+                                                     express=express, allowed_destination=self._destination)
                 self._publishers[(key, express)] = pub
-        pub.put(payload)
+        return pub
 
-    def _feed(self, key: str, callback: Callable[[str, Any], None]) -> zenoh.Subscriber:
-        sub = self.session.declare_subscriber(key, lambda sample: callback(str(sample.key_expr), sample.payload))
+    _destination = zenoh.Locality.ANY  # where this bus's samples go (ebrl.bus.local: other processes only)
+
+    def _feed(self, key: str, callback: Callable[[str, Any], None], subscription: Subscription | None = None
+              ) -> zenoh.Subscriber:
+        sub = self.session.declare_subscriber(key, lambda sample: callback(str(sample.key_expr), sample.payload),
+                                              allowed_origin=self._destination)
         self._declared.append(sub)
         return sub
 
@@ -529,8 +549,10 @@ class Subscription(Generic[T]):
         self.max_bytes = max_bytes  # the key's bound in this run (ebrl.sizes); None: the bus's alone
         if isinstance(cls, type):
             self._decode: Callable[[str, bytes], T] = lambda _key, payload: messages.decode_message(cls, payload)
+            self._accept: Callable[[str, Any], T] | None = lambda _key, msg: messages.accept(cls, msg)
         else:
             self._decode = cls
+            self._accept = getattr(cls, "local", None)  # a decoder that takes messages handed over in the process
         self.received = 0
         self.dropped = 0
         self._items: collections.deque[tuple[str, T]] = collections.deque()
@@ -543,6 +565,11 @@ class Subscription(Generic[T]):
     def __len__(self) -> int:
         return len(self._items)
 
+    @property
+    def by_reference(self) -> bool:
+        """Whether it takes a message handed over in the process as it is (else the message's bytes)."""
+        return self._accept is not None
+
     def offer(self, key: str, payload: Any) -> None:  # a transport thread; payload: bytes-like
         """Check, decode and queue one sample; for a full ``block`` queue, wait for room (back-pressure)."""
         if self._closed or not self.bus.fits(key, len(payload), self.max_bytes):  # len: no copy yet
@@ -552,6 +579,22 @@ class Subscription(Generic[T]):
         except Exception as exc:  # MessageError mostly; never let an exception escape into the transport
             self.bus.count_malformed(key, exc)
             return
+        self._queue(key, msg)
+
+    def offer_message(self, key: str, msg: Any) -> None:  # a sender thread of this process
+        """Check and queue a message handed over by reference in the process (``ebrl.bus.local``): bounded and
+        validated as one decoded from the bus, its arrays shared read-only, not copied."""
+        assert self._accept is not None
+        if self._closed or not self.bus.fits(key, messages.array_bytes(msg), self.max_bytes):
+            return
+        try:
+            accepted = self._accept(key, msg)
+        except Exception as exc:
+            self.bus.count_malformed(key, exc)
+            return
+        self._queue(key, accepted)
+
+    def _queue(self, key: str, msg: T) -> None:
         with self._cond:
             if len(self._items) >= self.capacity:
                 if self.policy == "latest":

@@ -1,6 +1,7 @@
 """Env adapter and worker processes: ids in module:EnvId form, chunks, auto-reset, clear errors."""
 
 import asyncio
+import os
 import pathlib
 import subprocess
 import sys
@@ -68,6 +69,29 @@ def test_worker_runs_chunks_and_resets_at_episode_end():
         assert not worker.proc.is_alive()
 
     asyncio.run(scenario())
+
+
+def test_a_worker_does_not_import_the_parents_main_module(tmp_path):
+    """A forkserver child imports its parent's ``__main__`` first (for the sim service: ebrl.services.sim and all
+    it imports); a worker needs none of it, and eight of them started in 3.8 s with it, 0.5 s without."""
+    script = tmp_path / "parent.py"
+    script.write_text(
+        "import asyncio, os, sys\n"
+        "if __name__ != '__main__':\n"
+        "    open(os.environ['MARK'], 'a').write(__name__ + '\\n')\n"
+        "else:\n"
+        "    from ebrl.envs import EnvSpec, EnvWorker\n"
+        "    async def main():\n"
+        "        worker = EnvWorker(EnvSpec('user_envs:ShortPendulum-v0'), seed=0)\n"
+        "        print((await worker.reset()).shape)\n"
+        "        worker.close()\n"
+        "    asyncio.run(main())\n")
+    mark = tmp_path / "imported"
+    root = pathlib.Path(__file__).resolve().parent
+    out = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, timeout=120,
+                         env={**os.environ, "MARK": str(mark), "PYTHONPATH": f"{root.parent}:{root}"})
+    assert out.returncode == 0 and out.stdout.strip() == "(4,)", out.stderr
+    assert not mark.exists(), f"a worker imported the parent's main module as {mark.read_text()!r}"
 
 
 def test_step_latency_spends_cpu_time():

@@ -14,6 +14,9 @@ from __future__ import annotations
 import asyncio
 import ctypes
 import multiprocessing as mp
+import multiprocessing.context
+import multiprocessing.popen_forkserver
+import multiprocessing.spawn
 import os
 import select
 import signal
@@ -36,6 +39,46 @@ EPISODE_SEED_STRIDE = 7919  # episode k of a worker seeded s starts from reset(s
 PR_SET_PDEATHSIG = 1  # prctl(2)
 # The forkserver preloads this module, so there this is its pid: the parent of every worker it forks.
 _IMPORTED_BY = os.getpid()
+
+
+class _Launching(threading.local):
+    bare = False  # this thread is starting a worker: its preparation leaves the parent's main module out
+
+
+_LAUNCHING = _Launching()
+_preparation_data = mp.spawn.get_preparation_data
+
+
+def _worker_preparation_data(name: str) -> dict[str, Any]:
+    """multiprocessing's preparation of a child, without the parent's ``__main__`` for a worker: a child of the
+    forkserver imports the parent's main module first (``ebrl.services.sim``, ``ebrl.process`` and all they
+    import), which took 3.3 of the 3.8 s eight quickstart workers needed to answer their first reset. A worker
+    runs functions of ``ebrl.envs`` alone, which the forkserver has imported."""
+    data = _preparation_data(name)
+    if _LAUNCHING.bare:
+        data.pop("init_main_from_name", None)
+        data.pop("init_main_from_path", None)
+    return data
+
+
+mp.spawn.get_preparation_data = _worker_preparation_data  # what it returns changes only for _BarePopen
+
+
+class _BarePopen(mp.popen_forkserver.Popen):
+    def _launch(self, process_obj: Any) -> None:
+        _LAUNCHING.bare = True
+        try:
+            super()._launch(process_obj)
+        finally:
+            _LAUNCHING.bare = False
+
+
+class BareProcess(mp.context.ForkServerProcess):
+    """A process of the forkserver that does not import the parent's main module (:func:`_worker_preparation_data`)."""
+
+    @staticmethod
+    def _Popen(process_obj: Any) -> Any:
+        return _BarePopen(process_obj)
 
 
 def worker_context(spec: EnvSpec) -> mp.context.BaseContext:
@@ -329,7 +372,7 @@ class WorkerProcess:
         """Start ``target(child_conn, *args(child_conn), owner_pid)`` in a process of the env workers' forkserver."""
         ctx = worker_context(spec)
         self.conn, child = ctx.Pipe()
-        self.proc = ctx.Process(target=target, args=(child, *args(child), os.getpid()), daemon=True, name=name)
+        self.proc = BareProcess(target=target, args=(child, *args(child), os.getpid()), daemon=True, name=name)
         self.proc.start()
         child.close()
         self.chunks_done = 0  # chunks it answered (a replaced worker that never did counts against its env)
@@ -448,7 +491,7 @@ def raw_steps_per_s(spec: EnvSpec, cores: list[int], seconds: float = 10.0) -> f
     tight loop with no framework around it, all cores at once; env steps/s summed over the cores."""
     ctx = worker_context(spec)
     out = ctx.Queue()
-    procs = [ctx.Process(target=_raw_loop, args=(spec, i, core, seconds, out), daemon=True, name="ebrl-raw")
+    procs = [BareProcess(target=_raw_loop, args=(spec, i, core, seconds, out), daemon=True, name="ebrl-raw")
              for i, core in enumerate(cores)]
     for proc in procs:
         proc.start()

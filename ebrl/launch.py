@@ -39,7 +39,7 @@ from ebrl.bus.endpoints import address_in_use, config_file_listen, listen_endpoi
 from ebrl.hosts import PRIMARY_LOST_S, HostPlan, Membership, enabled_roles, planned_instances, sim_hosts
 from ebrl.messages import Event, GpuShare, StatsReport, Stop
 from ebrl.weights import known_version
-from ebrl.runview import Console, RunView, summary as run_summary, write_report, write_summary
+from ebrl.runview import Console, RunView, summary as run_summary, warm_report, write_report, write_summary
 from ebrl.sched.modes import resolve
 from ebrl.service import STOP_TO_RESTART, bus_metrics, control_version_refused
 from ebrl.supervisor import Argv, RestartPolicy, Supervisor, not_up
@@ -410,6 +410,8 @@ class Launcher:
 
     async def stop_services(self) -> None:
         self.members.ending = True
+        if self.cfg.viz.report:
+            warm_report()  # its imports while the services stop
         self.link.event("stopping", self.failure or self.stop_reason or "run finished")
         if self.plan.multi and self.plan.primary:  # every host ends with the primary
             await self.link.stop("launcher", EVERY_HOST, self.failure or self.stop_reason or "run finished")

@@ -18,6 +18,7 @@ import json
 import math
 import os
 import shutil
+import threading
 import time
 from collections import deque
 from pathlib import Path
@@ -108,6 +109,18 @@ class TrainingCounts:
         if t1 <= t0 or self.clock() - t1 > RATE_WINDOW_S:
             return 0.0, 0.0
         return (steps1 - steps0) / (t1 - t0), (segs1 - segs0) / (t1 - t0)
+
+
+def may_end(run: Any, version: int, trained: dict[str, float]) -> bool:
+    """Whether training's ``version`` and its return and success rate (``trained``: its report's metrics) reach
+    ``run.iterations`` or the run's target (``run``: the ``[run]`` section): what the launcher ends a run on
+    (:meth:`RunView.iterations_done`, :meth:`RunView.target_reached`). Training asks it after each update, to
+    report such an update at once."""
+    if run.iterations and version >= run.iterations:
+        return True
+    ret, success = trained.get(TRAIN_RETURN), trained.get(TRAIN_SUCCESS)
+    return (run.target_return is not None and ret is not None and ret >= run.target_return) or (
+        run.target_success is not None and success is not None and success >= run.target_success)
 
 
 class RunView:
@@ -363,6 +376,14 @@ def write_summary(summary: dict[str, Any], path: Path) -> str:
     return (f"run {summary['run']} {'finished' if summary['exit_code'] == 0 else 'stopped'}: "
             f"{summary['iterations']} iterations in {summary['wall_s']:.0f} s, {summary['env_steps']:,} env steps "
             f"({summary['env_steps_per_s']:,.0f}/s), mean return {final} (best {best}); summary in {path}")
+
+
+def warm_report() -> None:
+    """Import what the report draws with, on a thread (``ebrl.viz.report.warm_up``): the launcher starts it as the
+    services stop, and :func:`write_report` after them takes that much less."""
+    from ebrl.viz import report
+
+    threading.Thread(target=report.warm_up, name="report-imports", daemon=True).start()
 
 
 def write_report(run_dir: Path) -> str:

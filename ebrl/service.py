@@ -194,7 +194,7 @@ class Service:
             spans_task.cancel()
             await self.teardown()
             self.flush_spans()
-            await self._publish_stats()
+            await self.publish_stats()
         finally:
             await self.bus.close()
         self.log.info("%s/%d stopped", self.role, self.instance)
@@ -219,14 +219,16 @@ class Service:
         self.reports.start()
         while True:
             await asyncio.sleep(self.cfg.run.stats_interval)
-            await self._publish_stats()
+            await self.publish_stats()
 
     async def publish_report(self, metrics: dict[str, float]) -> None:
         """Publish a stats report of just ``metrics`` now, on this service's stats key and numbered with the
         periodic ones: for a result that happens once (an evaluation), not every interval."""
         await self.bus.put(keys.stats(self.run_name, self.role, self.instance), self.reports.next(dict(metrics)))
 
-    async def _publish_stats(self) -> None:
+    async def publish_stats(self) -> None:
+        """The periodic report, published every interval; or now, for a result the run waits on (the update that
+        reaches ``run.iterations`` or a target), so that the launcher acts on it at once."""
         try:
             report = self._report()
         except Exception as exc:

@@ -13,11 +13,15 @@ import struct
 import sys
 import termios
 from pathlib import Path
+from types import SimpleNamespace
 
 from ebrl.bus import keys
 from ebrl.hosts import UNKNOWN_KEPT, HostChange, Membership
 from ebrl.messages import StatsReport
-from ebrl.runview import Console, Progress, RunView, summary as run_summary, write_summary
+from ebrl.runview import Console, Progress, RunView, may_end, summary as run_summary, write_summary
+from ebrl.viz import record
+
+import helpers
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -115,6 +119,29 @@ def test_the_target_success_ends_the_run_too(tmp_path):
     assert view.target_reached(60.0) == "reached run.target_success = 0.9: success rate 95% at iteration 30 after 60 s"
     summary = run_summary(view, 0, 61.0, run_dir=tmp_path, failure=None, restarts={}, host=0, hosts=[0])
     assert summary["target_success"] == 0.9 and summary["target_reached"]["success_rate"] == 0.95
+
+
+def test_training_reports_at_once_the_update_that_may_end_the_run():
+    """``may_end``: what training asks after each update, to publish its report then, not an interval later."""
+    run = SimpleNamespace(iterations=10, target_return=900.0, target_success=None)
+    assert not may_end(run, 9, {"train/episode_return_mean": 899.0}) and may_end(run, 10, {})
+    assert may_end(run, 3, {"train/episode_return_mean": 900.0})
+    success = SimpleNamespace(iterations=0, target_return=None, target_success=0.9)
+    assert not may_end(success, 500, {"train/success_rate": 0.85, "train/episode_return_mean": 1e9})
+    assert may_end(success, 5, {"train/success_rate": 0.95})
+
+
+def test_a_run_ends_on_the_update_that_reaches_its_iterations_not_a_report_interval_later(tmp_path):
+    """With reports every 30 s, a run of 3 iterations ends within a few seconds of its third update: training
+    reported it at once."""
+    with helpers.up(tmp_path, "configs/quickstart.toml", "run.iterations=3", "run.stats_interval=30",
+                    'viz.rerun="off"', name="prompt") as run:
+        code = run.wait(300)
+    assert code == 0, run.output[-3000:]
+    rec = record.read(run.run_dir)
+    last_update = max(s.end for s in rec.spans if s.lane == "train" and s.label == "update")
+    stopping = next(e.time for e in rec.events if e.kind == "stopping")
+    assert stopping - last_update < 15, (stopping - last_update, run.output[-2000:])
 
 
 def test_a_return_that_moves_further_than_the_episodes_since_could_is_not_taken():

@@ -20,6 +20,7 @@ from ebrl.algos.learner import Learner
 from ebrl.algos.ranks import Ranks
 from ebrl.bus import keys
 from ebrl.messages import SegmentBatch, TrajectorySegment
+from ebrl.runview import may_end
 from ebrl.sched.modes import resolve
 from ebrl.service import STOP_TO_RESTART, Service, env_info, service_main
 from ebrl.weights import WeightsPublisher
@@ -31,8 +32,7 @@ class TrainService(Service):
     async def setup(self) -> None:
         cfg, loop = self.cfg, asyncio.get_running_loop()
         rank, world, schedule = self.instance, cfg.train.world_size, resolve(cfg)
-        cores = schedule.train_cores
-        if cores:  # ranks share the training cores: each its own slice when there are enough
+        if cores := schedule.train_cores:  # ranks share the training cores: each its own slice when there are enough
             os.sched_setaffinity(0, cores[rank::world] if len(cores) >= world else cores)
         threads.set_threads(cfg.train.threads)
         info = await env_info(self)
@@ -41,8 +41,7 @@ class TrainService(Service):
         if cfg.policy.checkpoint:
             self.log.info("policy initialised from %s", cfg.policy.checkpoint)
             self.event("checkpoint", f"policy initialised from {cfg.policy.checkpoint}")
-        resumed = learner.resume(procenv.version_floor())  # every rank starts from the same checkpoint
-        if resumed:
+        if resumed := learner.resume(procenv.version_floor()):  # every rank starts from the same checkpoint
             self.event("resumed", resumed)
         self.pool = threads.TorchPool("train-update")  # updates run with train's torch threads
         self.ranks: Ranks | None = None
@@ -60,8 +59,8 @@ class TrainService(Service):
                                          obswire.decoder(SegmentBatch, info.layout, info.obs_shape), capacity=32,
                                          max_bytes=bounds.packed)
         self.weights = WeightsPublisher(self.bus, self.run_name)  # also answers late joiners with the newest
-        handover = os.path.join(self.run_dir, HANDOVER_FILE)
-        taken, handed = learner.take_over(lambda exc: self.bus.count_malformed(handover, exc))
+        taken, handed = learner.take_over(lambda exc: self.bus.count_malformed(os.path.join(self.run_dir,
+                                                                                            HANDOVER_FILE), exc))
         if handed:
             self.log.info("took over %d of %d segments handed over", taken, handed)
         self.cycle = UpdateCycle(learner, self.pool, self.ranks)
@@ -87,6 +86,8 @@ class TrainService(Service):
                 losses = await asyncio.get_running_loop().run_in_executor(self.pool, self.learner.update, items)
                 self.learned(losses, start)
                 await self.publish_weights()
+                if may_end(self.cfg.run, self.learner.version, self.learner.intake.metrics()):
+                    await self.publish_stats()  # the launcher ends the run on this report, not an interval later
                 await self.cycle.checkpoint(self.run_name)
             self.log.info("reached run.iterations = %d; idle until stopped", self.cfg.run.iterations)
             if self.ranks:
@@ -96,8 +97,7 @@ class TrainService(Service):
             receiver.cancel()
 
     def learned(self, losses: dict[str, float], start: float) -> None:
-        lane = "update" if self.instance == 0 else f"update.r{self.instance}"
-        self.publish_span("train", lane, start, time.time())
+        self.publish_span("train", "update" if self.instance == 0 else f"update.r{self.instance}", start, time.time())
         self.last = {f"train/{k}": v for k, v in losses.items()}
         if self.instance == 0:
             self.last["train/update_s"] = time.time() - start

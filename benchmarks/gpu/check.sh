@@ -40,6 +40,8 @@
 #               service a process of its own (run.processes = []) to show what sharing one buys;
 #               Warp's compiled kernels come back as $OUT/warp-cache.tgz.0, .1, ... (put them in .whl-mjw/cache
 #               here and re-run prepare_mjwarp.sh: the next machine loads them instead of compiling)
+#   mjwarp_start_end  (after mjwarp_tests) each side's seconds to its first env step and from its last update to
+#               its exit (benchmarks/start_end.py --gpu), 2 rounds
 #   mjwarp_variants  (after mjwarp_tests, in a later call) what closes the gap to the peer (issue 33): ebrl up
 #               configs/mjwarp_pickcube.toml to 90 %, VARIANT_SECONDS (150) at most each, with algo.max_staleness
 #               = 0 (on 2 CPU cores staler data cost EBRL updates, BENCHMARKS.md), as one env step per decision
@@ -226,6 +228,10 @@ while [ $i -lt ${#PARTS[@]} ]; do
                          --set "run.output_dir=\"$RES/mjwarp-race-separate-s$s\""
                  done
                  race_summary ;;
+    # what each side spends outside its loop (issue 51: each end within 3 s of the peer's): to the first env step,
+    # and from the last update to the exit, 2 rounds of 2 iterations (updates) each
+    mjwarp_start_end) part mjwarp_start_end 400 python3 benchmarks/start_end.py --gpu --rounds 2 \
+                          --json "$RES/start_end_gpu.json" ;;
     mjwarp_variants) set -- mjwarp_fresh mjwarp_chunk1 mjwarp_group4096 mjwarp_mps; for b; do PARTS+=("$b"); done ;;
     mjwarp_fresh) variant fresh algo.max_staleness=0 ;;  # no decision acted by an older version than its update's
     mjwarp_chunk1) variant chunk1 policy.chunk=1 train.batch_size=65536 train.max_pending=131072 sim.segment_length=32 ;;

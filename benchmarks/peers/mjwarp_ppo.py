@@ -47,6 +47,7 @@ from __future__ import annotations
 import time
 
 T0 = time.monotonic()  # before the heavy imports: everything after this is charged to the peer
+T0_EPOCH = time.time()  # the same instant on the wall clock (benchmarks/start_end.py)
 
 import argparse  # noqa: E402
 import collections  # noqa: E402
@@ -389,6 +390,7 @@ def main(argv: list[str] | None = None) -> int:
     batch.close()
     summary = {
         "stop_reason": stop_reason, "wall_s": round(wall_s, 2), "env_start_s": round(t_envs_ready, 2),
+        "started_at_epoch": T0_EPOCH,
         "env_steps": global_step, "env_steps_per_s": round(global_step / wall_s, 1),
         "rollout_env_steps_per_s": round(global_step / rollout_s, 1) if rollout_s else None,
         "updates": updates, "episodes": episodes, "successes": successes,

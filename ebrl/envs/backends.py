@@ -26,6 +26,9 @@ class Backend:
 
     module: str
     preload: tuple[str, ...]  # what the env workers' forkserver imports once, before it forks them (worker.py)
+    # ... and where the forkserver forks vectorized groups (ebrl.envs.vector) instead: what a batch imports
+    # (importing torch and Warp starts no CUDA context, so forking after it is safe)
+    vector_preload: tuple[str, ...] = ()
 
 
 # the config's env.backend names (ebrl/config.py); tests/test_envs.py checks the two agree
@@ -33,7 +36,10 @@ BACKENDS: dict[str, Backend] = {
     "gymnasium": Backend("ebrl.envs.gym", ("gymnasium", "mujoco")),
     "robosuite": Backend("ebrl.envs.robosuite", ("gymnasium", "mujoco", "robosuite")),
     "maniskill": Backend("ebrl.envs.maniskill", ("gymnasium", "torch", "mani_skill.envs")),
-    "mjwarp": Backend("ebrl.envs.mjwarp", ("gymnasium", "mujoco")),  # a group is one batch; one env: CPU MuJoCo
+    # a group is one batch (its imports once in the forkserver: 0.7 s sooner to the first step of the race's CPU
+    # sizes, benchmarks/start_end.py); one env: CPU MuJoCo
+    "mjwarp": Backend("ebrl.envs.mjwarp", ("gymnasium", "mujoco"),
+                      vector_preload=("torch", "warp", "mujoco_warp", "ebrl.envs.mjwarp", "ebrl.envs.vector")),
     # LIBERO itself is imported by each worker (quietly, ebrl.envs.libero): ~14 MB over robosuite
     "libero": Backend("ebrl.envs.libero", ("gymnasium", "mujoco", "robosuite", "ebrl.envs.libero")),
 }

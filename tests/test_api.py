@@ -18,10 +18,13 @@ from ebrl.testing import Output, free_port
 from helpers import ROOT
 from test_up import check_tracking_outputs
 
+# 3 updates of 512 decisions: training has taken more than the 1000 decisions after which it learns the reward
+# bound ("auto", ebrl.algos.returns.LEARN_AFTER) before the run ends, so it counts the episodes (a run now ends on the
+# update that reaches run.iterations; with 256 it counted none when the run ended at once)
 SCRIPT = """\
 import sys, ebrl
 run = ebrl.train("quickstart", run={{"iterations": 3, "name": "e2e", "output_dir": sys.argv[1]}},
-                 train={{"batch_size": 256}}, bus={{"listen": ["tcp/127.0.0.1:{port}"]}})
+                 train={{"batch_size": 512}}, bus={{"listen": ["tcp/127.0.0.1:{port}"]}})
 print("result", run.exit_code, run.summary["iterations"], run.policy_path, run.load_policy().chunk)
 """
 

@@ -221,3 +221,22 @@ def test_messages_over_the_size_limit_are_dropped_before_decoding(kind):
             assert msg.seq == 2 and small.oversized["test/obs"] == 1 and small.malformed["test/obs"] == 1
 
     asyncio.run(scenario())
+
+
+def test_bulk_payloads_between_processes_of_a_host_go_through_shared_memory(tmp_path):
+    """Zenoh puts a payload over 3 KB into shared memory on its own (one reference crosses the router's sockets:
+    benchmarks/bus_shm.py measured 6.6x at 64 KB, 11.5x at 1 MB); every session a run opens keeps that on."""
+    import json
+
+    from ebrl.bus import auth
+    from ebrl.bus.session import BusOptions, zenoh_config
+
+    secret = auth.create(tmp_path / "bus.secret")
+    dictionary = auth.write_router_dictionary(secret, tmp_path / "bus.router-0.secret", (("sim", 0),))
+    for options in (BusOptions(), BusOptions(mode="client", connect=["tcp/127.0.0.1:7447"], listen=[], role="sim",
+                                             identity=auth.instance_line(secret, "sim", 0)),
+                    BusOptions(mode="router", secret_file=str(secret), role="launcher", run="r",
+                               instances=(("sim", 0),), dictionary_file=str(dictionary), groups=1)):
+        shm = json.loads(zenoh_config(options).get_json("transport/shared_memory"))
+        assert shm["enabled"] and shm["transport_optimization"]["enabled"], (options.mode, shm)
+        assert shm["transport_optimization"]["message_size_threshold"] <= 4096, shm

@@ -26,9 +26,6 @@ class Backend:
 
     module: str
     preload: tuple[str, ...]  # what the env workers' forkserver imports once, before it forks them (worker.py)
-    # ... and where the forkserver forks vectorized groups (ebrl.envs.vector) instead: what a batch imports
-    # (importing torch and Warp starts no CUDA context, so forking after it is safe)
-    vector_preload: tuple[str, ...] = ()
 
 
 # the config's env.backend names (ebrl/config.py); tests/test_envs.py checks the two agree
@@ -36,10 +33,11 @@ BACKENDS: dict[str, Backend] = {
     "gymnasium": Backend("ebrl.envs.gym", ("gymnasium", "mujoco")),
     "robosuite": Backend("ebrl.envs.robosuite", ("gymnasium", "mujoco", "robosuite")),
     "maniskill": Backend("ebrl.envs.maniskill", ("gymnasium", "torch", "mani_skill.envs")),
-    # a group is one batch (its imports once in the forkserver: 0.7 s sooner to the first step of the race's CPU
-    # sizes, benchmarks/start_end.py); one env: CPU MuJoCo
-    "mjwarp": Backend("ebrl.envs.mjwarp", ("gymnasium", "mujoco"),
-                      vector_preload=("torch", "warp", "mujoco_warp", "ebrl.envs.mjwarp", "ebrl.envs.vector")),
+    # a group is one batch; one env: CPU MuJoCo. A group imports torch and Warp in its own process: preloaded in the
+    # forkserver they brought the first env step 0.7 s sooner, but the groups then took the cores from training in
+    # a shared process on 2 CPU cores (PandaPickCube seed 0, 70 updates: 2,504 decisions too stale to learn from
+    # and success 0.0, against 96 and 0.65 without)
+    "mjwarp": Backend("ebrl.envs.mjwarp", ("gymnasium", "mujoco")),
     # LIBERO itself is imported by each worker (quietly, ebrl.envs.libero): ~14 MB over robosuite
     "libero": Backend("ebrl.envs.libero", ("gymnasium", "mujoco", "robosuite", "ebrl.envs.libero")),
 }

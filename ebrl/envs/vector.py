@@ -78,10 +78,8 @@ class VectorWorker(WorkerProcess):
     their way from the group's process to the sim service from 62 ms to 2.4 ms (benchmarks/vector_transfer.py)."""
 
     def __init__(self, spec: EnvSpec, seeds: list[int], cores: list[int], obs_size: int = 0):
-        context = worker_context(spec, vectorized=True)
-        shared = context.RawArray("f", 2 * len(seeds) * obs_size) if obs_size else None
-        super().__init__(spec, _vector_main, lambda child: (spec, list(seeds), shared), "ebrl-vector",
-                         vectorized=True)
+        shared = worker_context(spec).RawArray("f", 2 * len(seeds) * obs_size) if obs_size else None
+        super().__init__(spec, _vector_main, lambda child: (spec, list(seeds), shared), "ebrl-vector")
         self.shared = None if shared is None else np.frombuffer(shared, np.float32).reshape(2, len(seeds), obs_size)
         self.num_envs = len(seeds)
         self.cores: list[int] = []

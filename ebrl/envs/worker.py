@@ -81,19 +81,16 @@ class BareProcess(mp.context.ForkServerProcess):
         return _BarePopen(process_obj)
 
 
-def worker_context(spec: EnvSpec, vectorized: bool = False) -> mp.context.BaseContext:
+def worker_context(spec: EnvSpec) -> mp.context.BaseContext:
     # forkserver: workers fork from a clean server that has the simulator imported
     # once, never from the sim service (whose Zenoh threads must not fork). Camera
     # observations: the GL backend is decided (into os.environ) before the server
     # starts, since the server imports mujoco and workers inherit its environment.
-    # ``vectorized``: it forks vectorized groups (the first call of a process decides what it preloads).
     global _CTX
     ensure_gl_for(spec)
     if _CTX is None:
         _CTX = mp.get_context("forkserver")
-        found = backend(spec)
-        _CTX.set_forkserver_preload([*found.preload, *(found.vector_preload if vectorized else ()),
-                                     "ebrl.envs.worker", "ebrl.envs.latency"])
+        _CTX.set_forkserver_preload([*backend(spec).preload, "ebrl.envs.worker", "ebrl.envs.latency"])
     return _CTX
 
 
@@ -371,11 +368,9 @@ class WorkerFailed(RuntimeError):
 class WorkerProcess:
     """Parent side of a worker process that answers requests over a pipe (an env worker, a vectorized group)."""
 
-    def __init__(self, spec: EnvSpec, target: Any, args: Callable[[Connection], tuple], name: str,
-                 vectorized: bool = False):
-        """Start ``target(child_conn, *args(child_conn), owner_pid)`` in a process of the env workers' forkserver
-        (``vectorized``: one that forks vectorized groups, :func:`worker_context`)."""
-        ctx = worker_context(spec, vectorized)
+    def __init__(self, spec: EnvSpec, target: Any, args: Callable[[Connection], tuple], name: str):
+        """Start ``target(child_conn, *args(child_conn), owner_pid)`` in a process of the env workers' forkserver."""
+        ctx = worker_context(spec)
         self.conn, child = ctx.Pipe()
         self.proc = BareProcess(target=target, args=(child, *args(child), os.getpid()), daemon=True, name=name)
         self.proc.start()

@@ -95,10 +95,10 @@ def test_another_process_gets_its_own_copy_and_the_process_gets_each_message_onc
                 await sim.put(keys.obs(RUN, 0), observation(probe))
                 probe += 1
                 await asyncio.sleep(0.05)
-                assert probe < 400, "the other process never received an observation"
+                assert probe < 1200, "the other process never received an observation"  # 60 s: a hang, not a window
             sent = observation(1000)
             await sim.put(keys.obs(RUN, 0), sent)
-            await until(lambda: any(m.seq == 1000 for _, m in list(there._items)), 10, "the copy")
+            await until(lambda: any(m.seq == 1000 for _, m in list(there._items)), 60, "the copy")
             await sim.flush()
             mine = [m for _, m in here.drain()]
             assert [m.seq for m in mine] == list(range(probe)) + [1000]  # each once: Zenoh's own local delivery off

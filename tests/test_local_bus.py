@@ -88,8 +88,8 @@ def test_a_message_reaches_a_service_of_the_same_process_by_reference_never_enco
 def test_another_process_gets_its_own_copy_and_the_process_gets_each_message_once(encodes):
     async def main():
         async with process(("sim", 0), ("gen", 0), remote=True) as ((sim, gen), other):
-            here = gen.subscribe(keys.obs(RUN), Observation)
-            there = other.subscribe(keys.obs(RUN), Observation)
+            here = gen.subscribe(keys.obs(RUN), Observation, capacity=2048)  # every probe below
+            there = other.subscribe(keys.obs(RUN), Observation, capacity=2048)
             probe = 0
             while not len(there):  # until the other process's subscription has reached the session
                 await sim.put(keys.obs(RUN, 0), observation(probe))

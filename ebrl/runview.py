@@ -116,11 +116,18 @@ def may_end(run: Any, version: int, trained: dict[str, float]) -> bool:
     ``run.iterations`` or the run's target (``run``: the ``[run]`` section): what the launcher ends a run on
     (:meth:`RunView.iterations_done`, :meth:`RunView.target_reached`). Training asks it after each update, to
     report such an update at once."""
-    if run.iterations and version >= run.iterations:
-        return True
+    return bool(run.iterations and version >= run.iterations) or target_met(run, trained) is not None
+
+
+def target_met(run: Any, trained: dict[str, float]) -> str | None:
+    """Which of the run's targets (``run.target_return``, ``run.target_success``) training's metrics
+    ``trained`` reach: ``"return"``, ``"success"`` or None."""
     ret, success = trained.get(TRAIN_RETURN), trained.get(TRAIN_SUCCESS)
-    return (run.target_return is not None and ret is not None and ret >= run.target_return) or (
-        run.target_success is not None and success is not None and success >= run.target_success)
+    if run.target_return is not None and ret is not None and ret >= run.target_return:
+        return "return"
+    if run.target_success is not None and success is not None and success >= run.target_success:
+        return "success"
+    return None
 
 
 class RunView:
@@ -265,15 +272,13 @@ class RunView:
     def target_reached(self, wall_s: float) -> str | None:
         """``run.target_return`` or ``run.target_success`` reached now by training's return or success rate
         (remembered for the summary): the line that says so; else None."""
-        ret, success = self.trained.get(TRAIN_RETURN), self.trained.get(TRAIN_SUCCESS)
-        if self.target_return is not None and ret is not None and ret >= self.target_return:
-            self.reached = TargetReached(self.version(), wall_s, ret, success)
-            what = f"run.target_return = {self.target_return:g}: mean return {ret:.1f}"
-        elif self.target_success is not None and success is not None and success >= self.target_success:
-            self.reached = TargetReached(self.version(), wall_s, ret, success)
-            what = f"run.target_success = {self.target_success:g}: success rate {success:.0%}"
-        else:
+        met = target_met(self, self.trained)
+        if met is None:
             return None
+        ret, success = self.trained.get(TRAIN_RETURN), self.trained.get(TRAIN_SUCCESS)
+        self.reached = TargetReached(self.version(), wall_s, ret, success)
+        what = f"run.target_return = {self.target_return:g}: mean return {ret:.1f}" if met == "return" else \
+            f"run.target_success = {self.target_success:g}: success rate {success:.0%}"
         return f"reached {what} at iteration {self.reached.iteration} after {wall_s:.0f} s"
 
     def progress(self, wall_s: float, restarts: int = 0, hosts: int | None = None) -> "Progress":

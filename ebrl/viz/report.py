@@ -90,22 +90,26 @@ def throughput(rec: record.Recording, lo: float, hi: float) -> list[tuple[float,
     return out
 
 
-def warm_up() -> None:
-    """Import what drawing needs (matplotlib, 0.4 s on 2 cores): the launcher does it on a thread while the
-    services stop, so that the report after them takes that much less."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.patches  # noqa: F401
-    import matplotlib.pyplot  # noqa: F401
-
-
-def gantt(rec: record.Recording, lo: float, hi: float, path: Path, title: str) -> list[str]:
-    """Draw the Gantt of ``[lo, hi]`` to ``path``; return the lanes drawn (top to bottom)."""
+def pyplot() -> Any:
+    """matplotlib's pyplot, drawing off-screen (Agg). Importing it is most of a report's first 0.4 s on 2 cores:
+    the launcher imports it on a thread while the services stop (:func:`warm_up`)."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+
+    return plt
+
+
+def warm_up() -> None:
+    """Import what drawing needs, so that the report after the services stop takes that much less."""
+    pyplot()
+    import matplotlib.patches  # noqa: F401
+
+
+def gantt(rec: record.Recording, lo: float, hi: float, path: Path, title: str) -> list[str]:
+    """Draw the Gantt of ``[lo, hi]`` to ``path``; return the lanes drawn (top to bottom)."""
+    plt = pyplot()
     from matplotlib.patches import Patch
 
     lanes = rec.lanes
@@ -138,10 +142,7 @@ def gantt(rec: record.Recording, lo: float, hi: float, path: Path, title: str) -
 
 
 def throughput_plot(points: list[tuple[float, float, float]], lo: float, path: Path) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
 
     fig, ax = plt.subplots(figsize=(10, 3.5), dpi=110)
     if points:
@@ -190,10 +191,7 @@ def learning_plot(series: dict[str, list], t0: float, path: Path, title: str) ->
     wanted = {key for _, lines in LEARNING_PANELS for key, _, _ in lines} | {"episode/return"}
     if not any(series.get(key) for key in wanted):
         return False
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
 
     fig, axes = plt.subplots(len(LEARNING_PANELS), 2, figsize=(14, 3.3 * len(LEARNING_PANELS)), dpi=100,
                              squeeze=False)

@@ -184,6 +184,34 @@ def test_a_partial_reset_starts_each_world_where_a_worker_with_its_seed_would(ba
     np.testing.assert_array_equal(after[[0, 2]], before.numpy()[[0, 2]])
 
 
+def steps_alike(graphed, eager, atol: float) -> None:
+    """``graphed`` and ``eager`` (the same worlds) under the same actions and partial resets: the same observations."""
+    n, device = graphed.num_envs, graphed.device
+    for b in (graphed, eager):
+        b.reset(np.arange(n), np.zeros(n, np.int64))
+    rng = np.random.default_rng(1)
+    alive = torch.ones(n, dtype=torch.bool, device=device)
+    for k in range(20):
+        actions = torch.as_tensor(rng.uniform(-1, 1, (n, 4)), dtype=torch.float32, device=device)
+        a, b = graphed.step(actions, alive), eager.step(actions, alive)
+        torch.testing.assert_close(a.obs, b.obs, atol=atol, rtol=atol)
+        if k % 7 == 6:  # world k % n starts its next episode: the reset's clearing and forward pass, graphed too
+            idx, episodes = np.array([k % n]), np.array([k // 7 + 1])
+            torch.testing.assert_close(graphed.reset(idx, episodes), eager.reset(idx, episodes), atol=atol, rtol=atol)
+
+
+def test_on_the_cpu_too_the_steps_and_resets_replay_as_warp_graphs_and_land_where_eager_launches_do():
+    """Warp replays a captured CPU graph without Python (2.4x an env step of 64 worlds on 2 cores: BENCHMARKS.md);
+    graphed and eager batches must not part, through steps and partial resets."""
+    from ebrl.envs.batch import MjWarpBatch
+
+    graphed = MjWarpBatch(SPEC, SEEDS)
+    eager = MjWarpBatch(EnvSpec(id="PandaPickCube-v0", backend="mjwarp", kwargs={"device": "cpu", "cuda_graph": False}),
+                        SEEDS)
+    assert graphed.graphed and not eager.graphed
+    steps_alike(graphed, eager, atol=0.0)
+
+
 def test_a_chunk_on_the_batch_keeps_each_worlds_episode_accounts():
     """BatchRunner over MuJoCo Warp worlds with a 6-step limit and chunks of 4: each world's second chunk ends its
     episode after 2 counted steps, truncated, with the return of its 6 rewards; the next chunk starts episode 1."""
@@ -313,16 +341,9 @@ def test_the_warp_batch_on_the_gpu_agrees_with_cpu_mujoco_and_its_graphs_with_ea
     graphed = MjWarpBatch(EnvSpec(id="PandaPickCube-v0", backend="mjwarp", kwargs={"device": "cuda"}), SEEDS)
     eager = MjWarpBatch(EnvSpec(id="PandaPickCube-v0", backend="mjwarp",
                                 kwargs={"device": "cuda", "cuda_graph": False}), SEEDS)
-    assert graphed.graph is not None and eager.graph is None and graphed.device.type == "cuda"
+    assert graphed.graphed and not eager.graphed and graphed.device.type == "cuda"
     test_the_warp_batch_agrees_with_cpu_mujoco_on_the_same_actions(graphed)
-    eager.reset(np.arange(3), np.zeros(3, np.int64))
-    graphed.reset(np.arange(3), np.zeros(3, np.int64))
-    rng = np.random.default_rng(1)
-    alive = torch.ones(3, dtype=torch.bool, device="cuda")
-    for _ in range(20):
-        actions = torch.as_tensor(rng.uniform(-1, 1, (3, 4)), dtype=torch.float32, device="cuda")
-        a, b = graphed.step(actions, alive), eager.step(actions, alive)
-        torch.testing.assert_close(a.obs, b.obs, atol=1e-4, rtol=1e-4)
+    steps_alike(graphed, eager, atol=1e-4)
 
 
 @pytest.mark.gpu

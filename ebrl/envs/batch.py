@@ -186,31 +186,54 @@ class MjWarpBatch:
         self.elapsed = torch.zeros(n, dtype=torch.int64, device=self.device)
         self.nacon, self.nefc = view(d.nacon), view(d.nefc)
         self.unstable = 0  # worlds whose state went non-finite (their episode ended there, as a truncation)
-        self.graph = None
-        self._physics()  # compiles the kernels (a first run is slow; Warp's kernel cache keeps them)
-        if own["cuda_graph"] and self.device.type == "cuda":
-            with wp.ScopedCapture(device=self.wp_device) as capture:
-                self._physics()
-            self.graph = capture.graph
+        self.reset_mask = torch.zeros(n, dtype=torch.bool, device=self.device)  # the worlds the next reset clears
+        reset_mask = wp.from_torch(self.reset_mask)
+        # each a graph (Warp's own launches replayed without Python: a CUDA graph, or on the CPU Warp's replay),
+        # or run eagerly; mjw.reset_data builds its kernels anew on each call, ~8 ms of hashing, a graph once
+        self.graphed = bool(own["cuda_graph"])
+        self.physics = self._graph(self._physics)
+        self.clear = self._graph(lambda: mjw.reset_data(self.m, self.d, reset=reset_mask))
+        self.forward = self._graph(lambda: mjw.forward(self.m, self.d))
 
     def _physics(self) -> None:
-        with self.wp.ScopedDevice(self.wp_device):
-            for _ in range(self.substeps):
-                self.mjw.step(self.m, self.d)
+        for _ in range(self.substeps):
+            self.mjw.step(self.m, self.d)
+
+    def _graph(self, ops: Any) -> Any:
+        """``ops`` (Warp launches only) as a callable that replays them: run once (it compiles their kernels; a
+        first run is slow, Warp's kernel cache keeps them), then captured where ``env.kwargs.cuda_graph`` is true
+        (on the CPU too: Warp >= 1.13 replays a CPU graph in C++). Eager, with one warning, where capture fails."""
+        wp, where = self.wp, self.wp_device
+
+        def eager() -> None:
+            with wp.ScopedDevice(where):
+                ops()
+
+        eager()
+        if not self.graphed:
+            return eager
+        try:
+            with wp.ScopedCapture(device=where) as capture:
+                ops()
+        except Exception as exc:  # noqa: BLE001 - an older Warp, a device without capture: the same ops, eagerly
+            log.warning("MuJoCo Warp: no graph capture on %s (%s); its launches run one by one", where, exc)
+            self.graphed = False
+            return eager
+        graph = capture.graph
+        return lambda: wp.capture_launch(graph)
 
     def reset(self, idx: np.ndarray, episodes: np.ndarray) -> Any:
         """Start episode ``episodes[j]`` of world ``idx[j]`` (its initial state drawn on the host from the episode's
         seed, as a CPU worker's); every world's observation, [N, D] on the device."""
-        wp, state = self.wp, self.state
+        state = self.state
         idx = np.asarray(idx, np.int64)
         if len(idx):
             inits = [self.task.initial_state(seeding.np_random(self.seeds[i] + EPISODE_SEED_STRIDE * int(k))[0])
                      for i, k in zip(idx, episodes)]
             rows = torch.as_tensor(idx, device=self.device)
-            mask = torch.zeros(self.num_envs, dtype=torch.bool, device=self.device)
-            mask[rows] = True
-            with wp.ScopedDevice(self.wp_device):
-                self.mjw.reset_data(self.m, self.d, reset=wp.from_torch(mask))
+            self.reset_mask.zero_()
+            self.reset_mask[rows] = True
+            self.clear()  # mjw.reset_data of the masked worlds
 
             def put(target: Any, values: list[Any]) -> None:
                 target[rows] = torch.as_tensor(np.stack(values), dtype=target.dtype, device=self.device)
@@ -225,18 +248,15 @@ class MjWarpBatch:
                 put(value, [np.broadcast_to(np.asarray(i.task.get(name, 0.0), np.float32), value.shape[1:])
                             for i in inits])
             self.elapsed[rows] = 0
-            with wp.ScopedDevice(self.wp_device):  # a whole forward pass, as CPU MuJoCo's reset: its accelerations
-                self.mjw.forward(self.m, self.d)  # warm-start the first step's solver (kinematics alone parts them)
+            # a whole forward pass, as CPU MuJoCo's reset: its accelerations warm-start the first step's solver
+            self.forward()  # (kinematics alone parts them)
         return self.task.observe(self.xp, state)
 
     def step(self, actions: Any, active: Any, observe: bool = True) -> Any:
         """Every world steps (the inactive ones' results are dropped by the caller). A world whose state or reward
         is not finite (the physics diverged) ends its episode there as a truncation, reward 0."""
         self.task.apply_action(self.xp, self.state, torch.clamp(actions.to(self.device, torch.float32), -1.0, 1.0))
-        if self.graph is not None:
-            self.wp.capture_launch(self.graph)
-        else:
-            self._physics()
+        self.physics()
         reward, success, terminated = self.task.evaluate(self.xp, self.state)
         obs = self.task.observe(self.xp, self.state)
         self.elapsed += 1
@@ -264,7 +284,7 @@ class MjWarpBatch:
                         count, self.unstable)
 
     def close(self) -> None:
-        self.graph = None
+        self.physics = self.clear = self.forward = lambda: None  # the graphs go with their callables
 
 
 def make_batch(spec: EnvSpec, seeds: list[int]) -> EnvBatch | ManiSkillBatch | MjWarpBatch:

@@ -16,7 +16,9 @@ worker seeded ``seeds[i]`` would: a batch replays what the same envs on CPU MuJo
 * ``nconmax``: contacts per world to allocate (default 32), ``njmax``: constraint rows per world (default 128;
   PandaPickCube, pressed into the table by random actions on CPU MuJoCo, peaks at 9 and 44: a test keeps 2x). A
   step that needs more stops the group with an error saying which to raise: MuJoCo Warp would drop contacts;
-* ``cuda_graph``: capture an env step's physics steps as one CUDA graph (default true; ignored on the CPU).
+* ``cuda_graph``: capture an env step's physics steps, and a reset's clearing and forward pass, as graphs (default
+  true): CUDA graphs on the GPU; on the CPU Warp's own graph replay (Warp >= 1.13), which skips Python's launch
+  overhead (2.4x an env step of 64 worlds). Where capture fails the launches run one by one, with a warning.
 
 Where this module runs without the GPU batch (the launcher's preflight, gen and train describing the task, the
 evaluation service), the task's CPU MuJoCo version stands in (:func:`build`): same model, same spaces, same reward.

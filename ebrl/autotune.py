@@ -231,7 +231,7 @@ def _time_generation(cfg: Any, info: Any, cands: list[Candidate], gpu: Any) -> d
     policy_cfg = dataclasses.replace(cfg.policy, checkpoint="")
     for device in sorted({c.device for c in cands}, reverse=True):  # the GPU's first: the CPU's can give up early
         where = gpu if device == "cuda" else torch.device("cpu")
-        model = make_policy(policy_cfg, info.layout, info.action_dim).to(where).eval()
+        model = make_policy(policy_cfg, info.layout, info.action_dim, info.bounds).to(where).eval()
         if device == "cpu":
             threads.set_threads(cfg.gen.threads)
         for c in (c for c in cands if c.device == device):
@@ -260,7 +260,7 @@ def _time_training(cfg: Any, info: Any, dtypes: list[str], device: Any) -> dict[
     from ebrl.envs.obs import sample_observations
     from ebrl.policies import make_policy
 
-    model = make_policy(dataclasses.replace(cfg.policy, checkpoint=""), info.layout, info.action_dim).to(device)
+    model = make_policy(dataclasses.replace(cfg.policy, checkpoint=""), info.layout, info.action_dim, info.bounds).to(device)
     optimizer = make_adam(model.parameters(), 1e-6)
     mb = max(1, cfg.train.batch_size // max(1, cfg.algo.minibatches))
     obs = torch.as_tensor(sample_observations(info.layout, mb), dtype=torch.float32, device=device)

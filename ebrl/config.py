@@ -252,9 +252,10 @@ class PolicySection(Section):
     NAME = "policy"
     POSITIVE = ("chunk", "embed_dim", "denoise_steps", "width", "depth", "heads", "patch")
 
-    kind: Literal["mlp", "cnn", "flow"] = doc(
+    kind: Literal["mlp", "cnn", "flow", "squashed"] = doc(
         "policy model: mlp (Gaussian chunk from a flat observation), cnn (conv image encoder + proprioception + "
-        "instruction embedding, Gaussian chunk), flow (flow-matching action head: the chunk by denoising)", "mlp")
+        "instruction embedding, Gaussian chunk), flow (flow-matching action head: the chunk by denoising), squashed "
+        "(tanh of a Gaussian with state-dependent std, scaled to the env's action bounds: SAC's actor)", "mlp")
     chunk: int = doc("K: actions per chunk, executed open-loop", 4)
     hidden: list[int] = doc("hidden layer widths", factory=lambda: [64, 64])
     init_log_std: float = doc("initial log standard deviation of the Gaussian (flow: of the stochastic final "

@@ -173,7 +173,7 @@ def _model(cfg: config_mod.Config):
     from ebrl.policies import make_policy
 
     info = describe(EnvSpec.from_config(cfg.env))
-    return make_policy(cfg.policy, info.layout, info.action_dim), info.obs_shape, info.action_dim
+    return make_policy(cfg.policy, info.layout, info.action_dim, info.bounds), info.obs_shape, info.action_dim
 
 
 def measure_gen(cfg: config_mod.Config, cores: list[int], batch: int, seconds: float) -> float:

@@ -6,6 +6,8 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
+import numpy as np
+
 from ebrl import devices
 from ebrl.envs.obs import ObsLayout
 
@@ -64,3 +66,8 @@ class EnvInfo:
     @property
     def action_dim(self) -> int:
         return int(self.action_space.shape[0])
+
+    @property
+    def bounds(self) -> tuple[np.ndarray, np.ndarray]:
+        """The action space's (low, high), float64 (a bounded policy kind scales into them)."""
+        return np.asarray(self.action_space.low, np.float64), np.asarray(self.action_space.high, np.float64)

@@ -195,7 +195,9 @@ def from_metadata(metadata: dict[str, str], *, device: str = "cpu", seed: int = 
                               f"{FORMAT!r}")
     policy_cfg = _policy_section(json.loads(metadata["policy"]), source)
     layout = ObsLayout.from_dict(json.loads(metadata["layout"]))
-    model = make_policy(dataclasses.replace(policy_cfg, checkpoint=""), layout, int(metadata["action_dim"]))
+    bounds = (np.asarray(json.loads(metadata["action_low"]), np.float64),
+              np.asarray(json.loads(metadata["action_high"]), np.float64))
+    model = make_policy(dataclasses.replace(policy_cfg, checkpoint=""), layout, int(metadata["action_dim"]), bounds)
     return PortablePolicy(model.to(device), metadata, source, seed=seed)
 
 

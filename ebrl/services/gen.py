@@ -37,7 +37,7 @@ class GenService(Service):
         info = await env_info(self)
         bounds = self.bounds or await self.message_bounds()
         self.use_device(devices.resolve(cfg.gen.device, "gen.device"))
-        self.policy = make_policy(cfg.policy, info.layout, info.action_dim).to(self.device)
+        self.policy = make_policy(cfg.policy, info.layout, info.action_dim, info.bounds).to(self.device)
         self.policy.eval()
         self.actor = Actor(self.policy, cfg.gen.compile, cfg.policy.dtype)  # eager, or CUDA graphs per batch size
         torch.manual_seed(meta.gen_seed(cfg.run.seed, self.instance))  # the actions' sampling (every device)

@@ -242,9 +242,17 @@ class SimSection(Section):
         "\"physx_cuda\", or \"auto\" on a CUDA host)",
         "auto")
     segment_length: int = doc("chunk decisions per trajectory segment sent to training", 32)
+    nice: int = doc("niceness of the sim service and its env workers (0-19): where simulation shares cores with "
+                    "generation and training, the scheduler serves those first, so an update finishes sooner and "
+                    "less of the data is acted by an older version; 0: equal shares. Not applied in a process "
+                    "the sim shares with other services (run.processes)", 0)
     step_timeout: float = doc("seconds an env worker may take for one request (a chunk, or one step under batch "
                               "stepping) before it is killed and replaced; 0: automatic, 20x the "
                               "measured P99 chunk latency and at least 20 s (120 s until 50 chunks were seen)", 0.0)
+
+    def _check(self) -> None:
+        if not 0 <= self.nice <= 19:
+            raise ConfigError(f"sim.nice = {self.nice}: must be 0 (equal shares) to 19 (the lowest priority)")
 
 
 @dataclass

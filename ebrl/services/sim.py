@@ -34,6 +34,8 @@ class SimService(Service):
         bounds = self.bounds or await self.message_bounds()
         if sched.mode == "async":
             os.sched_setaffinity(0, sched.sim_cores)  # rollout's share of the machine
+        if cfg.sim.nice > os.nice(0) and not self.shares_process:  # before the workers start: they inherit it
+            os.nice(cfg.sim.nice - os.nice(0))
         # sim/<instance> runs on host <instance> of a multi-host run: its groups follow the other hosts'
         share = cfg.algo.group_size if cfg.algo.name == "grpo" else 1
         # sharing a process (run.processes), GPU physics steps on its thread, in its one CUDA context

@@ -88,7 +88,7 @@ class SimService(Service):
         out = {"sim/envs": float(self.fleet.count()),
                "sim/cores": float(len(self.cores_in_use())),  # what an allocator on another host plans with
                "sim/segments_held": float(len(self.outbox.held)), "sim/envs_given_up": float(self.fleet.given_up),
-               "sim/unknown_instances": float(self.peers.unknown_seen),
+               "sim/unknown_instances": float(self.peers.unknown_seen), "sim/nice": float(os.nice(0)),
                **self.stats.metrics()}
         if (rebinding := self.fleet.rebinding) is not None:
             out.update(rebinding.metrics())

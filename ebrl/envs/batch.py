@@ -213,7 +213,7 @@ class MjWarpBatch:
         if not self.graphed:
             return eager
         try:
-            with wp.ScopedCapture(device=where) as capture:
+            with wp.ScopedDevice(where), wp.ScopedCapture(device=where) as capture:
                 ops()
         except Exception as exc:  # noqa: BLE001 - an older Warp, a device without capture: the same ops, eagerly
             log.warning("MuJoCo Warp: no graph capture on %s (%s); its launches run one by one", where, exc)

@@ -260,7 +260,8 @@ def _time_training(cfg: Any, info: Any, dtypes: list[str], device: Any) -> dict[
     from ebrl.envs.obs import sample_observations
     from ebrl.policies import make_policy
 
-    model = make_policy(dataclasses.replace(cfg.policy, checkpoint=""), info.layout, info.action_dim, info.bounds).to(device)
+    model = make_policy(dataclasses.replace(cfg.policy, checkpoint=""), info.layout, info.action_dim,
+                        info.bounds).to(device)
     optimizer = make_adam(model.parameters(), 1e-6)
     mb = max(1, cfg.train.batch_size // max(1, cfg.algo.minibatches))
     obs = torch.as_tensor(sample_observations(info.layout, mb), dtype=torch.float32, device=device)

@@ -150,6 +150,7 @@ def of_run(cfg: Any, info: Any, *, weights: bool) -> Bounds:
         from ebrl.weights import WeightsLayout
 
         with torch.device("meta"):
-            model = make_policy(dataclasses.replace(cfg.policy, checkpoint=""), info.layout, info.action_dim, info.bounds)
+            model = make_policy(dataclasses.replace(cfg.policy, checkpoint=""), info.layout, info.action_dim,
+                                info.bounds)
         tensors = WeightsLayout.of_model(model).tensors
     return Bounds.of(Shapes.of_run(cfg, info, latent_shape(cfg.policy, info.action_dim), tensors))

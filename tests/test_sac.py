@@ -32,7 +32,8 @@ def segment(t: int, end: str = "cut", start: float = 0.0, chunk: int = 2) -> Tra
     return TrajectorySegment(
         group=0, env_id=0, episode=0, obs=obs, actions=np.full((t, chunk, 2), 0.5, np.float32),
         latents=np.zeros((t, 0), np.float32), logprobs=np.zeros(t, np.float32), values=np.zeros(t, np.float32),
-        rewards=np.arange(t, dtype=np.float32), steps=np.full(t, chunk, np.int32), versions=np.arange(t, dtype=np.int64),
+        rewards=np.arange(t, dtype=np.float32), steps=np.full(t, chunk, np.int32),
+        versions=np.arange(t, dtype=np.int64),
         end=end, last_obs=np.full(3, start + t, np.float32), episode_returns=[], episode_lengths=[])
 
 

@@ -51,7 +51,8 @@ class Learner:
         self.device = devices.rank_device(cfg.train.device, "train.device", rank)
         self.obs_shape = info.obs_shape
         self.action_shape = (cfg.policy.chunk, info.action_dim)
-        self.model = make_policy(cfg.policy, info.layout, info.action_dim, info.bounds).to(self.device)  # before the optimizer
+        # before the optimizer
+        self.model = make_policy(cfg.policy, info.layout, info.action_dim, info.bounds).to(self.device)
         self.portable = portable_metadata(cfg.policy, cfg.env, info)  # every policy file: loadable on its own
         self.latent_shape = tuple(self.model.latent_shape)
         self.ppo = PPO(self.model, cfg.algo, cfg.train.lr, seed=cfg.run.seed)

@@ -63,7 +63,7 @@ class SAC:
     """The critics, their targets, the temperature and the three optimizers around ``actor``; :meth:`step` takes
     one gradient step of each."""
 
-    def __init__(self, actor: ChunkSquashedMLP, settings: SACSettings, seed: int = 0):
+    def __init__(self, actor: ChunkSquashedMLP, settings: SACSettings):
         self.actor, self.cfg = actor, settings
         device, n_act = actor.device, actor.chunk * actor.action_dim
         self.critics = TwinQ(actor.obs_dim, n_act, list(settings.critic_hidden)).to(device)
@@ -73,7 +73,6 @@ class SAC:
         self.actor_opt = torch.optim.Adam(self._actor_params(), lr=settings.lr)
         self.critic_opt = torch.optim.Adam(self.critics.parameters(), lr=settings.lr)
         self.alpha_opt = torch.optim.Adam([self.log_alpha], lr=settings.lr)
-        self.generator = torch.Generator().manual_seed(seed)  # minibatch draws (the replay's rng is the caller's)
         self.skipped = 0  # gradient steps skipped (not finite)
 
     def _actor_params(self) -> list[nn.Parameter]:
@@ -163,11 +162,11 @@ class SAC:
             target.lerp_(source, tau)
 
     def state(self) -> dict[str, Any]:
-        """Everything beyond the actor a restart needs: critics, targets, temperature, optimizers, generator."""
+        """Everything beyond the actor a restart needs: critics, targets, temperature, optimizers (the samples'
+        noise is torch's global generator, which a checkpoint keeps)."""
         return {"critics": self.critics.state_dict(), "targets": self.targets.state_dict(),
                 "log_alpha": self.log_alpha.detach().clone(), "actor_opt": self.actor_opt.state_dict(),
-                "critic_opt": self.critic_opt.state_dict(), "alpha_opt": self.alpha_opt.state_dict(),
-                "generator": self.generator.get_state()}
+                "critic_opt": self.critic_opt.state_dict(), "alpha_opt": self.alpha_opt.state_dict()}
 
     def load_state(self, state: dict[str, Any]) -> None:
         self.critics.load_state_dict(state["critics"])
@@ -177,4 +176,3 @@ class SAC:
         self.actor_opt.load_state_dict(state["actor_opt"])
         self.critic_opt.load_state_dict(state["critic_opt"])
         self.alpha_opt.load_state_dict(state["alpha_opt"])
-        self.generator.set_state(state["generator"])

@@ -54,5 +54,6 @@ def make_policy(policy_cfg: Any, layout: ObsLayout, action_dim: int,
     return model
 
 
-__all__ = ["ChunkGaussianCNN", "ChunkGaussianMLP", "ChunkPolicy", "ChunkSquashedMLP", "FlowPolicy", "load_arrays", "load_checkpoint",
-           "ObsNormalizer", "make_policy", "save_checkpoint", "state_arrays"]
+__all__ = ["ChunkGaussianCNN", "ChunkGaussianMLP", "ChunkPolicy", "ChunkSquashedMLP",
+           "FlowPolicy", "load_arrays", "load_checkpoint", "ObsNormalizer", "make_policy", "save_checkpoint",
+           "state_arrays"]

@@ -32,7 +32,8 @@ class EvalService(Service):
         threads.set_threads(1)
         info = await env_info(self)
         bounds = self.bounds or await self.message_bounds()
-        self.model = make_policy(dataclasses.replace(cfg.policy, checkpoint=""), info.layout, info.action_dim, info.bounds)
+        self.model = make_policy(dataclasses.replace(cfg.policy, checkpoint=""), info.layout, info.action_dim,
+                                 info.bounds)
         self.metadata = {**policy_metadata(self.model), **portable_metadata(cfg.policy, cfg.env, info),
                          "run": self.run_name}
         self.workers = EvalPool(self.metadata, cfg.eval.cores, render=cfg.eval.video_episodes > 0)

@@ -95,25 +95,16 @@ class SAC:
         return {"obs": obs, "next_obs": next_obs, "actions": actions,
                 "rewards": torch.as_tensor(batch.rewards, dtype=torch.float32, device=device), "discount": discount}
 
-    def _sample(self, flat_obs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """Squashed actions and log-probs for already standardised observations (``rsample`` standardises)."""
-        mean, log_std = self.actor.moments(flat_obs)
-        eps = torch.randn_like(mean)
-        a = torch.tanh(mean + log_std.exp() * eps)
-        logp = (-0.5 * eps.square() - log_std - 0.5 * math.log(2 * math.pi)
-                - torch.log1p(-a.square() + 1e-6)).sum(-1)
-        return a, logp
-
     def step(self, batch: ReplayBatch) -> dict[str, float]:
         """One gradient step of the temperature, the critics and then the actor (against the stepped critics, as
         Stable-Baselines3 orders them), then the targets' soft update; the step's numbers. Where the temperature's
         or the critics' loss or gradient is not finite nothing moves; where only the actor's is, the actor and the
         targets stay. Either is counted in ``steps_skipped``."""
         t, alpha = self.tensors(batch), self.log_alpha.detach().exp()
-        a, logp = self._sample(t["obs"])
+        a, logp = self.actor.rsample_flat(t["obs"])
         alpha_loss = -(self.log_alpha * (logp.detach() + self.target_entropy)).mean()
         with torch.no_grad():
-            next_a, next_logp = self._sample(t["next_obs"])
+            next_a, next_logp = self.actor.rsample_flat(t["next_obs"])
             q1_t, q2_t = self.targets(t["next_obs"], next_a)
             target = t["rewards"] + t["discount"] * (torch.min(q1_t, q2_t) - alpha * next_logp)
         q1, q2 = self.critics(t["obs"], t["actions"])

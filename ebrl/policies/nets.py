@@ -18,11 +18,12 @@ def layer(n_in: int, n_out: int, gain: float) -> nn.Linear:
     return out
 
 
-def mlp(n_in: int, hidden: list[int], n_out: int | None, out_gain: float = 1.0) -> nn.Sequential:
-    """Tanh MLP; ``n_out=None`` ends after the last hidden layer (a trunk for several heads)."""
+def mlp(n_in: int, hidden: list[int], n_out: int | None, out_gain: float = 1.0,
+        activation: type[nn.Module] = nn.Tanh) -> nn.Sequential:
+    """Tanh MLP (or ``activation``); ``n_out=None`` ends after the last hidden layer (a trunk for several heads)."""
     layers: list[nn.Module] = []
     for width in hidden:
-        layers += [layer(n_in, width, math.sqrt(2)), nn.Tanh()]
+        layers += [layer(n_in, width, math.sqrt(2)), activation()]
         n_in = width
     if n_out is not None:
         layers.append(layer(n_in, n_out, out_gain))

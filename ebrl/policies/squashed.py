@@ -13,7 +13,6 @@ zero (SAC learns Q functions beside the policy, ``ebrl.algos.sac``, not a value 
 
 from __future__ import annotations
 
-import math
 
 import numpy as np
 import torch
@@ -21,7 +20,7 @@ from torch import nn
 
 from ebrl.envs.obs import ObsLayout
 from ebrl.policies.base import HALF_LOG_2PI, ChunkPolicy, Tensors3, noise
-from ebrl.policies.nets import layer, width
+from ebrl.policies.nets import layer, mlp, width
 
 LOG_STD_MIN, LOG_STD_MAX = -20.0, 2.0  # Stable-Baselines3's and the SAC authors' clamp
 TANH_EPS = 1e-6
@@ -30,13 +29,7 @@ TANH_EPS = 1e-6
 def relu_mlp(n_in: int, hidden: list[int], n_out: int | None) -> nn.Sequential:
     """ReLU MLP (SAC's actors and critics, as Stable-Baselines3's); ``n_out=None`` ends after the last hidden
     layer."""
-    layers: list[nn.Module] = []
-    for w in hidden:
-        layers += [layer(n_in, w, math.sqrt(2)), nn.ReLU()]
-        n_in = w
-    if n_out is not None:
-        layers.append(layer(n_in, n_out, 0.01))
-    return nn.Sequential(*layers)
+    return mlp(n_in, hidden, n_out, 0.01, nn.ReLU)
 
 
 class ChunkSquashedMLP(ChunkPolicy):
@@ -69,8 +62,12 @@ class ChunkSquashedMLP(ChunkPolicy):
 
     def rsample(self, obs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Reparameterised: squashed actions in (-1, 1) [B, K*A] (gradients flow through them) and their log-probs
-        [B]. What SAC's actor and critic losses use."""
-        mean, log_std = self.moments(self.flat(obs))
+        [B]."""
+        return self.rsample_flat(self.flat(obs))
+
+    def rsample_flat(self, flat_obs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """:meth:`rsample` of observations already flat and standardised (SAC standardises a batch once)."""
+        mean, log_std = self.moments(flat_obs)
         eps = torch.randn_like(mean)
         u = mean + log_std.exp() * eps
         a = torch.tanh(u)

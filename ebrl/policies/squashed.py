@@ -13,7 +13,6 @@ zero (SAC learns Q functions beside the policy, ``ebrl.algos.sac``, not a value 
 
 from __future__ import annotations
 
-
 import numpy as np
 import torch
 from torch import nn

@@ -328,9 +328,10 @@ class AlgoSection(Section):
     NAME = "algo"
     POSITIVE = ("epochs", "minibatches")
 
-    name: Literal["ppo", "grpo"] = doc(
-        "learning algorithm: ppo (GAE with a critic) or grpo (group-relative advantages over group_size "
-        "rollouts from the same initial state, no critic)", "ppo")
+    name: str = doc(
+        "learning algorithm: ppo (GAE with a critic), grpo (group-relative advantages over group_size rollouts "
+        "from the same initial state, no critic), sac (soft actor-critic over a replay, with policy.kind = "
+        "\"squashed\"), or your own as \"my_pkg.module:MyAlgo\" (docs/algorithms.md)", "ppo")
     group_size: int = doc("grpo: rollouts per group; envs env_id // group_size share their reset seeds", 8)
     max_staleness: int = doc("most policy versions between the weights that act and the update that learns, "
                              "when rollout and training overlap", 1)
@@ -351,9 +352,26 @@ class AlgoSection(Section):
     minibatches: int = doc("minibatches per pass", 4)
     ent_coef: float = doc("entropy bonus coefficient", 0.0)
     vf_coef: float = doc("value loss coefficient", 0.5)
-    max_grad_norm: float = doc("gradient clipping norm", 0.5)
+    max_grad_norm: float = doc("ppo, grpo: gradient clipping norm (sac does not clip, as Stable-Baselines3)", 0.5)
+    utd: float = doc("sac: gradient steps per env step (the update-to-data ratio), kept on average; train/utd "
+                     "reports the ratio achieved", 1.0)
+    keep_utd: bool = doc("sac: where training falls behind, simulators wait for it (at most max_staleness updates "
+                         "ahead) and the ratio holds; false: they never wait, each update learns from all that "
+                         "arrived and the ratio drops", True)
+    tau: float = doc("sac: target networks' soft update, Q' <- (1 - tau) Q' + tau Q after each gradient step", 0.005)
+    init_alpha: float = doc("sac: the entropy temperature to start from (tuned automatically from there)", 1.0)
+    target_entropy: float | Literal["auto"] = doc("sac: the entropy the temperature is tuned toward; auto: minus the "
+                                                  "chunk's action values (policy.chunk x action dimensions)", "auto")
 
     def _check(self) -> None:
+        from ebrl.algos.algorithm import ALGORITHMS  # the registry, imported only to check names against it
+        if self.name not in ALGORITHMS and ":" not in self.name:
+            raise ConfigError(f"algo.name = {self.name!r}: not one of {', '.join(ALGORITHMS)}, nor your own as "
+                              "\"module:Class\"")
+        if not 0 < self.tau <= 1:
+            raise ConfigError(f"algo.tau = {self.tau}: must be in (0, 1]")
+        if not (self.utd > 0 and self.init_alpha > 0):
+            raise ConfigError(f"algo.utd = {self.utd}, algo.init_alpha = {self.init_alpha}: both must be > 0")
         if not 0 < self.gamma <= 1:
             raise ConfigError(f"algo.gamma = {self.gamma}: must be in (0, 1]")
         if self.max_staleness < 0:
@@ -388,6 +406,26 @@ class TrainSection(Section):
             raise ConfigError(f"train.checkpoint_every = {self.checkpoint_every}: must be >= 0")
         if self.max_pending < self.batch_size:
             raise ConfigError(f"train.max_pending = {self.max_pending}: must be >= train.batch_size ({self.batch_size})")
+
+
+@dataclass
+class ReplaySection(Section):
+    NAME = "replay"
+    POSITIVE = ("capacity", "batch_size")
+
+    capacity: int = doc("off-policy (sac): most transitions (chunk decisions) the replay holds; the oldest are "
+                        "overwritten first", 1_000_000)
+    max_bytes: int = doc("most bytes the replay's arrays may take; a capacity that needs more is refused as training "
+                         "starts, with the numbers. 0: 80 % of the memory the host has available then", 0)
+    batch_size: int = doc("transitions per gradient step, drawn uniformly from the replay", 256)
+    learning_starts: int = doc("transitions the replay holds before the first gradient step", 100)
+    save: bool = doc("write the replay beside every checkpoint (RUN_DIR/replay.npz) and read it back when train "
+                     "restarts; false: a restart starts with an empty replay (counted: replay/lost)", True)
+
+    def _check(self) -> None:
+        if self.max_bytes < 0 or self.learning_starts < 0:
+            raise ConfigError(f"replay.max_bytes = {self.max_bytes}, replay.learning_starts = {self.learning_starts}: "
+                              "must be >= 0")
 
 
 @dataclass
@@ -504,7 +542,7 @@ class HostEntry:
 
 SECTIONS: dict[str, type[Section]] = {cls.NAME: cls for cls in (
     RunSection, BusSection, EnvSection, SimSection, PolicySection, GenSection, AlgoSection, TrainSection,
-    AllocSection, VizSection, LogSection, EvalSection)}
+    ReplaySection, AllocSection, VizSection, LogSection, EvalSection)}
 
 
 @dataclass
@@ -517,6 +555,7 @@ class Config:
     gen: GenSection = field(default_factory=GenSection)
     algo: AlgoSection = field(default_factory=AlgoSection)
     train: TrainSection = field(default_factory=TrainSection)
+    replay: ReplaySection = field(default_factory=ReplaySection)
     alloc: AllocSection = field(default_factory=AllocSection)
     viz: VizSection = field(default_factory=VizSection)
     log: LogSection = field(default_factory=LogSection)
@@ -749,6 +788,7 @@ def _check_across(cfg: Config) -> None:
                           "which sim.core_rebinding = true does not use (rebinding hands out single cores); set "
                           "sim.cores_per_env = 1, or leave sim.core_rebinding to the mode")
     _check_processes(cfg)
+    _check_algorithm(cfg)
     if cfg.algo.name == "grpo":
         envs = cfg.num_envs
         if cfg.algo.group_size < 2 or envs % cfg.algo.group_size:
@@ -758,6 +798,16 @@ def _check_across(cfg: Config) -> None:
             raise ConfigError(f"algo.name = \"grpo\" with run.mode = {cfg.run.mode!r}: grpo learns from whole "
                               "episodes, which a rollout -> train barrier of fixed length cannot wait for; use "
                               "run.mode = \"ebrl\" or \"async\" (or train.overlap = true)")
+
+
+def _check_algorithm(cfg: Config) -> None:
+    """The algorithm against the policy it trains and the ranks that train it."""
+    if cfg.algo.name == "sac" and cfg.policy.kind != "squashed":  # (ppo's learner refuses a squashed one)
+        raise ConfigError(f"algo.name = 'sac' with policy.kind = {cfg.policy.kind!r}: sac trains a tanh-squashed "
+                          "actor; set policy.kind = \"squashed\"")
+    if cfg.algo.name == "sac" and cfg.train.world_size > 1:
+        raise ConfigError(f"train.world_size = {cfg.train.world_size}: sac trains on one rank (its replay is one "
+                          "process's); set train.world_size = 1")
 
 
 def processes(cfg: Config) -> list[list[str]]:

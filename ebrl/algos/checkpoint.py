@@ -122,11 +122,13 @@ def remove_stale(run_dir: str | Path) -> list[Path]:
     return removed
 
 
-def save(run_dir: str | Path, model: torch.nn.Module, optimizer: torch.optim.Optimizer | dict, version: int,
+def save(run_dir: str | Path, model: torch.nn.Module, optimizer: Any, version: int,
          generators: dict[str, torch.Generator], metadata: dict[str, str] | None = None,
-         model_state: dict[str, torch.Tensor] | None = None) -> Path:
+         model_state: dict[str, torch.Tensor] | None = None, extra: dict[str, torch.Tensor] | None = None) -> Path:
     """Write a checkpoint of ``version`` durably and atomically; return its directory. ``optimizer`` may be its
-    state dict and ``model_state`` the model's, gathered elsewhere (sharded training: ``ebrl.algos.parallel``)."""
+    state dict and ``model_state`` the model's, gathered elsewhere (sharded training: ``ebrl.algos.parallel``).
+    ``extra``: the algorithm's tensors beyond the policy and optimizer (``Algorithm.extra_state``: critics,
+    targets), written as ``algo.<name>``."""
     root = checkpoint_dir(run_dir)
     root.mkdir(parents=True, exist_ok=True)
     for stale in remove_stale(run_dir):
@@ -140,6 +142,7 @@ def save(run_dir: str | Path, model: torch.nn.Module, optimizer: torch.optim.Opt
     tensors = {f"opt.{index}.{key}": value.detach().cpu().contiguous()
                for index, slots in state["state"].items() for key, value in slots.items()
                if isinstance(value, torch.Tensor)}
+    tensors.update({f"algo.{key}": value.detach().cpu().contiguous() for key, value in (extra or {}).items()})
     bad = nonfinite({**(model_state if model_state is not None else model.state_dict()), **tensors})
     if bad:
         shutil.rmtree(tmp, ignore_errors=True)
@@ -176,11 +179,13 @@ class NonFiniteState(ValueError):
 
 def restore_latest(run_dir: str | Path, model: torch.nn.Module,
                    optimizer: torch.optim.Optimizer | Callable[[], torch.optim.Optimizer],
-                   generators: dict[str, torch.Generator]) -> Restored | None:
+                   generators: dict[str, torch.Generator],
+                   extra: Callable[[dict[str, torch.Tensor]], None] | None = None) -> Restored | None:
     """Load the newest readable checkpoint of a run (:func:`candidates`' order) into the model, optimizer and
     generators, skipping (and logging) each that cannot be read; None when there is none to read. Raises
     ValueError when a checkpoint reads but does not fit the model or optimizer. ``optimizer`` may be a function
-    that makes it, called only once a checkpoint was read (a new run makes its optimizer later: ``PPO``)."""
+    that makes it, called only once a checkpoint was read (a new run makes its optimizer later: ``PPO``).
+    ``extra`` takes the algorithm's own tensors (``algo.<name>``; ``Algorithm.load_extra_state``)."""
     paths = candidates(run_dir)
     newest = max((version_of(p) for p in paths), default=-1)  # type: ignore[type-var]
     skipped: list[tuple[Path, str]] = []
@@ -194,7 +199,7 @@ def restore_latest(run_dir: str | Path, model: torch.nn.Module,
         if skipped:
             log.warning("restoring %s instead (%d newer checkpoint%s unreadable)", path.name, len(skipped),
                         "s" if len(skipped) > 1 else "")
-        restored = _apply(path, loaded, model, optimizer() if callable(optimizer) else optimizer, generators)
+        restored = _apply(path, loaded, model, optimizer() if callable(optimizer) else optimizer, generators, extra)
         restored.skipped, restored.newest = skipped, max(newest, restored.version)
         return restored
     if skipped:
@@ -251,9 +256,19 @@ def _read_state(path: Path) -> dict[str, Any]:
     return state
 
 
-def _apply(path: Path, loaded: tuple[dict, dict, dict], model: torch.nn.Module, optimizer: torch.optim.Optimizer,
-           generators: dict[str, torch.Generator]) -> Restored:
+def _apply(path: Path, loaded: tuple[dict, dict, dict], model: torch.nn.Module, optimizer: Any,
+           generators: dict[str, torch.Generator],
+           extra: Callable[[dict[str, torch.Tensor]], None] | None = None) -> Restored:
     state, arrays, tensors = loaded
+    own = {key[len("algo."):]: value for key, value in tensors.items() if key.startswith("algo.")}
+    if own and extra is None:
+        raise ValueError(f"checkpoint {path}: holds an algorithm's state ({', '.join(sorted(own)[:3])}) this run "
+                         "has no use for: another algo.name's checkpoint")
+    if extra is not None:
+        try:
+            extra(own)
+        except (ValueError, KeyError, RuntimeError) as exc:
+            raise ValueError(f"checkpoint {path}: the algorithm's state does not fit: {exc}") from None
     load_arrays(model, arrays, source=f"policy checkpoint {path / 'policy.safetensors'}")
     slots: dict[int, dict[str, Any]] = {}
     for key, value in tensors.items():

@@ -1,6 +1,7 @@
 """The learner of one training rank (Sample Factory's ``Learner``): segments in, updates, versioned weights.
 
-It holds the policy, PPO/GRPO and the bounded collector, and the rules that keep versions honest:
+It holds the policy, the algorithm (``algo.name``: ``ebrl.algos.algorithm``) and its bounded collector, and the
+rules that keep versions honest, the same for every algorithm:
 
 * a segment is taken only if its shapes match the policy and it was acted by a version this learner
   published (``versions <= version``); a bad one is dropped, counted;
@@ -8,8 +9,8 @@ It holds the policy, PPO/GRPO and the bounded collector, and the rules that keep
   launcher says a newer version was published before (``procenv.version_floor``), continues after it;
 * a learner stopped to start again (a new GPU share) hands the segments it had not trained on over to
   the next one (``ebrl.algos.handover``), which takes them over once;
-* nothing that is not finite is learned from, published, saved or resumed from (``ebrl.algos.ppo`` skips a
-  bad gradient step, :meth:`Learner.finite_or_previous` undoes an update that made non-finite weights,
+* nothing that is not finite is learned from, published, saved or resumed from (the algorithm skips a bad
+  gradient step, :meth:`Learner.finite_or_previous` undoes an update that made non-finite weights,
   ``ebrl.algos.saving`` refuses a checkpoint or policy file that is not finite).
 
 No bus and no event loop here: the train service (``ebrl/services/train.py``) drives it through
@@ -19,7 +20,6 @@ from what.
 
 from __future__ import annotations
 
-import contextlib
 import logging
 from typing import Any, Callable
 
@@ -28,17 +28,18 @@ import torch
 
 from ebrl import devices
 from ebrl.algos import checkpoint, handover, saving
-from ebrl.algos.grpo import GroupCollector
+from ebrl.algos.algorithm import algorithm_class
 from ebrl.algos.intake import Intake
 from ebrl.algos.returns import EpisodeLedger, RewardBound
 from ebrl.algos.parallel import Command, DataParallel, shards
-from ebrl.algos.ppo import PPO, BadBatch, Batch, SegmentCollector
 from ebrl.messages import SegmentBatch, TrajectorySegment
 from ebrl.policies import load_arrays, make_policy, state_arrays
 from ebrl.policies.checkpoint import portable_metadata
 from ebrl.meter import Telemetry
 
 log = logging.getLogger(__name__)
+
+MAX_LAG_SHOWN = 16  # staleness histogram bins (train/staleness_hist_<lag>): an off-policy run's lags are unbounded
 
 
 class Learner:
@@ -55,24 +56,24 @@ class Learner:
         self.model = make_policy(cfg.policy, info.layout, info.action_dim, info.bounds).to(self.device)
         self.portable = portable_metadata(cfg.policy, cfg.env, info)  # every policy file: loadable on its own
         self.latent_shape = tuple(self.model.latent_shape)
-        self.ppo = PPO(self.model, cfg.algo, cfg.train.lr, seed=cfg.run.seed)
+        self.algo = algorithm_class(cfg.algo.name)(self.model, cfg, info, telemetry, self.device)
         self.version = self.saved_version = 0
         self.dp: DataParallel | None = None
-        collector = GroupCollector if cfg.algo.name == "grpo" else SegmentCollector
-        self.collector = collector(cfg.algo, cfg.train.max_pending, max_staleness, telemetry.count)
+        self.collector = self.algo.collector(cfg.train.max_pending, max_staleness, telemetry.count)
         # every env's episodes as training received them: the returns it computed, the ones the run ends on
         self.intake = Intake(cfg.env.max_abs_reward, EpisodeLedger(RewardBound(cfg.env.reward_bound,
                                                                                  info.reward_range)), telemetry)
-        self.staleness_hist = np.zeros(max_staleness + 1, dtype=np.int64)  # decisions per lag
+        # decisions per lag (the last bin: that lag or more)
+        self.staleness_hist = np.zeros(min(max_staleness, MAX_LAG_SHOWN) + 1, dtype=np.int64)
         self.arrays: dict[str, np.ndarray] = {}  # the full weights rank 0 publishes
         self.train_state: tuple[int, dict, dict] | None = None  # sharded: (version, model, optimizer) gathered
 
     def join(self) -> None:
         """With several ranks: join the training group (blocks until every rank joined; every rank then
         holds rank 0's weights)."""
-        self.dp = DataParallel(self.model, self.ppo.optimizer, self.rank, self.world,
+        self.dp = DataParallel(self.model, self.algo.optimizer, self.rank, self.world,
                                shard=self.cfg.train.parallel == "fsdp", device=self.device, wire=self.collector)
-        self.ppo.net, self.ppo.optimizer = self.dp.net, self.dp.optimizer
+        self.algo.join(self.dp)  # type: ignore[attr-defined]  # data_parallel algorithms (the config checks)
 
     @property
     def sharded(self) -> bool:
@@ -110,28 +111,13 @@ class Learner:
         return self.learn(items)
 
     def learn(self, items: list) -> dict[str, float]:
-        """The gradient steps on this rank's items, then ``sync``; a rank without items steps with zero
-        gradients. Every rank makes the same collective calls in the same order, items or not."""
-        with self.dp.gathered() if self.dp is not None else contextlib.nullcontext():
-            batch = checked_batch(self.collector, items, self.model, self.telemetry)
-        batch = batch.to(self.device) if batch is not None else None
-        prox = None  # log pi_prox: the policy as it acted, before the normaliser takes in this batch
-        if batch is not None:
-            with devices.autocast(self.device, self.cfg.policy.dtype):
-                prox = self.ppo.proximal(batch)
-        if self.model.obs_norm is not None:  # before the gradient steps, the same statistics on every rank
-            sums = self.model.obs_norm.sums(batch.obs if batch is not None else torch.zeros(0, *self.obs_shape))
-            self.model.obs_norm.merge(sums if self.dp is None else self.dp.all_sum(sums))
-        if batch is None:
-            with devices.autocast(self.device, self.cfg.policy.dtype):
-                out = {**self.ppo.update(self.empty_batch(), scale=0.0), "batch_size": 0.0}
-        else:
-            staleness = self.version - batch.versions
-            self.staleness_hist += np.bincount(staleness, minlength=len(self.staleness_hist))[:len(self.staleness_hist)]
-            with devices.autocast(self.device, self.cfg.policy.dtype):
-                out = self.ppo.update(batch, version=self.version, prox=prox)
-            out.update(staleness_mean=float(staleness.mean()), staleness_max=float(staleness.max()),
-                       batch_size=float(len(batch)))
+        """The algorithm's update on this rank's items, then ``sync``; a rank without items takes part too
+        (every rank makes the same collective calls in the same order, items or not)."""
+        learned = self.algo.learn(items, self.version, self.collector)
+        if learned.versions is not None:
+            lags = np.minimum(self.version - learned.versions, len(self.staleness_hist) - 1)
+            self.staleness_hist += np.bincount(lags, minlength=len(self.staleness_hist))
+        out = learned.stats
         count_skipped(out, self.telemetry, self.version + 1)
         self.sync(self.version + 1)
         self.version += 1
@@ -157,15 +143,8 @@ class Learner:
         log.error("the update to v%d made non-finite weights (%s): v%d's kept", self.version + 1, bad[0], self.version)
         if self.arrays:
             load_arrays(self.model, self.arrays)
-        self.ppo.optimizer.state.clear()  # the moments that led there
+        self.algo.reset_moments()  # the moments that led there
         return self.arrays or arrays
-
-    def empty_batch(self) -> Batch:
-        """Zeros shaped like a batch of ``algo.minibatches`` decisions (for ``scale = 0`` steps)."""
-        n, zeros = self.cfg.algo.minibatches, torch.zeros(self.cfg.algo.minibatches)
-        return Batch(obs=torch.zeros(n, *self.obs_shape), actions=torch.zeros(n, *self.action_shape),
-                     latents=torch.zeros(n, *self.latent_shape), logprobs=zeros, advantages=zeros, returns=zeros,
-                     values=zeros, versions=np.full(n, self.version)).to(self.device)
 
     def resume(self, floor: int) -> str | None:
         """Carry on from the run's newest readable checkpoint, if any, after version ``floor`` (the newest anyone
@@ -174,8 +153,8 @@ class Learner:
         if self.rank == 0:  # the writer of checkpoints: what a kill in the middle of a write left goes
             for stale in saving.remove_interrupted(self.run_dir):
                 log.warning("removed %s, left by an interrupted write", stale)
-        restored = checkpoint.restore_latest(self.run_dir, self.model, lambda: self.ppo.optimizer,
-                                             {"ppo": self.ppo.generator})  # no checkpoint: no optimizer yet
+        restored = checkpoint.restore_latest(self.run_dir, self.model, lambda: self.algo.optimizer,
+                                             self.algo.generators(), self.algo.load_extra_state)
         if restored is not None:
             self.version = self.saved_version = restored.version
             log.info("resumed from %s (policy v%d)", restored.path, restored.version)
@@ -190,6 +169,8 @@ class Learner:
                         floor, f"v{self.version}" if restored else "initial", floor + 1)
             self.version = floor + 1
         self.arrays = state_arrays(self.model)
+        if self.rank == 0 and (data := self.algo.restore_data(self.run_dir)):
+            log.info("%s", data)
         if restored is None and floor < 0:
             return None
         return f"train resumed at policy v{self.version}" + (f" from {restored.path.name}" if restored is not None
@@ -222,24 +203,10 @@ class Learner:
         # batch_ready: a full batch waits, which the stall watch reads (ebrl.stall)
         out.update({"train/pending_steps": float(self.collector.pending_steps), "train/batch_ready": float(self.ready)})
         out.update(self.intake.metrics())  # the returns training computed (ebrl.algos.returns), its intake
+        out.update(self.algo.metrics())  # the algorithm's own (a replay's size and rates)
         for lag, n in enumerate(self.staleness_hist):
             out[f"train/staleness_hist_{lag}"] = float(n)
         return out
-
-
-def checked_batch(collector: Any, items: list, model: torch.nn.Module, telemetry: Telemetry) -> Batch | None:
-    """The batch of ``items`` (None for none), without the decisions whose advantages or returns are not finite
-    (counted: ``train/decisions_dropped``; None when that is all of them)."""
-    if not items:
-        return None
-    try:
-        batch = collector.build(items, model)
-    except BadBatch as exc:
-        telemetry.count("train/decisions_dropped", exc.dropped)
-        return None
-    if batch.dropped:
-        telemetry.count("train/decisions_dropped", batch.dropped)
-    return batch
 
 
 def count_skipped(out: dict[str, float], telemetry: Telemetry, version: int) -> None:

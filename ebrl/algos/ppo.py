@@ -194,15 +194,15 @@ def policy_loss(logp: torch.Tensor, prox_logp: torch.Tensor, behave_logp: torch.
     return loss, weight, ratio
 
 
-def make_adam(params: Any, lr: float) -> torch.optim.Optimizer:
+def make_adam(params: Any, lr: float, eps: float = 1e-5) -> torch.optim.Optimizer:
     """Adam, fused where torch has a fused kernel for these parameters (one kernel per step instead of several
     per tensor; on CUDA, and on the CPU since torch 2.4): a fused Adam also takes ``found_inf`` and skips a
     step on the device, with no read back to the host (:meth:`PPO.update`)."""
     params = list(params)
     try:
-        return torch.optim.Adam(params, lr=lr, eps=1e-5, fused=True)
+        return torch.optim.Adam(params, lr=lr, eps=eps, fused=True)
     except (RuntimeError, TypeError):  # a device or dtype the fused kernel does not take
-        return torch.optim.Adam(params, lr=lr, eps=1e-5)
+        return torch.optim.Adam(params, lr=lr, eps=eps)
 
 
 def skips_on_device(optimizer: torch.optim.Optimizer) -> bool:

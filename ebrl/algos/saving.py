@@ -53,14 +53,16 @@ def save_train_state(learner: Learner, run_name: str) -> bool:
     if learner.version == learner.saved_version:
         return False
     start = time.time()
-    model_state, optimizer = None, learner.ppo.optimizer
+    model_state, optimizer = None, learner.algo.optimizer
     if learner.sharded:  # what the ranks gathered (sync, and the stop)
         if learner.train_state is None or learner.train_state[0] != learner.version:
             return False
         _, model_state, optimizer = learner.train_state
     try:
-        checkpoint.save(learner.run_dir, learner.model, optimizer, learner.version, {"ppo": learner.ppo.generator},
-                        {"run": run_name, **learner.portable}, model_state=model_state)
+        checkpoint.save(learner.run_dir, learner.model, optimizer, learner.version, learner.algo.generators(),
+                        {"run": run_name, **learner.portable}, model_state=model_state,
+                        extra=learner.algo.extra_state())
+        learner.algo.save_data(learner.run_dir)  # beside it: what the algorithm keeps (a replay)
     except checkpoint.NonFiniteState as exc:  # the newest good checkpoint stays the one a restart reads
         log.error("%s", exc)
         learner.telemetry.count("train/checkpoints_refused")

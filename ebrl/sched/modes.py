@@ -107,7 +107,7 @@ def resolve(cfg: Any, cores: list[int] | None = None) -> Schedule:
         sim_cores=sim_cores or cores,
         gen_cores=gen_cores,
         train_cores=train_cores,
-        throttle=cfg.algo.name != "grpo",
+        throttle=cfg.algo.name != "grpo" and cfg.algo.keep_utd,
         rebinding_auto=core_rebinding and rebinding == "auto",
         vectorized=batched,
         cores_per_env=cfg.sim.cores_per_env,

@@ -1,4 +1,4 @@
-"""train service: consumes trajectory segments continuously, runs PPO/GRPO updates, publishes versioned weights.
+"""train service: consumes trajectory segments continuously, runs the algorithm's updates, publishes versioned weights.
 
 The learning and its version rules are ``ebrl.algos.learner``, when it learns and checkpoints
 ``ebrl.algos.cycle``; with ``train.world_size`` > 1 this is one rank of a data-parallel group
@@ -78,7 +78,7 @@ class TrainService(Service):
         receiver = asyncio.create_task(self.receive())
         try:
             await self.publish_weights()
-            await asyncio.get_running_loop().run_in_executor(self.pool, self.learner.ppo.prepare)
+            await asyncio.get_running_loop().run_in_executor(self.pool, self.learner.algo.prepare)
             while self.cfg.run.iterations == 0 or self.learner.version < self.cfg.run.iterations:
                 if not (items := await self.cycle.next_items()):  # too stale, or a keep-alive to the other ranks
                     continue

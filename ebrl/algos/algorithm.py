@@ -1,0 +1,176 @@
+"""The algorithm interface and its registry: what a learning algorithm brings to a learner (``algo.name``).
+
+The learner (``ebrl.algos.learner``) and the train service are the same for every algorithm: they take segments
+in, judge them (``ebrl.algos.intake``), keep versions honest, publish weights, write checkpoints and refuse bad
+numbers. An :class:`Algorithm` brings the rest:
+
+* its **collector** (:meth:`Algorithm.collector`): the bounded intake of segments it learns from. An on-policy
+  algorithm's hands each update the oldest ``train.batch_size`` decisions and drops those too stale; an
+  off-policy one's hands the new decisions, which its update puts into a replay buffer;
+* its **model** beyond the policy (critics, target networks, a temperature), its optimizer(s) and its update,
+  :meth:`Algorithm.learn`, which returns the update's numbers;
+* its **state** for checkpoints: :attr:`Algorithm.optimizer` (several optimizers look like one:
+  :class:`Optimizers`), :meth:`Algorithm.generators` and the tensors beyond the policy
+  (:meth:`Algorithm.extra_state`), and what it keeps on the side of a run (a replay: :meth:`Algorithm.save_data`).
+
+``algo.name`` is one of :data:`ALGORITHMS` or a user's own class as ``"my_pkg.module:MyAlgo"``. Adding one is its
+module, a line in :data:`ALGORITHMS` and its tests (docs/algorithms.md, with SAC as the worked example).
+"""
+
+from __future__ import annotations
+
+import importlib
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any, Callable, ClassVar
+
+import numpy as np
+
+if TYPE_CHECKING:
+    import torch
+
+    from ebrl.meter import Telemetry
+    from ebrl.policies.base import ChunkPolicy
+
+# algo.name -> "module:Class"; imported when a run uses it
+ALGORITHMS: dict[str, str] = {
+    "ppo": "ebrl.algos.onpolicy:PPOAlgorithm",
+    "grpo": "ebrl.algos.onpolicy:GRPOAlgorithm",
+    "sac": "ebrl.algos.offpolicy:SACAlgorithm",
+}
+
+
+@dataclass
+class Learned:
+    """One update's outcome: its numbers (``train/<name>`` stats; ``steps_skipped`` and ``decisions_dropped`` are
+    counted, not reported) and the acting versions of the decisions it learned from (the staleness histogram)."""
+
+    stats: dict[str, float]
+    versions: np.ndarray | None = None
+
+
+class Algorithm:
+    """The base of every algorithm: a learner makes one with the policy it trains and the run's config."""
+
+    name: ClassVar[str] = ""
+    off_policy: ClassVar[bool] = False  # learns from a replay: staleness never cuts its data
+    data_parallel: ClassVar[bool] = False  # supports train.world_size > 1 (ebrl.algos.parallel)
+
+    def __init__(self, model: ChunkPolicy, cfg: Any, info: Any, telemetry: Telemetry, device: torch.device):
+        """``model``: the policy (on ``device``); ``cfg``: the run's config; ``info``: the env's
+        (``obs_shape``, ``action_dim``, ``bounds``, ``layout``)."""
+        self.model, self.cfg, self.info, self.telemetry, self.device = model, cfg, info, telemetry, device
+
+    def collector(self, max_pending: int, max_staleness: int, count: Callable[[str, float], None]) -> Any:
+        """The bounded intake: ``add(segment)``, ``take(version, batch_size)``, ``ready_steps``,
+        ``pending_steps``, ``segments()`` (what a stopping learner hands over), ``size(item)``."""
+        raise NotImplementedError
+
+    def prepare(self) -> None:
+        """Costly set-up to do once the first weights are out (the train service calls it on the update thread)."""
+
+    def learn(self, items: list, version: int, collector: Any) -> Learned:
+        """One update on ``items`` (what ``collector.take`` gave; maybe none on a data-parallel rank)."""
+        raise NotImplementedError
+
+    @property
+    def optimizer(self) -> Any:
+        """What a checkpoint saves and restores as the optimizer: ``state_dict``, ``load_state_dict``, ``state``."""
+        raise NotImplementedError
+
+    def generators(self) -> dict[str, torch.Generator]:
+        """Random generators of its own, saved with checkpoints (torch's global one always is)."""
+        return {}
+
+    def extra_state(self) -> dict[str, torch.Tensor]:
+        """Tensors a restart needs beyond the policy and the optimizer (critics, targets...)."""
+        return {}
+
+    def load_extra_state(self, tensors: dict[str, torch.Tensor]) -> None:
+        """Take back :meth:`extra_state`; ValueError where they do not fit."""
+        if tensors:
+            raise ValueError(f"{self.name} keeps no state beyond its policy and optimizer; the checkpoint has "
+                             f"{sorted(tensors)[:3]}")
+
+    def reset_moments(self) -> None:
+        """Forget the optimizers' moments (after an update that made non-finite weights was undone)."""
+        self.optimizer.state.clear()
+
+    def save_data(self, run_dir: str) -> None:
+        """Write what it keeps beside the training state (a replay's transitions), durably."""
+
+    def restore_data(self, run_dir: str) -> str | None:
+        """Read back what :meth:`save_data` wrote, as a restart begins; what happened, or None for nothing."""
+        return None
+
+    def metrics(self) -> dict[str, float]:
+        """Stats of its own beyond the update's numbers (a replay's size and rates)."""
+        return {}
+
+
+def algorithm_class(name: str) -> type[Algorithm]:
+    """The class ``algo.name`` names: a registered name or ``"module:Class"``. ValueError naming what is wrong."""
+    target = ALGORITHMS.get(name, name)
+    module_name, _, attr = target.partition(":")
+    if not attr:
+        raise ValueError(f"algo.name = {name!r}: not one of {', '.join(ALGORITHMS)}, nor a \"module:Class\"")
+    try:
+        cls = getattr(importlib.import_module(module_name), attr)
+    except (ImportError, AttributeError) as exc:
+        raise ValueError(f"algo.name = {name!r}: {exc}") from None
+    if not (isinstance(cls, type) and issubclass(cls, Algorithm)):
+        raise ValueError(f"algo.name = {name!r}: {target} is not an ebrl.algos.algorithm.Algorithm")
+    return cls
+
+
+class Optimizers:
+    """Several optimizers as one for checkpoints: one ``state_dict`` with the parameters numbered across them in
+    order (as one optimizer numbers its groups'), ``load_state_dict`` splitting it back."""
+
+    def __init__(self, optimizers: list[torch.optim.Optimizer]):
+        self.optimizers = optimizers
+
+    @property
+    def state(self) -> Any:
+        return _States(self.optimizers)
+
+    def state_dict(self) -> dict[str, Any]:
+        state: dict[int, Any] = {}
+        groups: list[dict[str, Any]] = []
+        offset = 0
+        for opt in self.optimizers:
+            sd = opt.state_dict()
+            state.update({offset + index: slots for index, slots in sd["state"].items()})
+            groups += [{**group, "params": [offset + p for p in group["params"]]} for group in sd["param_groups"]]
+            offset += sum(len(group["params"]) for group in sd["param_groups"])
+        return {"state": state, "param_groups": groups}
+
+    def load_state_dict(self, state_dict: dict[str, Any]) -> None:
+        groups, state = list(state_dict["param_groups"]), state_dict["state"]
+        mine = [len(opt.param_groups) for opt in self.optimizers]
+        if len(groups) != sum(mine):
+            raise ValueError(f"{len(groups)} parameter groups for optimizers of {sum(mine)}")
+        parts, offset = [], 0
+        for opt, n in zip(self.optimizers, mine):
+            own, groups = groups[:n], groups[n:]
+            indices = [int(p) for group in own for p in group["params"]]
+            if indices != list(range(offset, offset + len(indices))):
+                raise ValueError("parameter numbering does not fit these optimizers")
+            parts.append({"state": {int(i) - offset: state[i] for i in state if offset <= int(i) < offset + len(indices)},
+                          "param_groups": [{**g, "params": [int(p) - offset for p in g["params"]]} for g in own]})
+            offset += len(indices)
+        for opt, part in zip(self.optimizers, parts):  # all of them checked before any loads
+            opt.load_state_dict(part)
+
+
+class _States:
+    """The optimizers' ``state`` as one: ``clear`` clears every one's."""
+
+    def __init__(self, optimizers: list[torch.optim.Optimizer]):
+        self.optimizers = optimizers
+
+    def clear(self) -> None:
+        for opt in self.optimizers:
+            opt.state.clear()
+
+    def __len__(self) -> int:
+        return sum(len(opt.state) for opt in self.optimizers)

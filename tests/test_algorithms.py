@@ -1,0 +1,202 @@
+"""The algorithm interface (``ebrl.algos.algorithm``): the registry, a user's own algorithm by ``module:Class``
+trained by a real ``ebrl up``, and SAC behind the learner every algorithm shares: its update-to-data ratio, its
+checkpoints with the replay restored (or counted lost), its policy loaded and evaluated as a PPO one."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+import torch
+
+import ebrl
+from ebrl.algos.algorithm import Optimizers, algorithm_class
+from ebrl.algos.learner import Learner
+from ebrl.algos.offpolicy import REPLAY_FILE, SACAlgorithm
+from ebrl.config import ConfigError, load
+from ebrl.envs import EnvSpec, describe
+from ebrl.messages import TrajectorySegment
+from helpers import StatsWatcher, up
+
+TESTS = Path(__file__).resolve().parent
+SMALL = ("policy.hidden=[32, 32]", "replay.batch_size=32", "replay.learning_starts=100")
+
+
+def sac_config(*overrides: str):
+    return load("sac_pendulum", list(SMALL) + list(overrides))
+
+
+INFO = describe(EnvSpec.from_config(sac_config().env))  # Pendulum-v1: 3 observation values, 1 action in [-2, 2]
+
+
+class Counts(SimpleNamespace):
+    def __init__(self):
+        super().__init__(counts={})
+
+    def count(self, name, n=1):
+        self.counts[name] = self.counts.get(name, 0) + n
+
+    def publish_span(self, *args):
+        pass
+
+
+def sac_learner(run_dir, *overrides: str) -> tuple[Learner, Counts]:
+    telemetry = Counts()
+    return Learner(sac_config(*overrides), INFO, 1, telemetry, str(run_dir)), telemetry
+
+
+def pendulum_segments(n: int, length: int = 16, seed: int = 0, version: int = 0) -> list[TrajectorySegment]:
+    """``n`` segments as a Pendulum simulator sends them: observations of cos, sin and velocity, actions within
+    the bounds, rewards within the task's range."""
+    rng = np.random.default_rng(seed)
+    out = []
+    for i in range(n):
+        obs = rng.uniform(-1, 1, (length, 3)).astype(np.float32)
+        out.append(TrajectorySegment(
+            group=0, env_id=i % 4, episode=i, obs=obs, actions=rng.uniform(-2, 2, (length, 1, 1)).astype(np.float32),
+            latents=np.zeros((length, 0), np.float32), logprobs=np.zeros(length, np.float32),
+            values=np.zeros(length, np.float32), rewards=-rng.uniform(0, 10, length).astype(np.float32),
+            steps=np.ones(length, np.int32), versions=np.full(length, version, np.int64), end="cut",
+            last_obs=rng.uniform(-1, 1, 3).astype(np.float32), episode_returns=[], episode_lengths=[]))
+    return out
+
+
+def feed(learner: Learner, segments: list[TrajectorySegment]) -> list[dict[str, float]]:
+    """Every segment in, then an update for each full batch, as the train service's cycle does."""
+    for seg in segments:
+        assert learner.accept(seg, lambda exc: pytest.fail(str(exc))) == 1
+    out = []
+    while learner.ready:
+        out.append(learner.update(learner.take()))
+    return out
+
+
+# --- the registry ------------------------------------------------------------------------------------------------
+
+def test_the_registry_names_every_algorithm_and_refuses_what_is_not_one():
+    assert algorithm_class("sac") is SACAlgorithm
+    assert algorithm_class("ppo").name == "ppo" and algorithm_class("grpo").name == "grpo"
+    with pytest.raises(ConfigError, match="algo.name = 'dqn': not one of ppo, grpo, sac"):
+        load("quickstart", ["algo.name=dqn"])
+    with pytest.raises(ValueError, match="not an ebrl.algos.algorithm.Algorithm"):
+        algorithm_class("ebrl.algos.sac:SAC")
+    with pytest.raises(ValueError, match="No module named 'no_such_pkg'"):
+        algorithm_class("no_such_pkg.algo:Mine")
+
+
+def test_sac_and_the_squashed_policy_go_together_and_train_on_one_rank():
+    with pytest.raises(ConfigError, match="sac trains a tanh-squashed actor"):
+        load("sac_pendulum", ["policy.kind=mlp"])
+    with pytest.raises(ValueError, match="algo.name = 'ppo' with policy.kind = 'squashed': that actor has no value"):
+        Learner(load("sac_pendulum", ["algo.name=ppo"]), INFO, 1, Counts(), "/nonexistent")
+    with pytest.raises(ConfigError, match="sac trains on one rank"):
+        load("sac_pendulum", ["train.world_size=2"])
+
+
+def test_several_optimizers_save_and_load_as_one():
+    nets = [torch.nn.Linear(3, 2), torch.nn.Linear(2, 1)]
+    opts = [torch.optim.Adam(n.parameters(), lr=1e-3) for n in nets]
+    for net, opt in zip(nets, opts):
+        net(torch.ones(4, net.in_features)).sum().backward()
+        opt.step()
+    saved = Optimizers(opts).state_dict()
+    assert sorted(saved["state"]) == [0, 1, 2, 3] and [g["params"] for g in saved["param_groups"]] == [[0, 1], [2, 3]]
+    fresh = [torch.optim.Adam(n.parameters(), lr=1e-3) for n in nets]
+    Optimizers(fresh).load_state_dict(saved)
+    assert torch.equal(fresh[1].state_dict()["state"][0]["exp_avg"], opts[1].state_dict()["state"][0]["exp_avg"])
+    with pytest.raises(ValueError, match="parameter groups"):
+        Optimizers(fresh[:1]).load_state_dict(saved)
+
+
+# --- SAC behind the learner --------------------------------------------------------------------------------------
+
+def test_sac_keeps_its_update_to_data_ratio_on_average_from_learning_starts(tmp_path):
+    learner, _ = sac_learner(tmp_path, "algo.utd=0.75")
+    out = feed(learner, pendulum_segments(24))  # 384 decisions of one env step: 6 updates of 64
+    steps = [o["gradient_steps"] for o in out]
+    assert steps[0] == 0  # 64 transitions held, fewer than learning_starts
+    assert sum(steps) == int(0.75 * 64 * 5)  # from the update that reached it, 0.75 per env step
+    assert set(steps[1:]) == {48.0}
+    metrics = learner.metrics()
+    assert metrics["train/utd"] == pytest.approx(0.75) and metrics["replay/size"] == 384
+    assert metrics["replay/sampled"] == sum(steps) * 32
+    assert learner.version == 6 and all(np.isfinite(o["critic_loss"]) for o in out[1:])
+
+
+def test_without_keep_utd_an_update_learns_from_all_that_arrived_and_the_ratio_drops(tmp_path):
+    learner, _ = sac_learner(tmp_path, "algo.keep_utd=false", "replay.learning_starts=0")
+    for seg in pendulum_segments(12):  # 192 decisions arrive while training is busy
+        learner.accept(seg, lambda exc: pytest.fail(str(exc)))
+    out = learner.update(learner.take())
+    assert out["batch_size"] == 192 and out["gradient_steps"] == 192  # the data it owes steps for
+    assert not learner.ready
+
+
+def test_sac_resumes_its_critics_temperature_optimizers_and_replay_and_counts_a_lost_replay(tmp_path):
+    learner, _ = sac_learner(tmp_path, "train.checkpoint_every=0")
+    feed(learner, pendulum_segments(16))
+    assert learner.save_checkpoint("sac-test") and (tmp_path / REPLAY_FILE).exists()
+    before = learner.algo
+    again, telemetry = sac_learner(tmp_path)
+    assert again.resume(-1).startswith("train resumed at policy v4")
+    after = again.algo
+    for a, b in [(before.sac.critics, after.sac.critics), (before.sac.targets, after.sac.targets),
+                 (before.model, after.model)]:
+        assert all(torch.equal(x, y) for x, y in zip(a.state_dict().values(), b.state_dict().values()))
+    assert after.sac.alpha == before.sac.alpha != 1.0
+    assert torch.equal(after.sac.critic_opt.state_dict()["state"][0]["exp_avg"],
+                       before.sac.critic_opt.state_dict()["state"][0]["exp_avg"])
+    assert after.replay.size == 256 and np.array_equal(after.replay.obs[:256], before.replay.obs[:256])
+    assert "replay/lost" not in telemetry.counts and again.metrics()["train/utd"] == pytest.approx(1.0)
+
+    (tmp_path / REPLAY_FILE).unlink()  # the replay's file lost: the restart says so and counts it
+    third, telemetry = sac_learner(tmp_path)
+    third.resume(-1)
+    assert third.algo.replay.size == 0 and telemetry.counts["replay/lost"] == 256
+
+
+def test_a_checkpoint_of_another_algorithm_is_refused_saying_why(tmp_path, monkeypatch):
+    learner, _ = sac_learner(tmp_path)
+    feed(learner, pendulum_segments(8))
+    learner.save_checkpoint("sac-test")
+    with pytest.raises(ValueError, match="kind is 'squashed', the model's is 'mlp'"):
+        Learner(load("quickstart", ["env.id=Pendulum-v1"]), INFO, 1, Counts(), str(tmp_path)).resume(-1)
+    monkeypatch.syspath_prepend(str(TESTS))
+    cfg = sac_config()
+    cfg.algo.name = "user_algos:VanillaPG"  # the same actor under another algorithm (no config allows it)
+    with pytest.raises(ValueError, match="algorithm's state does not fit: vanilla-pg keeps no state beyond"):
+        Learner(cfg, INFO, 1, Counts(), str(tmp_path)).resume(-1)
+
+
+# --- real runs ---------------------------------------------------------------------------------------------------
+
+def test_a_users_own_algorithm_by_module_and_class_trains_in_a_real_run(tmp_path, monkeypatch):
+    monkeypatch.setenv("PYTHONPATH", str(TESTS))  # the user's package, for the run's processes
+    with up(tmp_path, "configs/quickstart.toml", "algo.name=user_algos:VanillaPG", "run.iterations=3",
+            "train.batch_size=256", name="user-algo") as run, StatsWatcher(run) as stats:
+        code = run.wait(240)
+    assert code == 0, run.output
+    assert stats.latest("train/0", "train/policy_version") == 3
+    assert np.isfinite(stats.latest("train/0", "train/vpg_loss"))
+
+
+def test_sac_trains_in_a_real_run_at_its_ratio_and_its_policy_loads_and_evaluates(tmp_path):
+    with up(tmp_path, "configs/sac_pendulum.toml", *SMALL, "run.iterations=12", "run.target_return=0",
+            name="sac-run") as run, StatsWatcher(run) as stats:
+        code = run.wait(240)
+    assert code == 0, run.output
+    assert stats.latest("train/0", "train/utd") == pytest.approx(1.0, rel=0.1)
+    assert stats.latest("train/0", "replay/size") >= 700
+    assert stats.latest("train/0", "train/gradient_steps_total") > 500
+    policy = ebrl.load_policy(run.run_dir / "policy.safetensors")
+    actions = np.stack([policy.predict(np.array([np.cos(a), np.sin(a), 0.0], np.float32))[0]
+                        for a in np.linspace(-3, 3, 16)])
+    assert actions.shape == (16, 1) and np.all(np.abs(actions) <= 2.0)
+    evaluated = subprocess.run([sys.executable, "-m", "ebrl.cli", "eval", str(run.run_dir), "--episodes", "2"],
+                               capture_output=True, text=True, timeout=120)
+    assert evaluated.returncode == 0, evaluated.stderr
+    assert "return" in evaluated.stdout

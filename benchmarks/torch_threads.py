@@ -2,6 +2,7 @@
 
     python benchmarks/torch_threads.py                       # batches 1, 4, 8, 16, 32; 400 calls each
     python benchmarks/torch_threads.py --batches 4 --calls 1000
+    python benchmarks/torch_threads.py --pool-teams             # a pool thread's team after the main thread's
 
 gen answers observations on a worker thread, one forward pass every few milliseconds. The process sets torch's
 thread count to ``gen.threads`` (1) on its main thread. Under OpenMP that count is per OS thread, so a plain
@@ -12,6 +13,11 @@ calls. It reports the process's CPU time per call (all its threads: an OpenMP te
 counts) and the wall time of the forward pass itself.
 
 Results go to benchmarks/results/torch_threads.json.
+
+``--pool-teams`` measures why a service's own thread keeps one torch thread (``set_threads(n, pool_only=True)``):
+a 256 x 256 x 256 matrix product on a ``TorchPool`` thread of two torch threads, in a fresh process whose main
+thread used two threads first, or kept one (and, for scale, one thread). Results go to
+benchmarks/results/torch_threads_pool_teams.json.
 """
 
 from __future__ import annotations
@@ -67,13 +73,58 @@ def one(kind: str, batch: int, calls: int) -> dict[str, float]:
             "os_threads": len(os.listdir("/proc/self/task"))}
 
 
+def pool_team(main_threads: int, pool_threads: int, calls: int = 2000) -> float:
+    """In this process: us per 256^3 matrix product on a TorchPool thread of ``pool_threads`` after the main
+    thread ran one of its own with ``main_threads``."""
+    import torch
+
+    from ebrl import threads
+
+    a, w = torch.randn(256, 256), torch.randn(256, 256)
+    torch.set_num_threads(main_threads)
+    a @ w  # the main thread's team (a model's initialisation makes one)
+    threads.set_threads(pool_threads, pool_only=True)
+
+    def run() -> float:
+        for _ in range(50):
+            a @ w
+        start = time.perf_counter()
+        for _ in range(calls):
+            a @ w
+        return (time.perf_counter() - start) / calls * 1e6
+
+    return threads.TorchPool("bench").submit(run).result()
+
+
+def pool_teams(args: argparse.Namespace) -> None:
+    rows = []
+    for main_threads, pool_threads in ((2, 2), (1, 2), (1, 1)):
+        out = subprocess.run([sys.executable, __file__, "--pool-one", str(main_threads), str(pool_threads)],
+                             check=True, capture_output=True, text=True).stdout
+        rows.append({"main_threads": main_threads, "pool_threads": pool_threads,
+                     "us_per_matmul": round(float(out.strip().splitlines()[-1]), 1)})
+        print(rows[-1], flush=True)
+    path = RESULTS / "torch_threads_pool_teams.json"
+    path.write_text(json.dumps({"command": "python benchmarks/torch_threads.py --pool-teams", "commit": bench.commit(),
+                                "machine": f"{platform.machine()}, {len(os.sched_getaffinity(0))} cores visible",
+                                "rows": rows}, indent=1) + "\n")
+    print(f"wrote {path}")
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--batches", default="1,4,8,16,32")
     parser.add_argument("--calls", type=int, default=400)
     parser.add_argument("--one", nargs=2, metavar=("KIND", "BATCH"), help=argparse.SUPPRESS)
     parser.add_argument("--json", default=str(RESULTS / "torch_threads.json"))
+    parser.add_argument("--pool-teams", action="store_true", help="a pool thread's team after the main thread's")
+    parser.add_argument("--pool-one", nargs=2, type=int, help=argparse.SUPPRESS)
     args = parser.parse_args()
+    if args.pool_one:
+        print(pool_team(*args.pool_one))
+        return
+    if args.pool_teams:
+        return pool_teams(args)
     if args.one:
         print(json.dumps(one(args.one[0], int(args.one[1]), args.calls)))
         return

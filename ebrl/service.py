@@ -109,7 +109,7 @@ class Service:
         """Apply a resource quota; the default sets torch's thread count (``ebrl.threads``) and, on a GPU, the
         memory cap."""
         if quota.threads:
-            threads.set_threads(quota.threads)  # also in the service's TorchPool thread, before its next task
+            threads.set_threads(quota.threads, pool_only=True)  # the TorchPool thread's, before its next task
         if quota.mem_bytes and self.device is not None:
             self.memory_cap = devices.apply_memory_cap(self.device, quota.mem_bytes)
 
@@ -305,7 +305,7 @@ class StatsReporter:
                    "proc/loop_lag_max_ms": 1000 * self._loop_lag}
         self._loop_lag = 0.0
         if "torch" in sys.modules:
-            metrics["quota/threads"] = float(sys.modules["torch"].get_num_threads())
+            metrics["quota/threads"] = float(threads.wanted() or sys.modules["torch"].get_num_threads())
         return metrics
 
     def next(self, metrics: dict[str, float]) -> StatsReport:

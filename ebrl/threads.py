@@ -11,6 +11,13 @@ observations on a worker thread cost 6.6 ms of CPU this way instead of 0.75 ms
 ``set_threads(n)`` is the process's count (the config's ``gen.threads`` / ``train.threads``, or the allocator's
 quota); ``TorchPool`` is the one-thread executor for torch work, whose tasks run with that count, also after
 the allocator changes it.
+
+A service calls it with ``pool_only=True``: its own thread (the event loop's) then keeps one torch thread and
+only the pool's work runs on ``n``. Under GNU OpenMP, once a thread has run a parallel region of two or more
+threads (a model's initialisation does), every team a pool thread starts afterwards runs slower: measured on 2
+cores, a 256 x 256 x 256 matrix product took 266 us on a pool thread's two threads after the main thread had
+used two, and 185 us where it had kept one (one thread: 335 us); SAC's gradient step on two threads went from
+12.4 ms to 8.0 ms (``python benchmarks/torch_threads.py --pool-teams``).
 """
 
 from __future__ import annotations
@@ -23,17 +30,18 @@ _wanted = 0  # the process's count; 0: never set (each thread keeps torch's defa
 _here = threading.local()  # the count this OS thread last applied
 
 
-def set_threads(n: int) -> None:
-    """Make ``n`` the process's torch thread count: now in this thread, and in a ``TorchPool`` thread before its
-    next task."""
+def set_threads(n: int, pool_only: bool = False) -> None:
+    """Make ``n`` the process's torch thread count: in a ``TorchPool`` thread before its next task, and now in this
+    thread (``pool_only``: this thread keeps one, see the module's docstring)."""
     global _wanted
     if n < 1:
         raise ValueError(f"torch threads must be >= 1, not {n}")
     import torch
 
     _wanted = n
-    torch.set_num_threads(n)
-    _here.n = n
+    here = 1 if pool_only else n
+    torch.set_num_threads(here)
+    _here.n = here
 
 
 def wanted() -> int:

@@ -180,3 +180,18 @@ def test_sac_learns_a_one_step_task_and_its_state_restores():
     assert again.alpha == pytest.approx(sac.alpha)
     for a, b in zip(again.targets.parameters(), sac.targets.parameters()):
         assert torch.equal(a, b)
+
+
+def test_in_the_warm_up_the_actor_samples_uniformly_within_the_bounds_and_predicts_as_ever():
+    model = actor(chunk=1)
+    obs = np.zeros((4000, 3), np.float32)
+    with torch.no_grad():  # as generation acts
+        acting = model.sample(obs)[0].numpy().reshape(-1, 2)
+        model.warmup.fill_(1.0)
+        warm = model.sample(obs)[0].numpy().reshape(-1, 2)
+    low, high = LOW, HIGH
+    assert np.all((warm >= low) & (warm <= high))
+    assert np.allclose(warm.mean(0), (low + high) / 2, atol=0.06) and np.allclose(warm.std(0), (high - low) / 12 ** 0.5,
+                                                                                 atol=0.05)
+    assert not np.allclose(acting.std(0), warm.std(0), atol=0.05)  # the actor's own samples are not uniform
+    assert np.array_equal(model.predict_chunk(obs[:3]), actor(chunk=1).predict_chunk(obs[:3]))

@@ -81,3 +81,14 @@ def test_a_torch_pool_passes_arguments_and_errors_through():
 def test_a_thread_count_below_one_is_refused():
     with pytest.raises(ValueError, match="torch threads"):
         threads.set_threads(0)
+
+
+def test_pool_only_keeps_the_calling_thread_at_one_and_gives_the_pool_the_count(restore_threads):
+    omp = openmp()
+    threads.set_threads(2, pool_only=True)  # what a service does: its event loop's thread keeps one
+    pool = threads.TorchPool("test-torch")
+    try:
+        assert omp.omp_get_max_threads() == 1 and torch.get_num_threads() == 1
+        assert pool.submit(omp.omp_get_max_threads).result() == 2 and threads.wanted() == 2
+    finally:
+        pool.shutdown()

@@ -3,7 +3,8 @@
 Each update takes the new decisions (``train.batch_size`` of them; with ``algo.keep_utd = false``, all that
 arrived), adds them to the replay (``ebrl.algos.replay``), and runs ``algo.utd`` gradient steps per env step
 they hold (:class:`~ebrl.algos.sac.SAC`, each on ``replay.batch_size`` transitions drawn uniformly), once the replay
-holds ``replay.learning_starts``. The ratio is kept on average, not per update: the fraction left over carries
+holds ``replay.learning_starts``; until then generation acts uniformly within the action bounds (the actor's
+``warmup`` buffer, published with its weights), as Stable-Baselines3 does. The ratio is kept on average, not per update: the fraction left over carries
 to the next. ``train/utd`` reports the ratio achieved so far.
 
 Whether simulators wait for training is the schedule's (``ebrl.sched.modes``): with ``algo.keep_utd`` (the
@@ -28,6 +29,7 @@ import numpy as np
 import psutil
 import torch
 
+from ebrl import devices
 from ebrl.algos.algorithm import Algorithm, Learned, Optimizers
 from ebrl.algos.ppo import SegmentCollector
 from ebrl.algos.replay import ReplayBuffer
@@ -75,6 +77,7 @@ class SACAlgorithm(Algorithm):
             critic_hidden=tuple(cfg.policy.hidden)))
         self.replay = ReplayBuffer(info.layout.size, cfg.policy.chunk * info.action_dim, replay.capacity,
                                    replay_bound(replay.max_bytes))
+        self.model.warmup.fill_(float(replay.learning_starts > 0))  # uniform actions until learning starts
         self.rng = np.random.default_rng(cfg.run.seed)
         self.debt = 0.0  # gradient steps owed (algo.utd per env step), the fraction carried between updates
         self.env_steps = self.gradient_steps = self.sampled = 0  # since learning started
@@ -102,12 +105,14 @@ class SACAlgorithm(Algorithm):
         versions = np.concatenate([seg.versions for seg in items]) if items else None
         out: dict[str, float] = {"batch_size": float(sum(len(seg.obs) for seg in items))}
         if self.replay.size >= self.cfg.replay.learning_starts:
+            self.model.warmup.fill_(0.0)  # the weights this update publishes act with the actor
             self.env_steps += new_steps
             self.debt += self.cfg.algo.utd * new_steps
         steps, sums, skipped = int(self.debt), {}, 0.0
         self.debt -= steps
         for _ in range(steps):
-            step = self.sac.step(self.replay.sample(self.cfg.replay.batch_size, self.rng))
+            with devices.autocast(self.device, self.cfg.policy.dtype):  # policy.dtype = "bfloat16": as PPO's
+                step = self.sac.step(self.replay.sample(self.cfg.replay.batch_size, self.rng))
             skipped += step.pop("steps_skipped")
             for key, value in step.items():
                 sums[key] = sums.get(key, 0.0) + value

@@ -13,6 +13,8 @@ zero (SAC learns Q functions beside the policy, ``ebrl.algos.sac``, not a value 
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import torch
 from torch import nn
@@ -53,6 +55,9 @@ class ChunkSquashedMLP(ChunkPolicy):
         # the chunk's bounds, flat over K x A: mid + half * tanh(u)
         self.register_buffer("action_mid", torch.as_tensor(np.tile((high + low) / 2, chunk), dtype=torch.float32))
         self.register_buffer("action_half", torch.as_tensor(np.tile((high - low) / 2, chunk), dtype=torch.float32))
+        # 1: sample() acts uniformly within the bounds (SAC's warm-up before its first gradient step, as
+        # Stable-Baselines3's); a buffer, so that generation acts as the weights it holds say
+        self.register_buffer("warmup", torch.zeros(()))
 
     def moments(self, flat_obs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """mu and log sigma of u, [B, K*A] each, from standardised flat observations."""
@@ -83,7 +88,12 @@ class ChunkSquashedMLP(ChunkPolicy):
         return ((actions.reshape(actions.shape[0], -1) - self.action_mid) / self.action_half).clamp(-1.0, 1.0)
 
     def sample(self, obs: np.ndarray | torch.Tensor) -> tuple[torch.Tensor, ...]:
+        """Chunks to act with, their log-probs, zero values and no latents; in the warm-up, uniform chunks (their
+        log-prob: the uniform density's in the squashed scale, -log 2 per value)."""
         a, logp = self.rsample(obs)
+        on = self.warmup > 0  # on the device, no read back (generation may replay this as a CUDA graph)
+        a = torch.where(on, torch.rand_like(a) * 2 - 1, a)
+        logp = torch.where(on, torch.full_like(logp, -math.log(2.0) * a.shape[-1]), logp)
         return self.to_env(a), logp, logp.new_zeros(a.shape[0]), a.new_zeros(a.shape[0], 0)
 
     def evaluate(self, obs: torch.Tensor, actions: torch.Tensor, latents: torch.Tensor) -> Tensors3:

@@ -33,7 +33,7 @@ class GenService(Service):
         self.schedule = resolve(cfg)
         if self.schedule.gen_cores:
             os.sched_setaffinity(0, self.schedule.gen_cores)
-        threads.set_threads(cfg.gen.threads)
+        threads.set_threads(cfg.gen.threads, pool_only=True)
         info = await env_info(self)
         bounds = self.bounds or await self.message_bounds()
         self.use_device(devices.resolve(cfg.gen.device, "gen.device"))

@@ -34,7 +34,7 @@ class TrainService(Service):
         rank, world, schedule = self.instance, cfg.train.world_size, resolve(cfg)
         if cores := schedule.train_cores:  # ranks share the training cores: each its own slice when there are enough
             os.sched_setaffinity(0, cores[rank::world] if len(cores) >= world else cores)
-        threads.set_threads(cfg.train.threads)
+        threads.set_threads(cfg.train.threads, pool_only=True)
         info = await env_info(self)
         self.learner = learner = Learner(cfg, info, schedule.max_staleness, self, self.run_dir, rank, world)
         self.use_device(learner.device)

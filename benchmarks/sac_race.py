@@ -143,6 +143,8 @@ def main() -> None:
     parser.add_argument("--total-steps", type=int, default=0, help="env steps per run (0: the task's default)")
     parser.add_argument("--set", action="append", default=[], metavar="SECTION.KEY=VALUE", help="for EBRL's runs")
     parser.add_argument("--json", default=None)
+    parser.add_argument("--merge", default=None, metavar="JSON", help="an earlier result: its runs are kept, but "
+                        "for the sides and seeds run now (a run disturbed by other work, run again alone)")
     args = parser.parse_args()
     total = args.total_steps or TASKS[args.env][1]
     sides = [s.strip() for s in args.sides.split(",") if s.strip()]
@@ -156,10 +158,17 @@ def main() -> None:
                 runs.append(row)
                 print(f"{side:5s} seed {seed}: final mean return {row['final_return_mean']}, {row['wall_s']} s "
                       f"(exit {row['exit_code']})", flush=True)
+    if args.merge:
+        now = {(r["side"], r["seed"]) for r in runs}
+        earlier = json.loads(Path(args.merge).read_text())
+        runs = [r for r in earlier["runs"] if (r["side"], r["seed"]) not in now] + runs
+        runs.sort(key=lambda r: (r["seed"], r["side"]))
     result = {"command": "python benchmarks/sac_race.py " + " ".join(sys.argv[1:]), "commit": bench.commit(),
               "date": time.strftime("%Y-%m-%d"), "env": args.env, "total_steps": total,
               "machine": f"{platform.machine()}, {len(os.sched_getaffinity(0))} usable cores",
               "compare": compare(runs), "runs": runs}
+    if args.merge:
+        result["merged_into"] = earlier["command"]  # the runs this one replaced some of
     path.write_text(json.dumps(result, indent=1) + "\n")
     plot(runs, args.env, path.with_suffix(".png"))
     print(json.dumps(result["compare"], indent=1))

@@ -200,3 +200,31 @@ def test_sac_trains_in_a_real_run_at_its_ratio_and_its_policy_loads_and_evaluate
                                capture_output=True, text=True, timeout=120)
     assert evaluated.returncode == 0, evaluated.stderr
     assert "return" in evaluated.stdout
+
+
+def test_keep_utd_decides_whether_generation_holds_simulators_back():
+    from ebrl.sched.modes import resolve
+
+    assert resolve(sac_config()).throttle and resolve(sac_config()).max_staleness == 1
+    assert not resolve(sac_config("algo.keep_utd=false")).throttle  # simulators never wait; the ratio drops
+
+
+@pytest.mark.slow  # a kill -9 and a restart (the fast suite has PPO's: tests/test_shared_process.py)
+def test_a_killed_sac_train_restarts_with_its_replay_and_a_ratio_that_holds(tmp_path):
+    import signal
+
+    from test_faults import service
+
+    with up(tmp_path, "configs/sac_pendulum.toml", *SMALL, "run.iterations=30", "run.target_return=",
+            "train.checkpoint_every=5", name="sac-kill") as run, StatsWatcher(run) as stats:
+        stats.wait_for(lambda: (stats.latest("train/0", "train/policy_version") or 0) >= 12, 200, "policy v12")
+        service(run, "train").send_signal(signal.SIGKILL)
+        code = run.wait(300)
+    assert code == 0, run.output
+    assert "train/0 exited with status -9; restarting it" in run.output
+    log = (run.run_dir / "logs" / "train-0.log").read_text()
+    assert "resumed from" in log and "replay restored: " in log  # the replay as of the newest checkpoint (v10+)
+    restored = int(log.split("replay restored: ")[1].split()[0])
+    assert restored >= 10 * 64
+    assert stats.latest("train/0", "replay/lost", 0) == 0
+    assert stats.latest("train/0", "train/utd") == pytest.approx(1.0, rel=0.1)

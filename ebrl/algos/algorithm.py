@@ -65,6 +65,11 @@ class Algorithm:
         ``pending_steps``, ``segments()`` (what a stopping learner hands over), ``size(item)``."""
         raise NotImplementedError
 
+    def join(self, dp: Any) -> None:
+        """With several ranks (``data_parallel`` algorithms): take the gradient steps through ``dp``'s wrapped
+        policy and optimizer (``ebrl.algos.parallel.DataParallel``)."""
+        raise ValueError(f"algo.name = {self.name!r} trains on one rank: set train.world_size = 1")
+
     def prepare(self) -> None:
         """Costly set-up to do once the first weights are out (the train service calls it on the update thread)."""
 

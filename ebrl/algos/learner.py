@@ -73,7 +73,7 @@ class Learner:
         holds rank 0's weights)."""
         self.dp = DataParallel(self.model, self.algo.optimizer, self.rank, self.world,
                                shard=self.cfg.train.parallel == "fsdp", device=self.device, wire=self.collector)
-        self.algo.join(self.dp)  # type: ignore[attr-defined]  # data_parallel algorithms (the config checks)
+        self.algo.join(self.dp)
 
     @property
     def sharded(self) -> bool:

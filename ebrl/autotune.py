@@ -291,9 +291,14 @@ def settle(cfg: Any, roles: tuple[str, ...], multi: bool,
     """``cfg`` with its "auto" fields decided for this host (``roles``: the services it runs; ``multi``: one
     host of several), and the decision (None: nothing was "auto"). ``earlier``: the settings the run decided at
     its first start (``meta.json``), which a resumed run keeps: its checkpoint was trained in that precision."""
-    if not auto_fields(cfg):
-        return cfg, None
     kept, notes = {}, []
+    if cpu_bf16_refused(cfg, roles):
+        kept["policy.dtype"] = "float32"
+        notes.append("policy.dtype = 'float32' (the config asks for bfloat16 on this host's CPU, which has no "
+                     "bfloat16 units: emulated, it would be slower)")
+        cfg = apply(cfg, kept)
+    if not auto_fields(cfg) and not kept:
+        return cfg, None
     if resumed := {k: v for k, v in (earlier or {}).items() if k in auto_fields(cfg)}:
         kept.update(resumed)  # (gen.device "auto" kept as "auto": the GPU was chosen, wherever the run resumes)
         notes.append(f"{_shown(resumed)} (as this run decided at its start)")
@@ -315,6 +320,17 @@ def settle(cfg: Any, roles: tuple[str, ...], multi: bool,
     if notes:
         decision.line = "auto: " + "; ".join(notes + ([decision.line.removeprefix("auto: ")] if decision.line else []))
     return apply(cfg, decision.settings), decision
+
+
+def cpu_bf16_refused(cfg: Any, roles: tuple[str, ...]) -> bool:
+    """Whether an explicit ``policy.dtype = "bfloat16"`` would run on a CPU without bfloat16 units here: this host
+    runs generation or training, has no GPU (or generation is on the CPU), and the CPU lacks them."""
+    from ebrl import devices
+
+    if cfg.policy.dtype != "bfloat16" or not ({"gen", "train"} & set(roles)):
+        return False
+    on_cpu = cfg.gen.device == "cpu" or cfg.train.device == "cpu" or not host_has_gpu()
+    return on_cpu and not devices.cpu_has_bf16()
 
 
 def _shown(settings: dict[str, str]) -> str:

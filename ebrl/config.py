@@ -284,7 +284,8 @@ class PolicySection(Section):
     patch: int = doc("transformer backbone: image patch side in pixels (a divisor of the image size)", 8)
     dtype: Literal["auto", "float32", "bfloat16"] = doc(
         "precision of generation's forward passes and training's: float32, bfloat16 autocast (matrix products "
-        "in bfloat16, reductions and the losses in float32; on GPUs with bfloat16 units), or auto: bfloat16 where "
+        "in bfloat16, reductions and the losses in float32; on GPUs with bfloat16 units, and on CPUs with them, "
+        "AVX-512 BF16 or AMX: asked for on a CPU without, the launcher runs float32), or auto: bfloat16 where "
         "generation and training run on a GPU that has it and it measured faster for this policy at the run's "
         "batch sizes, else float32 (decided at start, ebrl.autotune)", "auto")
     normalize_obs: bool = doc("standardise the vector fields of the observation by running mean and variance "

@@ -153,6 +153,17 @@ def autocast(device: Any, dtype: str) -> Any:
     return contextlib.nullcontext()
 
 
+def cpu_has_bf16() -> bool:
+    """Whether this CPU multiplies bfloat16 matrices in hardware (AVX-512 BF16 or AMX's tiles; /proc/cpuinfo's
+    flags): where it does not, bfloat16 autocast on the CPU is emulated, slower than float32."""
+    try:
+        with open("/proc/cpuinfo") as fh:
+            flags = next((line.split(":", 1)[1].split() for line in fh if line.startswith("flags")), [])
+    except OSError:
+        return False
+    return bool({"avx512_bf16", "amx_bf16"} & set(flags))
+
+
 def dtype_bits(dtype: str) -> float:
     """``policy.dtype`` as the bits of its matrix products, for the stats (``gen/dtype``, ``train/dtype``): 16
     for bfloat16 autocast, 32 otherwise."""

@@ -141,3 +141,17 @@ def test_a_measured_decision_is_kept_for_the_next_run_of_the_same_config(monkeyp
     monkeypatch.setenv("EBRL_AUTOTUNE_CACHE", str(tmp_path / "autotune.json"))
     autotune.settle(quickstart(), ("gen", "train"), multi=False)
     assert calls == [1024, 512, 1024, 1024] and autotune.cached(quickstart()) is not None
+
+
+def test_bfloat16_asked_for_on_a_cpu_without_bfloat16_units_runs_float32_and_says_so(monkeypatch):
+    from ebrl import devices
+
+    monkeypatch.setattr(autotune, "host_has_gpu", lambda: False)
+    monkeypatch.setattr(devices, "cpu_has_bf16", lambda: False)
+    asked = quickstart('policy.dtype="bfloat16"', 'gen.compile="off"', 'gen.device="cpu"')
+    cfg, d = autotune.settle(asked, ("sim", "gen", "train"), multi=False)
+    assert cfg.policy.dtype == "float32" and d.settings == {"policy.dtype": "float32"}
+    assert "no bfloat16 units" in d.line
+    assert autotune.settle(asked, ("sim",), multi=False)[0].policy.dtype == "bfloat16"  # nothing of it runs here
+    monkeypatch.setattr(devices, "cpu_has_bf16", lambda: True)  # AVX-512 BF16 or AMX: as asked
+    assert autotune.settle(asked, ("gen", "train"), multi=False) == (asked, None)

@@ -195,3 +195,15 @@ def test_in_the_warm_up_the_actor_samples_uniformly_within_the_bounds_and_predic
                                                                                  atol=0.05)
     assert not np.allclose(acting.std(0), warm.std(0), atol=0.05)  # the actor's own samples are not uniform
     assert np.array_equal(model.predict_chunk(obs[:3]), actor(chunk=1).predict_chunk(obs[:3]))
+
+
+def test_under_bfloat16_autocast_a_saturated_actor_keeps_finite_log_probs_and_steps():
+    model = actor()
+    with torch.no_grad():
+        model.mean.bias.fill_(20.0)  # tanh(u) rounds to exactly 1 in bfloat16
+    sac = SAC(model, SACSettings())
+    with torch.autocast("cpu", dtype=torch.bfloat16):
+        _, logp = model.rsample(torch.zeros(64, 3))
+        out = sac.step(batch())
+    assert torch.isfinite(logp).all()
+    assert out["steps_skipped"] == 0.0

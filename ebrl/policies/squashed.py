@@ -60,9 +60,11 @@ class ChunkSquashedMLP(ChunkPolicy):
         self.register_buffer("warmup", torch.zeros(()))
 
     def moments(self, flat_obs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """mu and log sigma of u, [B, K*A] each, from standardised flat observations."""
+        """mu and log sigma of u, [B, K*A] each, from standardised flat observations; in float32 also under
+        bfloat16 autocast (``policy.dtype``): tanh rounds to exactly 1 in bfloat16's 8 bits, and the squash's
+        log(1 - tanh^2 + 1e-6) would then be -inf."""
         h = self.trunk(flat_obs)
-        return self.mean(h), self.log_std(h).clamp(LOG_STD_MIN, LOG_STD_MAX)
+        return self.mean(h).float(), self.log_std(h).float().clamp(LOG_STD_MIN, LOG_STD_MAX)
 
     def rsample(self, obs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Reparameterised: squashed actions in (-1, 1) [B, K*A] (gradients flow through them) and their log-probs

@@ -114,11 +114,12 @@ class SACAlgorithm(Algorithm):
             with devices.autocast(self.device, self.cfg.policy.dtype):  # policy.dtype = "bfloat16": as PPO's
                 step = self.sac.step(self.replay.sample(self.cfg.replay.batch_size, self.rng))
             skipped += step.pop("steps_skipped")
-            for key, value in step.items():
-                sums[key] = sums.get(key, 0.0) + value
+            for key, value in step.items():  # a skipped step reports fewer numbers: each averaged over its own
+                total, n = sums.get(key, (0.0, 0))
+                sums[key] = (total + value, n + 1)
         self.gradient_steps += steps
         self.sampled += steps * self.cfg.replay.batch_size
-        out.update({key: total / steps for key, total in sums.items()})
+        out.update({key: total / n for key, (total, n) in sums.items()})
         out.update(gradient_steps=float(steps), steps_skipped=skipped)
         if versions is not None:
             staleness = version - versions

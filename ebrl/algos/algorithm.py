@@ -52,7 +52,6 @@ class Algorithm:
     """The base of every algorithm: a learner makes one with the policy it trains and the run's config."""
 
     name: ClassVar[str] = ""
-    off_policy: ClassVar[bool] = False  # learns from a replay: staleness never cuts its data
     data_parallel: ClassVar[bool] = False  # supports train.world_size > 1 (ebrl.algos.parallel)
 
     def __init__(self, model: ChunkPolicy, cfg: Any, info: Any, telemetry: Telemetry, device: torch.device):
@@ -163,7 +162,7 @@ class Optimizers:
             parts.append({"state": {int(i) - offset: state[i] for i in state if offset <= int(i) < offset + len(indices)},
                           "param_groups": [{**g, "params": [int(p) - offset for p in g["params"]]} for g in own]})
             offset += len(indices)
-        for opt, part in zip(self.optimizers, parts):  # all of them checked before any loads
+        for opt, part in zip(self.optimizers, parts):  # the numbering of all checked before any loads
             opt.load_state_dict(part)
 
 

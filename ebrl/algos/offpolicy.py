@@ -64,7 +64,6 @@ class SACAlgorithm(Algorithm):
     """Soft actor-critic over a replay of chunk decisions (``policy.kind = "squashed"``)."""
 
     name = "sac"
-    off_policy = True
 
     def __init__(self, model: Any, cfg: Any, info: Any, telemetry: Any, device: torch.device):
         super().__init__(model, cfg, info, telemetry, device)

@@ -420,10 +420,14 @@ class ReplaySection(Section):
                          "starts, with the numbers. 0: 80 % of the memory the host has available then", 0)
     batch_size: int = doc("transitions per gradient step, drawn uniformly from the replay", 256)
     learning_starts: int = doc("transitions the replay holds before the first gradient step", 100)
-    save: bool = doc("write the replay beside every checkpoint (RUN_DIR/replay.npz) and read it back when train "
-                     "restarts; false: a restart starts with an empty replay (counted: replay/lost)", True)
+    save: bool = doc("write the replay beside a checkpoint (RUN_DIR/replay.npz; at most every save_every_s, and as "
+                     "the run ends) and read it back when train restarts; what it cannot read back is counted in "
+                     "replay/lost; false: a restart starts with an empty replay", True)
+    save_every_s: float = doc("save: the least seconds between two writes of the replay (each writes it whole)", 120.0)
 
     def _check(self) -> None:
+        if not self.save_every_s >= 0:
+            raise ConfigError(f"replay.save_every_s = {self.save_every_s}: must be >= 0")
         if self.max_bytes < 0 or self.learning_starts < 0:
             raise ConfigError(f"replay.max_bytes = {self.max_bytes}, replay.learning_starts = {self.learning_starts}: "
                               "must be >= 0")

@@ -223,8 +223,25 @@ def test_a_killed_sac_train_restarts_with_its_replay_and_a_ratio_that_holds(tmp_
     assert code == 0, run.output
     assert "train/0 exited with status -9; restarting it" in run.output
     log = (run.run_dir / "logs" / "train-0.log").read_text()
-    assert "resumed from" in log and "replay restored: " in log  # the replay as of the newest checkpoint (v10+)
+    assert "resumed from" in log and "replay restored: " in log  # as its last write (v5: within save_every_s)
     restored = int(log.split("replay restored: ")[1].split()[0])
-    assert restored >= 10 * 64
-    assert stats.latest("train/0", "replay/lost", 0) == 0
+    resumed = int(log.split("resumed from ")[1].split("(policy v")[1].split(")")[0])  # the newest checkpoint
+    assert restored >= 5 * 64
+    assert stats.latest("train/0", "replay/lost", 0) == resumed * 64 - restored  # what the replay missed, counted
     assert stats.latest("train/0", "train/utd") == pytest.approx(1.0, rel=0.1)
+
+
+def test_the_replay_is_written_at_most_every_save_every_s_and_always_as_the_run_ends(tmp_path):
+    from ebrl.algos import saving
+
+    def saved() -> int:
+        with np.load(tmp_path / REPLAY_FILE) as data:
+            return int(data["meta"][3])
+
+    learner, _ = sac_learner(tmp_path, "replay.save_every_s=3600")
+    feed(learner, pendulum_segments(4))
+    assert learner.save_checkpoint("r") and saved() == 64  # the first write
+    feed(learner, pendulum_segments(4, seed=1))
+    assert learner.save_checkpoint("r") and saved() == 64  # within the interval: the checkpoint, not the replay
+    saving.save_at_end(learner, "r")  # this version's checkpoint is on disk; the replay is written all the same
+    assert saved() == 128

@@ -99,8 +99,9 @@ class Algorithm:
         """Forget the optimizers' moments (after an update that made non-finite weights was undone)."""
         self.optimizer.state.clear()
 
-    def save_data(self, run_dir: str) -> None:
-        """Write what it keeps beside the training state (a replay's transitions), durably."""
+    def save_data(self, run_dir: str, final: bool) -> None:
+        """Write what it keeps beside the training state (a replay's transitions), durably; with each checkpoint,
+        ``final`` for the one as the run ends or train stops to start again."""
 
     def restore_data(self, run_dir: str) -> str | None:
         """Read back what :meth:`save_data` wrote, as a restart begins; what happened, or None for nothing."""

@@ -176,9 +176,9 @@ class Learner:
         return f"train resumed at policy v{self.version}" + (f" from {restored.path.name}" if restored is not None
                                                               else " with fresh weights")
 
-    def save_checkpoint(self, run_name: str) -> bool:
+    def save_checkpoint(self, run_name: str, final: bool = False) -> bool:
         """Write the training state (:func:`ebrl.algos.saving.save_train_state`); False if there was nothing new."""
-        return saving.save_train_state(self, run_name)
+        return saving.save_train_state(self, run_name, final)
 
     def save_policy(self, run_name: str) -> str | None:
         """Write the newest published weights to ``RUN_DIR/policy.safetensors``; its path, or None where they are

@@ -7,15 +7,29 @@ import asyncio
 import contextlib
 import time
 from pathlib import Path
+from types import SimpleNamespace
 
 from ebrl.bus.memory import MemoryBus, MemoryNetwork
 from ebrl.bus.session import Bus, BusOptions
 from ebrl.testing import Run, StatsWatcher, free_port
 
-__all__ = ["BUS_KINDS", "ROOT", "Run", "StatsWatcher", "bus_pair", "free_port", "loopback_bus",
+__all__ = ["BUS_KINDS", "Counts", "ROOT", "Run", "StatsWatcher", "bus_pair", "free_port", "loopback_bus",
            "run_collecting_stats", "until", "up"]
 
 ROOT = Path(__file__).resolve().parent.parent
+
+
+class Counts(SimpleNamespace):
+    """A learner's telemetry that keeps what was counted (``counts``) and drops spans."""
+
+    def __init__(self):
+        super().__init__(counts={})
+
+    def count(self, name, n=1):
+        self.counts[name] = self.counts.get(name, 0) + n
+
+    def publish_span(self, *args):
+        pass
 
 
 def loopback_bus(port: int, *, listen: bool = True) -> Bus:

@@ -7,7 +7,6 @@ from __future__ import annotations
 import subprocess
 import sys
 from pathlib import Path
-from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -20,7 +19,7 @@ from ebrl.algos.offpolicy import REPLAY_FILE, SACAlgorithm
 from ebrl.config import ConfigError, load
 from ebrl.envs import EnvSpec, describe
 from ebrl.messages import TrajectorySegment
-from helpers import StatsWatcher, up
+from helpers import Counts, StatsWatcher, up
 
 TESTS = Path(__file__).resolve().parent
 SMALL = ("policy.hidden=[32, 32]", "replay.batch_size=32", "replay.learning_starts=100")
@@ -31,17 +30,6 @@ def sac_config(*overrides: str):
 
 
 INFO = describe(EnvSpec.from_config(sac_config().env))  # Pendulum-v1: 3 observation values, 1 action in [-2, 2]
-
-
-class Counts(SimpleNamespace):
-    def __init__(self):
-        super().__init__(counts={})
-
-    def count(self, name, n=1):
-        self.counts[name] = self.counts.get(name, 0) + n
-
-    def publish_span(self, *args):
-        pass
 
 
 def sac_learner(run_dir, *overrides: str) -> tuple[Learner, Counts]:

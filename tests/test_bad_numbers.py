@@ -8,7 +8,6 @@ import dataclasses
 import json
 import os
 from pathlib import Path
-from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -26,22 +25,11 @@ from ebrl.envs.batch import BatchRunner, EnvBatch
 from ebrl.messages import SEGMENT_ENDS, SegmentBatch, TrajectorySegment
 from ebrl.policies import state_arrays
 from ebrl.testing import StatsWatcher
-from helpers import up
+from helpers import Counts, up
 
 CFG = Config()  # the default env: InvertedPendulum-v5
 TESTS = Path(__file__).resolve().parent
 INFO = describe(EnvSpec.from_config(CFG.env))
-
-
-class Counts(SimpleNamespace):
-    def __init__(self):
-        super().__init__(counts={})
-
-    def count(self, name, n=1):
-        self.counts[name] = self.counts.get(name, 0) + n
-
-    def publish_span(self, *args):
-        pass
 
 
 def learner(run_dir) -> tuple[Learner, Counts]:

@@ -5,7 +5,6 @@ statistics a run ends on. Real segments, built as a simulator builds them, go th
 
 from __future__ import annotations
 
-from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -17,19 +16,12 @@ from ebrl.envs import EnvSpec, describe
 from ebrl.envs.worker import ChunkResult
 from ebrl.messages import TrajectorySegment
 from ebrl.sched.rollout import SegmentBuilder
+from helpers import Counts
 from test_bad_numbers import pack  # a vectorized group's packed message of these segments
 
 CFG = Config()  # InvertedPendulum-v5: 1 per step, no declared range
 INFO = describe(EnvSpec.from_config(CFG.env))
 K = CFG.policy.chunk
-
-
-class Counts(SimpleNamespace):
-    def __init__(self):
-        super().__init__(counts={})
-
-    def count(self, name, n=1):
-        self.counts[name] = self.counts.get(name, 0) + n
 
 
 def episode(env: int, index: int, rewards: list[float], length: int = 4, end: str = "terminated"

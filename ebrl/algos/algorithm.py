@@ -19,11 +19,12 @@ module, a line in :data:`ALGORITHMS` and its tests (docs/algorithms.md, with SAC
 
 from __future__ import annotations
 
-import importlib
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any, Callable, ClassVar
 
 import numpy as np
+
+from ebrl.plugins import named_class
 
 if TYPE_CHECKING:
     import torch
@@ -114,17 +115,7 @@ class Algorithm:
 
 def algorithm_class(name: str) -> type[Algorithm]:
     """The class ``algo.name`` names: a registered name or ``"module:Class"``. ValueError naming what is wrong."""
-    target = ALGORITHMS.get(name, name)
-    module_name, _, attr = target.partition(":")
-    if not attr:
-        raise ValueError(f"algo.name = {name!r}: not one of {', '.join(ALGORITHMS)}, nor a \"module:Class\"")
-    try:
-        cls = getattr(importlib.import_module(module_name), attr)
-    except (ImportError, AttributeError) as exc:
-        raise ValueError(f"algo.name = {name!r}: {exc}") from None
-    if not (isinstance(cls, type) and issubclass(cls, Algorithm)):
-        raise ValueError(f"algo.name = {name!r}: {target} is not an ebrl.algos.algorithm.Algorithm")
-    return cls
+    return named_class("algo.name", name, ALGORITHMS, Algorithm)
 
 
 class Optimizers:

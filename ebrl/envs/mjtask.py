@@ -19,7 +19,6 @@ no Warp): the CPU env workers load it.
 
 from __future__ import annotations
 
-import importlib
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -29,6 +28,7 @@ import numpy as np
 
 from ebrl.envs.obs import ObsLayout
 from ebrl.envs.spec import EnvError
+from ebrl.plugins import named_class
 
 
 @dataclass
@@ -139,18 +139,7 @@ TASKS = {"PandaPickCube-v0": "ebrl.envs.tasks.pick_cube:PandaPickCube"}
 
 def task_class(name: str) -> type[MjTask]:
     """The :class:`MjTask` subclass ``name`` names: one of :data:`TASKS`, or ``"pkg.module:ClassName"``."""
-    target = TASKS.get(name, name)
-    module, _, attr = target.partition(":")
-    if not attr:
-        raise EnvError(f"env.id = {name!r}: expected one of {', '.join(map(repr, TASKS))} or \"pkg.module:Task\" "
-                       "(an ebrl.envs.mjtask.MjTask subclass)")
-    try:
-        cls = getattr(importlib.import_module(module), attr)
-    except (ImportError, AttributeError) as exc:
-        raise EnvError(f"env.id = {name!r}: cannot load {target}: {exc}") from exc
-    if not (isinstance(cls, type) and issubclass(cls, MjTask)):
-        raise EnvError(f"env.id = {name!r}: {target} is not an ebrl.envs.mjtask.MjTask subclass")
-    return cls
+    return named_class("env.id", name, TASKS, MjTask, EnvError)
 
 
 def make_task(name: str, kwargs: dict[str, Any]) -> MjTask:

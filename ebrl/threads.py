@@ -17,7 +17,7 @@ only the pool's work runs on ``n``. Under GNU OpenMP, once a thread has run a pa
 threads (a model's initialisation does), every team a pool thread starts afterwards runs slower: measured on 2
 cores, a 256 x 256 x 256 matrix product took 266 us on a pool thread's two threads after the main thread had
 used two, and 185 us where it had kept one (one thread: 335 us); SAC's gradient step on two threads went from
-12.4 ms to 8.0 ms (``python benchmarks/torch_threads.py --pool-teams``).
+11.8 ms to 7.8 ms (``python benchmarks/torch_threads.py --pool-teams``, ``python benchmarks/sac_step.py``).
 """
 
 from __future__ import annotations

@@ -173,7 +173,7 @@ def test_a_users_own_algorithm_by_module_and_class_trains_in_a_real_run(tmp_path
 
 
 def test_sac_trains_in_a_real_run_at_its_ratio_and_its_policy_loads_and_evaluates(tmp_path):
-    with up(tmp_path, "configs/sac_pendulum.toml", *SMALL, "run.iterations=12", "run.target_return=0",
+    with up(tmp_path, "configs/sac_pendulum.toml", *SMALL, "run.iterations=12", "run.target_return=",
             name="sac-run") as run, StatsWatcher(run) as stats:
         code = run.wait(240)
     assert code == 0, run.output

@@ -530,7 +530,7 @@ class EvalSection(Section):
                               "take 32-bit seeds)")
 
 
-ROLES = ("viz", "log", "train", "gen", "sim", "eval", "alloc")  # every service a host can run, in start order
+ROLES = ("viz", "log", "replay", "train", "gen", "sim", "eval", "alloc")  # every service a host can run, in start order
 
 
 @dataclass

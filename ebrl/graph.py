@@ -85,6 +85,13 @@ FLOWS: dict[str, tuple[Flow, ...]] = {
         Flow("put", keys.weights(R), "Weights", "each new version (small policies)"),
         Flow("put", keys.weights_parts(R), "WeightsPart", "each new version in parts (large policies)"),
         Flow("answer", keys.weights_all(R), "Weights | WeightsPart", "the newest version, on request"),
+        Flow("put", keys.replay(R, "request"), "ReplayRequest", "an update's new transitions, minibatches wanted "
+             "(an off-policy algorithm)"),
+        Flow("sub", keys.replay(R, "sample"), "ReplaySample", "the minibatches of its gradient steps"),
+    ),
+    "replay": (
+        Flow("sub", keys.replay(R, "request"), "ReplayRequest", "transitions to keep, minibatches to draw"),
+        Flow("put", keys.replay(R, "sample"), "ReplaySample", "minibatches drawn uniformly"),
     ),
     "eval": WEIGHTS_READER,
     "alloc": (
@@ -119,7 +126,7 @@ FLOWS: dict[str, tuple[Flow, ...]] = {
         Flow("watch", keys.live_all(R), "-", "which services and hosts are up"),
     ),
 }
-SERVICES = ("sim", "gen", "train", "eval", "alloc", "log", "viz")  # roles that are ebrl.service.Service
+SERVICES = ("sim", "gen", "train", "replay", "eval", "alloc", "log", "viz")  # roles that are ebrl.service.Service
 
 
 def flows(role: str) -> tuple[Flow, ...]:
@@ -174,7 +181,7 @@ def markdown() -> str:
                             and intersects(_instance(put.pattern, writer), _instance(sub.pattern, reader)):
                         seen.add(edge)
                         lines.append(f"    {writer} -- {put.message} --> {reader}")
-    lines += ["    sim & gen & train & eval & alloc -. stats, spans, events, episodes .-> log & viz & launcher", "```"]
+    lines += ["    sim & gen & train & replay & eval & alloc -. stats, spans, events, episodes .-> log & viz & launcher", "```"]
     table = ["| role | direction | key | message | why |", "|---|---|---|---|---|"]
     for role in FLOWS:
         for flow in flows(role):

@@ -25,6 +25,7 @@ import time
 from dataclasses import dataclass
 
 from ebrl.bus import keys
+from ebrl.algos.algorithm import uses_replay
 from ebrl.config import ROLES, Config, ConfigError, processes
 
 PRIMARY_LOST_S = 30.0  # a secondary host stops when no train has been live for this long
@@ -95,8 +96,10 @@ def sim_hosts(cfg: Config, plan: HostPlan) -> tuple[int, ...] | None:
 
 def enabled_roles(cfg: Config) -> tuple[str, ...]:
     """Every service the run has, in start order: viz and log first (they see the run from its start), the
-    allocator last (it only reads the others' stats)."""
-    on = {"viz": cfg.viz.rerun != "off", "alloc": cfg.alloc.enabled, "log": sinks_on(cfg), "eval": cfg.eval.every > 0}
+    replay where the algorithm learns from one (before train, which asks it for minibatches), the allocator last
+    (it only reads the others' stats)."""
+    on = {"viz": cfg.viz.rerun != "off", "alloc": cfg.alloc.enabled, "log": sinks_on(cfg), "eval": cfg.eval.every > 0,
+          "replay": uses_replay(cfg.algo.name)}
     return tuple(r for r in ROLES if on.get(r, True))
 
 
@@ -117,8 +120,10 @@ def plan(cfg: Config, only: str | None = None, host: str | None = None, instance
             raise ConfigError(f"--host {host}: no [hosts.{host}] in the config (hosts: {known})")
         entry = cfg.hosts[host]
         named = {r for e in cfg.hosts.values() for r in e.services}
-        # viz, log and eval go with train unless some host names them; the allocator always does (it plans that host)
-        wanted = set(entry.services) | ({"viz", "log", "eval", "alloc"} - named if "train" in entry.services else set())
+        # viz, log, eval and the replay go with train unless some host names them; the allocator always does (it
+        # plans that host)
+        wanted = set(entry.services) | ({"viz", "log", "eval", "replay", "alloc"} - named if "train" in entry.services
+                                        else set())
         _allocator_with_train(wanted, f"[hosts.{host}]")
         bus = dataclasses.replace(cfg.bus, listen=list(entry.listen or cfg.bus.listen),
                                   connect=list(entry.connect or cfg.bus.connect))
@@ -138,12 +143,12 @@ def plan(cfg: Config, only: str | None = None, host: str | None = None, instance
     missing = [r for r in asked if r not in every]
     if missing:
         raise ConfigError(f"--only {only}: {', '.join(missing)} is off in this config (viz.rerun / alloc.enabled / "
-                          "[log] / eval.every)")
+                          "[log] / eval.every / algo.name: a replay only for an off-policy algorithm)")
     number = 0 if instance is None else instance
     if number < 0:
         raise ConfigError(f"--instance {number}: must be >= 0")
-    # the allocator, the tracking sinks and the evaluation go with training
-    wanted = set(asked) | ({"alloc", "log", "eval"} if "train" in asked else set())
+    # the allocator, the tracking sinks, the evaluation and the replay go with training
+    wanted = set(asked) | ({"alloc", "log", "eval", "replay"} if "train" in asked else set())
     _allocator_with_train(wanted, f"--only {only}")
     return cfg, HostPlan(tuple(r for r in every if r in wanted), number, True)
 
@@ -249,7 +254,9 @@ def decide_processes(cfg: Config, here: HostPlan, gpu: bool) -> tuple[Config, st
     simulator of :data:`GPU_SIMULATORS` on a task EBRL ships (no
     ``module:EnvId``: a user's env code never shares training's memory unasked), so that the three stages share
     one CUDA context and no message between them leaves the process. Else every service alone, as on a CPU
-    host, where separate processes keep each stage's cores its own."""
+    host, where separate processes keep each stage's cores its own. The replay (an off-policy run's) shares
+    train's process wherever this host runs both with one training rank: its minibatches are then handed over
+    by reference (BENCHMARKS.md, "Where the replay runs")."""
     if cfg.run.processes != "auto":
         return cfg, ""
     stages = {"sim", "gen", "train"}
@@ -261,8 +268,12 @@ def decide_processes(cfg: Config, here: HostPlan, gpu: bool) -> tuple[Config, st
            else "the allocator shares cores and the GPU out per process" if cfg.alloc.enabled
            else "")
     chosen = [] if why else [["sim", "gen", "train"]]
+    replay = {"train", "replay"} <= set(here.roles) and cfg.train.world_size == 1
+    if replay:
+        chosen = [group + ["replay"] for group in chosen] or [["train", "replay"]]
     cfg = dataclasses.replace(cfg, run=dataclasses.replace(cfg.run, processes=chosen))
-    return cfg, (f"auto: run.processes = {chosen} ({why or 'a GPU simulator, generation and training on one GPU'})")
+    reasons = [why or "a GPU simulator, generation and training on one GPU"] + ["the replay with training"] * replay
+    return cfg, f"auto: run.processes = {chosen} ({'; '.join(reasons)})"
 
 
 def _shipped_task(env_id: str) -> bool:

@@ -71,7 +71,7 @@ def prepare(config_path: str, overrides: list[str], *, viz: str | None = None, r
     notes = [("auto", decision.line)] if decision is not None and decision.line else []
     gpu = cfg.run.processes == "auto" and autotune.host_has_gpu()
     cfg, placed = decide_processes(cfg, plan, gpu)  # run.processes: written into config.toml with the rest
-    if placed and gpu:  # on a CPU host nothing changes: said nowhere but config.toml
+    if placed and (gpu or cfg.run.processes):  # a CPU host where nothing shares: said nowhere but config.toml
         print(placed, flush=True)
         notes.append(("auto", placed))
     run = PreparedRun(cfg, plan, Path(), {}, notes)

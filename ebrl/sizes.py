@@ -57,6 +57,8 @@ class Shapes:
     segment: int  # decisions per trajectory segment (sim.segment_length)
     packed_bytes: int  # a packed message's cap (ebrl.sched.rollout.PACKED_BYTES)
     weights: dict[str, tuple[str, tuple[int, ...]]] | None = None  # the policy's tensors (WeightsLayout.tensors)
+    replay_rows: int = 0  # transitions in one ReplayRequest: an update's new decisions (train.max_pending + a segment)
+    sample_rows: int = 0  # transitions in one ReplaySample (ebrl.algos.replay.batches_per_sample x batch size)
 
     @classmethod
     def of_run(cls, cfg: Any, info: Any, latent_shape: tuple[int, ...],
@@ -64,16 +66,23 @@ class Shapes:
         """From a config, its env's :class:`~ebrl.envs.EnvInfo`, the policy's ``latent_shape`` and tensors."""
         from ebrl.sched.rollout import PACKED_BYTES
 
+        from ebrl.algos.algorithm import uses_replay
+        from ebrl.algos.replay import batches_per_sample
+
         layout = info.layout
+        replay = uses_replay(cfg.algo.name)  # else no replay keys: no bound for them raises a receive limit
+        per_sample = batches_per_sample(cfg.replay.batch_size, layout.size, cfg.policy.chunk * info.action_dim)
         return cls(envs=cfg.sim.envs_per_group, obs_floats=layout.size - layout.byte_size,
                    obs_bytes=layout.byte_size, chunk=cfg.policy.chunk, action_dim=info.action_dim,
                    latent=math.prod(latent_shape), segment=cfg.sim.segment_length, packed_bytes=PACKED_BYTES,
-                   weights=weights)
+                   weights=weights, replay_rows=(cfg.train.max_pending + cfg.sim.segment_length) * replay,
+                   sample_rows=per_sample * cfg.replay.batch_size * replay)
 
 
 def largest(shapes: Shapes) -> dict[str, int]:
     """The encoded bytes of the largest message a run's own publisher sends on each data key (an upper bound):
-    ``obs``, ``act``, ``traj``, ``packed``, and ``weights`` when ``shapes.weights`` is known."""
+    ``obs``, ``act``, ``traj``, ``packed``, ``weights`` when ``shapes.weights`` is known, ``replay_request``
+    and ``replay_sample`` where the run has a replay."""
     s = shapes
     obs = 4 * s.obs_floats  # one observation's floats on the wire; its bytes are s.obs_bytes
     chunk = 4 * s.chunk * s.action_dim
@@ -99,6 +108,12 @@ def largest(shapes: Shapes) -> dict[str, int]:
     # per segment: env id, episode, length, end, episode offset, return, episode length, success; last_obs
     per_segment = 8 + 8 + 4 + 1 + 8 + 4 + 4 + 1 + obs + s.obs_bytes
     out["packed"] = _FRAME + 20 * _ALIGN + per_decision * decisions + per_segment * segments
+    # ReplayRequest, ReplaySample: two observations (float32: the replay holds no bytes), a chunk, a reward,
+    # steps, the terminal flag, a version per transition
+    transition = 2 * (obs + 4 * s.obs_bytes) + chunk + 4 + 4 + 1 + 8
+    if s.replay_rows:
+        out["replay_request"] = _FRAME + 7 * _ALIGN + transition * s.replay_rows
+        out["replay_sample"] = _FRAME + 7 * _ALIGN + transition * s.sample_rows
     if s.weights is not None:
         from ebrl.weights import PART_BYTES, SINGLE_MAX_BYTES, WeightsLayout
 
@@ -121,6 +136,8 @@ class Bounds:
     traj: int
     packed: int
     weights: int | None = None
+    replay_request: int | None = None  # None: the run has no replay
+    replay_sample: int | None = None
 
     @classmethod
     def of(cls, shapes: Shapes) -> "Bounds":

@@ -1,9 +1,11 @@
 """The algorithm interface (``ebrl.algos.algorithm``): the registry, a user's own algorithm by ``module:Class``
 trained by a real ``ebrl up``, and SAC behind the learner every algorithm shares: its update-to-data ratio, its
-checkpoints with the replay restored (or counted lost), its policy loaded and evaluated as a PPO one."""
+checkpoints, its replay service (restarted after a kill -9 with its contents, or what it lost counted), its policy
+loaded and evaluated as a PPO one."""
 
 from __future__ import annotations
 
+import secrets
 import subprocess
 import sys
 from pathlib import Path
@@ -15,7 +17,9 @@ import torch
 import ebrl
 from ebrl.algos.algorithm import Optimizers, algorithm_class
 from ebrl.algos.learner import Learner
-from ebrl.algos.offpolicy import REPLAY_FILE, SACAlgorithm
+from ebrl.algos.offpolicy import SACAlgorithm
+from ebrl.algos.replay import REPLAY_FILE, ReplayStore
+from ebrl.algos.replaylink import make_request, minibatches
 from ebrl.config import ConfigError, load
 from ebrl.envs import EnvSpec, describe
 from ebrl.messages import TrajectorySegment
@@ -32,9 +36,32 @@ def sac_config(*overrides: str):
 INFO = describe(EnvSpec.from_config(sac_config().env))  # Pendulum-v1: 3 observation values, 1 action in [-2, 2]
 
 
-def sac_learner(run_dir, *overrides: str) -> tuple[Learner, Counts]:
+class DirectReplay:
+    """A learner's link to a replay store in this thread: the calls of ``ebrl.algos.replaylink.ReplayLink``
+    without the bus between (the real runs below take the bus)."""
+
+    def __init__(self, store: ReplayStore):
+        self.store, self.acked, self.closed = store, 0, False
+        self.seq, self.session = 0, secrets.randbits(62)  # a process's own, as ReplayLink's
+
+    def send(self, rows, batches: int, batch_size: int):
+        self.seq += 1
+        return make_request(self.session, self.seq, self.acked, rows, batches, batch_size, 3, 1), None
+
+    def wait(self, request, _answer):
+        sample = self.store.exchange(request)
+        self.acked = sample.inserted
+        return minibatches(sample)
+
+    def close(self) -> None:
+        self.closed = True
+
+
+def sac_learner(run_dir, *overrides: str, store: ReplayStore | None = None) -> tuple[Learner, Counts]:
     telemetry = Counts()
-    return Learner(sac_config(*overrides), INFO, 1, telemetry, str(run_dir)), telemetry
+    learner = Learner(sac_config(*overrides), INFO, 1, telemetry, str(run_dir))
+    learner.algo.connect(DirectReplay(store or ReplayStore(3, 1, 10_000, seed=0)))
+    return learner, telemetry
 
 
 def pendulum_segments(n: int, length: int = 16, seed: int = 0, version: int = 0) -> list[TrajectorySegment]:
@@ -103,15 +130,16 @@ def test_several_optimizers_save_and_load_as_one():
 # --- SAC behind the learner --------------------------------------------------------------------------------------
 
 def test_sac_keeps_its_update_to_data_ratio_on_average_from_learning_starts(tmp_path):
-    learner, _ = sac_learner(tmp_path, "algo.utd=0.75")
+    store = ReplayStore(3, 1, 10_000)
+    learner, _ = sac_learner(tmp_path, "algo.utd=0.75", store=store)
     out = feed(learner, pendulum_segments(24))  # 384 decisions of one env step: 6 updates of 64
     steps = [o["gradient_steps"] for o in out]
-    assert steps[0] == 0  # 64 transitions held, fewer than learning_starts
+    assert steps[0] == 0  # 64 transitions sent, fewer than learning_starts
     assert sum(steps) == int(0.75 * 64 * 5)  # from the update that reached it, 0.75 per env step
     assert set(steps[1:]) == {48.0}
     metrics = learner.metrics()
-    assert metrics["train/utd"] == pytest.approx(0.75) and metrics["replay/size"] == 384
-    assert metrics["replay/sampled"] == sum(steps) * 32
+    assert metrics["train/utd"] == pytest.approx(0.75) and metrics["train/replay_sent"] == 384
+    assert store.buffer.size == 384 and store.sampled == sum(steps) * 32
     assert learner.version == 6 and all(np.isfinite(o["critic_loss"]) for o in out[1:])
 
 
@@ -124,12 +152,25 @@ def test_without_keep_utd_an_update_learns_from_all_that_arrived_and_the_ratio_d
     assert not learner.ready
 
 
-def test_sac_resumes_its_critics_temperature_optimizers_and_replay_and_counts_a_lost_replay(tmp_path):
-    learner, _ = sac_learner(tmp_path, "train.checkpoint_every=0")
+def test_an_empty_replay_leaves_the_gradient_steps_owed_until_it_holds_transitions_again(tmp_path):
+    """A replay restarted without its file holds nothing: the update takes no step and owes them on."""
+    store = ReplayStore(3, 1, 10_000)
+    store.buffer.add_rows = lambda rows: 0  # holds nothing, whatever it is sent
+    learner, _ = sac_learner(tmp_path, "replay.learning_starts=0", store=store)
+    out = feed(learner, pendulum_segments(4))
+    assert out[0]["gradient_steps"] == 0 and learner.algo.debt == 64
+    del store.buffer.add_rows  # it holds what it is sent again: the steps owed are taken
+    out = feed(learner, pendulum_segments(4, seed=1))
+    assert out[0]["gradient_steps"] == 128 and learner.algo.debt == 0
+
+
+def test_sac_resumes_its_critics_temperature_optimizers_and_counts(tmp_path):
+    store = ReplayStore(3, 1, 10_000)
+    learner, _ = sac_learner(tmp_path, "train.checkpoint_every=0", store=store)
     feed(learner, pendulum_segments(16))
-    assert learner.save_checkpoint("sac-test") and (tmp_path / REPLAY_FILE).exists()
+    assert learner.save_checkpoint("sac-test")
     before = learner.algo
-    again, telemetry = sac_learner(tmp_path)
+    again, telemetry = sac_learner(tmp_path, store=store)  # a restarted train: the replay service lives on
     assert again.resume(-1).startswith("train resumed at policy v4")
     after = again.algo
     for a, b in [(before.sac.critics, after.sac.critics), (before.sac.targets, after.sac.targets),
@@ -138,13 +179,10 @@ def test_sac_resumes_its_critics_temperature_optimizers_and_replay_and_counts_a_
     assert after.sac.alpha == before.sac.alpha != 1.0
     assert torch.equal(after.sac.critic_opt.state_dict()["state"][0]["exp_avg"],
                        before.sac.critic_opt.state_dict()["state"][0]["exp_avg"])
-    assert after.replay.size == 256 and np.array_equal(after.replay.obs[:256], before.replay.obs[:256])
-    assert "replay/lost" not in telemetry.counts and again.metrics()["train/utd"] == pytest.approx(1.0)
-
-    (tmp_path / REPLAY_FILE).unlink()  # the replay's file lost: the restart says so and counts it
-    third, telemetry = sac_learner(tmp_path)
-    third.resume(-1)
-    assert third.algo.replay.size == 0 and telemetry.counts["replay/lost"] == 256
+    assert (after.sent, after.replay.acked, after.gradient_steps) == (256, 256, before.gradient_steps)
+    assert after.model.warmup.item() == 0.0 and again.metrics()["train/utd"] == pytest.approx(1.0)
+    feed(again, pendulum_segments(4, seed=1))  # a new session: its transitions are new, not a resend
+    assert store.buffer.inserted == 320 and store.lost == 0
 
 
 def test_a_checkpoint_of_another_algorithm_is_refused_saying_why(tmp_path, monkeypatch):
@@ -178,8 +216,12 @@ def test_sac_trains_in_a_real_run_at_its_ratio_and_its_policy_loads_and_evaluate
         code = run.wait(240)
     assert code == 0, run.output
     assert stats.latest("train/0", "train/utd") == pytest.approx(1.0, rel=0.1)
-    assert stats.latest("train/0", "replay/size") >= 700
+    held = stats.latest("replay/0", "replay/size")
+    assert held >= 700 and stats.latest("replay/0", "replay/sampled") > 500 * 32
     assert stats.latest("train/0", "train/gradient_steps_total") > 500
+    assert "replay/0+train/0" in run.output  # the replay in training's process (run.processes = "auto")
+    with np.load(run.run_dir / REPLAY_FILE) as saved:  # written as the run ended
+        assert int(saved["meta"][3]) == held
     policy = ebrl.load_policy(run.run_dir / "policy.safetensors")
     actions = np.stack([policy.predict(np.array([np.cos(a), np.sin(a), 0.0], np.float32))[0]
                         for a in np.linspace(-3, 3, 16)])
@@ -198,38 +240,24 @@ def test_keep_utd_decides_whether_generation_holds_simulators_back():
 
 
 @pytest.mark.slow  # a kill -9 and a restart (the fast suite has PPO's: tests/test_shared_process.py)
-def test_a_killed_sac_train_restarts_with_its_replay_and_a_ratio_that_holds(tmp_path):
+def test_a_killed_replay_restarts_with_its_contents_and_counts_what_it_lost(tmp_path):
+    """The replay in a process of its own (``run.processes = []``), killed: training waits (sending its request
+    again) while it restarts, reads back its last save and counts what training saw it take in since; every
+    transition training sent is either in it or counted lost."""
     import signal
 
     from test_faults import service
 
     with up(tmp_path, "configs/sac_pendulum.toml", *SMALL, "run.iterations=30", "run.target_return=",
-            "train.checkpoint_every=5", name="sac-kill") as run, StatsWatcher(run) as stats:
+            "run.processes=[]", "replay.save_every_s=1", name="sac-kill") as run, StatsWatcher(run) as stats:
         stats.wait_for(lambda: (stats.latest("train/0", "train/policy_version") or 0) >= 12, 200, "policy v12")
-        service(run, "train").send_signal(signal.SIGKILL)
+        service(run, "replay").send_signal(signal.SIGKILL)
         code = run.wait(300)
     assert code == 0, run.output
-    assert "train/0 exited with status -9; restarting it" in run.output
-    log = (run.run_dir / "logs" / "train-0.log").read_text()
-    assert "resumed from" in log and "replay restored: " in log  # as its last write (v5: within save_every_s)
-    restored = int(log.split("replay restored: ")[1].split()[0])
-    resumed = int(log.split("resumed from ")[1].split("(policy v")[1].split(")")[0])  # the newest checkpoint
+    assert "replay/0 exited with status -9; restarting it" in run.output
+    log = (run.run_dir / "logs" / "replay-0.log").read_text()
+    restored = int(log.split("replay restored: ")[1].split()[0])  # its last save (every second)
     assert restored >= 5 * 64
-    assert stats.latest("train/0", "replay/lost", 0) == resumed * 64 - restored  # what the replay missed, counted
+    sent, lost = stats.latest("train/0", "train/replay_sent"), stats.latest("replay/0", "replay/lost")
+    assert sent == 30 * 64 and sent == stats.latest("replay/0", "replay/inserted") + lost
     assert stats.latest("train/0", "train/utd") == pytest.approx(1.0, rel=0.1)
-
-
-def test_the_replay_is_written_at_most_every_save_every_s_and_always_as_the_run_ends(tmp_path):
-    from ebrl.algos import saving
-
-    def saved() -> int:
-        with np.load(tmp_path / REPLAY_FILE) as data:
-            return int(data["meta"][3])
-
-    learner, _ = sac_learner(tmp_path, "replay.save_every_s=3600")
-    feed(learner, pendulum_segments(4))
-    assert learner.save_checkpoint("r") and saved() == 64  # the first write
-    feed(learner, pendulum_segments(4, seed=1))
-    assert learner.save_checkpoint("r") and saved() == 64  # within the interval: the checkpoint, not the replay
-    saving.save_at_end(learner, "r")  # this version's checkpoint is on disk; the replay is written all the same
-    assert saved() == 128

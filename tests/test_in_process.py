@@ -1,18 +1,18 @@
 """Every kind of service in one process on the in-memory bus (``ebrl.testing.InProcessRun``): eval and log
-beside sim, gen and train, and the allocator re-planning a run; each uses only the keys its role declares in
-ebrl/graph.py (the recording bus of tests/test_graph.py)."""
+beside sim, gen and train, the allocator re-planning a run, an off-policy run's replay; each uses only the keys
+its role declares in ebrl/graph.py (the recording bus of tests/test_graph.py)."""
 
 from __future__ import annotations
 
 import asyncio
 import csv
 
-from ebrl import autotune
+from ebrl import autotune, config
 from ebrl.bus import keys
 from ebrl.testing import InProcessRun
 from helpers import store_profile
 from test_graph import recording, undeclared
-from test_pipeline import small_config
+from test_pipeline import ROOT, small_config
 
 
 def test_eval_and_log_evaluate_versions_and_write_every_metric_in_process(tmp_path):
@@ -66,3 +66,26 @@ def test_the_allocator_observes_the_stages_re_plans_and_the_services_apply_it_in
     assert run.stats.latest("alloc/0", "alloc/plan_version") >= 2
     assert run.stats.latest("alloc/0", "alloc/train_capacity", 0.0) > 0
     assert not undeclared(used), undeclared(used)
+
+
+def test_an_off_policy_run_asks_its_replay_service_for_minibatches_in_process(tmp_path):
+    """SAC with its replay service beside sim, gen and train: training sends each update's transitions and asks
+    for minibatches (ReplayRequest), the replay answers (ReplaySample); both use only the keys the graph declares."""
+    raw = config.read(ROOT / "configs" / "sac_pendulum.toml")
+    cfg = small_config(tmp_path, **{name: raw[name] for name in ("env", "policy", "algo")},
+                       replay={"batch_size": 32, "learning_starts": 64}, train={"batch_size": 64, "lr": 1e-3})
+    used: dict[str, set[tuple[str, str]]] = {}
+
+    async def main():
+        async with InProcessRun(cfg, ("replay", "train", "gen", "sim"), tmp_path, recording(used)) as run:
+            stats = run.stats
+            await stats.until(lambda: stats.latest("train/0", "train/gradient_steps_total", 0) >= 128, 180,
+                              "128 gradient steps on the replay's minibatches")
+        return run
+
+    run = asyncio.run(main())
+    assert run.stats.latest("replay/0", "replay/sampled") >= 128 * 32
+    assert not undeclared(used), undeclared(used)
+    assert ("put", keys.replay("pipe", "request")) in used["train"] and ("sub", keys.replay("pipe", "sample")) in \
+        used["train"]
+    assert ("put", keys.replay("pipe", "sample")) in used["replay"]

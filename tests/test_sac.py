@@ -10,10 +10,11 @@ import numpy as np
 import pytest
 import torch
 
-from ebrl.algos.replay import ReplayBatch, ReplayBuffer, ReplayTooLarge, transition_bytes
+from ebrl.algos.replay import (FIELDS, ReplayBatch, ReplayBuffer, ReplayStore, ReplayTooLarge, transition_bytes,
+                               transitions)
 from ebrl.algos.sac import SAC, SACSettings
 from ebrl.envs.obs import ObsField, ObsLayout
-from ebrl.messages import TrajectorySegment
+from ebrl.messages import ReplayRequest, TrajectorySegment
 from ebrl.policies import make_policy
 from ebrl.policies.squashed import ChunkSquashedMLP
 
@@ -96,7 +97,7 @@ def test_the_replay_saved_is_restored_and_a_bad_file_leaves_it_as_it_was(tmp_pat
     replay.add(segment(5, start=50.0))
     replay.save(tmp_path / "replay.npz")
     again = ReplayBuffer(3, 4, capacity=8)
-    assert again.restore(tmp_path / "replay.npz") == 8
+    assert again.restore(tmp_path / "replay.npz") == (8, {})
     for name in ("obs", "next_obs", "actions", "rewards", "steps", "terminal", "versions"):
         np.testing.assert_array_equal(getattr(again, name), getattr(replay, name))
     assert (again.cursor, again.inserted) == (replay.cursor, replay.inserted)
@@ -104,6 +105,51 @@ def test_the_replay_saved_is_restored_and_a_bad_file_leaves_it_as_it_was(tmp_pat
     with pytest.raises(ValueError, match="for a replay of"):
         other.restore(tmp_path / "replay.npz")
     assert other.size == 0
+
+
+# --- the replay service's store
+
+def request(seg: TrajectorySegment | None, seq: int, session: int = 7, acked: int = 0, batches: int = 2,
+            batch_size: int = 4) -> ReplayRequest:
+    rows = transitions(seg if seg is not None else segment(1))
+    rows = {name: value[:0] if seg is None else value for name, value in rows.items()}
+    return ReplayRequest(session=session, seq=seq, acked=acked, batches=batches, batch_size=batch_size,
+                         **{**rows, "terminal": rows["terminal"].view(np.uint8)})
+
+
+def test_the_store_adds_a_request_once_though_it_comes_again_and_draws_what_it_holds():
+    store = ReplayStore(3, 4, capacity=100)
+    empty = store.exchange(request(None, 1))
+    assert len(empty.rewards) == 0 and empty.size == 0  # nothing to draw from: no rows, owed on
+    first = store.exchange(request(segment(6, end="terminated"), 2))
+    assert (first.size, first.inserted, len(first.rewards)) == (6, 6, 8) and first.seq == 2
+    assert set(first.obs[:, 0].tolist()) <= set(range(6))
+    assert np.all(first.next_obs[:, 0] == first.obs[:, 0] + 1)  # each transition's next observation
+    assert np.all(first.terminal == (first.obs[:, 0] == 5))  # only after the episode's last decision
+    again = store.exchange(request(segment(6, end="terminated"), 2))  # sent again: not added twice
+    assert again.inserted == 6 and store.sampled == 16
+    store.exchange(request(segment(3, start=10.0), 1, session=8))  # another session (a restarted train): new
+    assert store.buffer.inserted == 9
+    with pytest.raises(ValueError, match="this replay holds 3 and 4"):
+        store.exchange(request(segment(2, chunk=3), 2, session=8))
+    assert store.buffer.inserted == 9
+
+
+def test_a_restarted_store_gets_its_contents_back_and_counts_what_training_saw_it_lose(tmp_path):
+    store = ReplayStore(3, 4, capacity=100, seed=1)
+    store.exchange(request(segment(10), 1))
+    store.save(tmp_path / "replay.npz")
+    store.exchange(request(segment(5, start=20.0), 2))  # after the save: lost with the process
+    again = ReplayStore(3, 4, capacity=100)
+    assert again.restore(tmp_path / "replay.npz") == 10 and again.newest == (7, 1) and again.sampled == 8
+    answer = again.exchange(request(segment(5, start=20.0), 2, acked=15))  # sent again to the new process
+    assert again.lost == 5 and answer.inserted == 15  # what training saw it hold beyond the file, counted
+    np.testing.assert_array_equal(again.buffer.obs[10:15, 0], np.arange(20, 25))
+    again.exchange(request(None, 3, acked=15))
+    assert again.lost == 5  # counted once
+    fresh = ReplayStore(3, 4, capacity=100)  # no file at all: everything training saw is lost
+    fresh.exchange(request(None, 4, acked=15))
+    assert fresh.lost == 15
 
 
 # --- the update

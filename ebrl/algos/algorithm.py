@@ -11,7 +11,8 @@ numbers. An :class:`Algorithm` brings the rest:
   :meth:`Algorithm.learn`, which returns the update's numbers;
 * its **state** for checkpoints: :attr:`Algorithm.optimizer` (several optimizers look like one:
   :class:`Optimizers`), :meth:`Algorithm.generators` and the tensors beyond the policy
-  (:meth:`Algorithm.extra_state`), and what it keeps on the side of a run (a replay: :meth:`Algorithm.save_data`).
+  (:meth:`Algorithm.extra_state`). An algorithm that learns from a replay (:attr:`Algorithm.uses_replay`) gets
+  the run's replay service (``ebrl/services/replay.py``) through :meth:`Algorithm.connect`.
 
 ``algo.name`` is one of :data:`ALGORITHMS` or a user's own class as ``"my_pkg.module:MyAlgo"``. Adding one is its
 module, a line in :data:`ALGORITHMS` and its tests (docs/algorithms.md, with SAC as the worked example).
@@ -38,6 +39,7 @@ ALGORITHMS: dict[str, str] = {
     "grpo": "ebrl.algos.onpolicy:GRPOAlgorithm",
     "sac": "ebrl.algos.offpolicy:SACAlgorithm",
 }
+OFF_POLICY = frozenset({"sac"})  # registered algorithms with uses_replay (known without importing them)
 
 
 @dataclass
@@ -54,6 +56,7 @@ class Algorithm:
 
     name: ClassVar[str] = ""
     data_parallel: ClassVar[bool] = False  # supports train.world_size > 1 (ebrl.algos.parallel)
+    uses_replay: ClassVar[bool] = False  # learns from the replay service: the run has one (OFF_POLICY)
 
     def __init__(self, model: ChunkPolicy, cfg: Any, info: Any, telemetry: Telemetry, device: torch.device):
         """``model``: the policy (on ``device``); ``cfg``: the run's config; ``info``: the env's
@@ -69,6 +72,13 @@ class Algorithm:
         """With several ranks (``data_parallel`` algorithms): take the gradient steps through ``dp``'s wrapped
         policy and optimizer (``ebrl.algos.parallel.DataParallel``)."""
         raise ValueError(f"algo.name = {self.name!r} trains on one rank: set train.world_size = 1")
+
+    def connect(self, replay: Any) -> None:
+        """Where :attr:`uses_replay`: the replay to learn from, before the first update (the train service's
+        :class:`~ebrl.algos.replaylink.ReplayLink`)."""
+
+    def stop(self) -> None:
+        """Training stops: an update waiting on what the algorithm awaits (the replay) ends, from any thread."""
 
     def prepare(self) -> None:
         """Costly set-up to do once the first weights are out (the train service calls it on the update thread)."""
@@ -100,14 +110,6 @@ class Algorithm:
         """Forget the optimizers' moments (after an update that made non-finite weights was undone)."""
         self.optimizer.state.clear()
 
-    def save_data(self, run_dir: str, final: bool) -> None:
-        """Write what it keeps beside the training state (a replay's transitions), durably; with each checkpoint,
-        ``final`` for the one as the run ends or train stops to start again."""
-
-    def restore_data(self, run_dir: str) -> str | None:
-        """Read back what :meth:`save_data` wrote, as a restart begins; what happened, or None for nothing."""
-        return None
-
     def metrics(self) -> dict[str, float]:
         """Stats of its own beyond the update's numbers (a replay's size and rates)."""
         return {}
@@ -116,6 +118,12 @@ class Algorithm:
 def algorithm_class(name: str) -> type[Algorithm]:
     """The class ``algo.name`` names: a registered name or ``"module:Class"``. ValueError naming what is wrong."""
     return named_class("algo.name", name, ALGORITHMS, Algorithm)
+
+
+def uses_replay(name: str) -> bool:
+    """Whether the algorithm ``algo.name`` names learns from a replay (then the run has a replay service); a
+    registered one without importing it, a user's ``module:Class`` by its class."""
+    return name in OFF_POLICY if name in ALGORITHMS else algorithm_class(name).uses_replay
 
 
 class Optimizers:

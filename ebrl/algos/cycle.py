@@ -62,6 +62,7 @@ async def wind_down(learner: Learner, pool: concurrent.futures.ThreadPoolExecuto
     rank leaves the group."""
     if learner.rank > 0 and ranks:
         await ranks.drain()
+    learner.algo.stop()  # an update waiting on the algorithm's own (the replay) ends
     await asyncio.to_thread(pool.shutdown, wait=True, cancel_futures=True)  # an update in flight ends
     if ranks and learner.rank == 0:
         await ranks.stop()

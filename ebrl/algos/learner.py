@@ -169,16 +169,14 @@ class Learner:
                         floor, f"v{self.version}" if restored else "initial", floor + 1)
             self.version = floor + 1
         self.arrays = state_arrays(self.model)
-        if self.rank == 0 and (data := self.algo.restore_data(self.run_dir)):
-            log.info("%s", data)
         if restored is None and floor < 0:
             return None
         return f"train resumed at policy v{self.version}" + (f" from {restored.path.name}" if restored is not None
                                                               else " with fresh weights")
 
-    def save_checkpoint(self, run_name: str, final: bool = False) -> bool:
+    def save_checkpoint(self, run_name: str) -> bool:
         """Write the training state (:func:`ebrl.algos.saving.save_train_state`); False if there was nothing new."""
-        return saving.save_train_state(self, run_name, final)
+        return saving.save_train_state(self, run_name)
 
     def save_policy(self, run_name: str) -> str | None:
         """Write the newest published weights to ``RUN_DIR/policy.safetensors``; its path, or None where they are

@@ -20,17 +20,48 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+import psutil
 
 from ebrl.algos.checkpoint import write_durably
-from ebrl.messages import TrajectorySegment
+from ebrl.messages import ReplayRequest, ReplaySample, TrajectorySegment
 
+REPLAY_FILE = "replay.npz"  # RUN_DIR: the replay service's contents as of its last save (replay.save)
+HOST_MEMORY_SHARE = 0.8  # most of the host's available memory a replay may take (replay.max_bytes = 0)
 FIELDS = ("obs", "actions", "rewards", "steps", "terminal", "next_obs", "versions")
+
+
+def replay_bound(max_bytes: int) -> float:
+    """The bytes a replay may take: ``replay.max_bytes``, and never more than :data:`HOST_MEMORY_SHARE` of what
+    the host has available now."""
+    host = HOST_MEMORY_SHARE * psutil.virtual_memory().available
+    return min(host, max_bytes) if max_bytes > 0 else host
 
 
 def transition_bytes(obs_size: int, action_size: int) -> int:
     """Host bytes of one transition: two float32 observations, a float32 chunk, the reward (float32), steps
     (int32), the terminal flag (bool) and the acting version (int64)."""
     return 4 * (2 * obs_size + action_size) + 4 + 4 + 1 + 8
+
+
+def transitions(seg: TrajectorySegment) -> dict[str, np.ndarray]:
+    """A segment's decisions as transitions, a row each (:data:`FIELDS`): the chunk flat, the next observation
+    the next decision's (the segment's ``last_obs`` after its last), terminal only after the last decision of a
+    segment that ended its episode in a terminal state."""
+    t = len(seg.obs)
+    obs = seg.obs.reshape(t, -1)
+    terminal = np.zeros(t, bool)
+    terminal[-1:] = seg.end == "terminated"
+    return {"obs": obs, "actions": seg.actions.reshape(t, -1), "rewards": seg.rewards, "steps": seg.steps,
+            "terminal": terminal, "next_obs": np.concatenate([obs[1:], seg.last_obs.reshape(1, -1)]),
+            "versions": seg.versions}
+
+
+SAMPLE_BYTES = 4 << 20  # one ReplaySample carries about this many bytes of minibatches at most (one at least)
+
+
+def batches_per_sample(batch_size: int, obs_size: int, action_size: int) -> int:
+    """Minibatches of ``batch_size`` one :class:`~ebrl.messages.ReplaySample` carries: about ``SAMPLE_BYTES``."""
+    return max(1, SAMPLE_BYTES // (batch_size * transition_bytes(obs_size, action_size)))
 
 
 class ReplayTooLarge(ValueError):
@@ -51,6 +82,11 @@ class ReplayBatch:
 
     def __len__(self) -> int:
         return len(self.rewards)
+
+    def part(self, index: int, size: int) -> "ReplayBatch":
+        """Rows ``index * size`` up to ``(index + 1) * size`` (views): one minibatch of several drawn together."""
+        rows = slice(index * size, (index + 1) * size)
+        return ReplayBatch(**{name: getattr(self, name)[rows] for name in FIELDS})
 
 
 class ReplayBuffer:
@@ -78,28 +114,29 @@ class ReplayBuffer:
         self.inserted = 0  # transitions ever added (also those since overwritten)
 
     def add(self, seg: TrajectorySegment) -> int:
-        """The segment's decisions as transitions (checked against the buffer's sizes first: a segment that does
-        not match raises ValueError and adds nothing); returns how many were added."""
-        t = len(seg.obs)
-        obs = seg.obs.reshape(t, -1)
-        actions = seg.actions.reshape(t, -1)
-        if obs.shape[1] != self.obs_size or actions.shape[1] != self.action_size or seg.images.shape[-1]:
-            raise ValueError(f"a segment of {obs.shape[1]} observation and {actions.shape[1]} action values per "
-                             f"decision{' with image bytes' if seg.images.shape[-1] else ''}; this replay holds "
-                             f"{self.obs_size} and {self.action_size}")
+        """The segment's decisions as transitions (:func:`transitions`); returns how many were added."""
+        if seg.images.shape[-1]:
+            raise ValueError("a segment with image bytes: this replay holds float observations only")
+        return self.add_rows(transitions(seg))
+
+    def add_rows(self, rows: dict[str, np.ndarray]) -> int:
+        """Transitions, one row per field of :data:`FIELDS` (checked against the buffer's sizes first: rows that
+        do not match raise ValueError and add nothing); returns how many were added."""
+        obs, actions, t = rows["obs"], rows["actions"], len(rows["rewards"])
+        if obs.shape[1:] != (self.obs_size,) or actions.shape[1:] != (self.action_size,):
+            raise ValueError(f"transitions of {obs.shape[1:]} observation and {actions.shape[1:]} action values; "
+                             f"this replay holds {self.obs_size} and {self.action_size}")
+        if any(len(rows[name]) != t for name in FIELDS):
+            raise ValueError(f"transition fields of different lengths: {[len(rows[n]) for n in FIELDS]}")
         if t == 0:
             return 0
-        next_obs = np.concatenate([obs[1:], seg.last_obs.reshape(1, -1)])
-        terminal = np.zeros(t, bool)
-        terminal[-1] = seg.end == "terminated"
-        rows = (self.cursor + np.arange(t)) % self.capacity
+        positions = (self.cursor + np.arange(t)) % self.capacity
         if t > self.capacity:  # more than fits: the newest capacity of them
-            rows, keep = rows[-self.capacity:], slice(t - self.capacity, t)
+            positions, keep = positions[-self.capacity:], slice(t - self.capacity, t)
         else:
             keep = slice(0, t)
-        self.obs[rows], self.next_obs[rows], self.actions[rows] = obs[keep], next_obs[keep], actions[keep]
-        self.rewards[rows], self.steps[rows], self.terminal[rows] = seg.rewards[keep], seg.steps[keep], terminal[keep]
-        self.versions[rows] = seg.versions[keep]
+        for name in FIELDS:
+            getattr(self, name)[positions] = rows[name][keep]
         self.cursor = (self.cursor + t) % self.capacity
         self.size = min(self.capacity, self.size + t)
         self.inserted += t
@@ -112,23 +149,27 @@ class ReplayBuffer:
         idx = rng.integers(0, self.size, n)
         return ReplayBatch(**{name: getattr(self, name)[idx] for name in FIELDS})
 
-    def save(self, path: str | Path) -> None:
-        """The contents, durably (written to a temporary, fsynced, renamed): what ``restore`` reads."""
+    def save(self, path: str | Path, extra: dict[str, int] | None = None) -> None:
+        """The contents and ``extra`` counters, durably (written to a temporary, fsynced, renamed): what
+        ``restore`` reads."""
         meta = np.array([self.obs_size, self.action_size, self.capacity, self.size, self.cursor, self.inserted],
                         np.int64)
+        counters = {f"extra_{name}": np.array(value, np.int64) for name, value in (extra or {}).items()}
 
         def write(f: io.BufferedWriter) -> None:
-            np.savez(f, meta=meta, **{name: getattr(self, name)[:self.size] for name in FIELDS})
+            np.savez(f, meta=meta, **counters, **{name: getattr(self, name)[:self.size] for name in FIELDS})
 
         write_durably(Path(path), write)
 
-    def restore(self, path: str | Path) -> int:
-        """Read back what ``save`` wrote; the transitions restored. ValueError where the file does not fit this
-        buffer's sizes or its values are not finite (then the buffer stays as it was)."""
+    def restore(self, path: str | Path) -> tuple[int, dict[str, int]]:
+        """Read back what ``save`` wrote: the transitions restored and the ``extra`` counters. ValueError where
+        the file does not fit this buffer's sizes or its values are not finite (then the buffer stays as it
+        was)."""
         with np.load(Path(path), allow_pickle=False) as data:
             obs_size, action_size, _, size, cursor, inserted = (int(x) for x in data["meta"])
             arrays = {name: data[name] for name in FIELDS}
-        if (obs_size, action_size) != (self.obs_size, self.action_size) or size > self.capacity:
+            extra = {name[len("extra_"):]: int(data[name]) for name in data.files if name.startswith("extra_")}
+        if (obs_size, action_size) != (self.obs_size, self.action_size) or not 0 <= size <= self.capacity:
             raise ValueError(f"{path}: {size} transitions of {obs_size} + {action_size} values, for a replay of "
                              f"{self.capacity} of {self.obs_size} + {self.action_size}")
         if any(len(a) != size for a in arrays.values()) or not all(
@@ -136,5 +177,50 @@ class ReplayBuffer:
             raise ValueError(f"{path}: arrays of the wrong length or values that are not finite")
         for name, values in arrays.items():
             getattr(self, name)[:size] = values
-        self.size, self.cursor, self.inserted = size, cursor % self.capacity, inserted
+        self.size, self.cursor, self.inserted = size, cursor % self.capacity, max(inserted, size)
+        return size, extra
+
+
+class ReplayStore:
+    """The replay service's state (``ebrl/services/replay.py``): a :class:`ReplayBuffer` and what it answered.
+
+    :meth:`exchange` takes one :class:`~ebrl.messages.ReplayRequest` (new transitions, then minibatches drawn
+    uniformly) and returns its :class:`~ebrl.messages.ReplaySample`. A request sent again (the same session, a seq
+    not above the newest added) adds nothing twice. A restarted store counts, on its first request, what
+    training saw it take in (``acked``) beyond what it got back from its file as ``lost``."""
+
+    def __init__(self, obs_size: int, action_size: int, capacity: int, max_bytes: float = math.inf, seed: int = 0):
+        self.buffer = ReplayBuffer(obs_size, action_size, capacity, max_bytes)
+        self.rng = np.random.default_rng(seed)
+        self.sampled = self.lost = self.answered = 0
+        self.newest = (-1, -1)  # (session, seq) of the newest request whose transitions are in
+
+    def exchange(self, request: ReplayRequest) -> ReplaySample:
+        """Add the request's transitions (unless added before), then draw its minibatches (none from an empty
+        replay). ValueError, nothing added, where its sizes are not this replay's."""
+        b, rows = self.buffer, {name: getattr(request, name) for name in FIELDS}
+        rows["terminal"] = rows["terminal"].astype(bool)
+        if self.answered == 0 and request.acked > b.inserted:  # restarted: what its file did not give back
+            self.lost += request.acked - b.inserted
+        session, seq = self.newest
+        if request.session != session or request.seq > seq:
+            b.add_rows(rows)  # ValueError where they do not fit
+            self.newest = (request.session, request.seq)
+        n = request.batches * request.batch_size if b.size else 0
+        drawn = b.sample(n, self.rng) if n else None
+        self.sampled += n
+        self.answered += 1
+        out = {name: getattr(drawn, name) if drawn is not None else getattr(b, name)[:0] for name in FIELDS}
+        out["terminal"] = out["terminal"].view(np.uint8)
+        return ReplaySample(session=request.session, seq=request.seq, size=b.size, inserted=b.inserted, **out)
+
+    def save(self, path: str | Path) -> None:
+        session, seq = self.newest
+        self.buffer.save(path, {"sampled": self.sampled, "lost": self.lost, "session": session, "seq": seq})
+
+    def restore(self, path: str | Path) -> int:
+        """What :meth:`save` wrote (ValueError, OSError, KeyError where it cannot be read): transitions restored."""
+        size, extra = self.buffer.restore(path)
+        self.sampled, self.lost = extra.get("sampled", 0), extra.get("lost", 0)
+        self.newest = (extra.get("session", -1), extra.get("seq", -1))
         return size

@@ -47,13 +47,10 @@ def remove_interrupted(run_dir: str) -> list:
     return checkpoint.remove_stale(run_dir) + remove_stale_temporaries(policy_path(run_dir))
 
 
-def save_train_state(learner: Learner, run_name: str, final: bool = False) -> bool:
+def save_train_state(learner: Learner, run_name: str) -> bool:
     """Write ``learner``'s training state (on the update thread, between updates); False if there was nothing
-    new, or nothing finite (counted: ``train/checkpoints_refused``). ``final``: as the run ends (or stops to
-    start again)."""
+    new, or nothing finite (counted: ``train/checkpoints_refused``)."""
     if learner.version == learner.saved_version:
-        if final:  # the checkpoint of this version is on disk; what the algorithm keeps may be newer
-            learner.algo.save_data(learner.run_dir, final)
         return False
     start = time.time()
     model_state, optimizer = None, learner.algo.optimizer
@@ -65,7 +62,6 @@ def save_train_state(learner: Learner, run_name: str, final: bool = False) -> bo
         checkpoint.save(learner.run_dir, learner.model, optimizer, learner.version, learner.algo.generators(),
                         {"run": run_name, **learner.portable}, model_state=model_state,
                         extra=learner.algo.extra_state())
-        learner.algo.save_data(learner.run_dir, final)  # beside it: what the algorithm keeps (a replay)
     except checkpoint.NonFiniteState as exc:  # the newest good checkpoint stays the one a restart reads
         log.error("%s", exc)
         learner.telemetry.count("train/checkpoints_refused")
@@ -95,5 +91,5 @@ def save_at_end(learner: Learner, run_name: str) -> str | None:
     version at all; the policy file's path, or None where none was written."""
     if learner.version <= 0:
         return None
-    learner.save_checkpoint(run_name, final=True)
+    learner.save_checkpoint(run_name)
     return learner.save_policy(run_name)

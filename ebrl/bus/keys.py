@@ -70,6 +70,17 @@ def weights_all(run: str) -> str:
     return f"{ROOT}/data/{run}/weights/**"
 
 
+def replay(run: str, kind: str) -> str:
+    """``ebrl/data/<run>/replay/<kind>``: the replay service's exchange with training, ``request`` (train ->
+    replay: new transitions and the minibatches wanted) and ``sample`` (replay -> train: the minibatches)."""
+    if kind not in REPLAY_KINDS:
+        raise ValueError(f"replay key kind {kind!r}: one of {', '.join(REPLAY_KINDS)}")
+    return f"{ROOT}/data/{run}/replay/{kind}"
+
+
+REPLAY_KINDS = ("request", "sample")
+
+
 def data(run: str) -> str:
     """Every data key of one run."""
     return f"{ROOT}/data/{run}/**"
@@ -145,7 +156,7 @@ class Key:
     ============  ==========================================  =========================================
     category      layout                                      fields
     ============  ==========================================  =========================================
-    ``data``      ``ebrl/data/<run>/<kind>[/<group>]``         kind (obs, act, traj, weights), group
+    ``data``      ``ebrl/data/<run>/<kind>[/<group>]``         kind (obs, act, traj, weights, replay), group
                   (``traj/<group>/packed`` too)
     ``ctl``       ``ebrl/ctl/<run>/<service>/<instance>/<k>``  service, instance, kind
     ``stats``     ``ebrl/stats/<run>/<service>/<instance>``    service, instance

@@ -17,6 +17,7 @@ from ebrl.algos import saving
 from ebrl.algos.cycle import UpdateCycle, wind_down
 from ebrl.algos.handover import HANDOVER_FILE
 from ebrl.algos.learner import Learner
+from ebrl.algos.replaylink import connect_replay
 from ebrl.algos.ranks import Ranks
 from ebrl.bus import keys
 from ebrl.messages import SegmentBatch, TrajectorySegment
@@ -59,14 +60,15 @@ class TrainService(Service):
                                          obswire.decoder(SegmentBatch, info.layout, info.obs_shape), capacity=32,
                                          max_bytes=bounds.packed)
         self.weights = WeightsPublisher(self.bus, self.run_name)  # also answers late joiners with the newest
+        # an off-policy algorithm's minibatches come from the replay service
+        self.replay = connect_replay(self.bus, cfg, info, learner.algo, self.count, bounds.replay_sample)
         taken, handed = learner.take_over(lambda exc: self.bus.count_malformed(os.path.join(self.run_dir,
                                                                                             HANDOVER_FILE), exc))
-        if handed:
+        if handed:  # by the train before this one (a new GPU share)
             self.log.info("took over %d of %d segments handed over", taken, handed)
         self.cycle = UpdateCycle(learner, self.pool, self.ranks)
 
-    async def message_bounds(self) -> sizes.Bounds:
-        """Segments, one by one and packed: the run's bounds (ebrl.sizes)."""
+    async def message_bounds(self) -> sizes.Bounds:  # segments, one by one and packed; the replay's minibatches
         return sizes.of_run(self.cfg, await env_info(self), weights=False)
 
     async def run(self) -> None:
@@ -108,8 +110,8 @@ class TrainService(Service):
         async def drain(subscription: Any) -> None:
             async for key, msg in subscription:
                 self.accept(key, msg)
-
-        await asyncio.gather(drain(self.traj), drain(self.packed))
+        replay = [self.replay.receive()] if self.replay else []  # the replay's answers (an off-policy algorithm's)
+        await asyncio.gather(drain(self.traj), drain(self.packed), *replay)
 
     def accept(self, key: str, msg: TrajectorySegment | SegmentBatch) -> None:
         self.cycle.accept(msg, lambda exc: self.bus.count_malformed(key, exc))
@@ -123,10 +125,8 @@ class TrainService(Service):
         self.last["train/weights_publish_s"] = stats.pack_s + stats.send_s
 
     def metrics(self) -> dict[str, float]:
-        out = {**self.learner.metrics(), **self.last}
-        if self.instance == 0:
-            out["train/traj_queue"] = float(len(self.traj))
-        return out
+        queue = {"train/traj_queue": float(len(self.traj))} if self.instance == 0 else {}
+        return {**self.learner.metrics(), **self.last, **queue}
 
     async def teardown(self) -> None:
         await wind_down(self.learner, self.pool, self.ranks)  # the other ranks released, an update in flight ended

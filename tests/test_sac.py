@@ -132,6 +132,8 @@ def test_the_store_adds_a_request_once_though_it_comes_again_and_draws_what_it_h
     assert store.buffer.inserted == 9
     with pytest.raises(ValueError, match="this replay holds 3 and 4"):
         store.exchange(request(segment(2, chunk=3), 2, session=8))
+    with pytest.raises(ValueError, match="more than the 64 transitions an answer carries"):
+        ReplayStore(3, 4, capacity=100, max_rows=64).exchange(request(None, 1, batches=65, batch_size=1))
     assert store.buffer.inserted == 9
 
 

@@ -189,8 +189,10 @@ class ReplayStore:
     not above the newest added) adds nothing twice. A restarted store counts, on its first request, what
     training saw it take in (``acked``) beyond what it got back from its file as ``lost``."""
 
-    def __init__(self, obs_size: int, action_size: int, capacity: int, max_bytes: float = math.inf, seed: int = 0):
+    def __init__(self, obs_size: int, action_size: int, capacity: int, max_bytes: float = math.inf, seed: int = 0,
+                 max_rows: int = 1 << 20):
         self.buffer = ReplayBuffer(obs_size, action_size, capacity, max_bytes)
+        self.max_rows = max_rows  # most transitions one answer draws (the run's ReplaySample bound)
         self.rng = np.random.default_rng(seed)
         self.sampled = self.lost = self.answered = 0
         self.newest = (-1, -1)  # (session, seq) of the newest request whose transitions are in
@@ -199,6 +201,9 @@ class ReplayStore:
         """Add the request's transitions (unless added before), then draw its minibatches (none from an empty
         replay). ValueError, nothing added, where its sizes are not this replay's."""
         b, rows = self.buffer, {name: getattr(request, name) for name in FIELDS}
+        if request.batches * request.batch_size > self.max_rows:
+            raise ValueError(f"{request.batches} minibatches of {request.batch_size}: more than the {self.max_rows} "
+                             "transitions an answer carries")
         rows["terminal"] = rows["terminal"].astype(bool)
         if self.answered == 0 and request.acked > b.inserted:  # restarted: what its file did not give back
             self.lost += request.acked - b.inserted

@@ -19,7 +19,7 @@ import os
 import time
 
 from ebrl import sizes
-from ebrl.algos.replay import REPLAY_FILE, ReplayStore, replay_bound
+from ebrl.algos.replay import REPLAY_FILE, ReplayStore, batches_per_sample, replay_bound
 from ebrl.bus import keys
 from ebrl.messages import ReplayRequest
 from ebrl.service import Service, env_info, service_main
@@ -30,8 +30,10 @@ class ReplayService(Service):
 
     async def setup(self) -> None:
         cfg, info = self.cfg, await env_info(self)
-        self.store = ReplayStore(info.layout.size, cfg.policy.chunk * info.action_dim, cfg.replay.capacity,
-                                 replay_bound(cfg.replay.max_bytes), cfg.run.seed)
+        action_size = cfg.policy.chunk * info.action_dim
+        per_sample = batches_per_sample(cfg.replay.batch_size, info.layout.size, action_size)
+        self.store = ReplayStore(info.layout.size, action_size, cfg.replay.capacity,
+                                 replay_bound(cfg.replay.max_bytes), cfg.run.seed, per_sample * cfg.replay.batch_size)
         self.log.info("replay of %d transitions (%.1f MiB)", cfg.replay.capacity, self.store.buffer.nbytes / 2**20)
         self.path = os.path.join(self.run_dir, REPLAY_FILE)
         self.pool = concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix="replay")  # requests, saves: in turn

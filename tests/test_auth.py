@@ -34,9 +34,9 @@ def test_a_secret_is_private_random_and_never_replaced(tmp_path):
     path = auth.create(tmp_path / "bus.secret")
     assert stat.S_IMODE(path.stat().st_mode) == 0o600
     lines = {role: auth.load(path, role) for role in auth.IDENTITIES}  # one identity per role, and observer
-    assert {c.user for c in lines.values()} == {"ebrl-sim", "ebrl-gen", "ebrl-train", "ebrl-eval", "ebrl-alloc",
-                                                 "ebrl-log", "ebrl-viz", "ebrl-launcher", "observer"}
-    assert all(len(c.password) == 64 for c in lines.values()) and len({c.password for c in lines.values()}) == 9
+    assert {c.user for c in lines.values()} == {"ebrl-sim", "ebrl-gen", "ebrl-train", "ebrl-replay", "ebrl-eval",
+                                                 "ebrl-alloc", "ebrl-log", "ebrl-viz", "ebrl-launcher", "observer"}
+    assert all(len(c.password) == 64 for c in lines.values()) and len({c.password for c in lines.values()}) == 10
     sim = lines["sim"]
     assert auth.load(auth.create(tmp_path / "other"), "sim").password != sim.password
     with pytest.raises(FileExistsError):

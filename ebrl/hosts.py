@@ -24,8 +24,8 @@ import dataclasses
 import time
 from dataclasses import dataclass
 
-from ebrl.bus import keys
 from ebrl.algos.algorithm import uses_replay
+from ebrl.bus import keys
 from ebrl.config import ROLES, Config, ConfigError, processes
 
 PRIMARY_LOST_S = 30.0  # a secondary host stops when no train has been live for this long
@@ -98,8 +98,12 @@ def enabled_roles(cfg: Config) -> tuple[str, ...]:
     """Every service the run has, in start order: viz and log first (they see the run from its start), the
     replay where the algorithm learns from one (before train, which asks it for minibatches), the allocator last
     (it only reads the others' stats)."""
+    try:
+        replay = uses_replay(cfg.algo.name)
+    except ValueError as exc:  # a user's module:Class that does not import or is not an algorithm
+        raise ConfigError(str(exc)) from None
     on = {"viz": cfg.viz.rerun != "off", "alloc": cfg.alloc.enabled, "log": sinks_on(cfg), "eval": cfg.eval.every > 0,
-          "replay": uses_replay(cfg.algo.name)}
+          "replay": replay}
     return tuple(r for r in ROLES if on.get(r, True))
 
 

@@ -132,6 +132,14 @@ FACTORY = {
         versions=np.array([5, 6, 6], np.int64), last_obs=f32(2, 3), episode_returns=np.array([1.5, 0], np.float32),
         episode_lengths=np.array([6, -1], np.int32), episode_successes=np.array([1, -1], np.int8),
         episode_offsets=np.array([0, 8], np.int64)),
+    m.ReplayRequest: lambda: m.ReplayRequest(
+        session=9, seq=2, acked=64, batches=2, batch_size=2, obs=f32(3, 3), actions=f32(3, 4), rewards=f32(3),
+        steps=np.array([1, 1, 1], np.int32), terminal=np.array([0, 0, 1], np.uint8), next_obs=f32(3, 3) + 1,
+        versions=np.array([5, 5, 6], np.int64)),
+    m.ReplaySample: lambda: m.ReplaySample(
+        session=9, seq=2, size=67, inserted=67, obs=f32(4, 3), actions=f32(4, 4), rewards=f32(4),
+        steps=np.ones(4, np.int32), terminal=np.array([0, 1, 0, 0], np.uint8), next_obs=f32(4, 3),
+        versions=np.arange(4, dtype=np.int64)),
     m.Weights: lambda: m.Weights(version=3, params={"w": f32(2, 2), "b": f32(2)}, created_at=2.0),
     m.WeightsPart: lambda: m.WeightsPart(version=3, index=0, count=1, part_bytes=128, total_bytes=128, created_at=2.0,
                                          data=np.arange(128, dtype=np.uint8), names=["w", "b"],

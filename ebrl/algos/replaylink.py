@@ -16,8 +16,8 @@ update uses it; one that does not fit is counted (``train/replay_refused``) and 
 
 from __future__ import annotations
 
-import asyncio
 import concurrent.futures
+import logging
 import secrets
 import threading
 import time
@@ -28,6 +28,8 @@ import numpy as np
 from ebrl.algos.replay import FIELDS, ReplayBatch
 from ebrl.bus import keys
 from ebrl.messages import ReplayRequest, ReplaySample
+
+log = logging.getLogger(__name__)
 
 RESEND_S = 5.0  # a request without an answer this long is sent again (a replay restarting, a dropped message)
 
@@ -104,6 +106,7 @@ class ReplayLink:
             if (why := self.refused(request, sample)) is None:
                 break
             self.count("train/replay_refused", 1)  # asked again, as it was
+            log.warning("replay: an answer refused (%s); asked again", why)
             with self.lock:
                 answer = self.waiting[request.seq] = concurrent.futures.Future()
             self.bus.put_nowait(self.request_key, request)

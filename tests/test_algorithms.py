@@ -261,3 +261,26 @@ def test_a_killed_replay_restarts_with_its_contents_and_counts_what_it_lost(tmp_
     sent, lost = stats.latest("train/0", "train/replay_sent"), stats.latest("replay/0", "replay/lost")
     assert sent == 30 * 64 and sent == stats.latest("replay/0", "replay/inserted") + lost
     assert stats.latest("train/0", "train/utd") == pytest.approx(1.0, rel=0.1)
+
+
+@pytest.mark.slow  # three real runs
+@pytest.mark.parametrize("case, config, sets", [
+    ("colocated", "configs/sac_pendulum.toml", [*SMALL, 'run.mode="colocated"', "run.iterations=8"]),
+    ("a user's Dict observation", "configs/sac_pendulum.toml",
+     [*SMALL, 'env.id="user_envs:DictPendulum-v0"', "run.iterations=8"]),
+    ("mjwarp groups", "configs/mjwarp_pickcube.toml",
+     ["algo.name=sac", "policy.kind=squashed", "policy.hidden=[32, 32]", "sim.envs_per_group=4",
+      "train.batch_size=32", "replay.batch_size=32", "replay.learning_starts=64", "run.iterations=6"]),
+], ids=lambda v: v if isinstance(v, str) and not v.startswith("configs") else "")
+def test_sac_runs_in_colocated_mode_on_a_users_dict_observation_and_on_mjwarp_groups(tmp_path, monkeypatch, case,
+                                                                                     config, sets):
+    """Issue 53: SAC works in every mode (colocated: the synchronous baseline), with Dict observations (a user's
+    env: its parts flattened by the layout into the replay's rows) and with vectorized MuJoCo Warp groups (packed
+    segments), each a real `ebrl up` to its last iteration with gradient steps on the replay's minibatches."""
+    monkeypatch.setenv("PYTHONPATH", str(TESTS))  # the user's env package, for the run's processes
+    with up(tmp_path, config, *sets, "run.target_return=", "run.target_success=", 'viz.rerun="off"',
+            name="sac-case") as run, StatsWatcher(run) as stats:
+        code = run.wait(400)
+    assert code == 0, run.output[-3000:]
+    assert stats.latest("train/0", "train/gradient_steps_total") > 0, case
+    assert stats.latest("replay/0", "replay/size") > 0 and stats.latest("replay/0", "replay/sampled") > 0, case

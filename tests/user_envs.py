@@ -209,3 +209,32 @@ class CountsRenders(gymnasium.Env):
 
 
 gymnasium.register("CountsRenders-v0", entry_point=CountsRenders)
+
+
+class DictPendulum(gymnasium.Env):
+    """Pendulum-v1 with a user's Dict observation of two named parts (no images): what EBRL flattens by its
+    layout for any algorithm, SAC's replay included."""
+
+    def __init__(self, render_mode=None):
+        import numpy as np
+
+        spaces = gymnasium.spaces
+        self.inner = gymnasium.make("Pendulum-v1").unwrapped
+        self.observation_space = spaces.Dict({"angle": spaces.Box(-1.0, 1.0, (2,), np.float32),
+                                              "velocity": spaces.Box(-8.0, 8.0, (1,), np.float32)})
+        self.action_space = self.inner.action_space
+
+    @staticmethod
+    def split(obs):
+        return {"angle": obs[:2].astype("float32"), "velocity": obs[2:].astype("float32")}
+
+    def reset(self, *, seed=None, options=None):
+        obs, info = self.inner.reset(seed=seed)
+        return self.split(obs), info
+
+    def step(self, action):
+        obs, reward, terminated, truncated, info = self.inner.step(action)
+        return self.split(obs), reward, terminated, truncated, info
+
+
+gymnasium.register("DictPendulum-v0", entry_point=DictPendulum, max_episode_steps=200)

@@ -23,11 +23,11 @@ import numpy as np
 import psutil
 
 from ebrl.algos.checkpoint import write_durably
-from ebrl.messages import ReplayRequest, ReplaySample, TrajectorySegment
+from ebrl.messages import TRANSITION_FIELDS, ReplayRequest, ReplaySample, TrajectorySegment
 
 REPLAY_FILE = "replay.npz"  # RUN_DIR: the replay service's contents as of its last save (replay.save)
 HOST_MEMORY_SHARE = 0.8  # most of the host's available memory a replay may take (replay.max_bytes = 0)
-FIELDS = ("obs", "actions", "rewards", "steps", "terminal", "next_obs", "versions")
+FIELDS = TRANSITION_FIELDS  # a transition's arrays, as the replay messages carry them
 
 
 def replay_bound(max_bytes: int) -> float:

@@ -35,7 +35,9 @@ from typing import Callable
 from ebrl import config as config_mod, prepare, procenv, stall
 from ebrl.bus import auth, keys
 from ebrl.bus.session import Bus, BusOptions
-from ebrl.bus.endpoints import address_in_use, config_file_listen, listen_endpoint
+from ebrl.bus.endpoints import address_in_use, config_file_connect, config_file_listen, listen_endpoint
+from ebrl.bus.joincheck import await_link, diagnose
+from ebrl.bus.zlog import ZenohLog
 from ebrl.hosts import PRIMARY_LOST_S, HostPlan, Membership, enabled_roles, planned_instances, sim_hosts
 from ebrl.messages import Event, GpuShare, StatsReport, Stop
 from ebrl.weights import known_version
@@ -259,9 +261,44 @@ def open_launcher_bus(cfg: config_mod.Config, plan: HostPlan, run_dir: Path,
             endpoint = listen_endpoint(endpoint)  # taken now: the same host on a free port
 
 
+async def join_problem(cfg: config_mod.Config, plan: HostPlan, run_dir: Path, bus: Bus, stopping: asyncio.Event,
+                       say: Callable[[str], None]) -> str | None:
+    """The line to stop with where a host that connects to another (its learner's listen endpoint, an ``ebrl
+    router``) has no link to it, with the cause (``ebrl.bus.joincheck``); None once it has one, or where it
+    connects nowhere."""
+    endpoints = [*cfg.bus.connect, *config_file_connect(cfg.bus.config_file)] if plan.multi else []
+    if not endpoints:
+        return None
+    secret = auth.secret_path(cfg.bus, run_dir)
+    problem = await await_link(lambda: bus.routers_linked() > 0 or stopping.is_set(), endpoints,
+                               lambda endpoint: diagnose(endpoint, cfg.bus.config_file, secret, cfg.run.name),
+                               lambda line: say(f"ebrl: {line}"), cfg.run.startup_timeout)
+    return problem and f"ebrl: host {plan.name or plan.instance} cannot join run {cfg.run.name}: {problem}"
+
+
+def apply_gpu_share(share: GpuShare, gpu_env: dict[str, dict[str, str]], supervisor: Supervisor, link: LauncherBus,
+                    say: Callable[[str], None]) -> None:
+    """A new GPU share for a stage of this host: its processes stop at their safe point (generation between
+    batches, training after its update, its state in a checkpoint) and start again with it. Only the allocator
+    makes shares, only on a GPU: one is refused (counted, said once) in a run that started without (no allocator,
+    or no GPU), or numbered over ``ebrl.service.CONTROL_STEP`` past the stage's last (``ctl/version_refused``)."""
+    if not gpu_env:
+        link.refuse("launcher/gpu_shares_refused", f"a GPU share for {share.stage} refused: this run has no "
+                    "GPU shares (no allocator on a GPU)", say)
+        return
+    if refused := control_version_refused(share.version, supervisor.share_versions.get(share.stage, 0)):
+        link.refuse("ctl/version_refused", f"a GPU share for {share.stage} refused: {refused}", say)
+        return
+    for child in supervisor.new_gpu_share(share.stage, share.env, share.version):
+        for role, instance in child.services:  # a process of several stops with its stage
+            if role == share.stage:
+                link.bus.put_nowait(keys.ctl(link.run, role, instance, "stop"), Stop(reason=STOP_TO_RESTART))
+
+
 class Launcher:
     def __init__(self, cfg: config_mod.Config, run_dir: Path, out=sys.stdout, plan: HostPlan | None = None,
-                 gpu_env: dict[str, dict[str, str]] | None = None, notes: list[tuple[str, str]] | None = None):
+                 gpu_env: dict[str, dict[str, str]] | None = None, notes: list[tuple[str, str]] | None = None,
+                 zlog: ZenohLog | None = None):
         self.cfg, self.run_dir, self.run_name = cfg, run_dir, cfg.run.name
         self.notes = notes or []  # (kind, text): start-up events (what "auto" became), sent once services are live
         self.plan = plan or HostPlan(enabled_roles(cfg))
@@ -279,15 +316,24 @@ class Launcher:
         self.stalls = stall.StallWatch(cfg.run.stall_timeout, groups_per_sim=resolve(cfg).groups)
         self.started = time.monotonic()
         self.final_eval = FinalEvaluation(cfg.eval.final_timeout, cfg.run.iterations, self.console.say)
+        self.zlog = zlog or ZenohLog()  # started by launch() on a host of several, else never started
 
     async def main(self) -> int:
         self.stopping = asyncio.Event()
+        loop = asyncio.get_running_loop()
         for sig in (signal.SIGINT, signal.SIGTERM):
-            asyncio.get_running_loop().add_signal_handler(sig, self._on_signal, sig)
+            loop.add_signal_handler(sig, self._on_signal, sig)
         try:
             self.link, endpoint = open_launcher_bus(self.cfg, self.plan, self.run_dir)
         except OSError as exc:
             self.console.say(f"ebrl: {exc}")
+            return 2
+        # Zenoh's account of the hosts it refuses, said here (ebrl.bus.zlog)
+        self.zlog.on_refusal = lambda line: loop.call_soon_threadsafe(self.on_refused_host, line)
+        if problem := await join_problem(self.cfg, self.plan, self.run_dir, self.link.bus, self.stopping,
+                                         self.console.say):
+            self.console.say(problem)
+            await self.link.close()
             return 2
         if self.link.planned is not None:
             self.members.admit_only(self.link.planned)
@@ -405,6 +451,7 @@ class Launcher:
                    "launcher/services_live": float(self.members.services_live()),
                    "launcher/unknown_instances": float(self.members.unknown_seen),
                    "launcher/stats_refused": float(self.view.refused),
+                   "launcher/hosts_refused": float(self.zlog.refused),
                    "launcher/returns_refused": float(self.view.returns_refused)}
         self.link.publish_stats(metrics)
 
@@ -430,23 +477,12 @@ class Launcher:
     # --- bus events ---------------------------------------------------------------
 
     def on_gpu_share(self, key: str, share: GpuShare) -> None:
-        """A new GPU share for a stage of this host: its processes stop at their safe point (generation between
-        batches, training after its update, its state in a checkpoint) and start again with it. Only the allocator
-        makes shares, only on a GPU: one is refused (counted, said once) in a run that started without (no allocator,
-        or no GPU), or numbered over ``ebrl.service.CONTROL_STEP`` past the stage's last (``ctl/version_refused``)."""
-        if not self.gpu_env:
-            self.link.refuse("launcher/gpu_shares_refused", f"a GPU share for {share.stage} refused: this run has no "
-                             "GPU shares (no allocator on a GPU)", self.console.say)
-            return
-        if refused := control_version_refused(share.version, self.supervisor.share_versions.get(share.stage, 0)):
-            self.link.refuse("ctl/version_refused", f"a GPU share for {share.stage} refused: {refused}",
-                             self.console.say)
-            return
-        for child in self.supervisor.new_gpu_share(share.stage, share.env, share.version):
-            for role, instance in child.services:  # a process of several stops with its stage
-                if role == share.stage:
-                    self.link.bus.put_nowait(keys.ctl(self.run_name, role, instance, "stop"),
-                                             Stop(reason=STOP_TO_RESTART))
+        apply_gpu_share(share, self.gpu_env, self.supervisor, self.link, self.console.say)
+
+    def on_refused_host(self, line: str) -> None:
+        """Zenoh refused a host's link (``ebrl.bus.zlog``): said, and an event of the run."""
+        self.console.say(f"\nebrl: {line}")
+        self.link.event("refused", line)
 
     def on_primary_ended(self, key: str, stop: Stop) -> None:
         self.stop(PRIMARY_ENDED, f"\nebrl: {PRIMARY_ENDED}; stopping this host's services")
@@ -492,12 +528,17 @@ def up(config_path: str, overrides: list[str], viz: str | None = None, resume: s
     return launch(run)
 
 
-def launch(run: prepare.PreparedRun, out=sys.stdout) -> int:
+def launch(run: prepare.PreparedRun, out=None) -> int:
     """Start a prepared run's services on this host and supervise them until the run ends; its exit code
-    (130 after Ctrl-C, which stops every service first)."""
+    (130 after Ctrl-C, which stops every service first). On a host of several, Zenoh's log of the links it
+    refuses is read first (``ebrl.bus.zlog``: ``sys.stdout`` is a new object after it)."""
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
+    zlog = ZenohLog()
+    if run.plan.multi:
+        zlog.start()
     try:
-        return asyncio.run(Launcher(run.cfg, run.run_dir, out=out, plan=run.plan, gpu_env=run.gpu_env,
-                                    notes=run.notes).main())
+        return asyncio.run(Launcher(run.cfg, run.run_dir, out=out or sys.stdout, plan=run.plan, gpu_env=run.gpu_env,
+                                    notes=run.notes, zlog=zlog).main())
     finally:
+        zlog.stop()
         run.close()

@@ -22,6 +22,7 @@ from typing import Any
 from ebrl import autotune, config as config_mod, devices, meta, tracking
 from ebrl.bus import auth
 from ebrl.bus.endpoints import config_file_acl, config_file_endpoints
+from ebrl.bus.joincheck import certificate_problem
 from ebrl.hosts import HostPlan, decide_processes, plan as plan_host
 
 
@@ -80,10 +81,7 @@ def prepare(config_path: str, overrides: list[str], *, viz: str | None = None, r
             allocate(run)
         run.run_dir = run_directory(run.cfg, resume)
         if secret := auth.secret_path(run.cfg.bus, run.run_dir):
-            try:
-                auth.ensure(secret)  # before the first line: a script that read RUN_DIR from it finds the secret
-            except (OSError, auth.AuthError) as exc:
-                raise NotStarted(str(exc)) from None
+            shared_secret(run, Path(secret))
     except NotStarted:
         run.close()
         raise
@@ -93,6 +91,22 @@ def prepare(config_path: str, overrides: list[str], *, viz: str | None = None, r
     extra = {**extra, "auto": decision.to_dict()} if decision else extra
     meta.write(run.cfg, run.run_dir, extra={**extra, "processes": run.cfg.run.processes})
     return run
+
+
+def shared_secret(run: PreparedRun, secret: Path) -> None:
+    """The run's secret file, checked, or made where this host may make it: on one host, or on the primary of
+    several (said: every other host needs a copy). A host that joins another's run never makes one: a new secret
+    could never sign in there."""
+    if run.plan.multi and not secret.exists():
+        if not run.plan.primary:
+            raise NotStarted(f"bus.secret_file = {str(secret)!r}: no such file; a host that joins a run signs in "
+                             "with the primary host's secret: copy that file here (mode 0600)")
+        print(f"ebrl: wrote a new secret for the run at {secret}: copy it to every other host (mode 0600)",
+              flush=True)
+    try:
+        auth.ensure(secret)  # before the first line: a script that read RUN_DIR from it finds the secret
+    except (OSError, auth.AuthError) as exc:
+        raise NotStarted(str(exc)) from None
 
 
 def allocate(run: PreparedRun) -> None:
@@ -165,6 +179,8 @@ def check_bus_endpoints(cfg: config_mod.Config) -> str | None:
     endpoints += [*cfg.bus.listen, *cfg.bus.connect]
     if refused := auth.check_endpoints(endpoints, cfg.bus.insecure, "bus"):
         return refused
+    if missing := certificate_problem(cfg.bus.config_file):
+        return missing
     if cfg.bus.insecure and (plain := auth.insecure_endpoints(endpoints)):
         print(f"ebrl: warning: bus.insecure = true: {', '.join(plain)} carry the run's data unencrypted beyond "
               "this host", file=sys.stderr)

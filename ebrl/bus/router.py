@@ -21,12 +21,14 @@ from ebrl.bus import auth, keys
 from ebrl.bus.session import BusOptions
 from ebrl.bus.endpoints import config_file_acl, config_file_endpoints, config_file_listen
 from ebrl.bus.session import zenoh_config
+from ebrl.bus.zlog import ZenohLog
 
 
-def serve(listen: list[str], connect: list[str], config_file: str = "", quiet: bool = False, out=sys.stdout,
+def serve(listen: list[str], connect: list[str], config_file: str = "", quiet: bool = False, out=None,
           secret: str = "", insecure: bool = False) -> int:
     """Run until SIGINT/SIGTERM; exit status 2 when an endpoint cannot be opened or would be plain beyond this
-    host (``insecure`` allows it, with a warning). ``secret``: the run's secret file; only its holders join."""
+    host (``insecure`` allows it, with a warning). ``secret``: the run's secret file; only its holders join. A
+    host it refuses (TLS, sign-in) is said with the time (``ebrl.bus.zlog``)."""
     try:
         listen = config_file_listen(config_file) or listen  # the file's endpoints are never replaced
         every = config_file_endpoints(config_file) + listen + connect  # each endpoint zenoh will use, checked
@@ -48,10 +50,15 @@ def serve(listen: list[str], connect: list[str], config_file: str = "", quiet: b
               "the run's data unencrypted", file=sys.stderr)
     if not secret:
         print("ebrl router: no --secret: any process that reaches these endpoints can join", file=sys.stderr)
+    zlog = ZenohLog()
+    zlog.start()
+    out = out or sys.stdout  # after the log's start: sys.stdout is then a new object
+    zlog.on_refusal = lambda line: print(f"{time.strftime('%H:%M:%S')} {line}", file=out, flush=True)
     try:
         session = zenoh.open(conf)
     except zenoh.ZError as exc:
         print(f"ebrl router: cannot open {', '.join(listen)}: {exc}", file=sys.stderr)
+        zlog.stop()
         return 2
     done = threading.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):
@@ -71,4 +78,5 @@ def serve(listen: list[str], connect: list[str], config_file: str = "", quiet: b
     if watcher is not None:
         watcher.undeclare()
     session.close()
+    zlog.stop()
     return 0

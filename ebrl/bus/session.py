@@ -460,6 +460,11 @@ class Bus(BusBase):
         if payload is not None:
             self._publisher(key, express).put(payload)
 
+    def routers_linked(self) -> int:
+        """Zenoh routers this session has a link to: for a launcher that connects to another host, that host's
+        launcher or the ``ebrl router`` (its own services are clients, not counted)."""
+        return len(list(self.session.info.routers_zid()))
+
     def _publisher(self, key: str, express: bool) -> zenoh.Publisher:
         with self._publishers_lock:
             pub = self._publishers.get((key, express))

@@ -328,6 +328,7 @@ class Launcher:
         except OSError as exc:
             self.console.say(f"ebrl: {exc}")
             return 2
+        self.console.say(banner(self.cfg, self.plan, self.run_dir, endpoint))
         # Zenoh's account of the hosts it refuses, said here (ebrl.bus.zlog)
         self.zlog.on_refusal = lambda line: loop.call_soon_threadsafe(self.on_refused_host, line)
         if problem := await join_problem(self.cfg, self.plan, self.run_dir, self.link.bus, self.stopping,
@@ -347,7 +348,6 @@ class Launcher:
         self.link.bus.watch_liveliness(keys.live_all(self.run_name),
                                        functools.partial(follow_liveliness, self.members, self.console, self.link))
         self.link.count_unknown_controls(self.roles)
-        self.console.say(banner(self.cfg, self.plan, self.run_dir, endpoint))
         if self.plan.multi and await self.members.number_taken():
             self.console.say(f"ebrl: host {self.plan.instance} of run {self.run_name} is already up elsewhere on the "
                              "bus; give each host its own --instance (or --host)")

@@ -10,12 +10,15 @@ import subprocess
 import sys
 import time
 import uuid
+from pathlib import Path
 
 import pytest
 
 import helpers
+import tlscerts
 from ebrl import config
 from ebrl.hosts import plan, planned_instances
+from ebrl.testing import Output
 
 ROOT = helpers.ROOT
 QUICK = str(ROOT / "configs" / "quickstart.toml")
@@ -436,89 +439,203 @@ def _netns_unavailable() -> str | None:
 
 
 class Namespaces:
-    """Hosts as network namespaces: a ``learner`` joined to each sim host by its own veth link, addresses
-    in 127.0.0.0/8 (route_localnet lets them leave lo), nothing else reachable."""
+    """Hosts as network namespaces: a ``learner`` joined to each sim host by its own veth link, addresses from
+    192.0.2.0/24 (TEST-NET-1: a /30 per link), nothing else reachable."""
 
     def __init__(self, sims: int):
         tag = uuid.uuid4().hex[:6]
         self.names = {"learner": f"ebrl-{tag}-l", **{f"sim-{i}": f"ebrl-{tag}-s{i}" for i in range(sims)}}
-        self.addresses: dict[str, str] = {}
+        self.addresses: dict[str, str] = {}  # sim host -> the learner's address on its link
+        self.links: dict[str, str] = {}  # sim host -> the learner's end of its link
         for ns in self.names.values():
             self.ip("netns", "add", ns)
             self.ip("-n", ns, "link", "set", "lo", "up")
-            self.sh(ns, "sysctl", "-qw", "net.ipv4.conf.all.route_localnet=1")
         learner = self.names["learner"]
         for i in range(sims):
             sim, a, b = self.names[f"sim-{i}"], f"vl{tag}{i}", f"vs{tag}{i}"
             self.ip("link", "add", a, "type", "veth", "peer", "name", b)
             self.ip("link", "set", a, "netns", learner)
             self.ip("link", "set", b, "netns", sim)
-            self.ip("-n", learner, "addr", "add", f"127.77.{i}.1/30", "dev", a)
-            self.ip("-n", sim, "addr", "add", f"127.77.{i}.2/30", "dev", b)
+            self.ip("-n", learner, "addr", "add", f"192.0.2.{4 * i + 1}/30", "dev", a)
+            self.ip("-n", sim, "addr", "add", f"192.0.2.{4 * i + 2}/30", "dev", b)
             for ns, dev in ((learner, a), (sim, b)):
                 self.ip("-n", ns, "link", "set", dev, "up")
-                self.sh(ns, "sysctl", "-qw", f"net.ipv4.conf.{dev}.route_localnet=1")
-            self.addresses[f"sim-{i}"] = f"127.77.{i}.1"  # the learner's address on this sim host's link
+            self.addresses[f"sim-{i}"] = f"192.0.2.{4 * i + 1}"
+            self.links[f"sim-{i}"] = a
 
     @staticmethod
     def ip(*args: str) -> None:
         subprocess.run(["ip", *args], check=True, capture_output=True)
 
-    def sh(self, ns: str, *cmd: str) -> None:
-        subprocess.run(["ip", "netns", "exec", ns, *cmd], check=True, capture_output=True)
+    def link(self, host: str, up: bool) -> None:
+        """Take ``host``'s link to the learner down or up again."""
+        self.ip("-n", self.names["learner"], "link", "set", self.links[host], "up" if up else "down")
 
     def popen(self, host: str, cmd: list[str]) -> subprocess.Popen:
+        env = {**os.environ, "PYTHONPATH": os.pathsep.join(filter(None, [str(ROOT), os.environ.get("PYTHONPATH")]))}
         return subprocess.Popen(["ip", "netns", "exec", self.names[host], *cmd], cwd=ROOT, stdout=subprocess.PIPE,
-                                stderr=subprocess.STDOUT, text=True)
+                                stderr=subprocess.STDOUT, text=True, env=env)
+
+    def up(self, host: str, cfg, *sets: str) -> Output:
+        """``ebrl up CFG --host HOST`` in ``host``'s namespace, its output read as it comes."""
+        proc = self.popen(host, [sys.executable, "-m", "ebrl.cli", "up", str(cfg), "--host", host,
+                                 *[arg for value in sets for arg in ("--set", value)]])
+        return Output(proc, f"host {host}")
 
     def close(self) -> None:
         for ns in self.names.values():  # deleting a namespace deletes its veth ends
             subprocess.run(["ip", "netns", "del", ns], capture_output=True)
 
 
-def namespaced_run(tmp_path, sims: int, iterations: int, extra: list[str] = ()) -> tuple[list[str], dict]:
-    """One run over ``sims`` + 1 namespaces: gen+train in ``learner``, one sim host per namespace."""
+def tls_files(where, hosts: Namespaces) -> dict[str, str]:
+    """The run's CA and the learner's certificate (for each of its addresses), another CA, and a Zenoh config
+    file per case: the learner's, a sim host's, one naming the other CA, one naming none."""
+    right, wrong = tlscerts.make_ca(where, "run-ca"), tlscerts.make_ca(where, "other-ca")
+    cert = tlscerts.make_cert(where, right, "learner", list(hosts.addresses.values()))
+    return {"learner": str(tlscerts.zenoh_tls(where / "learner.json5", right, cert)),
+            "sim": str(tlscerts.zenoh_tls(where / "sim.json5", right)),
+            "wrong": str(tlscerts.zenoh_tls(where / "wrong.json5", wrong)),
+            "none": str(tlscerts.zenoh_tls(where / "none.json5", None))}
+
+
+def tls_hosts_config(tmp_path, hosts: Namespaces) -> Path:
+    """The quickstart over the namespaces: gen and train on the learner, which listens on TLS on each link's
+    address; a sim host per link, connecting there, its own services on its loopback."""
+    listen = [f"tls/{address}:7447" for address in hosts.addresses.values()]
+    table = [f'[hosts.learner]\nservices = ["gen", "train"]\nlisten = {json.dumps(listen)}\n']
+    for sim, address in hosts.addresses.items():
+        table.append(f'[hosts.{sim}]\nservices = ["sim"]\nconnect = ["tls/{address}:7447"]\n'
+                     'listen = ["tcp/127.0.0.1:7447"]\n')
+    cfg = tmp_path / "hosts.toml"
+    cfg.write_text((ROOT / "configs" / "quickstart.toml").read_text() + "\n" + "\n".join(table))
+    return cfg
+
+
+def hosts_sets(tmp_path, host: str, config_file: str, secret=None) -> list[str]:
+    """The --set values of one host: its own output directory, config file and the run's shared secret."""
+    secret = secret or shared_secret(tmp_path)
+    return ['viz.rerun="off"', "run.stats_interval=0.5", "run.name=netns", f"bus.secret_file={json.dumps(str(secret))}",
+            f"bus.config_file={json.dumps(config_file)}", f"run.output_dir={json.dumps(str(tmp_path / host))}"]
+
+
+def namespaces_unavailable() -> str | None:
+    return _netns_unavailable() or tlscerts.unavailable()
+
+
+def namespaced_run(tmp_path, sims: int, iterations: int) -> tuple[list[str], dict]:
+    """One run over ``sims`` + 1 namespaces over TLS: gen+train in ``learner``, one sim host per namespace."""
     hosts = Namespaces(sims)
     try:
-        learner_listen = [f"tcp/{hosts.addresses[f'sim-{i}']}:7447" for i in range(sims)]
-        table = [f'[hosts.learner]\nservices = ["gen", "train"]\nlisten = {json.dumps(learner_listen)}\n']
+        files = tls_files(tmp_path / "tls", hosts)
+        cfg = tls_hosts_config(tmp_path, hosts)
+        runs = {"learner": hosts.up("learner", cfg, f"run.iterations={iterations}",
+                                    *hosts_sets(tmp_path, "learner", files["learner"]))}
         for i in range(sims):
-            table.append(f'[hosts.sim-{i}]\nservices = ["sim"]\nconnect = ["tcp/{hosts.addresses[f"sim-{i}"]}:7447"]\n'
-                         'listen = ["tcp/127.0.0.1:7447"]\n')
-        cfg = tmp_path / "hosts.toml"
-        cfg.write_text((ROOT / "configs" / "quickstart.toml").read_text() + "\n" + "\n".join(table))
-        common = ["--set", f"run.iterations={iterations}", "--set", 'viz.rerun="off"', "--set", "run.stats_interval=0.5",
-                  "--set", "run.name=netns", "--set", f"bus.secret_file={json.dumps(str(shared_secret(tmp_path)))}",
-                  *extra]
-        procs = {"learner": hosts.popen("learner", [sys.executable, "-m", "ebrl.cli", "up", str(cfg), "--host", "learner",
-                                                    "--set", f'run.output_dir="{tmp_path / "learner"}"', *common])}
-        for i in range(sims):
-            procs[f"sim-{i}"] = hosts.popen(f"sim-{i}", [sys.executable, "-m", "ebrl.cli", "up", str(cfg), "--host",
-                                                         f"sim-{i}", "--set",
-                                                         f'run.output_dir="{tmp_path / f"sim-{i}"}"', *common])
-        outs = {}
+            runs[f"sim-{i}"] = hosts.up(f"sim-{i}", cfg, *hosts_sets(tmp_path, f"sim-{i}", files["sim"]))
         try:
-            for name, proc in procs.items():
-                outs[name], _ = proc.communicate(timeout=240)
+            for name, run in runs.items():
+                run.proc.wait(timeout=240)
+                run.join()
         finally:
-            for proc in procs.values():
-                proc.kill()
-        for name, proc in procs.items():
-            assert proc.returncode == 0, f"{name}:\n{outs[name]}"
-        return [outs[name] for name in procs], summary(tmp_path / "learner")
+            for run in runs.values():
+                run.proc.kill()
+        for name, run in runs.items():
+            assert run.proc.returncode == 0, f"{name}:\n{run.text}"
+        return [run.text for run in runs.values()], summary(tmp_path / "learner")
     finally:
         hosts.close()
 
 
 @pytest.mark.slow
 def test_sim_and_learner_in_separate_network_namespaces_train(tmp_path):
-    why = _netns_unavailable()
+    why = namespaces_unavailable()
     if why:
         print(f"SKIP namespace test: {why}")
         pytest.skip(why)
     (learner, sim), done = namespaced_run(tmp_path, sims=1, iterations=4)
     assert done["iterations"] == 4 and done["env_steps"] > 0 and done["segments"] > 0
     assert "host 1 joined the run" in learner and "the primary host ended the run" in sim
+
+
+def attempt(hosts: Namespaces, cfg, tmp_path, config_file: str, secret=None) -> tuple[int, str, float, float]:
+    """sim-0 tries to join: its exit status, its output, the seconds from its start to its exit, and from its
+    launcher's first line (the run's banner; 0 where it stopped before) to its exit."""
+    started = time.monotonic()
+    run = hosts.up("sim-0", cfg, *hosts_sets(tmp_path, "sim-0", config_file, secret))
+    banner = None
+    try:
+        try:
+            run.wait_for_line("run netns: ", 120)
+            banner = time.monotonic()
+        except RuntimeError:  # it stopped before its launcher started
+            pass
+        run.proc.wait(timeout=120)
+    finally:
+        run.proc.kill()
+    ended = time.monotonic()
+    run.join()
+    return run.proc.returncode, run.text, ended - started, ended - (banner or ended)
+
+
+@pytest.mark.slow
+def test_three_hosts_over_tls_refuse_what_cannot_join_and_survive_a_kill_and_an_outage(tmp_path):
+    """Hosts in network namespaces (192.0.2.0/24), TLS between them. Before the run moves: a sim host with the
+    certificate of another CA, with no CA, with another run's secret and with no secret file each stops with
+    exit 2 and the cause within 15 s, and the learner says it refused one; then two sim hosts run, one is
+    killed (kill -9 of its launcher) and started again, the other loses its link for 20 s, and the run ends
+    for every host with exit 0."""
+    import signal
+
+    why = namespaces_unavailable()
+    if why:
+        print(f"SKIP namespace test: {why}")
+        pytest.skip(why)
+    hosts = Namespaces(2)
+    try:
+        files = tls_files(tmp_path / "tls", hosts)
+        cfg = tls_hosts_config(tmp_path, hosts)
+        learner = hosts.up("learner", cfg, "run.iterations=40", "train.checkpoint_every=0",
+                           *hosts_sets(tmp_path, "learner", files["learner"]))
+        try:
+            learner.wait_for_line("all services live", 300)
+            from ebrl.bus import auth
+
+            other = auth.create(tmp_path / "other.secret")
+            cases = [(files["wrong"], None, "its certificate does not verify against the CA in root_ca_certificate",
+                      "refused at the TLS handshake"),
+                     (files["none"], None, "the system's CAs (bus.config_file names no root_ca_certificate)", None),
+                     (files["sim"], other, f"refused this host's sign-in: bus.secret_file = {str(other)!r}",
+                      "was refused at sign-in"),
+                     (files["sim"], tmp_path / "missing.secret", "no such file; a host that joins a run signs in "
+                      "with the primary host's secret", None)]
+            for config_file, secret, cause, refused in cases:
+                code, out, total_s, launcher_s = attempt(hosts, cfg, tmp_path, config_file, secret)
+                assert code == 2 and cause in out, out
+                print(f"exit 2 after {total_s:.1f} s ({launcher_s:.1f} s of it the launcher's): {cause}")
+                assert launcher_s <= 15.0, out  # the launcher's part: `ebrl up`'s imports come before it
+                if refused:
+                    learner.wait_for_line(refused, 30)
+            sims = {name: hosts.up(name, cfg, *hosts_sets(tmp_path, name, files["sim"])) for name in ("sim-0", "sim-1")}
+            learner.wait_for_line(lambda line: "iter " in line and int(line.split("iter ")[1].split("/")[0]) >= 3,
+                                  300, "iteration 3")
+            os.kill(sims["sim-0"].proc.pid, signal.SIGKILL)  # `ip netns exec` became the launcher
+            learner.wait_for_line("host 1 left the run", 60)
+            sims["sim-0"] = hosts.up("sim-0", cfg, *hosts_sets(tmp_path, "sim-0", files["sim"]))
+            sims["sim-0"].wait_for_line("all services live", 300)
+            hosts.link("sim-1", up=False)
+            time.sleep(20)
+            hosts.link("sim-1", up=True)
+            assert learner.proc.wait(timeout=600) == 0, learner.text
+            for name, run in sims.items():
+                assert run.proc.wait(timeout=120) == 0, f"{name}:\n{run.text}"
+                assert "the primary host ended the run" in run.text
+        finally:
+            for run in [learner, *locals().get("sims", {}).values()]:
+                run.proc.kill()
+        assert learner.text.count("host 1 joined the run") == 2, learner.text
+        assert summary(tmp_path / "learner")["iterations"] == 40
+    finally:
+        hosts.close()
 
 
 @pytest.mark.slow

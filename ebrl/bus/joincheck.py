@@ -23,7 +23,7 @@ import time
 from dataclasses import dataclass
 from typing import Callable
 
-JOIN_CHECK_S = 10.0  # a joining host with no link this long after its bus opened looks for the cause
+JOIN_CHECK_S = 8.0  # a joining host with no link this long after its bus opened looks for the cause
 PROBE_TIMEOUT_S = 3.0  # each probe's connect and handshake
 CERTIFICATE_KEYS = ("root_ca_certificate", "listen_private_key", "listen_certificate", "connect_private_key",
                     "connect_certificate")

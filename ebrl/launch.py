@@ -35,7 +35,8 @@ from typing import Callable
 from ebrl import config as config_mod, prepare, procenv, stall
 from ebrl.bus import auth, keys
 from ebrl.bus.session import Bus, BusOptions
-from ebrl.bus.endpoints import address_in_use, config_file_connect, config_file_listen, listen_endpoint
+from ebrl.bus.endpoints import (address_in_use, config_file_connect, config_file_listen, free_port,
+                                listen_endpoint)
 from ebrl.bus.joincheck import await_link, diagnose
 from ebrl.bus.zlog import ZenohLog
 from ebrl.hosts import PRIMARY_LOST_S, HostPlan, Membership, enabled_roles, planned_instances, sim_hosts
@@ -99,9 +100,18 @@ def banner(cfg: config_mod.Config, plan: HostPlan, run_dir: Path, endpoint: str)
 
 def launcher_endpoint(cfg: config_mod.Config, plan: HostPlan) -> str:
     """Where this host's launcher listens: the first of bus.listen (or of bus.config_file's, which are kept), a
-    free port if it is taken (not between hosts: ``strict``); empty when it only connects."""
+    free port if it is taken, unless other hosts connect there (:func:`fixed_listen`); empty when it only
+    connects."""
     listen = config_file_listen(cfg.bus.config_file) or cfg.bus.listen
-    return listen_endpoint(listen[0], strict=plan.multi) if listen else ""
+    return listen_endpoint(listen[0], strict=fixed_listen(cfg, plan)) if listen else ""
+
+
+def fixed_listen(cfg: config_mod.Config, plan: HostPlan) -> bool:
+    """Whether this host's listen endpoint must be the one configured: bus.config_file names it, or other hosts
+    connect to it (a host of several that connects to none itself: the primary, say). A host that connects to
+    another is reached only by its own services: a second launcher on one machine takes a free port."""
+    connects = bool(cfg.bus.connect or config_file_connect(cfg.bus.config_file))
+    return bool(config_file_listen(cfg.bus.config_file)) or (plan.multi and not connects)
 
 
 def viz_line(viz: config_mod.VizSection, run_dir: Path) -> str:
@@ -111,13 +121,20 @@ def viz_line(viz: config_mod.VizSection, run_dir: Path) -> str:
     return f"viz: rerun {viz.rerun} -> {run_dir / 'timeline.rrd'}" + where.get(viz.rerun, "")
 
 
+def local_endpoint(endpoint: str) -> str:
+    """Where this host's services and scripts reach its launcher: ``endpoint`` where it stays on this host, else
+    a loopback TCP port of its own, so that they never go through TLS or another interface."""
+    return endpoint if not endpoint or auth.is_loopback(endpoint) else f"tcp/127.0.0.1:{free_port()}"
+
+
 class LauncherBus:
     """This host's launcher on the bus (a router when the run spans hosts): where it listens (``bus.json``), the
     recording of the run's stats, and what it publishes: events, its stats report, stops."""
 
     def __init__(self, cfg: config_mod.Config, plan: HostPlan, endpoint: str, run_dir: Path):
-        self.run = cfg.run.name
+        self.run, self.host = cfg.run.name, plan.instance  # its stats and events are launcher/<host>
         listen = [endpoint, *cfg.bus.listen[1:]] if endpoint else []
+        self.local = local_endpoint(endpoint)
         secret = auth.secret_path(cfg.bus, run_dir)
         # the router of this host's services when they are its clients (each signed in as its own instance and
         # checked against that instance's rights, ebrl.bus.auth), and between hosts
@@ -134,10 +151,12 @@ class LauncherBus:
             groups = resolve(cfg).groups  # a simulator's groups: sim/n has n*groups .. (ebrl.sched.fleet)
         self.bus = Bus(BusOptions(mode="router" if plan.multi or cfg.bus.mode == "client" else "peer",
                                   listen=listen, connect=list(cfg.bus.connect), config_file=cfg.bus.config_file,
-                                  secret_file=secret, file_listen_wins=True, role="launcher", run=self.run,
+                                  secret_file=secret, file_listen_wins=True, local=self.local, role="launcher",
+                                  run=self.run,
                                   host=plan.instance, instances=instances, dictionary_file=dictionary,
                                   groups=groups, planned=self.planned, shares=shares))
-        (run_dir / "bus.json").write_text(json.dumps({"listen": listen, "run": self.run}) + "\n")
+        mine = [self.local, *(e for e in listen if e != self.local)] if endpoint else []  # scripts take the first
+        (run_dir / "bus.json").write_text(json.dumps({"listen": mine, "run": self.run}) + "\n")
         self.recorder = record.Recorder(run_dir / record.FILENAME) if cfg.viz.record else None
         if self.recorder is not None:
             self.bus.subscribe_raw(keys.stats_all(self.run), self.recorder.write)
@@ -173,13 +192,13 @@ class LauncherBus:
 
     def event(self, kind: str, text: str) -> None:
         self.bus.put_nowait(keys.events(self.run, "launcher"),
-                            Event(time=time.time(), service="launcher", instance=0, kind=kind, text=text))
+                            Event(time=time.time(), service="launcher", instance=self.host, kind=kind, text=text))
 
     def publish_stats(self, metrics: dict[str, float]) -> None:
         """``metrics`` with what the bus dropped (``bus/*``) and the control messages refused, as its report."""
         metrics = {**metrics, **bus_metrics(self.bus), **{name: float(n) for name, n in self.refused.items()}}
-        self.bus.put_nowait(keys.stats(self.run, "launcher", 0), StatsReport(
-            run=self.run, service="launcher", instance=0, time=time.time(), seq=self._seq, metrics=metrics))
+        self.bus.put_nowait(keys.stats(self.run, "launcher", self.host), StatsReport(
+            run=self.run, service="launcher", instance=self.host, time=time.time(), seq=self._seq, metrics=metrics))
         self._seq += 1
 
     async def stop(self, role: str, instance: int | str, reason: str) -> None:
@@ -233,7 +252,7 @@ def run_instances(cfg: config_mod.Config, plan: HostPlan, members: Membership) -
         if role == "sim" and instance != plan.instance:
             planned = members.is_live("launcher", instance) if hosts is None else instance in hosts
             return planned and members.is_live(role, instance)
-        if role in ("sim", "alloc"):
+        if role in ("sim", "alloc", "launcher"):
             return instance == plan.instance or members.is_live(role, instance)
         return instance == 0
 
@@ -247,7 +266,7 @@ def open_launcher_bus(cfg: config_mod.Config, plan: HostPlan, run_dir: Path,
     moment): the bind is tried again on a free port, up to ``tries`` binds in all. OSError, with the reason,
     where it cannot: the port is fixed (other hosts connect to it, or bus.config_file names it) or no bind took."""
     endpoint = launcher_endpoint(cfg, plan)
-    fixed = plan.multi or bool(config_file_listen(cfg.bus.config_file))
+    fixed = fixed_listen(cfg, plan)
     attempt = 1
     while True:
         try:
@@ -339,14 +358,13 @@ class Launcher:
         if self.link.planned is not None:
             self.members.admit_only(self.link.planned)
         self.supervisor = Supervisor(
-            service_argv(self.run_dir / "config.toml", endpoint), self.run_dir / "logs",
+            service_argv(self.run_dir / "config.toml", self.link.local), self.run_dir / "logs",
             RestartPolicy(self.cfg.run.restart == "on-failure", self.cfg.run.max_restarts),
             say=self.console.say, event=self.link.event, gpu_env=self.gpu_env, train_ranks=self.cfg.train.world_size,
             role_env=role_env(self.cfg, self.plan), instance_env=instance_env(self.cfg, self.run_dir),
             version_floor=self.view.version_floor, optional=OPTIONAL_ROLES,
-            process_argv=process_argv(self.run_dir / "config.toml", endpoint))
-        self.link.bus.watch_liveliness(keys.live_all(self.run_name),
-                                       functools.partial(follow_liveliness, self.members, self.console, self.link))
+            process_argv=process_argv(self.run_dir / "config.toml", self.link.local))
+        self.link.bus.watch_liveliness(keys.live_all(self.run_name), functools.partial(follow_liveliness, self))
         self.link.count_unknown_controls(self.roles)
         if self.plan.multi and await self.members.number_taken():
             self.console.say(f"ebrl: host {self.plan.instance} of run {self.run_name} is already up elsewhere on the "
@@ -497,12 +515,20 @@ class Launcher:
         self.stop(f"signal {sig.name}", f"\nebrl: {sig.name} received, stopping every service")
 
 
-def follow_liveliness(members: Membership, console: Console, link: LauncherBus, key: str, alive: bool) -> None:
-    """A token of the run appeared or vanished: ``members`` follows it; another host joining or leaving, and the
-    first token of an instance the run does not have (every one counted: ``launcher/unknown_instances``), are
-    said and recorded as events."""
+def follow_liveliness(launcher: Launcher, key: str, alive: bool) -> None:
+    """A token of the run appeared or vanished: the launcher's membership follows it (and its view: the rates of
+    an instance that left count no more); another host joining or leaving, and the first token of an instance
+    the run does not have (every one counted: ``launcher/unknown_instances``), are said and recorded as events."""
+    members, console, link, view = launcher.members, launcher.console, launcher.link, launcher.view
     unknown = members.unknown_seen
     change = members.update(key, alive)
+    if not alive:
+        try:
+            parsed = keys.parse(key)
+        except ValueError:  # not a process's token
+            parsed = None
+        if parsed is not None:
+            view.left(parsed.service, parsed.instance)
     if members.unknown_seen and not unknown:
         what = (f"a liveliness token of an instance this run does not have ({key}) reached this host's router; "
                 "it stops there, counted in launcher/unknown_instances")

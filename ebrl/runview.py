@@ -167,6 +167,7 @@ class RunView:
         self.refused = 0  # reports (or values) not taken
         self._train_version: dict[str, tuple[float, float]] = {}  # train key -> (version, monotonic time)
         self.stats: dict[str, StatsReport] = {}  # key -> latest report
+        self.gone: set[str] = set()  # keys of instances that left the bus since their latest report (left())
         self.received: dict[str, int] = {}  # key -> reports taken from it (the stall watch: did one arrive?)
         self.movement = Movement()  # the watched counters' moves, over every report (the stall watch)
         self.training = TrainingCounts(clock)  # training's counts across its restarts, and their rates
@@ -206,6 +207,7 @@ class RunView:
                     self.returns_refused += 1
             self.training.update(finite)
         self.stats[key] = report
+        self.gone.discard(key)
         self.received[key] = self.received.get(key, 0) + 1
         for name, value in finite.items():
             if name in COUNTERS or name.startswith(GROUP_SEGMENTS):
@@ -243,9 +245,17 @@ class RunView:
         success, was = metrics.get(TRAIN_SUCCESS), before.get(TRAIN_SUCCESS)
         return moved and (success is None or was is None or abs(success - was) <= share + 1e-9)
 
+    def left(self, service: str, instance: int | str) -> None:
+        """Instance ``service/instance`` left the bus (its token vanished: its process or its host is gone): its
+        rates (``*_per_s``) count no more until it reports again; its counts stay (what it did, it did)."""
+        self.gone.add(keys.stats(self.run, service, instance))
+
     def metric(self, name: str, how: str = "sum") -> float | None:
-        """``name`` over every instance that reports it (sum, max or mean); None when none does."""
-        values = [r.metrics[name] for r in self.stats.values() if name in r.metrics]
+        """``name`` over every instance that reports it (sum, max or mean; a rate only of those still on the bus:
+        :meth:`left`); None when none does."""
+        rate = name.endswith("_per_s")
+        values = [r.metrics[name] for key, r in self.stats.items()
+                  if name in r.metrics and not (rate and key in self.gone)]
         if not values:
             return None
         return sum(values) if how == "sum" else (max(values) if how == "max" else sum(values) / len(values))
@@ -308,17 +318,7 @@ class RunView:
 
     def last_eval(self) -> str | None:
         """``eval v40: success 80% [62-91%], return 512.3`` from the eval service's latest report; None before."""
-        m = self.last_eval_metrics
-        if m is None:
-            return None
-        parts = []
-        if "eval/success_rate" in m:
-            interval = (f" [{m['eval/success_rate_lo']:.0%}-{m['eval/success_rate_hi']:.0%}]"
-                        if "eval/success_rate_lo" in m and "eval/success_rate_hi" in m else "")
-            parts.append(f"success {m['eval/success_rate']:.0%}{interval}")
-        if "eval/return" in m:
-            parts.append(f"return {m['eval/return']:.1f}")
-        return f"eval v{int(m['eval/version'])}: " + ", ".join(parts or ["-"])
+        return None if self.last_eval_metrics is None else eval_field(self.last_eval_metrics)
 
     def evaluated_version(self) -> int | None:
         """The policy version of the eval service's latest result; None before one."""
@@ -327,6 +327,18 @@ class RunView:
     def progress_line(self, wall_s: float, restarts: int = 0, hosts: int | None = None) -> str:
         """The progress as one plain line (what a log file gets)."""
         return self.progress(wall_s, restarts, hosts).line()
+
+
+def eval_field(m: dict[str, float]) -> str:
+    """``eval v40: success 80% [62-91%], return 512.3``: an eval service's result on the progress line."""
+    parts = []
+    if "eval/success_rate" in m:
+        interval = (f" [{m['eval/success_rate_lo']:.0%}-{m['eval/success_rate_hi']:.0%}]"
+                    if "eval/success_rate_lo" in m and "eval/success_rate_hi" in m else "")
+        parts.append(f"success {m['eval/success_rate']:.0%}{interval}")
+    if "eval/return" in m:
+        parts.append(f"return {m['eval/return']:.1f}")
+    return f"eval v{int(m['eval/version'])}: " + ", ".join(parts or ["-"])
 
 
 def summary(view: RunView, code: int, wall_s: float, *, run_dir: Path, failure: str | None, restarts: dict[str, int],

@@ -17,7 +17,10 @@ kernels compiling, a simulator loading -- is not a stall):
   uses next to no CPU, train is the one stuck; without a batch, the segments do not reach it (the sim);
   while it computes, a long update is no stall; gen holding observations it does not answer is stuck; gen
   holding none, the simulators send none (the sim). Where gen answers, the sims' observations reach it: no
-  stall, unless one of several simulators' own env steps stopped too (that one is named);
+  stall, unless one of several simulators' own env steps stopped too (that one is named). On a host that
+  simulates for another's training, no simulator is judged while training's or generation's reports do not
+  reach it at all: the link between the hosts is down, and the host stops once the primary is gone
+  (``ebrl.hosts.PRIMARY_LOST_S``), not the simulator;
 * train made no update for that long (and 3x its last update's time) with a full batch while segments kept
   coming and its process used next to no CPU: it waits on something that will not come (not an attack that
   keeps its batch from filling: that is no stall of train's).
@@ -100,7 +103,9 @@ class StallWatch:
                 return Stall(look.name(key), f"no stats report for {silent:.0f} s{also}: its process is stopped or "
                                              "hung")
         if sims := look.stuck("sim"):
-            return look.sims_stalled(sims)
+            # training's and generation's reports stopped reaching this host, where they run on another: the link
+            # to them is down (the secondary host stops once the primary is gone), not this simulator
+            return None if look.remote_silent() else look.sims_stalled(sims)
         for key in look.stuck("train"):
             received = self.moved.get((key, SEGMENTS))
             if look.waits(key) and received is not None and received > self.moved[(key, PROGRESS["train"])]:
@@ -172,6 +177,12 @@ class _Look:
         self.idle = {key: now - when for key, r in reports.items()
                      if (when := fed[key] if r.service == "sim" else watch.moved.get((key, PROGRESS[r.service])))
                      is not None}
+
+    def remote_silent(self) -> bool:
+        """Training's or generation's reports, where they are not judged here (another host's), stopped arriving."""
+        return any(r.service in ("train", "gen") and key not in self.reports
+                   and self.now - self.watch.arrived.get(key, self.now) > self.timeout
+                   for key, r in self.view.stats.items())
 
     def fed_idle(self, key: str) -> float:
         """Seconds since training last received segments of this simulator."""

@@ -142,6 +142,46 @@ def test_the_resolved_config_keeps_its_hosts_table():
     assert again.hosts == cfg.hosts
 
 
+def test_a_host_that_joins_another_takes_a_free_port_and_the_one_others_join_does_not():
+    """Two launchers on one machine: the second, which connects to the first, listens only for its own services
+    and takes a free port where its configured one is busy; the primary's port is the one others connect to,
+    so a busy one is an error (issue 54)."""
+    import socket
+
+    from ebrl.launch import fixed_listen, launcher_endpoint
+
+    with socket.socket() as busy:
+        busy.bind(("127.0.0.1", 0))
+        busy.listen()
+        port = busy.getsockname()[1]
+        listen = f'bus.listen=["tcp/127.0.0.1:{port}"]'
+        joining_cfg, joining = plan(config.load(QUICK, [listen, 'bus.connect=["tls/192.0.2.1:7447"]']), only="sim",
+                                    instance=1)
+        assert not fixed_listen(joining_cfg, joining)
+        endpoint = launcher_endpoint(joining_cfg, joining)
+        assert endpoint.startswith("tcp/127.0.0.1:") and endpoint != f"tcp/127.0.0.1:{port}"
+        primary_cfg, primary = plan(config.load(QUICK, [listen]), only="gen,train")
+        assert fixed_listen(primary_cfg, primary)
+        with pytest.raises(OSError, match="the port is busy or the address is not this host's"):
+            launcher_endpoint(primary_cfg, primary)
+
+
+def test_a_launcher_listening_beyond_the_host_gives_its_services_a_loopback_endpoint(tmp_path):
+    """The learner listens on a TLS address for the other hosts; its own services and scripts reach it over a
+    loopback TCP port it listens on as well, even where bus.config_file names its listen endpoints (issue 54)."""
+    from ebrl.bus.session import BusOptions, zenoh_config
+    from ebrl.launch import local_endpoint
+
+    assert local_endpoint("tcp/127.0.0.1:7447") == "tcp/127.0.0.1:7447" and local_endpoint("") == ""
+    local = local_endpoint("tls/192.0.2.1:7447")
+    assert local.startswith("tcp/127.0.0.1:")
+    (tmp_path / "z.json5").write_text('{ listen: { endpoints: ["tls/192.0.2.1:7447"] } }')
+    for file in ("", str(tmp_path / "z.json5")):
+        conf = zenoh_config(BusOptions(mode="router", listen=["tls/192.0.2.1:7447"], config_file=file,
+                                       file_listen_wins=True, local=local))
+        assert json.loads(conf.get_json("listen/endpoints")) == ["tls/192.0.2.1:7447", local]
+
+
 def test_ebrl_up_with_a_bad_only_exits_2_and_starts_nothing(tmp_path):
     proc = subprocess.run([sys.executable, "-m", "ebrl.cli", "up", QUICK, "--only", "sim,trian",
                            "--set", f"run.output_dir={json.dumps(str(tmp_path))}"],

@@ -64,6 +64,18 @@ def test_metrics_add_up_over_instances_and_the_progress_line_says_training_s_num
                                                "policy v0 | staleness 0.00")
 
 
+def test_the_rates_of_an_instance_that_left_count_no_more_until_it_reports_again():
+    """A simulation host killed (its token gone): its last rate is not summed into the run's any more; its
+    counts stay; a report of it after a rejoin counts again (issue 54)."""
+    view = fed(report("sim", 0, sim__env_steps_per_s=1000.0, sim__env_steps=5e4),
+               report("sim", 1, sim__env_steps_per_s=500.0, sim__env_steps=2e4))
+    view.left("sim", 1)
+    assert view.metric("sim/env_steps_per_s") == 1000.0 and view.metric("sim/env_steps") == 7e4
+    assert "sim 1,000 env steps/s" in view.progress_line(1.0)
+    view.on_report(*report("sim", 1, sim__env_steps_per_s=700.0, sim__env_steps=2.1e4))
+    assert view.metric("sim/env_steps_per_s") == 1700.0
+
+
 def test_the_progress_says_training_success_and_the_last_evaluation():
     view = fed(report("sim", sim__episode_return_mean=900.0, sim__success_rate=0.99),
                report("train", train__policy_version=40.0, train__episode_return_mean=10.0, train__success_rate=0.35,

@@ -106,6 +106,29 @@ def test_a_silent_instance_is_named_within_the_timeout():
     assert found is not None and found.service == "gen/0" and "no stats report for 11 s" in found.reason
 
 
+def test_a_simulator_whose_training_and_generation_are_out_of_reach_is_not_judged():
+    """A simulation host (it judges only its own sim/1) whose link to the learner is down: training's and
+    generation's reports stop arriving there with the segments; no stall is the simulator's (issue 54)."""
+    clock, reports = Clock(), Reports(sims=2, per_group=True)
+    watch = StallWatch(10.0, clock, groups_per_sim=1)
+    here = {"sim/1"}
+    for _ in range(3):
+        clock.now += 1.0
+        reports.move("sim", "sim/1", "gen", "train")
+        reports.send()
+        assert watch.check(reports.view, here) is None
+    for _ in range(60):  # the outage: only this host's simulator reports; without actions it steps no more
+        clock.now += 1.0
+        reports.send("sim/0", "gen/0", "train/0")
+        assert watch.check(reports.view, here) is None
+    # the learner's own watch (it judges gen and train) still names a simulator whose segments stop there
+    clock, reports = Clock(), Reports(sims=2, per_group=True)
+    watch = StallWatch(10.0, clock, groups_per_sim=1)
+    run_for(watch, clock, reports, 3, moving=("sim", "sim/1", "gen", "train"))
+    found = run_for(watch, clock, reports, 30, moving=("sim", "gen", "train"))
+    assert found is not None and found.service == "sim/1"
+
+
 def test_no_segments_are_blamed_on_the_stage_that_holds_them_up():
     """Where no segments reach training: the one simulator of several whose group stopped; gen answering nothing
     while it holds observations; the simulators sending gen none; train stuck with a full batch (issue 34's

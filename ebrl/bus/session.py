@@ -78,6 +78,7 @@ class BusOptions:
     # takes that host's Zenoh id (ebrl.bus.auth.host_zid), which the hosts that connect to it trust
     host: int | str | None = None
     file_listen_wins: bool = False  # the listen endpoints of config_file, when it has some, replace ``listen``
+    local: str = ""  # a loopback endpoint listened on in any case (a launcher's, for its own services)
     # ``user:password`` of this process's own instance identity, handed over by its launcher (ebrl.procenv): a
     # client signs in with it rather than with its role's line of secret_file (ebrl.bus.auth)
     identity: str = ""
@@ -118,8 +119,10 @@ def zenoh_config(options: BusOptions) -> zenoh.Config:
     if json.loads(conf.get_json("scouting/gossip/autoconnect_strategy")) is None:  # unless config_file says
         conf.insert_json5("scouting/gossip/autoconnect_strategy", json.dumps(AUTOCONNECT_STRATEGY))
     file_listen = config_file_listen(options.config_file)  # none where the file leaves the default (every address)
-    if options.listen and options.mode != "client" and not (options.file_listen_wins and file_listen):
-        conf.insert_json5("listen/endpoints", json.dumps(options.listen))
+    listen = file_listen if options.file_listen_wins and file_listen else options.listen
+    listen = [*listen, options.local] if options.local and options.local not in listen else listen
+    if listen and options.mode != "client" and listen is not file_listen:
+        conf.insert_json5("listen/endpoints", json.dumps(listen))
     if options.connect:
         conf.insert_json5("connect/endpoints", json.dumps(options.connect))
     # Zenoh reassembles no message larger than this (it drops it, the link stays): the same bound as ours

@@ -1,5 +1,5 @@
-"""``ebrl`` command line: up, eval, stats, profile, report, bench, router, secret, schemas, config, configs,
-init, graph, libero.
+"""``ebrl`` command line: up, eval, stats, profile, report, bench, router, secret, slurm, schemas, config,
+configs, init, graph, libero.
 
 Each command is two functions, ``_args_<command>`` (its arguments) and ``_run_<command>`` (what it does,
 importing what it needs only then, so ``ebrl --help`` stays fast), listed once in :data:`COMMANDS`."""
@@ -212,6 +212,47 @@ def _run_secret(args: argparse.Namespace) -> int:
     return 0
 
 
+def _args_slurm(p: argparse.ArgumentParser) -> None:
+    p.add_argument("config", help="the run's config; over several nodes with a [hosts] table, one entry per node")
+    p.add_argument("--set", action="append", default=[], dest="overrides", metavar="SECTION.KEY=VALUE",
+                   help="override one config value in every node's `ebrl up`")
+    p.add_argument("--nodes", type=int, default=None,
+                   help="nodes to allocate (default: one per [hosts] entry, else 1)")
+    p.add_argument("--partition", default="", help="the Slurm partition (#SBATCH --partition)")
+    p.add_argument("--time", default="", dest="time_limit", help="the job's time limit (#SBATCH --time, e.g. 2:00:00)")
+    p.add_argument("--output", default=None, metavar="FILE",
+                   help="where to write the script (default: ebrl-<run.name>.sbatch here)")
+    p.add_argument("--submit", action="store_true", help="submit it with sbatch and print the job id")
+
+
+def _run_slurm(args: argparse.Namespace) -> int:
+    import os
+    import subprocess
+    from pathlib import Path
+
+    from ebrl import config, slurm
+
+    try:
+        cfg = config.load(args.config, args.overrides)
+        nodes = args.nodes or max(1, len(cfg.hosts))
+        script = slurm.batch_script(args.config, cfg, args.overrides, nodes, args.partition, args.time_limit)
+        path = Path(args.output or f"ebrl-{cfg.run.name}.sbatch")
+        slurm.output_dir(cfg, os.getcwd()).mkdir(parents=True, exist_ok=True)  # Slurm opens its output there
+        path.write_text(script)
+        path.chmod(0o755)
+        print(path)
+        if args.submit:
+            print(f"submitted: job {slurm.submit(path)}")
+    except config.ConfigError as exc:
+        print(f"ebrl slurm: config error: {exc}", file=sys.stderr)
+        return 2
+    except (OSError, subprocess.CalledProcessError) as exc:
+        why = getattr(exc, "stderr", None) or getattr(exc, "strerror", None) or str(exc)
+        print(f"ebrl slurm: {str(why).strip()}", file=sys.stderr)
+        return 2
+    return 0
+
+
 def _args_schemas(p: argparse.ArgumentParser) -> None:
     p.add_argument("--dir", default="schemas")
 
@@ -323,6 +364,7 @@ COMMANDS = {  # name: (help, its arguments, what it runs)
     "router": ("run a Zenoh router that the hosts of a multi-host run connect to", _args_router, _run_router),
     "secret": ("create a secret file for a run over several hosts (bus.secret_file), or --observer: a read-only one",
                _args_secret, _run_secret),
+    "slurm": ("write (and --submit) a Slurm batch script: one `ebrl up` per node", _args_slurm, _run_slurm),
     "schemas": ("write schemas/*.json from ebrl/messages.py", _args_schemas, _run_schemas),
     "config": ("check a config, or list every config key", _args_config, _run_config),
     "configs": ("list the stock configs (ebrl up NAME runs one)", _args_configs, _run_configs),

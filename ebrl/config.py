@@ -538,8 +538,9 @@ class HostEntry:
     """One ``[hosts.<name>]`` table: what ``ebrl up CONFIG --host <name>`` starts on that machine."""
 
     services: list[str] = doc(f"services this host runs, from {', '.join(ROLES)}", factory=list)
-    listen: list[str] = doc("bus endpoints this host's launcher listens on (reachable by the other hosts); empty: "
-                            "bus.listen", factory=list)
+    listen: list[str] = doc("bus endpoints this host's launcher listens on (reachable by the other hosts; under "
+                            "srun, {primary} and {node} name the primary's node and this one: docs/scaling-out.md); "
+                            "empty: bus.listen", factory=list)
     connect: list[str] = doc("bus endpoints this host's launcher connects to (another host's listen endpoint, or "
                              "an `ebrl router`); empty: bus.connect", factory=list)
     cores: list[int] = doc("sim.cores on this host; empty: the config's sim.cores", factory=list)

@@ -19,7 +19,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-from ebrl import autotune, config as config_mod, devices, meta, tracking
+from ebrl import autotune, config as config_mod, devices, meta, slurm, tracking
 from ebrl.bus import auth
 from ebrl.bus.endpoints import config_file_acl, config_file_endpoints
 from ebrl.bus.joincheck import certificate_problem
@@ -60,6 +60,7 @@ def prepare(config_path: str, overrides: list[str], *, viz: str | None = None, r
         overrides = [*overrides, f'viz.rerun="{viz}"']
     try:
         cfg = config_mod.load(config_path, overrides)
+        cfg, host = slurm.placement(cfg, host, only, instance)  # under srun: this task's [hosts] entry
         cfg, plan = plan_host(cfg, only=only, host=host, instance=instance)
     except config_mod.ConfigError as exc:
         raise NotStarted(f"config error: {exc}") from None
@@ -79,7 +80,7 @@ def prepare(config_path: str, overrides: list[str], *, viz: str | None = None, r
     try:
         if "alloc" in plan.roles:  # profile (or reuse a profile) and start every service inside Algorithm 1's plan
             allocate(run)
-        run.run_dir = run_directory(run.cfg, resume)
+        run.run_dir = run_directory(run.cfg, resume, run.plan)
         if secret := auth.secret_path(run.cfg.bus, run.run_dir):
             shared_secret(run, Path(secret))
     except NotStarted:
@@ -124,10 +125,13 @@ def allocate(run: PreparedRun) -> None:
     print(line, flush=True)
 
 
-def run_directory(cfg: config_mod.Config, resume: str | None) -> Path:
-    """A new run directory, or ``resume``'s when it holds a checkpoint to go on from."""
+def run_directory(cfg: config_mod.Config, resume: str | None, plan: HostPlan | None = None) -> Path:
+    """A new run directory, or ``resume``'s when it holds a checkpoint to go on from. A host of several other
+    than the primary names its own after itself: on a shared filesystem the hosts' directories sit side by
+    side."""
     if resume is None:
-        return make_run_dir(cfg)
+        tag = f"-{plan.name or f'host{plan.instance}'}" if plan is not None and plan.multi and not plan.primary else ""
+        return make_run_dir(cfg, tag)
     from ebrl.algos import checkpoint
 
     run_dir = Path(resume)
@@ -138,17 +142,19 @@ def run_directory(cfg: config_mod.Config, resume: str | None) -> Path:
     return run_dir
 
 
-def make_run_dir(cfg: config_mod.Config) -> Path:
+def make_run_dir(cfg: config_mod.Config, tag: str = "") -> Path:
     """A new directory for the run, only its owner's (0700), or its owner's and ``run.group``'s (0750): made so
-    from the start, never readable by others in between."""
+    from the start, never readable by others in between. ``tag`` ends its name (a host's)."""
     stamp = time.strftime("%Y%m%d-%H%M%S")
-    run_dir = Path(cfg.run.output_dir) / f"{cfg.run.name}-{stamp}"
-    suffix = 1
-    while run_dir.exists():
-        run_dir = Path(cfg.run.output_dir) / f"{cfg.run.name}-{stamp}-{suffix}"
-        suffix += 1
-    run_dir.parent.mkdir(parents=True, exist_ok=True)
-    run_dir.mkdir(mode=0o700)
+    Path(cfg.run.output_dir).mkdir(parents=True, exist_ok=True)
+    suffix = 0
+    while True:  # another launcher may take a name between a look and the mkdir (hosts on a shared filesystem)
+        run_dir = Path(cfg.run.output_dir) / (f"{cfg.run.name}-{stamp}{tag}" + (f"-{suffix}" if suffix else ""))
+        try:
+            run_dir.mkdir(mode=0o700)
+            break
+        except FileExistsError:
+            suffix += 1
     if cfg.run.group:
         try:
             os.chown(run_dir, -1, grp.getgrnam(cfg.run.group).gr_gid)

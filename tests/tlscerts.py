@@ -24,11 +24,13 @@ def make_ca(where: Path, name: str) -> Path:
     return where / f"{name}.pem"
 
 
-def make_cert(where: Path, ca: Path, name: str, ips: list[str]) -> tuple[Path, Path]:
-    """``(certificate, key)`` for ``name``, signed by ``ca`` (made by :func:`make_ca`), valid for ``ips``."""
+def make_cert(where: Path, ca: Path, name: str, ips: list[str], dns: list[str] = ()) -> tuple[Path, Path]:
+    """``(certificate, key)`` for ``name``, signed by ``ca`` (made by :func:`make_ca`), valid for ``ips`` and the
+    host names ``dns``."""
     _openssl("req", "-newkey", "ec", "-pkeyopt", "ec_paramgen_curve:prime256v1", "-nodes", "-keyout",
              f"{name}-key.pem", "-out", f"{name}.csr", "-subj", f"/CN={name}", cwd=where)
-    (where / f"{name}.ext").write_text("subjectAltName=" + ",".join(f"IP:{ip}" for ip in ips) + "\n")
+    names = [f"IP:{ip}" for ip in ips] + [f"DNS:{host}" for host in dns]
+    (where / f"{name}.ext").write_text("subjectAltName=" + ",".join(names) + "\n")
     _openssl("x509", "-req", "-in", f"{name}.csr", "-CA", str(ca), "-CAkey", str(ca.with_name(ca.stem + "-key.pem")),
              "-CAcreateserial", "-out", f"{name}.pem", "-days", "2", "-extfile", f"{name}.ext", cwd=where)
     return where / f"{name}.pem", where / f"{name}-key.pem"

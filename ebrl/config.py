@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import dataclasses
 import difflib
+import ipaddress
 import os
 import tomllib
 import types
@@ -400,6 +401,14 @@ class TrainSection(Section):
                                            "state between the ranks", "ddp")
     checkpoint_every: int = doc("write a checkpoint (policy, optimizer, version, random state) every this many "
                                 "updates, and always at the end; 0: only at the end", 10)
+    rendezvous: str = doc("HOST:PORT where training ranks on several hosts meet ([hosts] entries that run train): "
+                          "an address of the primary host (rank 0's) that the others reach, inside "
+                          "train.trusted_networks; under srun HOST may be {primary}. Ranks on one host meet in "
+                          "the run's directory instead", "")
+    trusted_networks: list[str] = doc("networks (CIDR, e.g. 10.0.0.0/16) that training ranks on several hosts may "
+                                      "use: torch.distributed's channel has no authentication or encryption of its "
+                                      "own, so a rendezvous or a host without an address inside them is refused",
+                                      factory=list)
 
     def _check(self) -> None:
         _device(self.device, "train.device")
@@ -544,6 +553,9 @@ class HostEntry:
     connect: list[str] = doc("bus endpoints this host's launcher connects to (another host's listen endpoint, or "
                              "an `ebrl router`); empty: bus.connect", factory=list)
     cores: list[int] = doc("sim.cores on this host; empty: the config's sim.cores", factory=list)
+    ranks: int = doc("training ranks on this host, where it runs train and others do too (ranks are numbered "
+                     "across hosts in [hosts] order); 0: an equal share of the train.world_size ranks the other "
+                     "entries leave", 0)
 
 
 SECTIONS: dict[str, type[Section]] = {cls.NAME: cls for cls in (
@@ -762,10 +774,53 @@ def _hosts(raw: dict[str, Any]) -> dict[str, HostEntry]:
         raise ConfigError("[hosts]: no host runs sim")
     for role in ("train", "gen"):
         owners = [name for name, entry in hosts.items() if role in entry.services]
-        if hosts and len(owners) != 1:
-            raise ConfigError(f"[hosts]: exactly one host must run {role} (found {len(owners)}: "
-                              f"{', '.join(owners) or 'none'})")
+        if hosts and (len(owners) != 1 if role == "gen" else not owners):
+            raise ConfigError(f"[hosts]: {'exactly one host' if role == 'gen' else 'a host'} must run {role} (found "
+                              f"{len(owners)}: {', '.join(owners) or 'none'})")
+    for name, entry in hosts.items():
+        if entry.ranks < 0 or (entry.ranks and "train" not in entry.services):
+            raise ConfigError(f"hosts.{name}.ranks = {entry.ranks}: training ranks on a host that runs train (>= 0)")
     return hosts
+
+
+def train_ranks(cfg: Config) -> dict[str, range]:
+    """The training ranks of each ``[hosts]`` entry that runs train, numbered across hosts in table order (the
+    first holds rank 0: the primary); one host's: all of them."""
+    owners = [name for name, entry in cfg.hosts.items() if "train" in entry.services]
+    given = sum(cfg.hosts[name].ranks for name in owners)
+    shares = sum(1 for name in owners if not cfg.hosts[name].ranks)  # these split what the others leave
+    counts = [cfg.hosts[name].ranks or max(0, cfg.train.world_size - given) // max(1, shares) for name in owners]
+    out, first = {}, 0
+    for name, count in zip(owners, counts):
+        out[name], first = range(first, first + count), first + count
+    return out
+
+
+def _check_train_hosts(cfg: Config) -> None:
+    """Training ranks on several hosts: their shares, the rendezvous, what the run lacks for them."""
+    ranks = train_ranks(cfg)
+    if len(ranks) < 2:
+        return
+    shares = ", ".join(f"{name}: {len(r)}" for name, r in ranks.items())
+    if sum(len(r) for r in ranks.values()) != cfg.train.world_size or any(len(r) == 0 for r in ranks.values()):
+        raise ConfigError(f"train.world_size = {cfg.train.world_size}: the hosts that run train hold {shares} "
+                          "ranks; give each host at least one and hosts.<name>.ranks that add up to it")
+    host, _, port = cfg.train.rendezvous.rpartition(":")
+    if not host or not port.isdigit():
+        raise ConfigError(f"train.rendezvous = {cfg.train.rendezvous!r}: training on several hosts ({shares}) "
+                          "needs HOST:PORT on the primary host where the ranks meet")
+    if not cfg.train.trusted_networks:
+        raise ConfigError("train.trusted_networks: training on several hosts sends gradients over "
+                          "torch.distributed, which has no authentication or encryption of its own; name the "
+                          "networks (CIDR) it may use, a private network between the hosts")
+    for network in cfg.train.trusted_networks:
+        try:
+            ipaddress.ip_network(network, strict=False)
+        except ValueError as exc:
+            raise ConfigError(f"train.trusted_networks: {exc}") from None
+    if cfg.alloc.enabled:
+        raise ConfigError("alloc.enabled: the allocator plans one host's training; with ranks on several hosts set "
+                          "alloc.enabled = false")
 
 
 def vectorized(cfg: Config) -> bool:
@@ -795,6 +850,7 @@ def _check_across(cfg: Config) -> None:
                           "sim.cores_per_env = 1, or leave sim.core_rebinding to the mode")
     _check_processes(cfg)
     _check_algorithm(cfg)
+    _check_train_hosts(cfg)
     if cfg.algo.name == "grpo":
         envs = cfg.num_envs
         if cfg.algo.group_size < 2 or envs % cfg.algo.group_size:

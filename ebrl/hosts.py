@@ -26,7 +26,7 @@ from dataclasses import dataclass
 
 from ebrl.algos.algorithm import uses_replay
 from ebrl.bus import keys
-from ebrl.config import ROLES, Config, ConfigError, processes
+from ebrl.config import ROLES, Config, ConfigError, processes, train_ranks
 
 PRIMARY_LOST_S = 30.0  # a secondary host stops when no train has been live for this long
 UNKNOWN_KEPT = 4096  # tokens of instances the run does not have, remembered to count each once (memory bounded)
@@ -38,18 +38,25 @@ class HostPlan:
     instance: int = 0  # this host's number in the run
     multi: bool = False  # one host of several: the launcher routes bus traffic between hosts
     name: str = ""  # the [hosts] entry, if any
+    ranks: range | None = None  # this host's training ranks where several hosts train (None: every rank)
 
     @property
     def primary(self) -> bool:
-        return "train" in self.roles
+        """The host that ends the run: the one with training rank 0."""
+        return "train" in self.roles and (self.ranks is None or 0 in self.ranks)
+
+    @property
+    def ranks_elsewhere(self) -> bool:
+        """Training ranks also run on other hosts (they meet at ``train.rendezvous``)."""
+        return self.ranks is not None
 
     def instances(self, role: str, cfg: Config) -> range:
-        """Instances of ``role`` started here: sim/<host> and alloc/<host>, train ranks 0..world_size-1, one of
-        the others."""
+        """Instances of ``role`` started here: sim/<host> and alloc/<host>, this host's train ranks (every rank
+        where one host trains), one of the others."""
         if role in ("sim", "alloc"):
             return range(self.instance, self.instance + 1)
         if role == "train":
-            return range(cfg.train.world_size)
+            return self.ranks if self.ranks is not None else range(cfg.train.world_size)
         return range(1)
 
     def processes(self, cfg: Config) -> list[tuple[tuple[str, int], ...]]:
@@ -124,16 +131,18 @@ def plan(cfg: Config, only: str | None = None, host: str | None = None, instance
             raise ConfigError(f"--host {host}: no [hosts.{host}] in the config (hosts: {known})")
         entry = cfg.hosts[host]
         named = {r for e in cfg.hosts.values() for r in e.services}
-        # viz, log, eval and the replay go with train unless some host names them; the allocator always does (it
-        # plans that host)
-        wanted = set(entry.services) | ({"viz", "log", "eval", "replay", "alloc"} - named if "train" in entry.services
+        ranks = train_ranks(cfg)
+        # viz, log, eval and the replay go with train (rank 0's host) unless some host names them; the allocator
+        # always does (it plans that host)
+        wanted = set(entry.services) | ({"viz", "log", "eval", "replay", "alloc"} - named if 0 in ranks.get(host, ())
                                         else set())
         _allocator_with_train(wanted, f"[hosts.{host}]")
         bus = dataclasses.replace(cfg.bus, listen=list(entry.listen or cfg.bus.listen),
                                   connect=list(entry.connect or cfg.bus.connect))
         sim = dataclasses.replace(cfg.sim, cores=list(entry.cores or cfg.sim.cores))
         cfg = dataclasses.replace(cfg, bus=bus, sim=sim)
-        return cfg, HostPlan(tuple(r for r in every if r in wanted), list(cfg.hosts).index(host), True, host)
+        here = ranks.get(host) if len(ranks) > 1 else None
+        return cfg, HostPlan(tuple(r for r in every if r in wanted), list(cfg.hosts).index(host), True, host, here)
     if cfg.hosts:
         raise ConfigError(f"the config has [hosts] ({', '.join(cfg.hosts)}): start each host with --host NAME")
     if only is None:
@@ -178,6 +187,7 @@ class Membership:
     def __init__(self, run: str, me: int = 0, multi: bool = False, lost_after_s: float = PRIMARY_LOST_S):
         self.run, self.me, self.multi, self.lost_after_s = run, me, multi, lost_after_s
         self.live: set[str] = set()  # every live token of the run
+        self.ever: set[str] = set()  # ... and every one that was live once (at most the planned instances')
         self.hosts_up: set[int] = set()  # the other hosts, while up
         self.hosts_joined: set[int] = set()  # ... and every one that ever joined
         self.ending = False  # this host is stopping: hosts that leave now are not news
@@ -202,6 +212,8 @@ class Membership:
             return None
         if alive:
             self.live.add(key)
+            if self.planned is not None or len(self.ever) < UNKNOWN_KEPT:
+                self.ever.add(key)
         else:
             self.live.discard(key)
         try:
@@ -231,6 +243,10 @@ class Membership:
         await asyncio.sleep(wait_s)
         return self.is_live("launcher", self.me)
 
+    def gone(self, role: str, instances: range) -> list[int]:
+        """Those of ``instances`` of ``role`` that were live once and are not now."""
+        return [n for n in instances if keys.live(self.run, role, n) in self.ever and not self.is_live(role, n)]
+
     def services_live(self) -> int:
         """Live service processes (launchers not counted)."""
         return sum(1 for k in self.live if keys.role_of(k) != "launcher")
@@ -240,9 +256,10 @@ class Membership:
         return sorted(self.hosts_joined | {self.me})
 
     def primary_lost(self, now: float | None = None) -> bool:
-        """A secondary host: True once no train has been live for ``lost_after_s`` after one was."""
+        """A secondary host: True once no training rank 0 (the primary's) has been live for ``lost_after_s`` after
+        one was."""
         now = time.monotonic() if now is None else now
-        if any(keys.role_of(k) == "train" for k in self.live):
+        if self.is_live("train", 0):
             self.train_seen_at = now
             return False
         return self.train_seen_at is not None and now - self.train_seen_at >= self.lost_after_s

@@ -33,6 +33,7 @@ from pathlib import Path
 from typing import Callable
 
 from ebrl import config as config_mod, prepare, procenv, stall
+from ebrl.ranknet import across_hosts
 from ebrl.bus import auth, keys
 from ebrl.bus.session import Bus, BusOptions
 from ebrl.bus.endpoints import (address_in_use, config_file_connect, config_file_listen, free_port,
@@ -362,7 +363,7 @@ class Launcher:
             RestartPolicy(self.cfg.run.restart == "on-failure", self.cfg.run.max_restarts),
             say=self.console.say, event=self.link.event, gpu_env=self.gpu_env, train_ranks=self.cfg.train.world_size,
             role_env=role_env(self.cfg, self.plan), instance_env=instance_env(self.cfg, self.run_dir),
-            version_floor=self.view.version_floor, optional=OPTIONAL_ROLES,
+            version_floor=self.view.version_floor, optional=OPTIONAL_ROLES, across_hosts=across_hosts(self.cfg, self.plan),
             process_argv=process_argv(self.run_dir / "config.toml", self.link.local))
         self.link.bus.watch_liveliness(keys.live_all(self.run_name), functools.partial(follow_liveliness, self))
         self.link.count_unknown_controls(self.roles)
@@ -430,7 +431,7 @@ class Launcher:
         last_stats = 0.0
         while not self.stopping.is_set():
             self.failure = self.supervisor.check(restart=True) or stall.watch(
-                self.stalls, self.view, self.supervisor, self.console.say, self.link.event)
+                self.stalls, self.view, self.supervisor, self.console.say, self.link.event) or ranks_lost(self)
             if self.failure is not None:
                 return 1
             if time.monotonic() - last_stats >= self.cfg.run.stats_interval:
@@ -513,6 +514,24 @@ class Launcher:
 
     def _on_signal(self, sig: signal.Signals) -> None:
         self.stop(f"signal {sig.name}", f"\nebrl: {sig.name} received, stopping every service")
+
+
+def ranks_lost(launcher: Launcher) -> str | None:
+    """Where training ranks run on several hosts: the failure once a rank of another host left (the group cannot
+    go on without it, and is not restarted across hosts), said; else None."""
+    plan, cfg = launcher.plan, launcher.cfg
+    if not (plan.ranks_elsewhere and "train" in plan.roles):
+        return None
+    mine = plan.ranks or range(0)
+    gone = [n for n in launcher.members.gone("train", range(cfg.train.world_size)) if n not in mine]
+    if not gone:
+        return None
+    failure = (f"training rank{'s' * (len(gone) > 1)} {', '.join(f'train/{n}' for n in gone)} of another host left "
+               "the run: the group cannot go on without it and is not restarted across hosts (ebrl up --resume "
+               "RUN_DIR on the primary goes on from its latest checkpoint)")
+    launcher.console.say(f"\nebrl: {failure}")
+    launcher.link.event("exited", failure)
+    return failure
 
 
 def follow_liveliness(launcher: Launcher, key: str, alive: bool) -> None:

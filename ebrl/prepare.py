@@ -19,7 +19,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-from ebrl import autotune, config as config_mod, devices, meta, slurm, tracking
+from ebrl import autotune, config as config_mod, devices, meta, ranknet, slurm, tracking
 from ebrl.bus import auth
 from ebrl.bus.endpoints import config_file_acl, config_file_endpoints
 from ebrl.bus.joincheck import certificate_problem
@@ -66,6 +66,10 @@ def prepare(config_path: str, overrides: list[str], *, viz: str | None = None, r
         raise NotStarted(f"config error: {exc}") from None
     if problem := preflight(cfg, tuple(plan.roles), plan.multi):
         raise NotStarted(problem)
+    try:
+        ranknet.across_hosts(cfg, plan)  # training ranks on several hosts: only over a trusted network
+    except ValueError as exc:
+        raise NotStarted(str(exc)) from None
     earlier = meta.read(resume).get("auto", {}).get("settings") if resume else None  # a resumed run keeps its own
     cfg, decision = autotune.settle(cfg, tuple(plan.roles), plan.multi, earlier)  # policy.dtype, gen.compile, ...
     if decision is not None and decision.line:

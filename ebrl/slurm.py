@@ -5,7 +5,7 @@ Slurm's environment.
 Under ``srun`` with several tasks, task *i* runs the *i*-th entry of the config's ``[hosts]`` table (as ``--host``
 would), so the table has one entry per task; with one task the run is a one-host run. Node names are not known
 before the job starts, so an endpoint of ``bus.listen``, ``bus.connect`` or a ``[hosts]`` entry may say
-``{primary}`` (the node of the task that runs ``train``) or ``{node}`` (this task's own node); they are filled in
+``{primary}`` (the node of the task that runs training rank 0; also in ``train.rendezvous``) or ``{node}`` (this task's own node); they are filled in
 from ``SLURM_JOB_NODELIST`` and ``SLURM_TASKS_PER_NODE`` (:func:`placement`). Outside Slurm they are a config
 error.
 
@@ -93,6 +93,7 @@ def _endpoints(cfg: Config):
     """(where, list) for each endpoint list of the config that may carry a placeholder."""
     yield "bus.listen", cfg.bus.listen
     yield "bus.connect", cfg.bus.connect
+    yield "train.rendezvous", [cfg.train.rendezvous]
     for name, entry in cfg.hosts.items():
         yield f"hosts.{name}.listen", entry.listen
         yield f"hosts.{name}.connect", entry.connect
@@ -106,7 +107,8 @@ def fill(cfg: Config, primary: str, node: str) -> Config:
     bus = dataclasses.replace(cfg.bus, listen=filled(cfg.bus.listen), connect=filled(cfg.bus.connect))
     hosts = {name: dataclasses.replace(e, listen=filled(e.listen), connect=filled(e.connect))
              for name, e in cfg.hosts.items()}
-    return dataclasses.replace(cfg, bus=bus, hosts=hosts)
+    train = dataclasses.replace(cfg.train, rendezvous=filled([cfg.train.rendezvous])[0])
+    return dataclasses.replace(cfg, bus=bus, hosts=hosts, train=train)
 
 
 def placement(cfg: Config, host: str | None, only: str | None, instance: int | None,
@@ -128,7 +130,7 @@ def placement(cfg: Config, host: str | None, only: str | None, instance: int | N
                               f"has {len(cfg.hosts)} ({', '.join(cfg.hosts) or 'no [hosts] table'}); give it one "
                               "entry per task (the one with train is the primary)")
         host = list(cfg.hosts)[rank]
-    primaries = [i for i, e in enumerate(cfg.hosts.values()) if "train" in e.services]
+    primaries = [i for i, e in enumerate(cfg.hosts.values()) if "train" in e.services]  # the first holds rank 0
     try:
         node = node_of_task(rank, env)
         primary = node_of_task(primaries[0], env) if cfg.hosts and primaries and tasks > 1 else node

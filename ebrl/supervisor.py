@@ -133,17 +133,19 @@ def requotas_spent(child: Child, limit: int, version: int, say: Callable[[str], 
 
 
 def child_env(child: Child, gpu_env: dict[str, dict[str, str]], role_env: dict[str, dict[str, str]],
-              identity_env: dict[str, str], dist_addr: str, train_ranks: int) -> dict[str, str]:
+              identity_env: dict[str, str], dist_addr: str, train_ranks: int, interface: str = "lo") -> dict[str, str]:
     """The environment of ``child``'s process: each of its services' variables (those of several agree), the
-    identity of the first (``identity_env``), which signs in for the process; training's rendezvous."""
+    identity of the first (``identity_env``), which signs in for the process; training's rendezvous, and the
+    network interface its ranks connect over (``interface``: loopback where they all run on this host)."""
     env = dict(os.environ, PYTHONUNBUFFERED="1")
     for role, _ in child.services:
         env.update(**gpu_env.get(role, {}), **role_env.get(role, {}))
     env.update(identity_env)
     if child.has("train"):
         env.update(procenv.service_env(dist_addr=dist_addr))
-        if train_ranks > 1:  # gloo's connections between the ranks stay on this host
-            env.setdefault("GLOO_SOCKET_IFNAME", "lo")
+        if train_ranks > 1:  # gloo's and NCCL's connections between the ranks: on this host, or the trusted network
+            env.setdefault("GLOO_SOCKET_IFNAME", interface)
+            env.setdefault("NCCL_SOCKET_IFNAME", interface)
     env["PYTHONPATH"] = str(Path(__file__).resolve().parent.parent) + os.pathsep + env.get("PYTHONPATH", "")
     return env
 
@@ -180,7 +182,7 @@ class Supervisor:
                  gpu_env: dict[str, dict[str, str]] | None = None, role_env: dict[str, dict[str, str]] | None = None,
                  train_ranks: int = 1, version_floor: Callable[[], int] = lambda: -1, optional: tuple[str, ...] = (),
                  instance_env: Callable[[str, int], dict[str, str]] | None = None,
-                 process_argv: ProcessArgv | None = None):
+                 process_argv: ProcessArgv | None = None, across_hosts: tuple[str, str] | None = None):
         self.argv, self.log_dir, self.policy = argv, log_dir, policy
         self.process_argv = process_argv  # for a child of several services (run.processes)
         self.say, self.event, self.version_floor = say, event, version_floor
@@ -191,8 +193,10 @@ class Supervisor:
         self.instance_env = instance_env or (lambda role, instance: {})
         self.train_ranks = train_ranks
         self.optional = optional  # roles whose death never ends the run
-        # the training ranks' rendezvous, new for each start of the group
-        self.dist_addr = self.rendezvous() if train_ranks > 1 else ""
+        # training ranks on several hosts: (train.rendezvous, this host's interface in train.trusted_networks)
+        self.across_hosts = across_hosts
+        # the training ranks' rendezvous, new for each start of the group (across hosts: the one they agreed on)
+        self.dist_addr = f"tcp://{across_hosts[0]}" if across_hosts else self.rendezvous() if train_ranks > 1 else ""
         self.children: list[Child] = []
         self.requota_failure: str | None = None  # the run's failure once a child used up its requotas
 
@@ -212,7 +216,7 @@ class Supervisor:
 
     def _spawn(self, child: Child, log_path: Path, extra_env: dict[str, str] | None = None) -> subprocess.Popen:
         env = child_env(child, self.gpu_env, self.role_env, self.instance_env(child.role, child.instance),
-                        self.dist_addr, self.train_ranks)
+                        self.dist_addr, self.train_ranks, self.across_hosts[1] if self.across_hosts else "lo")
         env.update(extra_env or {})
         argv = self.process_argv(child.members) if child.members and self.process_argv else self.argv(
             child.role, child.instance)
@@ -240,7 +244,10 @@ class Supervisor:
                 self.restart(child, requota=True)
                 continue
             what = f"{child.name} exited with status {rc}"
-            if restart and self.policy.allows(child.restarts):
+            if self.across_hosts and child.has("train"):  # the group cannot be started again from here alone
+                what += ("; training ranks on several hosts are not restarted (the run stops; ebrl up --resume "
+                         "RUN_DIR on the primary goes on from its latest checkpoint)")
+            elif restart and self.policy.allows(child.restarts):
                 self._schedule_restart(child, what, now)
                 continue
             failure = what + (f" (after {child.restarts} restarts)" if child.restarts else "")

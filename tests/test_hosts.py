@@ -95,8 +95,12 @@ def test_the_log_service_goes_with_train_unless_a_host_names_it_and_is_off_witho
 
 
 @pytest.mark.parametrize("hosts, message", [
-    ({"a": {"services": ["sim", "gen"]}}, "exactly one host must run train"),
-    ({"a": {"services": ["sim", "gen", "train"]}, "b": {"services": ["train"]}}, "exactly one host must run train"),
+    ({"a": {"services": ["sim", "gen"]}}, "a host must run train"),
+    ({"a": {"services": ["sim", "gen", "train"]}, "b": {"services": ["train"]}},  # two hosts, one rank
+     "the hosts that run train hold a: 0, b: 0 ranks"),
+    ({"a": {"services": ["sim", "gen", "train"]}, "b": {"services": ["gen"]}}, "exactly one host must run gen"),
+    ({"a": {"services": ["sim", "gen", "train"]}, "b": {"services": ["sim"], "ranks": 2}},
+     "hosts.b.ranks = 2: training ranks on a host that runs train"),
     ({"a": {"services": ["gen", "train", "simm"]}}, "unknown service 'simm'"),
     ({"a": {"services": ["gen", "train"], "cpus": [1]}}, "unknown key hosts.a.cpus"),
     ({"A!": {"services": ["gen", "train", "sim"]}}, "host name"),
@@ -105,6 +109,40 @@ def test_the_log_service_goes_with_train_unless_a_host_names_it_and_is_off_witho
 def test_a_wrong_hosts_table_names_the_problem(hosts, message):
     with pytest.raises(config.ConfigError, match=message):
         load(hosts=hosts)
+
+
+TRAIN_HOSTS = {"learner": {"services": ["gen", "train"]}, "b": {"services": ["train", "sim"], "ranks": 3}}
+
+
+def test_training_ranks_on_several_hosts_are_numbered_across_them_and_need_a_trusted_rendezvous():
+    from ebrl import ranknet
+
+    trusted = {"world_size": 4, "rendezvous": "10.0.0.1:29500", "trusted_networks": ["10.0.0.0/24"]}
+    cfg = load(hosts=TRAIN_HOSTS, train=trusted, log={"csv": True})
+    assert config.train_ranks(cfg) == {"learner": range(0, 1), "b": range(1, 4)}
+    learner_cfg, learner = plan(cfg, host="learner")
+    b_cfg, b = plan(cfg, host="b")
+    assert learner.primary and not b.primary and b.ranks_elsewhere and b.instances("train", cfg) == range(1, 4)
+    assert "log" in learner.roles and "log" not in b.roles  # what goes with train goes with rank 0
+    assert ("train", 3) in planned_instances(cfg, learner)
+    here = {"lo": ["127.0.0.1"], "eth1": ["10.0.0.1"]}
+    assert ranknet.across_hosts(cfg, learner, here) == ("10.0.0.1:29500", "eth1")
+    assert ranknet.across_hosts(cfg, b, {"lo": ["127.0.0.1"], "ib0": ["10.0.0.7"]}) == ("10.0.0.1:29500", "ib0")
+    with pytest.raises(ValueError, match=r"none of its addresses is in train.trusted_networks \(10.0.0.0/24\): lo: "
+                                         r"127.0.0.1; eth0: 192.168.1.5"):
+        ranknet.across_hosts(cfg, b, {"lo": ["127.0.0.1"], "eth0": ["192.168.1.5"]})
+    with pytest.raises(ValueError, match="10.0.0.1 is not an address of this host, the primary"):
+        ranknet.across_hosts(cfg, learner, {"eth1": ["10.0.0.2"]})
+    outside = load(hosts=TRAIN_HOSTS, train={**trusted, "trusted_networks": ["10.1.0.0/16"]})
+    with pytest.raises(ValueError, match=r"is outside train.trusted_networks \(10.1.0.0/16\): the ranks' channel has "
+                                         "no authentication"):
+        ranknet.across_hosts(outside, plan(outside, host="learner")[1], here)
+    for train, message in [({**trusted, "rendezvous": ""}, "needs HOST:PORT on the primary host"),
+                           ({**trusted, "trusted_networks": []}, "name the networks"),
+                           ({**trusted, "world_size": 3}, "learner: 0, b: 3 ranks"),
+                           ({**trusted, "trusted_networks": ["10.0.0.0/33"]}, "train.trusted_networks: ")]:
+        with pytest.raises(config.ConfigError, match=message):
+            load(hosts=TRAIN_HOSTS, train=train)
 
 
 def test_only_and_instance():
@@ -674,6 +712,89 @@ def test_three_hosts_over_tls_refuse_what_cannot_join_and_survive_a_kill_and_an_
                 run.proc.kill()
         assert learner.text.count("host 1 joined the run") == 2, learner.text
         assert summary(tmp_path / "learner")["iterations"] == 40
+    finally:
+        hosts.close()
+
+
+def ranks_across_hosts_config(tmp_path, hosts: Namespaces, trusted: str = "192.0.2.0/24") -> Path:
+    """The quickstart with two training ranks: rank 0 with generation on the learner, rank 1 with the
+    simulator on sim-0; they meet at the learner's address on the link, a network declared trusted."""
+    address = hosts.addresses["sim-0"]
+    cfg = tmp_path / "ranks.toml"
+    cfg.write_text((ROOT / "configs" / "quickstart.toml").read_text().replace("[train]\n", f"""[train]
+world_size = 2
+rendezvous = "{address}:29511"
+trusted_networks = ["{trusted}"]
+""") + f"""
+[hosts.learner]
+services = ["gen", "train"]
+listen = ["tls/{address}:7447"]
+
+[hosts.sim-0]
+services = ["train", "sim"]
+connect = ["tls/{address}:7447"]
+listen = ["tcp/127.0.0.1:7447"]
+""")
+    return cfg
+
+
+@pytest.mark.slow
+def test_two_training_ranks_on_two_hosts_hold_the_same_weights_and_a_lost_rank_stops_the_run(tmp_path):
+    """Training rank 0 on the learner, rank 1 on the simulation host (namespaces, TLS for the bus, gloo over the
+    trusted link): the run finishes on both hosts, every update checked on the ranks themselves to leave them
+    with the same weights (train/ranks_checked, none in train/ranks_diverged). A rendezvous outside the trusted
+    networks is refused before anything starts. Then the second host is killed mid-run: the learner says which
+    rank left and stops (exit 1), as docs/scaling-out.md says."""
+    import signal
+
+    from ebrl.viz import record
+
+    why = namespaces_unavailable()
+    if why:
+        print(f"SKIP namespace test: {why}")
+        pytest.skip(why)
+    hosts = Namespaces(1)
+    try:
+        files = tls_files(tmp_path / "tls", hosts)
+        cfg = ranks_across_hosts_config(tmp_path, hosts)
+        (tmp_path / "u").mkdir()
+        untrusted = ranks_across_hosts_config(tmp_path / "u", hosts, trusted="10.0.0.0/8")
+        refused = hosts.up("learner", untrusted, *hosts_sets(tmp_path / "u", "learner", files["learner"]))
+        assert refused.proc.wait(timeout=120) == 2
+        refused.join()
+        assert "is outside train.trusted_networks (10.0.0.0/8)" in refused.text, refused.text
+
+        runs = {"learner": hosts.up("learner", cfg, "run.iterations=6", *hosts_sets(tmp_path, "learner",
+                                                                                      files["learner"])),
+                "sim-0": hosts.up("sim-0", cfg, "run.iterations=6", *hosts_sets(tmp_path, "sim-0", files["sim"]))}
+        try:
+            for name, run in runs.items():
+                assert run.proc.wait(timeout=600) == 0, f"{name}:\n{run.text}"
+        finally:
+            for run in runs.values():
+                run.proc.kill()
+        (learner_dir,) = [p for p in (tmp_path / "learner").iterdir() if p.is_dir()]
+        reports = [r.metrics for r in record.read(learner_dir).stats if r.service == "train" and r.instance == 0]
+        last = reports[-1]
+        assert last["train/updates"] >= 6 and last["train/ranks_checked"] == last["train/updates"], last
+        assert "train/ranks_diverged" not in last
+        assert any(r.service == "train" and r.instance == 1 for r in record.read(learner_dir).stats)  # rank 1 seen
+        print(f"two hosts, two ranks: {last['train/updates']:.0f} updates, each checked ({runs['learner'].text.strip().splitlines()[-2]})")
+
+        runs = {"learner": hosts.up("learner", cfg, "run.iterations=0", *hosts_sets(tmp_path / "k", "learner",
+                                                                                      files["learner"])),
+                "sim-0": hosts.up("sim-0", cfg, "run.iterations=0", *hosts_sets(tmp_path / "k", "sim-0", files["sim"]))}
+        try:
+            runs["learner"].wait_for_line(lambda line: "iter " in line and int(line.split("iter ")[1].split()[0]) >= 2,
+                                          300, "iteration 2")
+            os.kill(runs["sim-0"].proc.pid, signal.SIGKILL)
+            assert runs["learner"].proc.wait(timeout=120) == 1
+            runs["learner"].join()
+            assert "training rank train/1 of another host left the run" in runs["learner"].text, runs["learner"].text
+            print([line for line in runs["learner"].text.splitlines() if "train/1" in line][:2])
+        finally:
+            for run in runs.values():
+                run.proc.kill()
     finally:
         hosts.close()
 

@@ -120,6 +120,11 @@ class Learner:
         out = learned.stats
         count_skipped(out, self.telemetry, self.version + 1)
         self.sync(self.version + 1)
+        if self.dp is not None:  # every rank, every update: a collective
+            self.telemetry.count("train/ranks_checked")
+            if not self.dp.weights_agree():
+                self.telemetry.count("train/ranks_diverged")
+                log.error("after the update to v%d the training ranks hold different weights", self.version + 1)
         self.version += 1
         return out
 

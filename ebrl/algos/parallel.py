@@ -102,6 +102,30 @@ def decode_command(payload: bytes, wire: ItemWire) -> Command:
     return Command(raw["kind"], None if raw["items"] is None else [wire.from_wire(item) for item in raw["items"]])
 
 
+def optimizer_to_wire(state: dict) -> dict:
+    """An optimizer's ``state_dict()`` as EBRL's codec carries it: tensors as arrays, tuples as lists."""
+    def plain(value: Any) -> Any:
+        if isinstance(value, torch.Tensor):
+            return value.detach().cpu().numpy()
+        if isinstance(value, (list, tuple)):
+            return [plain(v) for v in value]
+        if isinstance(value, dict):
+            return {k: plain(v) for k, v in value.items()}
+        return value
+    return {"state": [[index, plain(values)] for index, values in state["state"].items()],
+            "param_groups": plain(state["param_groups"])}
+
+
+def optimizer_from_wire(raw: Any) -> dict:
+    """:func:`optimizer_to_wire`'s dict back as ``Optimizer.load_state_dict`` takes it (checked for its shape)."""
+    if not isinstance(raw, dict) or not isinstance(raw.get("state"), list) or not isinstance(raw.get("param_groups"),
+                                                                                               list):
+        raise MessageError(f"not an optimizer state: {typecheck.describe(raw)}")
+    state = {int(index): {k: torch.from_numpy(np.array(v)) if isinstance(v, np.ndarray) else v
+                          for k, v in values.items()} for index, values in raw["state"]}
+    return {"state": state, "param_groups": raw["param_groups"]}
+
+
 def shards(items: Sequence, size: Callable[[Any], int], world: int) -> list[list]:
     """Cut ``items`` (in order) into ``world`` runs of about equal total ``size``; a run may be empty when
     there are fewer items than ranks."""
@@ -138,6 +162,7 @@ class DataParallel:
         init = address if "://" in address else f"tcp://{address}"
         dist.init_process_group(self.backend, init_method=init, rank=rank, world_size=world,
                                 timeout=datetime.timedelta(seconds=TIMEOUT_S))
+        self._share_optimizer_state(optimizer)
         self.names = [f"policy.{name}" for name, _ in policy.named_parameters()]  # optimizer index -> FQN
         if not shard:
             # No buffer sync in forward: a forward pass is no collective (ranks call value() a different number
@@ -160,6 +185,34 @@ class DataParallel:
         if restored["state"]:
             set_optimizer_state_dict(self.net, self.optimizer, self._by_name(restored),
                                      options=StateDictOptions(full_state_dict=True))
+
+    def _share_optimizer_state(self, optimizer: torch.optim.Optimizer) -> None:
+        """Every rank takes rank 0's optimizer state (its moments and steps, restored from a checkpoint where the
+        run resumed): ranks on other hosts have no checkpoint of their own, and ranks that step from different
+        moments would drift apart. Sent as EBRL's codec writes it (never a pickle), over one broadcast."""
+        device = self.device if self.backend == "nccl" else torch.device("cpu")
+        payload = codec.encode(optimizer_to_wire(optimizer.state_dict())) if self.rank == 0 else b""
+        size = torch.tensor([len(payload)], dtype=torch.int64, device=device)
+        dist.broadcast(size, src=0)
+        data = (torch.frombuffer(bytearray(payload), dtype=torch.uint8).to(device) if self.rank == 0
+                else torch.empty(int(size.item()), dtype=torch.uint8, device=device))
+        dist.broadcast(data, src=0)
+        if self.rank != 0:
+            optimizer.load_state_dict(optimizer_from_wire(codec.decode(data.cpu().numpy().tobytes())))
+
+    def weights_agree(self) -> bool:
+        """Whether every rank holds the same weights (DDP; sharded ones are one copy by construction): each
+        tensor's sum in float64, gathered from every rank and compared exactly. A collective: every rank calls it
+        after every update."""
+        if self.shard:
+            return True
+        with torch.no_grad():
+            sums = torch.stack([t.detach().double().sum() for t in self.policy.state_dict().values()])
+        if self.backend != "nccl":
+            sums = sums.cpu()
+        gathered = [torch.empty_like(sums) for _ in range(self.world)]
+        dist.all_gather(gathered, sums)
+        return all(torch.equal(gathered[0], other) for other in gathered[1:])
 
     @contextlib.contextmanager
     def gathered(self) -> Iterator[None]:

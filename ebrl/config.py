@@ -481,7 +481,8 @@ class VizSection(Section):
     window_s: float = doc("seconds of history the live Gantt shows while following the present", 20.0)
     spans: bool = doc("publish timeline spans; false keeps only the busy/<lane> stats (for overhead measurements)",
                       True)
-    record: bool = doc("record every stats report, span and event of the run to RUN_DIR/stats.msgpack", True)
+    record: bool = doc("record every stats report, span and event of the run to RUN_DIR/stats.msgpack (on the "
+                       "primary host of several)", True)
     report: bool = doc("write RUN_DIR/report/ (Gantt PNG, throughput PNG, report.md) when the run ends", True)
 
 

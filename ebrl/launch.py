@@ -158,7 +158,8 @@ class LauncherBus:
                                   groups=groups, planned=self.planned, shares=shares))
         mine = [self.local, *(e for e in listen if e != self.local)] if endpoint else []  # scripts take the first
         (run_dir / "bus.json").write_text(json.dumps({"listen": mine, "run": self.run}) + "\n")
-        self.recorder = record.Recorder(run_dir / record.FILENAME) if cfg.viz.record else None
+        # the primary records the run; another host's launcher would draw every span across the link for a copy
+        self.recorder = record.Recorder(run_dir / record.FILENAME) if cfg.viz.record and plan.primary else None
         if self.recorder is not None:
             self.bus.subscribe_raw(keys.stats_all(self.run), self.recorder.write)
         self._seq = 0

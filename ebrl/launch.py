@@ -33,7 +33,6 @@ from pathlib import Path
 from typing import Callable
 
 from ebrl import config as config_mod, prepare, procenv, stall
-from ebrl.ranknet import across_hosts
 from ebrl.bus import auth, keys
 from ebrl.bus.session import Bus, BusOptions
 from ebrl.bus.endpoints import (address_in_use, config_file_connect, config_file_listen, free_port,
@@ -42,6 +41,7 @@ from ebrl.bus.joincheck import await_link, diagnose
 from ebrl.bus.zlog import ZenohLog
 from ebrl.hosts import PRIMARY_LOST_S, HostPlan, Membership, enabled_roles, planned_instances, sim_hosts
 from ebrl.messages import Event, GpuShare, StatsReport, Stop
+from ebrl.ranknet import across_hosts
 from ebrl.weights import known_version
 from ebrl.runview import Console, RunView, summary as run_summary, warm_report, write_report, write_summary
 from ebrl.sched.modes import resolve
@@ -153,8 +153,7 @@ class LauncherBus:
         self.bus = Bus(BusOptions(mode="router" if plan.multi or cfg.bus.mode == "client" else "peer",
                                   listen=listen, connect=list(cfg.bus.connect), config_file=cfg.bus.config_file,
                                   secret_file=secret, file_listen_wins=True, local=self.local, role="launcher",
-                                  run=self.run,
-                                  host=plan.instance, instances=instances, dictionary_file=dictionary,
+                                  run=self.run, host=plan.instance, instances=instances, dictionary_file=dictionary,
                                   groups=groups, planned=self.planned, shares=shares))
         mine = [self.local, *(e for e in listen if e != self.local)] if endpoint else []  # scripts take the first
         (run_dir / "bus.json").write_text(json.dumps({"listen": mine, "run": self.run}) + "\n")

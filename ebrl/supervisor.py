@@ -145,7 +145,8 @@ def child_env(child: Child, gpu_env: dict[str, dict[str, str]], role_env: dict[s
         env.update(procenv.service_env(dist_addr=dist_addr))
         if train_ranks > 1:  # gloo's and NCCL's connections between the ranks: on this host, or the trusted network
             env.setdefault("GLOO_SOCKET_IFNAME", interface)
-            env.setdefault("NCCL_SOCKET_IFNAME", interface)
+            if interface != "lo":  # NCCL on one host needs no socket interface of ours
+                env.setdefault("NCCL_SOCKET_IFNAME", interface)
     env["PYTHONPATH"] = str(Path(__file__).resolve().parent.parent) + os.pathsep + env.get("PYTHONPATH", "")
     return env
 

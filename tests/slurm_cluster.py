@@ -53,14 +53,14 @@ class Cluster:
         node = socket.gethostname()
         conf = where / "slurm.conf"
         conf.write_text("\n".join([
-            "ClusterName=ebrltest", f"SlurmctldHost={node}", "SlurmUser=root", "SlurmdUser=root",
+            "ClusterName=ebrltest", f"SlurmctldHost={node}(127.0.0.1)", "SlurmUser=root", "SlurmdUser=root",
             "AuthType=auth/munge", f"StateSaveLocation={where / 'state'}", f"SlurmdSpoolDir={where / 'spool'}",
             f"SlurmctldPidFile={where / 'slurmctld.pid'}", f"SlurmdPidFile={where / 'slurmd.pid'}",
             f"SlurmctldLogFile={where / 'log' / 'slurmctld.log'}", f"SlurmdLogFile={where / 'log' / 'slurmd.log'}",
             f"SlurmctldPort={_free_port()}", f"SlurmdPort={_free_port()}", "ProctrackType=proctrack/linuxproc",
             "TaskPlugin=task/none", "JobAcctGatherType=jobacct_gather/none", "SelectType=select/cons_tres",
             "SelectTypeParameters=CR_Core", "ReturnToService=2", "MpiDefault=none",
-            f"NodeName={node} CPUs={os.cpu_count()} RealMemory=1000 State=UNKNOWN",
+            f"NodeName={node} NodeAddr=127.0.0.1 CPUs={os.cpu_count()} RealMemory=1000 State=UNKNOWN",
             "PartitionName=debug Nodes=ALL Default=YES MaxTime=INFINITE State=UP", ""]))
         repo = str(Path(__file__).resolve().parent.parent)  # the jobs import this checkout's ebrl
         self.env = {**os.environ, "SLURM_CONF": str(conf),

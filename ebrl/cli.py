@@ -90,7 +90,8 @@ def _args_stats(p: argparse.ArgumentParser) -> None:
                    help="bus endpoint of the run (its launcher; default: from RUN_DIR/bus.json, else "
                         "tcp/127.0.0.1:7447)")
     p.add_argument("--spans", action="store_true", help="also print timeline spans")
-    p.add_argument("--count", type=int, default=0, help="exit after this many messages (0: until Ctrl-C)")
+    p.add_argument("--count", type=int, default=0,
+                   help="exit after this many messages (0: until the run ends, or Ctrl-C when following every run)")
     p.add_argument("--json", action="store_true", help="one JSON object per line (its key, then its fields)")
 
 

@@ -99,10 +99,13 @@ def format_message(key: str, msg: dict) -> str:
 
 def command(connect: str | None, run: str | None, spans: bool = False, count: int = 0, secret: str = "",
             as_json: bool = False) -> int:
-    """``ebrl stats``: print stats (and spans) until Ctrl-C or ``count`` messages; ``as_json``: each as one JSON
-    object (its key, then its fields). ``secret``: the run's secret file (or its directory), signing in as an
-    observer; empty for a run with ``bus.auth = false``. ``connect`` None: the endpoint in the run directory's
-    ``bus.json``, else the default port."""
+    """``ebrl stats``: print stats (and spans) until the run ends, Ctrl-C or ``count`` messages; ``as_json``: each
+    as one JSON object (its key, then its fields). ``secret``: the run's secret file (or its directory), signing
+    in as an observer; empty for a run with ``bus.auth = false``. ``connect`` None: the endpoint in the run
+    directory's ``bus.json``, else the default port. With one run to follow (``run``, or the run of that
+    directory) it ends, exit 0, once the run's launchers have left the bus, as :func:`stream` does; with every
+    run, at Ctrl-C."""
+    run = run or (_run_of(secret) if secret else None)
     selector = keys.stats() if run is None else keys.stats_all(run)
     inbox: queue.Queue = queue.Queue(maxsize=10_000)
     signal.signal(signal.SIGINT, lambda *_: inbox.put(None))
@@ -133,15 +136,38 @@ def command(connect: str | None, run: str | None, spans: bool = False, count: in
                 print(f"{key}: dropped ({exc})")
 
         session.declare_subscriber(selector, on_sample)
+        if run is not None:
+            _end_with_the_run(session, run, inbox)
         seen = 0
         while count == 0 or seen < count:
             item = inbox.get()
-            if item is None:
+            if item is None:  # Ctrl-C, or the run ended (what it sent before came first)
                 break
             key, msg = item
             print(json.dumps({"key": key, **msg}, default=_plain) if as_json else format_message(key, msg), flush=True)
             seen += 1
     return 0
+
+
+def _run_of(secret: str) -> str | None:
+    """The run of a run directory (or of its secret file's directory), from its ``bus.json``; None elsewhere."""
+    where = Path(secret)
+    try:
+        return json.loads(((where if where.is_dir() else where.parent) / "bus.json").read_text())["run"]
+    except (OSError, ValueError, KeyError):
+        return None
+
+
+def _end_with_the_run(session: zenoh.Session, run: str, inbox: queue.Queue) -> None:
+    """Put the end (None) into ``inbox`` once every launcher of ``run`` that was on the bus has left it."""
+    launchers: set[str] = set()
+
+    def on_token(sample: zenoh.Sample) -> None:
+        (launchers.add if sample.kind == zenoh.SampleKind.PUT else launchers.discard)(str(sample.key_expr))
+        if not launchers:
+            inbox.put(None)
+
+    session.liveliness().declare_subscriber(keys.live(run, "launcher", "*"), on_token, history=True)
 
 
 def _plain(value):

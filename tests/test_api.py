@@ -45,11 +45,14 @@ def test_a_script_trains_with_ebrl_train_while_scripts_and_ebrl_stats_follow_the
         out.wait_for_line(lambda line: "all services live" in line, 300, "every service live")
         watchers = [subprocess.Popen([sys.executable, *args], stdout=subprocess.PIPE, text=True, env=env) for args in
                     ([str(ROOT / "examples" / "subscribe_stats.py"), str(run_dir), "60"],
-                     ["-m", "ebrl.cli", "stats", str(run_dir), "--json", "--count", "3"])]
+                     ["-m", "ebrl.cli", "stats", str(run_dir), "--json", "--count", "3"],
+                     ["-m", "ebrl.cli", "stats", str(run_dir), "--json"])]  # this one until the run ends
         versions = [r.metrics["train/policy_version"] for r in ebrl.watch(run_dir, idle_timeout=120)
                     if r.service == "train"]  # it ends by itself when the run does
         assert proc.wait(120) == 0, out.text
         as_json, _ = watchers[1].communicate(timeout=60)
+        to_the_end, _ = watchers[2].communicate(timeout=60)  # it ends by itself, as ebrl.watch does
+        assert watchers[2].returncode == 0
     finally:
         for p in (proc, *watchers):
             p.kill()
@@ -58,6 +61,8 @@ def test_a_script_trains_with_ebrl_train_while_scripts_and_ebrl_stats_follow_the
     assert versions and max(versions) == 3 and versions == sorted(versions)
     lines = [json.loads(line) for line in as_json.splitlines()]
     assert len(lines) == 3 and all(line["key"].startswith("ebrl/stats/e2e/") for line in lines)
+    followed = [json.loads(line) for line in to_the_end.splitlines()]
+    assert any(line.get("service") == "train" and line["metrics"].get("train/policy_version") == 3 for line in followed)
     assert "e2e:" in plain and "env steps/s" in plain  # decoded stats reached a plain zenoh script
     assert len((ROOT / "examples" / "subscribe_stats.py").read_text().splitlines()) < 15  # docs/stats.md's promise
     text = out.text

@@ -10,8 +10,24 @@ import argparse
 import sys
 
 
+UP_EXAMPLES = """examples:
+  ebrl up quickstart                        a stock config by name (`ebrl configs` lists them)
+  ebrl up configs/my_run.toml --set run.iterations=50 --set train.lr=1e-4
+  ebrl up quickstart --viz web              the live timeline in a browser
+  ebrl up quickstart --resume runs/quickstart-20261129-101500
+  ebrl up my_run.toml --host learner        one host of a run over several ([hosts] in the config)
+
+It prints the run's directory first, then a progress line; the run ends at run.iterations,
+run.target_return or run.target_success (Ctrl-C stops it cleanly). Config keys: `ebrl config`;
+docs: README.md and docs/."""
+
+
 def _args_up(p: argparse.ArgumentParser) -> None:
-    p.add_argument("config", help="path to a config, e.g. configs/quickstart.toml")
+    p.description = ("Start a training run: every service of the config (simulators, generation, training, ...)\n"
+                     "as its own process on this host, supervised until the run ends.")
+    p.epilog = UP_EXAMPLES
+    p.formatter_class = argparse.RawDescriptionHelpFormatter
+    p.add_argument("config", help="a config file (TOML), or a stock config's name, e.g. quickstart")
     p.add_argument("--set", action="append", default=[], dest="overrides", metavar="SECTION.KEY=VALUE",
                    help="override one config value (TOML syntax), e.g. --set run.iterations=2")
     p.add_argument("--viz", nargs="?", const="spawn", default=None, choices=("spawn", "serve", "web", "save", "off"),
@@ -289,13 +305,30 @@ def _args_configs(p: argparse.ArgumentParser) -> None:
     pass
 
 
+def first_sentence(text: str) -> str:
+    """The first sentence of a config's opening comment (its lines joined, up to the first full stop)."""
+    import re
+
+    lines = []
+    for line in text.splitlines():
+        if not line.startswith("#") or line.startswith("#  "):  # the comment ends, or an indented example begins
+            break
+        lines.append(line.lstrip("#").strip())
+    joined = " ".join(lines)
+    found = re.search(r"^(.*?[.])(\s|$)", joined)
+    return found.group(1) if found else joined
+
+
 def _run_configs(args: argparse.Namespace) -> int:
+    import shutil
+    import textwrap
+
     from ebrl import config
 
+    width = max(60, shutil.get_terminal_size((100, 24)).columns)
     for name, path in config.stock_configs().items():
-        first = next((line.lstrip("# ").strip() for line in path.read_text().splitlines() if line.startswith("#")),
-                     "")
-        print(f"{name:<26} {first}")
+        print(textwrap.fill(first_sentence(path.read_text()), width, initial_indent=f"{name:<26} ",
+                            subsequent_indent=" " * 27, break_on_hyphens=False))
     return 0
 
 

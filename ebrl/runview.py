@@ -416,11 +416,6 @@ def write_report(run_dir: Path) -> str:
     return f"report: {paths['markdown']} (Gantt: {paths['gantt']}{curves})"
 
 
-def clock(seconds: float) -> str:
-    s = int(seconds)
-    return f"{s // 3600}:{s // 60 % 60:02d}:{s % 60:02d}"
-
-
 @dataclasses.dataclass(frozen=True)
 class Progress:
     """Training iterations done (``n`` of ``total``; None: until Ctrl-C) after ``wall_s`` seconds, and the run's

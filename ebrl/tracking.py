@@ -120,8 +120,10 @@ class TensorBoardSink:
         experiment, start, self._end = hparams_summaries(flat_config(info.config), HPARAM_METRICS)
         self._add(experiment)
         self._add(start)
-        self._add(text_summary("config", _code_block(info.config_toml)), step=0)
-        self._add(text_summary("meta", _code_block(json.dumps(info.meta, indent=2))), step=0)
+        from tensorboard.plugins.text.summary_v2 import text_pb  # TensorBoard's own record, no TensorFlow
+
+        self._add(text_pb("config", _code_block(info.config_toml)), step=0)
+        self._add(text_pb("meta", _code_block(json.dumps(info.meta, indent=2))), step=0)
 
     def _add(self, summary: Any, step: int | None = None, wall_time: float | None = None) -> None:
         event = self._event(summary=summary, wall_time=time.time() if wall_time is None else wall_time)
@@ -143,20 +145,6 @@ class TensorBoardSink:
     def close(self) -> None:
         self._add(self._end)
         self.writer.close()
-
-
-def text_summary(tag: str, text: str) -> Any:
-    """A TensorBoard text summary (the text plugin's record: one string tensor under ``TAG/text_summary``)."""
-    from tensorboard.compat.proto.summary_pb2 import Summary, SummaryMetadata
-    from tensorboard.compat.proto.tensor_pb2 import TensorProto
-    from tensorboard.compat.proto.tensor_shape_pb2 import TensorShapeProto
-    from tensorboard.plugins.text.plugin_data_pb2 import TextPluginData
-
-    metadata = SummaryMetadata(plugin_data=SummaryMetadata.PluginData(
-        plugin_name="text", content=TextPluginData(version=0).SerializeToString()))
-    tensor = TensorProto(dtype="DT_STRING", string_val=[text.encode("utf-8")],
-                         tensor_shape=TensorShapeProto(dim=[TensorShapeProto.Dim(size=1)]))
-    return Summary(value=[Summary.Value(tag=f"{tag}/text_summary", metadata=metadata, tensor=tensor)])
 
 
 def hparams_summaries(params: dict[str, str | float | int], metrics: Iterable[str]) -> tuple[Any, Any, Any]:

@@ -8,6 +8,7 @@ import json
 import os
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import pytest
@@ -50,9 +51,11 @@ def test_a_script_trains_with_ebrl_train_while_scripts_and_ebrl_stats_follow_the
         versions = [r.metrics["train/policy_version"] for r in ebrl.watch(run_dir, idle_timeout=120)
                     if r.service == "train"]  # it ends by itself when the run does
         assert proc.wait(120) == 0, out.text
+        ended = time.monotonic()
         as_json, _ = watchers[1].communicate(timeout=60)
         to_the_end, _ = watchers[2].communicate(timeout=60)  # it ends by itself, as ebrl.watch does
         assert watchers[2].returncode == 0
+        print(f"ebrl stats RUN_DIR --json ended {time.monotonic() - ended:.1f} s after the run's script")
     finally:
         for p in (proc, *watchers):
             p.kill()
@@ -95,3 +98,8 @@ def test_stock_configs_run_by_name_and_copy_with_their_bases(tmp_path):
     listed = subprocess.run([sys.executable, "-m", "ebrl.cli", "configs"], capture_output=True, text=True,
                             cwd=ROOT, check=True).stdout
     assert listed.splitlines()[0].split()[0] in config.stock_configs() and "quickstart" in listed
+    from ebrl.cli import first_sentence
+
+    for name, path in config.stock_configs().items():  # each described by a whole sentence, none cut short
+        described = first_sentence(path.read_text())
+        assert described.endswith(".") and " ".join(described.split()) in " ".join(listed.split()), name

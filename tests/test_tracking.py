@@ -207,11 +207,10 @@ def test_the_log_service_writes_tensorboard_and_csv_from_reports_on_the_bus(tmp_
     # report of 1000 v env steps)
     assert [(e.step, e.value) for e in acc.Scalars("eval/success_rate")] == [(2000, 0.25), (4000, 0.75)]
     assert [e.step for e in acc.Scalars("train/approx_kl")] == [1000, 2000, 4000]  # the NaN is not there
-    assert {"config/text_summary", "meta/text_summary"} <= set(acc.Tags()["tensors"])
-    texts = {t: acc.Tensors(t)[0].tensor_proto.string_val[0].decode() for t in acc.Tags()["tensors"]
-             if t.endswith("/text_summary")}  # (the hparams records are tensors too)
-    assert f'name = "{RUN}"' in texts["config/text_summary"] and "[log]" in texts["config/text_summary"]
-    assert '"ebrl_version"' in texts["meta/text_summary"] and '"packages"' in texts["meta/text_summary"]
+    assert {"config", "meta"} <= set(acc.PluginTagToContent("text"))  # the text plugin's records
+    texts = {t: acc.Tensors(t)[0].tensor_proto.string_val[0].decode() for t in ("config", "meta")}
+    assert f'name = "{RUN}"' in texts["config"] and "[log]" in texts["config"]
+    assert '"ebrl_version"' in texts["meta"] and '"packages"' in texts["meta"]
     hparams = acc.PluginTagToContent("hparams")
     assert hparams, "no hparams"  # the experiment and the session's start (the config's values)
     assert any(b"run.seed" in content for content in hparams.values())

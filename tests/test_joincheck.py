@@ -12,6 +12,7 @@ import socket
 import subprocess
 import sys
 import textwrap
+import time
 
 import pytest
 import zenoh
@@ -116,6 +117,39 @@ def tls(tmp_path_factory):
     session.close()
 
 
+def test_a_learner_that_comes_up_late_is_waited_for_and_joined_not_called_a_refused_sign_in(tls):
+    """A real joining router (Zenoh's own retries) whose learner starts listening 7 s later: the probes say
+    nothing listens yet, then that it answers; the link Zenoh's next try makes ends the wait (a probe alone
+    would have called the answer a refused sign-in)."""
+    import threading
+
+    endpoint = f"tls/127.0.0.1:{free_port()}"
+    joining = zenoh.Config.from_file(str(tlscerts.zenoh_tls(tls["where"] / "right.json5", tls["right"])))
+    joining.insert_json5("mode", '"router"')
+    joining.insert_json5("listen/endpoints", json.dumps([f"tcp/127.0.0.1:{free_port()}"]))
+    joining.insert_json5("connect/endpoints", json.dumps([endpoint]))
+    joining.insert_json5("scouting/multicast/enabled", "false")
+    learner = zenoh.Config.from_file(str(tls["where"] / "learner.json5"))
+    learner.insert_json5("mode", '"router"')
+    learner.insert_json5("listen/endpoints", json.dumps([endpoint]))
+    learner.insert_json5("scouting/multicast/enabled", "false")
+    sessions = []
+    late = threading.Timer(7.0, lambda: sessions.append(zenoh.open(learner)))
+    said: list[str] = []
+    with zenoh.open(joining) as session:
+        late.start()
+        try:
+            problem = asyncio.run(await_link(lambda: bool(list(session.info.routers_zid())), [endpoint],
+                                             lambda e: diagnose(e, str(tls["where"] / "right.json5"), "/s", "r"),
+                                             said.append, 60.0))
+        finally:
+            late.join()
+            for opened in sessions:
+                opened.close()
+    assert problem is None, problem
+    assert said and said[0].startswith(f"nothing listens at {endpoint} yet"), said
+
+
 def test_a_certificate_from_another_ca_is_named_with_the_ca_it_was_checked_against(tls):
     config = tlscerts.zenoh_tls(tls["where"] / "wrong.json5", tls["wrong"])
     cause = diagnose(tls["endpoint"], str(config))
@@ -167,6 +201,16 @@ def test_await_link_stops_on_a_final_cause_waits_on_the_rest_and_ends_with_the_l
     assert said == ["nothing listens at b yet; waiting for it (at most run.startup_timeout = 0.3 s)"]
     calls = iter([False] * 3 + [True] * 100)
     assert run(lambda: next(calls), final, check_after=30.0) is None  # the link came before the check
+    # an endpoint that answers (a learner that has just come up) is a refused sign-in only after the grace
+    answers = {"a": Cause("a", "a refused this host's sign-in", reached=True),
+               "b": Cause("b", "b refused this host's sign-in", reached=True)}
+    started = time.monotonic()
+    assert asyncio.run(await_link(lambda: False, ["a", "b"], lambda e: answers[e], said.append, 30.0, 0.05,
+                                  grace_s=1.0)) == "a refused this host's sign-in; b refused this host's sign-in"
+    assert time.monotonic() - started >= 1.0
+    linked_soon = iter([False] * 8 + [True] * 100)  # Zenoh's next try links it within the grace
+    assert asyncio.run(await_link(lambda: next(linked_soon), ["a"], lambda e: answers[e], said.append, 30.0, 0.05,
+                                  grace_s=5.0)) is None
 
 
 def test_a_missing_certificate_is_a_config_error_naming_it(tmp_path):

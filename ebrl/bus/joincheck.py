@@ -23,8 +23,12 @@ import time
 from dataclasses import dataclass
 from typing import Callable
 
-JOIN_CHECK_S = 8.0  # a joining host with no link this long after its bus opened looks for the cause
+JOIN_CHECK_S = 5.0  # a joining host with no link this long after its bus opened looks for the cause
 PROBE_TIMEOUT_S = 3.0  # each probe's connect and handshake
+# how long the far end must have been reachable (its handshake through) before no link means a refused sign-in:
+# Zenoh tries a connect endpoint again after at most 4 s (connect/retry/period_max_ms), so a learner that has
+# just come up is linked by then
+SIGN_IN_GRACE_S = 5.0
 CERTIFICATE_KEYS = ("root_ca_certificate", "listen_private_key", "listen_certificate", "connect_private_key",
                     "connect_certificate")
 
@@ -36,6 +40,7 @@ class Cause:
     endpoint: str
     line: str
     final: bool = True
+    reached: bool = False  # the far end answered (its handshake went through): all that is left is the sign-in
 
 
 def tls_settings(config_file: str) -> dict:
@@ -136,31 +141,42 @@ def diagnose(endpoint: str, config_file: str = "", secret_file: str = "", run: s
                                        " (is it a tls/ endpoint? do both sides' certificates match bus.config_file?)")
     if secret_file:
         return Cause(endpoint, f"{endpoint} refused this host's sign-in: bus.secret_file = {secret_file!r} is not the "
-                               f"secret of run {run!r} there (copy the primary host's file here, mode 0600)")
+                               f"secret of run {run!r} there (copy the primary host's file here, mode 0600)",
+                     reached=True)
     return Cause(endpoint, f"{endpoint} answers, but no Zenoh session formed with it (is it a launcher or an `ebrl "
-                           "router` of this run, with bus.auth as here? Zenoh's own log says more: RUST_LOG=debug)")
+                           "router` of this run, with bus.auth as here? Zenoh's own log says more: RUST_LOG=debug)",
+                 reached=True)
 
 
 async def await_link(linked: Callable[[], bool], endpoints: list[str], probe: Callable[[str], Cause],
-                     say: Callable[[str], None], patience_s: float, check_after_s: float = JOIN_CHECK_S) -> str | None:
+                     say: Callable[[str], None], patience_s: float, check_after_s: float = JOIN_CHECK_S,
+                     grace_s: float = SIGN_IN_GRACE_S) -> str | None:
     """Wait until ``linked()``; None once it is. Where it is not after ``check_after_s``, ``probe`` each endpoint
     (in a thread: it blocks): a cause that will not mend on every endpoint is returned as the line to stop with;
     an endpoint where nothing listens yet is said once and waited for, until ``patience_s`` in all (then its
-    cause is returned)."""
+    cause is returned). An endpoint that answers without a link is a refused sign-in only once it has answered
+    for ``grace_s`` (Zenoh's next try would have linked a learner that had just come up)."""
     start = time.monotonic()
     next_check, waiting_said = start + check_after_s, False
+    reached_at: dict[str, float] = {}
     while not linked():
         now = time.monotonic()
         if now >= next_check:
             causes = await asyncio.to_thread(lambda: [probe(endpoint) for endpoint in endpoints])
             if linked():
                 return None
-            if all(cause.final for cause in causes) or time.monotonic() - start >= patience_s:
+            now = time.monotonic()
+            for cause in causes:  # since when each endpoint answers
+                if cause.reached:
+                    reached_at.setdefault(cause.endpoint, now)
+                else:
+                    reached_at.pop(cause.endpoint, None)
+            final = [c.final and (not c.reached or now - reached_at[c.endpoint] >= grace_s) for c in causes]
+            if all(final) or now - start >= patience_s:
                 return "; ".join(cause.line for cause in causes)
-            if not waiting_said:
-                say("; ".join(cause.line for cause in causes if not cause.final)
-                    + f"; waiting for it (at most run.startup_timeout = {patience_s:g} s)")
+            if not waiting_said and (absent := [c.line for c in causes if not c.final]):
+                say("; ".join(absent) + f"; waiting for it (at most run.startup_timeout = {patience_s:g} s)")
                 waiting_said = True
-            next_check = time.monotonic() + 2.0
+            next_check = now + 1.0
         await asyncio.sleep(0.1)
     return None

@@ -71,6 +71,7 @@ class ZenohLog:
         self._peers: dict[str, str] = {}  # thread -> the address it accepted a link from last
         self._said: dict[str, float] = {}
         self._saved: tuple[int, object] | None = None  # descriptor 1's copy, and sys.stdout before
+        self.everything = False  # RUST_LOG set: the user asked for Zenoh's log, every line of it passes
         self._thread: threading.Thread | None = None
 
     def start(self, level_filter: str = FILTER) -> bool:
@@ -98,6 +99,7 @@ class ZenohLog:
             self.passthrough = sys.stderr
         self._thread = threading.Thread(target=self._read, args=(read,), name="zenoh-log", daemon=True)
         self._thread.start()
+        self.everything = bool(os.environ.get("RUST_LOG"))
         zenoh.init_log_from_env_or(level_filter)  # RUST_LOG, where set, wins: its lines pass through as well
         return True
 
@@ -120,10 +122,9 @@ class ZenohLog:
         thread, target, text = parsed["thread"], parsed["target"], parsed["text"]
         if accepted := ACCEPTED.search(text):
             self._peers[thread] = accepted["peer"]
-            return
         said = refusal(target, text, self._peers.get(thread))
         if said is None:
-            if parsed["level"] in ("WARN", "ERROR"):
+            if parsed["level"] in ("WARN", "ERROR") or self.everything:
                 print(f"zenoh: {parsed['level'].lower()}: {target}: {text}", file=self.passthrough, flush=True)
             return
         self.refused += 1

@@ -25,6 +25,10 @@ def test_the_wheel_runs_the_quickstart_by_name_outside_the_repository(tmp_path):
     names = zipfile.ZipFile(wheel).namelist()
     assert "ebrl/services/gen.py" in names and "ebrl/configs/quickstart.toml" in names
     assert not any(n.startswith(("services/", "tests/", "configs/")) for n in names)  # no top-level packages
+    dist = next(n.split("/")[0] for n in names if n.endswith(".dist-info/METADATA"))
+    assert f"{dist}/licenses/LICENSE" in names  # Apache-2.0, its text as the repository has it
+    metadata = zipfile.ZipFile(wheel).read(f"{dist}/METADATA").decode()
+    assert "License-Expression: Apache-2.0" in metadata and "Classifier: Intended Audience :: Science/Research" in metadata
 
     venv = tmp_path / "venv"
     subprocess.run([sys.executable, "-m", "venv", str(venv)], check=True, timeout=120)

@@ -5,6 +5,7 @@ object per line, for other tools)."""
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import queue
@@ -13,7 +14,7 @@ import sys
 import threading
 import time
 from pathlib import Path
-from typing import Iterator
+from typing import Callable, Iterator
 
 import zenoh
 
@@ -50,14 +51,9 @@ def stream(run_dir: str | os.PathLike, *, connect: str | None = None, everything
         for report in ebrl.watch("runs/quickstart-20261126-101500"):
             print(report.service, report.metrics.get("train/policy_version"))
     """
-    run_dir = Path(run_dir)
-    try:
-        run = json.loads((run_dir / "bus.json").read_text())["run"]
-    except (OSError, ValueError, KeyError) as exc:
-        raise FileNotFoundError(f"{run_dir}: not a started run's directory (no bus.json: {exc})") from None
+    run = run_of(run_dir)
     inbox: queue.Queue = queue.Queue(maxsize=10_000)
-    launchers: set[str] = set()
-    ended = threading.Event()
+    ended = threading.Event()  # the run ended (its last reports came before its launchers left)
 
     def on_sample(sample: zenoh.Sample) -> None:
         try:
@@ -70,14 +66,9 @@ def stream(run_dir: str | os.PathLike, *, connect: str | None = None, everything
             except queue.Full:  # the reader fell behind: dropped
                 pass
 
-    def on_token(sample: zenoh.Sample) -> None:
-        (launchers.add if sample.kind == zenoh.SampleKind.PUT else launchers.discard)(str(sample.key_expr))
-        if not launchers:
-            ended.set()  # the run ended (its last reports came before its launcher left)
-
     with zenoh.open(observer_config(run_dir, connect)) as session:
         session.declare_subscriber(keys.stats_all(run), on_sample)
-        session.liveliness().declare_subscriber(keys.live(run, "launcher", "*"), on_token, history=True)
+        when_launchers_leave(session, run, ended.set)
         last = time.monotonic()
         while True:
             try:
@@ -105,7 +96,10 @@ def command(connect: str | None, run: str | None, spans: bool = False, count: in
     directory's ``bus.json``, else the default port. With one run to follow (``run``, or the run of that
     directory) it ends, exit 0, once the run's launchers have left the bus, as :func:`stream` does; with every
     run, at Ctrl-C."""
-    run = run or (_run_of(secret) if secret else None)
+    if run is None and secret:  # the run of that directory (or of the directory of that secret file)
+        where = Path(secret)
+        with contextlib.suppress(FileNotFoundError):
+            run = run_of(where if where.is_dir() else where.parent)
     selector = keys.stats() if run is None else keys.stats_all(run)
     inbox: queue.Queue = queue.Queue(maxsize=10_000)
     signal.signal(signal.SIGINT, lambda *_: inbox.put(None))
@@ -137,7 +131,7 @@ def command(connect: str | None, run: str | None, spans: bool = False, count: in
 
         session.declare_subscriber(selector, on_sample)
         if run is not None:
-            _end_with_the_run(session, run, inbox)
+            when_launchers_leave(session, run, lambda: inbox.put(None))
         seen = 0
         while count == 0 or seen < count:
             item = inbox.get()
@@ -149,23 +143,23 @@ def command(connect: str | None, run: str | None, spans: bool = False, count: in
     return 0
 
 
-def _run_of(secret: str) -> str | None:
-    """The run of a run directory (or of its secret file's directory), from its ``bus.json``; None elsewhere."""
-    where = Path(secret)
+def run_of(run_dir: str | os.PathLike) -> str:
+    """The run's name, from ``RUN_DIR/bus.json``; FileNotFoundError where it is not a started run's directory."""
     try:
-        return json.loads(((where if where.is_dir() else where.parent) / "bus.json").read_text())["run"]
-    except (OSError, ValueError, KeyError):
-        return None
+        return json.loads((Path(run_dir) / "bus.json").read_text())["run"]
+    except (OSError, ValueError, KeyError) as exc:
+        raise FileNotFoundError(f"{run_dir}: not a started run's directory (no bus.json: {exc})") from None
 
 
-def _end_with_the_run(session: zenoh.Session, run: str, inbox: queue.Queue) -> None:
-    """Put the end (None) into ``inbox`` once every launcher of ``run`` that was on the bus has left it."""
+def when_launchers_leave(session: zenoh.Session, run: str, ended: Callable[[], None]) -> None:
+    """Call ``ended()`` (on Zenoh's thread) once every launcher of ``run`` that was on the bus has left it: the
+    run ended. (A subscriber with a callback lives as long as the session.)"""
     launchers: set[str] = set()
 
     def on_token(sample: zenoh.Sample) -> None:
         (launchers.add if sample.kind == zenoh.SampleKind.PUT else launchers.discard)(str(sample.key_expr))
         if not launchers:
-            inbox.put(None)
+            ended()
 
     session.liveliness().declare_subscriber(keys.live(run, "launcher", "*"), on_token, history=True)
 

@@ -491,6 +491,13 @@ def test_ebrl_router_relays_between_hosts_and_prints_who_joined():
 # --- separate hosts: network namespaces -----------------------------------------------------------------
 
 
+def skip_without_namespaces() -> None:
+    """Skip, saying why (in the output, where CI shows it), where hosts cannot be namespaces here."""
+    if why := namespaces_unavailable():
+        print(f"SKIP namespace test: {why}")
+        pytest.skip(why)
+
+
 def namespaced_run(tmp_path, sims: int, iterations: int) -> tuple[list[str], dict]:
     """One run over ``sims`` + 1 namespaces over TLS: gen+train in ``learner``, one sim host per namespace."""
     hosts = Namespaces(sims)
@@ -517,10 +524,7 @@ def namespaced_run(tmp_path, sims: int, iterations: int) -> tuple[list[str], dic
 
 @pytest.mark.slow
 def test_sim_and_learner_in_separate_network_namespaces_train(tmp_path):
-    why = namespaces_unavailable()
-    if why:
-        print(f"SKIP namespace test: {why}")
-        pytest.skip(why)
+    skip_without_namespaces()
     (learner, sim), done = namespaced_run(tmp_path, sims=1, iterations=4)
     assert done["iterations"] == 4 and done["env_steps"] > 0 and done["segments"] > 0
     assert "host 1 joined the run" in learner and "the primary host ended the run" in sim
@@ -555,10 +559,7 @@ def test_three_hosts_over_tls_refuse_what_cannot_join_and_survive_a_kill_and_an_
     for every host with exit 0."""
     import signal
 
-    why = namespaces_unavailable()
-    if why:
-        print(f"SKIP namespace test: {why}")
-        pytest.skip(why)
+    skip_without_namespaces()
     hosts = Namespaces(2)
     try:
         files = tls_files(tmp_path / "tls", hosts)
@@ -618,10 +619,7 @@ def test_two_training_ranks_on_two_hosts_hold_the_same_weights_and_a_lost_rank_s
 
     from ebrl.viz import record
 
-    why = namespaces_unavailable()
-    if why:
-        print(f"SKIP namespace test: {why}")
-        pytest.skip(why)
+    skip_without_namespaces()
     hosts = Namespaces(1)
     try:
         files = tls_files(tmp_path / "tls", hosts)

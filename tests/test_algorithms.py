@@ -24,6 +24,7 @@ from ebrl.config import ConfigError, load
 from ebrl.envs import EnvSpec, describe
 from ebrl.messages import TrajectorySegment
 from helpers import Counts, StatsWatcher, up
+from test_metrics import assert_catalogued
 
 TESTS = Path(__file__).resolve().parent
 SMALL = ("policy.hidden=[32, 32]", "replay.batch_size=32", "replay.learning_starts=100")
@@ -220,6 +221,7 @@ def test_sac_trains_in_a_real_run_at_its_ratio_and_its_policy_loads_and_evaluate
     assert held >= 700 and stats.latest("replay/0", "replay/sampled") > 500 * 32
     assert stats.latest("train/0", "train/gradient_steps_total") > 500
     assert "replay/0+train/0" in run.output  # the replay in training's process (run.processes = "auto")
+    assert_catalogued(stats.reports())  # SAC's and the replay's metrics are on docs/stats.md
     with np.load(run.run_dir / REPLAY_FILE) as saved:  # written as the run ended
         assert int(saved["meta"][3]) == held
     policy = ebrl.load_policy(run.run_dir / "policy.safetensors")

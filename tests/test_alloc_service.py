@@ -16,6 +16,7 @@ from ebrl.resources.pool import ResourcePool
 from ebrl.testing import StatsWatcher
 
 import helpers
+from test_metrics import assert_catalogued
 
 
 def test_capacities_are_decisions_per_cpu_second_times_cores():
@@ -65,6 +66,7 @@ def test_up_with_the_allocator_re_plans_from_measurements_and_services_apply_it(
     assert any(s.lane == "alloc" and s.label == "realloc" for s in rec.spans)
     allocs = [r.metrics for r in rec.stats if r.service == "alloc"]
     assert allocs[-1]["alloc/reallocations"] >= 1 and allocs[-1]["alloc/plan_version"] >= 2
+    assert_catalogued(rec.stats)  # the allocator's metrics, and ctl/* of the services applying it, on docs/stats.md
 
 
 def test_a_gpu_plan_starts_generation_and_training_with_their_mps_shares(tmp_path):

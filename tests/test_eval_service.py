@@ -14,6 +14,7 @@ import ebrl
 import helpers
 from ebrl.policies.checkpoint import read_metadata
 from ebrl.viz import record
+from test_metrics import assert_catalogued
 from test_portable import SCRIPT
 
 EVAL_NAMES = {"eval/return", "eval/return_lo", "eval/return_hi", "eval/episode_length", "eval/version"}
@@ -42,6 +43,7 @@ def test_up_with_eval_reports_each_version_records_videos_and_keeps_the_best_pol
         assert r.metrics["eval/episodes"] == 3.0 and "eval/success_rate" not in r.metrics  # no success in this env
     summary = json.loads((run_dir / "summary.json").read_text())
     assert summary["last_eval"]["eval/version"] == 4.0
+    assert_catalogued(record.read(run_dir).stats)  # every metric of the run (eval's among them) is on docs/stats.md
     for version in versions:
         video = run_dir / "videos" / f"v{version}" / "episode-0.mp4"
         assert len([frame for frame in imageio.get_reader(video)]) > 1

@@ -12,6 +12,7 @@ from ebrl.bus import keys
 from ebrl.testing import InProcessRun
 from helpers import store_profile
 from test_graph import recording, undeclared
+from test_metrics import assert_catalogued
 from test_pipeline import ROOT, small_config
 
 
@@ -36,6 +37,7 @@ def test_eval_and_log_evaluate_versions_and_write_every_metric_in_process(tmp_pa
     assert {"train/policy_version", "gen/policy_version", "sim/env_steps", "eval/return"} <= written
     assert any((tmp_path / "tb").rglob("events.out.tfevents.*"))
     assert not undeclared(used), undeclared(used)
+    assert_catalogued(run.stats.reports())  # every metric of every service is on docs/stats.md
     # and the run did use the data flows the graph draws
     assert ("put", keys.obs("pipe", 0)) in used["sim"] and ("put", keys.weights("pipe")) in used["train"]
     assert ("sub", keys.obs("pipe")) in used["gen"] and ("answer", keys.weights_all("pipe")) in used["train"]
@@ -66,6 +68,7 @@ def test_the_allocator_observes_the_stages_re_plans_and_the_services_apply_it_in
     assert run.stats.latest("alloc/0", "alloc/plan_version") >= 2
     assert run.stats.latest("alloc/0", "alloc/train_capacity", 0.0) > 0
     assert not undeclared(used), undeclared(used)
+    assert_catalogued(run.stats.reports())  # the allocator's and ctl/*_applied among them
 
 
 def test_an_off_policy_run_asks_its_replay_service_for_minibatches_in_process(tmp_path):
@@ -86,6 +89,7 @@ def test_an_off_policy_run_asks_its_replay_service_for_minibatches_in_process(tm
     run = asyncio.run(main())
     assert run.stats.latest("replay/0", "replay/sampled") >= 128 * 32
     assert not undeclared(used), undeclared(used)
+    assert_catalogued(run.stats.reports())  # bus/local among them
     assert ("put", keys.replay("pipe", "request")) in used["train"] and ("sub", keys.replay("pipe", "sample")) in \
         used["train"]
     assert ("put", keys.replay("pipe", "sample")) in used["replay"]

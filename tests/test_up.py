@@ -8,6 +8,7 @@ import pytest
 
 import helpers
 from ebrl.supervisor import SHUTDOWN_S
+from test_metrics import assert_catalogued
 
 ROOT = helpers.ROOT
 LOADED_S = 22.0  # slack for a loaded machine on top of the launcher's own deadlines
@@ -57,6 +58,7 @@ def test_weights_versions_advance_and_trajectories_flow(tmp_path):
     sim = seen["sim/0"][-1]
     assert sim["sim/segments"] >= train["train/segments_received"] > 0
     assert all(m.get("bus/malformed", 0) == 0 for ms in seen.values() for m in ms)
+    assert_catalogued(seen)  # every metric it published is on docs/stats.md, the launcher's and log's too
 
 
 def test_services_are_separate_processes_and_sigint_leaves_none(tmp_path):

@@ -8,6 +8,7 @@ import sys
 import pytest
 
 from helpers import ROOT, run_collecting_stats
+from test_metrics import assert_catalogued
 
 
 def only_run_dir(root: pathlib.Path) -> pathlib.Path:
@@ -23,6 +24,7 @@ def test_grpo_config_trains(tmp_path):
     assert train["train/policy_version"] == 3 and train["train/grpo_groups"] >= 1
     assert train.get("train/grpo_groups_dropped_overflow", 0) == 0  # group-mates run their episodes together
     assert "train/value_loss" in train and train["train/value_loss"] == 0.0  # no critic is trained
+    assert_catalogued(stats)  # GRPO's metrics are on docs/stats.md
 
 
 @pytest.mark.slow

@@ -40,6 +40,7 @@ class TrainedRun:
 
     @property
     def ok(self) -> bool:
+        """Whether the run reached its iterations or target (exit code 0)."""
         return self.exit_code == 0
 
     @property

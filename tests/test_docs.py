@@ -134,12 +134,67 @@ def test_every_docs_page_is_in_the_site_navigation():
     assert not missing, f"docs pages missing from mkdocs.yml's nav: {missing}"
 
 
-def test_the_docs_site_builds_strictly(tmp_path):
-    if importlib.util.find_spec("mkdocs") is None or importlib.util.find_spec("material") is None:
+# the Python API page: at least these (every public name of ``import ebrl``, the test checks, and helpers beside them)
+API = ("ebrl.train", "ebrl.watch", "ebrl.load_policy", "ebrl.stats.observer_config", "ebrl.metrics.describe")
+_DIRECTIVE = re.compile(r"^::: ([\w.]+)\n(?:    options:\n      heading: ([\w.]+)\n(?:      \w+: .*\n)*)?", re.MULTILINE)
+
+
+def api_entries() -> dict[str, str]:
+    """docs/api.md's entries: the name each is shown as (its ``heading``, else its path) -> the object's path."""
+    text = (ROOT / "docs" / "api.md").read_text()
+    return {heading or path: path for path, heading in _DIRECTIVE.findall(text)}
+
+
+def test_the_api_page_documents_each_public_name_of_ebrl_as_the_object_it_is():
+    import ebrl
+
+    entries = api_entries()
+    assert set(API) <= set(entries), f"docs/api.md lacks {sorted(set(API) - set(entries))}"
+    for shown, path in entries.items():
+        module, _, name = path.rpartition(".")
+        obj = getattr(importlib.import_module(module), name)
+        public = shown.removeprefix("ebrl.")
+        if shown.count(".") == 1 and public in ebrl._LAZY:
+            assert getattr(ebrl, public) is obj, f"docs/api.md shows {path} as {shown}, which is another object"
+        assert (obj.__doc__ or "").strip(), f"{path} has no docstring for docs/api.md"
+    public = {f"ebrl.{name}" for name in ebrl._LAZY}
+    assert public <= set(entries), f"public names of ebrl missing from docs/api.md: {sorted(public - set(entries))}"
+
+
+def first_line(obj) -> str:
+    """A docstring's first line as the built page shows it: its roles read as docs/griffe_roles.py reads them, no
+    backticks or tags, spaces collapsed."""
+    spec = importlib.util.spec_from_file_location("griffe_roles", ROOT / "docs" / "griffe_roles.py")
+    roles = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(roles)
+    line = roles.markdown(__import__("inspect").getdoc(obj).splitlines()[0])
+    return " ".join(re.sub(r"</?(autoref|code)\b[^>]*>", "", line).replace("``", "").split())
+
+
+@pytest.mark.slow  # a build of ~30 s (CI's slow suite runs after `make docs` installed the docs extra)
+def test_the_docs_site_builds_strictly_and_works_from_disk(tmp_path):
+    if importlib.util.find_spec("mkdocs") is None or importlib.util.find_spec("mkdocstrings_handlers") is None:
         pytest.skip("the docs extra is not installed (make docs installs it: pip install -e '.[docs]')")
-    out = subprocess.run([sys.executable, "-m", "mkdocs", "build", "--strict", "--site-dir", str(tmp_path / "site")],
-                         cwd=ROOT, capture_output=True, text=True, timeout=300,
+    site = tmp_path / "site"
+    out = subprocess.run([sys.executable, "-m", "mkdocs", "build", "--strict", "--site-dir", str(site)],
+                         cwd=ROOT, capture_output=True, text=True, timeout=600,
                          env={**__import__("os").environ, "NO_MKDOCS_2_WARNING": "1"})
     assert out.returncode == 0, out.stdout[-3000:] + out.stderr[-3000:]
-    assert (tmp_path / "site" / "reference" / "config" / "index.html").is_file()
-    assert (tmp_path / "site" / "project" / "BENCHMARKS" / "index.html").is_file()
+    assert (site / "reference" / "config.html").is_file() and (site / "project" / "BENCHMARKS.html").is_file()
+    # every page's links name files, which a browser opens from disk (file://): no directory URL
+    broken = []
+    for page in sorted(site.rglob("*.html")):
+        if page.name == "404.html":  # the server's page, with absolute links
+            continue
+        for target in re.findall(r'(?:href|src)="([^"]+)"', page.read_text()):
+            path = target.split("#")[0].split("?")[0]
+            if path and not re.match(r"^[a-z][a-z0-9+.-]*:|^//", target) and not (page.parent / path).is_file():
+                broken.append(f"{page.relative_to(site)}: {target}")
+    assert not broken, "links of the built site that are no file:\n" + "\n".join(broken[:40])
+    # the API page shows each entry's docstring
+    html = (site / "api.html").read_text()
+    text = " ".join(__import__("html").unescape(re.sub(r"<[^>]+>", "", html)).split())
+    for shown, path in api_entries().items():
+        module, _, name = path.rpartition(".")
+        line = first_line(getattr(importlib.import_module(module), name))
+        assert shown in text and line in text, f"api.html lacks {shown} or its docstring's first line: {line!r}"

@@ -104,6 +104,21 @@ REJECT_FOR = 10  # ... and its plan is not chosen again for REJECT_FOR x patienc
 
 
 class EmbodiPlacement:
+    """The elastic allocator as a library: Algorithm 1's plan for ``pool`` from the stage tables ``profile``,
+    re-planned from measured capacities.
+
+    ``apply()`` binds the pending plan in the pool (and hands it to ``on_apply``); ``balance(rates)`` takes one
+    :class:`StageRates` observation and, when rollout and training capacity (``window``-long moving averages)
+    differ by more than ``gap`` of the faster for ``patience`` observations in a row, refines the tables with
+    the measurements and makes a new pending plan, a trial that is undone if it achieves less. ``plan`` is the
+    pending plan, else the applied one::
+
+        pool = ResourcePool(gpu_pool="none")
+        placement = EmbodiPlacement(pool, profile(pool, cfg))  # or a stored table: load_or_profile
+        placement.apply()
+        placement.balance(StageRates(sim=900.0, gen=2400.0, train=450.0)).apply()
+    """
+
     def __init__(self, pool: ResourcePool, profile: Profiles, *, window: int = 20, gap: float = 0.15,
                  patience: int = 20, s_g_min: int = 1, s_t_min: int = 1,
                  on_apply: Callable[[Plan], None] | None = None, local_sim: bool = True, remote_sim: float = 0.0):

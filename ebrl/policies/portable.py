@@ -163,9 +163,14 @@ class PortablePolicy:
 
 def load_policy(path: str | os.PathLike, *, which: Which = "latest", config: Any = None, device: str = "cpu",
                 seed: int = 0) -> PortablePolicy:
-    """The policy at ``path`` (a ``.safetensors`` file, a checkpoint directory or a run directory; see the
-    module's docstring), on ``device``. ``config``: a :class:`~ebrl.config.Config` or the path of a run's
-    ``config.toml``, needed only for checkpoints written before policies were portable."""
+    """The policy at ``path``, on ``device``, rebuilt from the checkpoint's metadata (no config needed).
+
+    ``path``: a ``.safetensors`` file (``RUN_DIR/policy.safetensors``, ``RUN_DIR/best.safetensors``, a copy
+    anywhere), a training checkpoint directory (its ``policy.safetensors``) or a run directory: its latest policy,
+    the newer of ``policy.safetensors`` and the latest checkpoint; ``which="best"`` takes ``best.safetensors``,
+    the version the eval service scored best. ``config``: a :class:`~ebrl.config.Config` or the path of a run's
+    ``config.toml``, needed only for checkpoints written before policies were portable. ``seed`` seeds the
+    sampling of ``predict(obs, deterministic=False)``."""
     file = resolve(path, which)
     metadata = read_metadata(str(file))
     if config is None and not all(key in metadata for key in PORTABLE):

@@ -232,7 +232,13 @@ def mps_reachable(pipe_dir: str | None = None) -> bool:
 
 
 class ResourcePool:
-    """CPU cores and GPUs of this host, stage descriptors and worker bindings (module docstring)."""
+    """CPU cores and GPUs of this host, each stage's share of them and each worker's binding.
+
+    The cores are those this process may use (affinity, cgroup quota), tagged with their NUMA node; the GPUs come
+    from NVML. ``partition`` splits the cores between stages, ``set_quota`` gives a stage an SM share and memory
+    budget of a GPU, ``bind`` makes a worker's binding (its cores, threads and the environment its process is
+    launched with: MPS shares, a MIG instance) and ``rebind`` moves it. ``gpu_pool``: how a GPU is shared (``mps``,
+    ``mig``, ``none``: whole devices); without a GPU the pool partitions cores alone."""
 
     def __init__(self, num_gpus: int | None = None, gpu_pool: Literal["mps", "mig", "none"] = "none",
                  cpu_pool: Literal["numa", "flat"] = "flat", *, nvml: Any | None = None, cores: list[Core] | None = None,

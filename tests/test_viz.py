@@ -77,15 +77,46 @@ def states_by_entity(path):
     return {k: sorted(v) for k, v in out.items()}
 
 
-def test_bridge_turns_spans_stats_and_events_into_entities(tmp_path):
+def chunks_by_entity(path) -> dict[str, int]:
+    from rerun.chunk import RrdReader
+
+    out: dict[str, int] = {}
+    for chunk in RrdReader(path).stream().to_chunks():
+        if not chunk.is_static:
+            out[str(chunk.entity_path)] = out.get(str(chunk.entity_path), 0) + 1
+    return out
+
+
+def scalars_by_entity(path) -> dict[str, list]:
+    """{entity: [(seconds from T0, [values]), ...]} of every Scalars row in a saved .rrd."""
+    from rerun.chunk import RrdReader
+
+    out: dict[str, list] = {}
+    for chunk in RrdReader(path).stream().to_chunks():
+        batch = chunk.to_record_batch()
+        if "Scalars:scalars" not in batch.schema.names or chunk.is_static:
+            continue
+        times = batch.column("wall").cast(pa.int64()).to_pylist()
+        out.setdefault(str(chunk.entity_path), []).extend(
+            (round(t / 1e9 - T0, 3), v) for t, v in zip(times, batch.column("Scalars:scalars").to_pylist()))
+    return {k: sorted(v) for k, v in out.items()}
+
+
+def bridge_to_file(path, every_s: float):
     import rerun as rr
 
-    from ebrl.viz.rerun_bridge import RerunBridge, describe_recording, make_blueprint
+    from ebrl.viz.rerun_bridge import FAMILIES, Outlet, RerunBridge, make_blueprint
 
-    path = str(tmp_path / "t.rrd")
     rec = rr.RecordingStream("ebrl", recording_id="test")
     rec.save(path, default_blueprint=make_blueprint(15.0))
-    bridge = RerunBridge(rec)
+    return rec, RerunBridge(Outlet(rec, dict.fromkeys(FAMILIES, every_s)))
+
+
+def test_bridge_turns_spans_stats_and_events_into_entities(tmp_path):
+    from ebrl.viz.rerun_bridge import describe_recording
+
+    path = str(tmp_path / "t.rrd")
+    rec, bridge = bridge_to_file(path, 0.0)  # every flush sends what it holds
     spans, stats, events = scripted_stream()
     g1 = [s for s in spans if s.lane == "sim.g1"]
     bridge.on_spans(SpanBatch(lane="sim.g1", service="sim", instance=0, start=[s.start for s in g1],
@@ -93,31 +124,75 @@ def test_bridge_turns_spans_stats_and_events_into_entities(tmp_path):
     for i, s in enumerate(x for x in spans if x.lane != "sim.g1"):
         bridge.on_span(s)
         if i % 7 == 0:
-            bridge.flush()  # spans of one lane split across flushes
+            bridge.flush(T0)  # spans of one lane split across flushes
     for r in stats:
         bridge.on_stats(r)
     for e in events:
         bridge.on_event(e)
-    bridge.flush()
+    bridge.flush(T0, force=True)
     rec.flush()
     rec.disconnect()
 
     entities = describe_recording(path)
     for lane in ("/timeline/1_sim/g00", "/timeline/1_sim/g01", "/timeline/2_gen", "/timeline/2_gen_1",
-                 "/timeline/3_train", "/timeline/4_weights", "/plots/traj_per_s/sim0/sim.segments_per_s",
-                 "/plots/env_steps_per_s/sim0/sim.env_steps_per_s", "/plots/busy/sim0/sim.g0",
-                 "/plots/cpu/sim0/core0_percent", "/plots/losses/train0/train.policy_loss",
-                 "/plots/policy_version/train0/train.policy_version", "/metrics/sim0/other/x", "/events"):
+                 "/timeline/3_train", "/timeline/4_weights", "/plots/traj_per_s", "/plots/env_steps_per_s",
+                 "/plots/busy", "/plots/cpu", "/plots/losses", "/plots/policy_version", "/metrics/sim0/other",
+                 "/events"):
         assert lane in entities, (lane, sorted(entities))
     states = states_by_entity(path)
     assert states["/timeline/3_train"] == [(2.0, "update"), (4.0, ""), (6.0, "update"), (7.0, "")]
     assert states["/timeline/4_weights"] == [(4.0, "publish"), (4.01, ""), (7.0, "publish"), (7.01, "")]
     assert states["/timeline/2_gen_1"] == [(3.55, "forward"), (3.65, "")]  # the overlapping span got a sub-lane
     assert len(states["/timeline/2_gen"]) == 20
+    # back-to-back chunk and wait spans: one row each, the lane's gap only after the last
     sim = states["/timeline/1_sim/g00"]
-    assert (0.5, "wait") in sim and (0.0, "chunk") in sim and len(sim) == 40
+    assert sim[:3] == [(0.0, "chunk"), (0.5, "wait"), (1.0, "chunk")] and sim[-1] == (10.0, "") and len(sim) == 21
     assert len(states["/timeline/1_sim/g01"]) == 20
+    # one series per service instance and metric, the series of one plot in one entity
+    values = scalars_by_entity(path)
+    assert values["/plots/policy_version"][:2] == [(0.0, [0.0]), (1.0, [1.0])]
+    assert values["/plots/env_steps_per_s"][3] == (3.0, [103.0])
+    assert values["/metrics/sim0/other"][0] == (0.0, [1.0])
     assert entities["/events"] >= 3  # the event and two weights publications
+
+
+def test_bridge_sends_each_entity_in_columns_at_its_outlets_pace(tmp_path):
+    """The file outlet sends what it holds once a minute: a 10 s stream, one chunk per entity; a span that
+    follows the last one within GAP_S shares its row, a longer gap is drawn; a series that joins a plot later
+    keeps the others' places and the others' latest values."""
+    from ebrl.viz.rerun_bridge import FILE_EVERY_S, GAP_S, RerunBridge
+
+    path = str(tmp_path / "t.rrd")
+    rec, bridge = bridge_to_file(path, FILE_EVERY_S["plots"])
+    spans, stats, events = scripted_stream()
+    start = T0
+    for s in spans:
+        bridge.on_span(s)
+        bridge.flush(start)
+    for r in stats:
+        bridge.on_stats(r)
+        bridge.flush(start)
+    bridge.on_span(span("train", 7.0 + GAP_S / 2, 8.0, "update", "train"))  # back to back with 6-7
+    bridge.on_span(span("train", 8.0 + 2 * GAP_S, 8.5, "update", "train"))  # a gap of 2 GAP_S: drawn
+    bridge.on_stats(StatsReport(run="r", service="gen", instance=0, time=T0 + 10.5, seq=1,
+                                metrics={"gen/policy_version": 9.0}))  # joins train's series
+    bridge.on_stats(StatsReport(run="r", service="train", instance=0, time=T0 + 11.0, seq=11,
+                                metrics={"train/policy_version": 10.0}))
+    bridge.flush(start + 59.0)  # nothing sent yet ...
+    bridge.flush(start + 60.0)  # ... then everything, in one chunk per entity
+    bridge.flush(start + 61.0, force=True)  # the run's end: what is left (the open lanes' ends)
+    rec.flush()
+    rec.disconnect()
+    chunks = chunks_by_entity(path)
+    assert chunks["/plots/env_steps_per_s"] == 1 and chunks["/plots/policy_version"] == 1, chunks
+    # the first flush sends at once (the first span of sim.g0), then nothing until a minute later
+    assert chunks["/timeline/1_sim/g00"] == 2 and chunks["/timeline/3_train"] == 1, chunks
+    assert states_by_entity(path)["/timeline/3_train"] == [(2.0, "update"), (4.0, ""), (6.0, "update"),
+                                                           (7.001, "update"), (8.0, ""), (8.004, "update"),
+                                                           (8.5, "")]
+    versions = scalars_by_entity(path)["/plots/policy_version"]
+    assert versions[-2:] == [(10.5, [9.0, 9.0]), (11.0, [10.0, 9.0])], versions[-3:]
+    assert isinstance(bridge, RerunBridge)
 
 
 # --- recording and report ---------------------------------------------------------------------
@@ -277,7 +352,7 @@ def test_up_with_viz_save_writes_timeline_and_report(tmp_path):
 
     entities = describe_recording(str(run_dir / "timeline.rrd"))
     for lane in ("/timeline/1_sim/g00", "/timeline/1_sim/g01", "/timeline/2_gen", "/timeline/3_train",
-                 "/timeline/4_weights", "/plots/traj_per_s/sim0/sim.segments_per_s", "/events"):
+                 "/timeline/4_weights", "/plots/traj_per_s", "/events"):
         assert entities.get(lane, 0) > 2, (lane, sorted(entities))
     rec = record.read(run_dir)
     assert rec.lanes[:5] == ["sim.g0", "sim.g1", "gen", "train", "weights"] and rec.malformed == 0
@@ -379,7 +454,8 @@ def test_spawn_without_a_display_falls_back_to_saving(tmp_path, monkeypatch):
 
     monkeypatch.delenv("DISPLAY", raising=False)
     monkeypatch.delenv("WAYLAND_DISPLAY", raising=False)
-    rec, where = open_recording("spawn", str(tmp_path / "t.rrd"), "nodisplay", helpers.free_port(), "64MiB",
-                                make_blueprint())
-    rec.disconnect()
+    outlets, where = open_recording("spawn", str(tmp_path / "t.rrd"), "nodisplay", helpers.free_port(), "64MiB",
+                                    make_blueprint())
+    assert len(outlets) == 1  # the file's alone
+    outlets[0].rec.disconnect()
     assert where.startswith("no display") and (tmp_path / "t.rrd").exists()

@@ -29,9 +29,9 @@ class VizService(Service):
         os.environ.update(without_analytics(self.run_dir))  # for the SDK here and the rerun processes it starts
         # web: the rerun CLI serves the page and the run on loopback; a child of this (main) thread
         self.web = serve_web(viz.port, viz.web_port, viz.memory_limit) if viz.rerun == "web" else None
-        self.rec, where = open_recording(viz.rerun, self.rrd_path, self.run_name, viz.port, viz.memory_limit,
-                                         make_blueprint(viz.window_s), web_port=viz.web_port)
-        self.bridge = RerunBridge(self.rec)
+        self.outlets, where = open_recording(viz.rerun, self.rrd_path, self.run_name, viz.port, viz.memory_limit,
+                                             make_blueprint(viz.window_s), web_port=viz.web_port)
+        self.bridge = RerunBridge(*self.outlets)
         self.lock = threading.Lock()  # the executor thread and teardown both log
         self.log.info("rerun: %s", where)
         self.event("viz", where)
@@ -42,11 +42,10 @@ class VizService(Service):
         loop = asyncio.get_running_loop()
         while True:
             await asyncio.sleep(FLUSH_S)
-            items = self.inbox.drain()
-            if items:
-                await loop.run_in_executor(None, self.log_items, items)  # rerun calls off the event loop
+            # rerun calls off the event loop; every tick, so that each outlet sends at its pace
+            await loop.run_in_executor(None, self.log_items, self.inbox.drain())
 
-    def log_items(self, items) -> None:
+    def log_items(self, items, force: bool = False) -> None:
         with self.lock:
             for _, msg in items:
                 if isinstance(msg, SpanBatch):
@@ -57,17 +56,17 @@ class VizService(Service):
                     continue  # the windowed means are in the sim's stats report
                 else:
                     self.bridge.on_stats(msg)
-            self.bridge.flush()
+            self.bridge.flush(force=force)
 
     def metrics(self) -> dict[str, float]:
         return {"viz/spans": float(self.bridge.spans), "viz/reports": float(self.bridge.reports),
                 "viz/events": float(self.bridge.events), "viz/dropped": float(self.inbox.dropped)}
 
     async def teardown(self) -> None:
-        items = self.inbox.drain()
-        self.log_items(items)
-        self.rec.flush(timeout_sec=5.0)
-        self.rec.disconnect()  # closes the file sink: the .rrd gets its footer
+        self.log_items(self.inbox.drain(), force=True)
+        for outlet in self.outlets:
+            outlet.rec.flush(timeout_sec=5.0)
+            outlet.rec.disconnect()  # closes its sink: the .rrd gets its footer
         if self.web is not None:
             stop_web(self.web)  # an open page keeps what it received
 

@@ -4,12 +4,17 @@ The only module that imports rerun-sdk (used by the viz service alone).
 
 * **Gantt.** A span becomes a bar in a ``StateTimelineView``: ``StateChange``
   with the span's state at its start and ``""`` (a gap) at its end, on the
-  ``wall`` timeline (epoch seconds). Lanes are entities under ``timeline/``,
+  ``wall`` timeline (epoch seconds); back-to-back spans of a lane (a gap under
+  :data:`GAP_S`) share one row. Lanes are entities under ``timeline/``,
   prefixed so that alphabetical order is pipeline order (``1_sim/g00``,
   ``2_gen``, ``3_train``, ``4_weights``, ``5_alloc``). Spans that overlap on one
   lane would cut each other off, so they are packed into sub-lanes
-  (``2_gen_1``, ...). Spans are buffered and sent as columns (``send_columns``)
-  every ``flush_s``: one call per lane instead of two ``log`` calls per span.
+  (``2_gen_1``, ...).
+* **Columns.** Rows are buffered per entity and sent as columns (``send_columns``),
+  to each :class:`Outlet` at its own pace: a live viewer often, the file
+  ``RUN_DIR/timeline.rrd`` in few large chunks (a chunk's framing costs more
+  than a few rows: one ``log`` call per metric made the quickstart's file grow
+  at 250 KiB/s and a web viewer fall behind).
 * **Colours mean something**: the state is the kind of work (``chunk``,
   ``wait``, ``forward``, ``update``, ``publish``, ``realloc``), coloured by a
   static ``StateConfiguration`` per lane; a weights span ``v<n>`` is a
@@ -26,6 +31,7 @@ from __future__ import annotations
 import collections
 import re
 import subprocess
+import time
 from typing import Any
 
 import numpy as np
@@ -76,17 +82,91 @@ def topic_of(metric: str) -> str | None:
     return None
 
 
-class RerunBridge:
-    """Feeds one ``rr.RecordingStream``; call ``on_*`` as messages arrive and ``flush()`` periodically."""
+class Outlet:
+    """One recording stream and how often each family of entities is sent to it.
 
-    def __init__(self, recording: rr.RecordingStream):
-        self.rec = recording
-        self._pending: dict[str, list[tuple[float, str]]] = collections.defaultdict(list)  # entity -> rows
-        self._sublanes: dict[str, list[float]] = {}  # lane -> end time of the last span of each sub-lane
-        self._configured: set[str] = set()
+    Rows are buffered per entity and sent as columns (``send_columns``): one chunk per entity per send. A
+    chunk costs about 1.1 KiB in a recording beyond its rows (its schema, ids, framing), and a viewer pays per
+    chunk too, so how often each family is sent decides both the file's growth and whether a viewer keeps up:
+    row by row, the quickstart made 186 chunks/s, 250 KiB/s of ``timeline.rrd``, and the web viewer fell a
+    minute behind in its first minute (BENCHMARKS.md, "The live view")."""
+
+    def __init__(self, rec: rr.RecordingStream, every_s: dict[str, float]):
+        self.rec = rec
+        self.every_s = every_s  # family -> seconds between sends (FAMILIES)
+        self._rows: dict[str, dict[str, list[tuple]]] = {f: collections.defaultdict(list) for f in FAMILIES}
+        self._sent = dict.fromkeys(FAMILIES, -np.inf)
+        self._static: dict[str, Any] = {}  # entity -> the key of what was logged static on it
+        self.chunks = 0  # chunks sent (for benchmarks)
+
+    def add(self, family: str, entity: str, row: tuple) -> None:
+        self._rows[family][entity].append(row)
+
+    def static(self, entity: str, archetype, key: Any = True) -> None:
+        """Log ``archetype`` static on ``entity`` (a lane's colours, a series' names) unless what was logged there
+        has this ``key`` already (a new key: logged again, replacing it)."""
+        if self._static.get(entity) != key:
+            self._static[entity] = key
+            self.rec.log(entity, archetype, static=True)
+
+    def flush(self, now: float, force: bool = False) -> None:
+        """Send every family whose interval has passed since it was last sent (every family with ``force``)."""
+        for family in FAMILIES:
+            if force or now - self._sent[family] >= self.every_s[family]:
+                self._sent[family] = now
+                rows, self._rows[family] = self._rows[family], collections.defaultdict(list)
+                for entity, entity_rows in rows.items():
+                    self._send(family, entity, sorted(entity_rows, key=lambda r: r[0]))
+
+    def _send(self, family: str, entity: str, rows: list[tuple]) -> None:
+        wall = rr.TimeColumn("wall", timestamp=np.array([r[0] for r in rows], dtype=np.float64))
+        if family == "timeline":
+            self.rec.send_columns(entity, indexes=[wall], columns=rr.StateChange.columns(state=[r[1] for r in rows]))
+        elif family == "events":
+            self.rec.send_columns(entity, indexes=[wall], columns=rr.TextLog.columns(text=[r[1] for r in rows],
+                                                                                   level=[r[2] for r in rows]))
+        else:  # plots, metrics: (time, values, iteration or None); with an iteration also on that timeline
+            for part in ([r for r in rows if r[2] is not None], [r for r in rows if r[2] is None]):
+                if not part:
+                    continue
+                indexes = [rr.TimeColumn("wall", timestamp=np.array([r[0] for r in part], dtype=np.float64))]
+                if part[0][2] is not None:
+                    indexes.append(rr.TimeColumn("iteration", sequence=np.array([r[2] for r in part], np.int64)))
+                values = rr.Scalars.columns(scalars=np.array([v for r in part for v in r[1]], np.float64))
+                self.rec.send_columns(entity, indexes=indexes, columns=values.partition([len(r[1]) for r in part]))
+                self.chunks += 1
+            return
+        self.chunks += 1
+
+
+FAMILIES = ("timeline", "plots", "metrics", "events")
+# A live viewer: the Gantt within about a second, the plots every second, the metrics no view shows every 30 s.
+LIVE_EVERY_S = {"timeline": 0.5, "plots": 1.0, "metrics": 30.0, "events": 1.0}
+# The file (RUN_DIR/timeline.rrd): few, large chunks; what a kill -9 of viz loses is in RUN_DIR/stats.msgpack.
+FILE_EVERY_S = dict.fromkeys(FAMILIES, 60.0)
+# Back-to-back spans of one lane: a gap below this is not drawn (a group's chunk and wait spans are 0.15 ms apart
+# at the median on the quickstart, 1.5 ms at p99); one row per span instead of two. RUN_DIR/stats.msgpack keeps them.
+GAP_S = 0.002
+# An idle lane's last span is closed this long after its end (a following span would have arrived by then).
+HOLD_S = 1.0
+
+
+class RerunBridge:
+    """Spans, stats and events -> rows of entities (see the module's docstring), sent to each outlet as columns;
+    call ``on_*`` as messages arrive and :meth:`flush` often (each outlet sends at its own pace)."""
+
+    def __init__(self, *outlets: Outlet):
+        self.outlets = outlets
+        self._ends: dict[str, list[float]] = {}  # lane -> end time of the last span of each sub-lane
+        self._open: dict[str, float] = {}  # entity -> end of its last span, not yet sent as a gap
+        self._latest: dict[str, dict[str, float]] = {}  # stats entity -> series -> its latest value
         self.spans = 0
         self.reports = 0
         self.events = 0
+
+    def _add(self, family: str, entity: str, row: tuple) -> None:
+        for outlet in self.outlets:
+            outlet.add(family, entity, row)
 
     # --- spans ------------------------------------------------------------------------
 
@@ -95,7 +175,7 @@ class RerunBridge:
             self.on_span(span)
 
     def on_span(self, span: Span) -> None:
-        ends = self._sublanes.setdefault(span.lane, [])
+        ends = self._ends.setdefault(span.lane, [])
         sub = next((i for i, end in enumerate(ends) if end <= span.start), None)
         if sub is None:
             sub = len(ends)
@@ -103,56 +183,65 @@ class RerunBridge:
         else:
             ends[sub] = max(ends[sub], span.end)
         entity = lane_entity(span.lane, sub)
-        if entity not in self._configured:
-            self._configured.add(entity)
-            states = list(STATE_COLORS)
-            colors = np.array([STATE_COLORS[s] for s in states], np.uint32)
-            self.rec.log(entity, rr.StateConfiguration(values=states, colors=colors), static=True)
-        rows = self._pending[entity]
-        rows.append((span.start, state_of(span)))
-        rows.append((span.end, ""))
+        states = list(STATE_COLORS)
+        for outlet in self.outlets:
+            outlet.static(entity, rr.StateConfiguration(values=states, colors=np.array(
+                [STATE_COLORS[s] for s in states], np.uint32)))
+        last_end = self._open.pop(entity, None)
+        if last_end is not None and span.start - last_end > GAP_S:
+            self._add("timeline", entity, (last_end, ""))
+        self._add("timeline", entity, (span.start, state_of(span)))
+        self._open[entity] = span.end
         self.spans += 1
         if span.lane == "weights":
             self._text(span.end, f"weights {span.label} published by {span.service}/{span.instance} "
                                  f"({(span.end - span.start) * 1e3:.1f} ms)", "DEBUG")
 
-    def flush(self) -> None:
-        """Send buffered span edges, one ``send_columns`` per lane entity."""
-        pending, self._pending = self._pending, collections.defaultdict(list)
-        for entity, rows in pending.items():
-            rows.sort(key=lambda r: r[0])
-            times = np.array([t for t, _ in rows], dtype=np.float64)
-            states = [s for _, s in rows]
-            self.rec.send_columns(entity, indexes=[rr.TimeColumn("wall", timestamp=times)],
-                                  columns=rr.StateChange.columns(state=states))
+    def flush(self, now: float | None = None, force: bool = False) -> None:
+        """Close the lanes idle for :data:`HOLD_S` (every lane with ``force``, as the run ends), then let each
+        outlet send what is due (``now``: epoch seconds, default the clock)."""
+        now = time.time() if now is None else now
+        for entity, end in list(self._open.items()):
+            if force or now - end > HOLD_S:
+                del self._open[entity]
+                self._add("timeline", entity, (end, ""))
+        for outlet in self.outlets:
+            outlet.flush(now, force)
 
     # --- stats ------------------------------------------------------------------------
 
     def on_stats(self, report: StatsReport) -> None:
+        """A report becomes one row on each of its entities: ``plots/<topic>`` (one series per service instance
+        and metric: ``sim0/sim.env_steps_per_s``) and ``metrics/<service><instance>/<family>`` (the metrics no
+        plot shows, by their first name chunk: ``metrics/train0/train``). An entity's row holds every series it
+        has had, the others' latest values with the reporter's new ones (a service that stopped reporting a
+        metric keeps its last value)."""
         self.reports += 1
         who = f"{report.service}{report.instance}"
-        iteration = report.metrics.get("train/policy_version")
-        losses = []
-        self.rec.reset_time()
-        self.rec.set_time("wall", timestamp=report.time)
+        version = report.metrics.get("train/policy_version")
+        iteration = int(version) if version is not None and np.isfinite(version) else None
+        fresh: dict[str, dict[str, float]] = collections.defaultdict(dict)  # entity -> series -> value
         for metric, value in report.metrics.items():
             if not np.isfinite(value):
                 continue
             topic = topic_of(metric)
             if topic is None:
-                entity = f"metrics/{who}/{metric}"
+                family, _, name = metric.partition("/")
+                fresh[f"metrics/{who}/{family}"][name or family] = float(value)
             elif topic in ("busy", "quota", "cpu"):
-                entity = f"plots/{topic}/{who}/{metric.split('/', 1)[1]}"
+                fresh[f"plots/{topic}"][f"{who}/{metric.split('/', 1)[1]}"] = float(value)
             else:
-                entity = f"plots/{topic}/{who}/{metric.replace('/', '.')}"
-            if topic == "losses":
-                losses.append((entity, value))
-            else:
-                self.rec.log(entity, rr.Scalars(float(value)))
-        if losses and iteration is not None:  # losses also on the iteration timeline
-            self.rec.set_time("iteration", sequence=int(iteration))
-        for entity, value in losses:
-            self.rec.log(entity, rr.Scalars(float(value)))
+                fresh[f"plots/{topic}"][f"{who}/{metric.replace('/', '.')}"] = float(value)
+        for entity, values in fresh.items():
+            latest = self._latest.setdefault(entity, {})
+            latest.update(values)  # a new series joins at the end: the others keep their places
+            names = list(latest)
+            for outlet in self.outlets:
+                outlet.static(entity, rr.SeriesLines(names=names), key=len(names))
+            family = "plots" if entity.startswith("plots/") else "metrics"
+            # training losses also on the iteration timeline (the policy version)
+            self._add(family, entity, (report.time, list(latest.values()),
+                                       iteration if entity == "plots/losses" else None))
 
     # --- events -----------------------------------------------------------------------
 
@@ -162,10 +251,7 @@ class RerunBridge:
         self._text(event.time, f"[{event.service}/{event.instance}] {event.kind}: {event.text}", level)
 
     def _text(self, when: float, text: str, level: str) -> None:
-        self.rec.reset_time()
-        self.rec.set_time("wall", timestamp=when)
-        self.rec.log("events", rr.TextLog(text, level=level))
-
+        self._add("events", "events", (when, text, level))
 
 
 def make_blueprint(window_s: float = 20.0) -> rrb.Blueprint:
@@ -270,25 +356,32 @@ def describe_recording(path: str) -> dict[str, Any]:
 
 
 def open_recording(mode: str, rrd_path: str, run_name: str, port: int, memory_limit: str,
-                   blueprint: rrb.Blueprint, web_port: int = 9090) -> tuple[rr.RecordingStream, str]:
-    """A recording streaming to the sinks of ``[viz] rerun`` (always also to ``rrd_path``).
+                   blueprint: rrb.Blueprint, web_port: int = 9090) -> tuple[list[Outlet], str]:
+    """The outlets of ``[viz] rerun``: always the file ``rrd_path``; in every mode but ``save`` also a live
+    stream, each one recording stream of the run (one recording id, so the file and the live view are the same
+    recording). The live one is sent to at :data:`LIVE_EVERY_S`, the file at :data:`FILE_EVERY_S`.
 
     ``save``: the file only. ``serve``: a gRPC server on 127.0.0.1:``port`` that keeps up to
     ``memory_limit`` of the run, so a viewer that connects late still sees it all. ``spawn``:
     stream to the viewer listening on ``port``, starting one if none is; without a display
     (and no viewer already there) this falls back to ``save``. ``web``: stream to the server
     :func:`serve_web` started on ``port``, whose web viewer is on ``web_port``.
-    Returns the recording and a line telling the user where to look.
+    Returns the outlets (the live one first) and a line telling the user where to look.
     """
     import os
     import sys
 
-    rec = rr.RecordingStream("ebrl", recording_id=run_name)
-    sinks: list[Any] = [rr.FileSink(rrd_path)]
+    def stream(*sinks) -> rr.RecordingStream:
+        rec = rr.RecordingStream("ebrl", recording_id=run_name)
+        rec.set_sinks(*sinks, default_blueprint=blueprint)
+        rec.send_blueprint(blueprint)
+        return rec
+
+    live: Any = None
     where = f"saving {rrd_path} (open it with: rerun {rrd_path})"
     url = f"rerun+http://127.0.0.1:{port}/proxy"
     if mode == "spawn" and _listening(port):
-        sinks.append(rr.GrpcSink(url))
+        live = rr.GrpcSink(url)
         where = f"streaming to the viewer already listening on {url}; also " + where
     elif mode == "spawn" and not (os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY")):
         where = "no display (DISPLAY/WAYLAND_DISPLAY unset), so no viewer was spawned; " + where
@@ -296,16 +389,15 @@ def open_recording(mode: str, rrd_path: str, run_name: str, port: int, memory_li
         exe = os.path.join(os.path.dirname(sys.executable), "rerun")  # the venv's viewer, PATH or not
         rr.spawn(port=port, connect=False, server_memory_limit=memory_limit, hide_welcome_screen=True,
                  executable_path=exe if os.path.exists(exe) else None)
-        sinks.append(rr.GrpcSink(url))
+        live = rr.GrpcSink(url)
         where = f"viewer spawned on {url}; also " + where
     elif mode == "web":
-        sinks.append(rr.GrpcSink(url))
+        live = rr.GrpcSink(url)
         where = (f"web viewer on {web_url(port, web_port)} (from another machine: ssh -L {web_port}:127.0.0.1:"
                  f"{web_port} -L {port}:127.0.0.1:{port} HOST, then open that address); also " + where)
     elif mode == "serve":
-        server = rr.GrpcServerSink("127.0.0.1", port, server_memory_limit=memory_limit)
-        sinks.append(server)
-        where = f"serving on {server.uri} (connect a viewer: rerun --connect {server.uri}); also " + where
-    rec.set_sinks(*sinks, default_blueprint=blueprint)
-    rec.send_blueprint(blueprint)
-    return rec, where
+        live = rr.GrpcServerSink("127.0.0.1", port, server_memory_limit=memory_limit)
+        where = f"serving on {live.uri} (connect a viewer: rerun --connect {live.uri}); also " + where
+    outlets = [Outlet(stream(live), LIVE_EVERY_S)] if live is not None else []
+    outlets.append(Outlet(stream(rr.FileSink(rrd_path)), FILE_EVERY_S))
+    return outlets, where

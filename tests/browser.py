@@ -99,3 +99,64 @@ class Chromium:
             self.proc.wait()
         os.close(self._in)
         os.close(self._out)
+
+
+# --- what rerun's web viewer holds ---------------------------------------------------------------------------
+
+# Epoch nanoseconds between 2001 and 2065: the times of a recording's timelines (wall, log_time) in a viewer's
+# state, told apart from the state's other integers (counts, enums, lengths) by their size alone.
+_EPOCH_NS = (10 ** 18, 3 * 10 ** 18)
+
+
+def _varint(data: bytes, i: int) -> tuple[int, int]:
+    value = shift = 0
+    while True:
+        byte = data[i]
+        i += 1
+        value |= (byte & 0x7F) << shift
+        shift += 7
+        if byte < 0x80:
+            return value, i
+
+
+def _epoch_times(data: bytes, out: list[int]) -> list[int]:
+    """Every varint of protobuf message ``data`` (its nested messages too) that reads as epoch nanoseconds.
+    Raises ValueError where ``data`` is not a protobuf message (a string field is then skipped by the caller)."""
+    i = 0
+    while i < len(data):
+        key, i = _varint(data, i)
+        wire = key & 7
+        if wire == 0:
+            value, i = _varint(data, i)
+            if _EPOCH_NS[0] < value < _EPOCH_NS[1]:
+                out.append(value)
+        elif wire == 1:
+            i += 8
+        elif wire == 5:
+            i += 4
+        elif wire == 2:
+            size, i = _varint(data, i)
+            found: list[int] = []
+            try:
+                out.extend(_epoch_times(data[i:i + size], found))
+            except (ValueError, IndexError):
+                pass  # a string or bytes field
+            i += size
+        else:
+            raise ValueError(f"wire type {wire}")
+    if i != len(data):
+        raise ValueError("truncated")
+    return out
+
+
+def newest_time(page: Chromium) -> float | None:
+    """The newest time (epoch seconds) of the data rerun's web viewer on ``page`` holds: the end of its
+    recordings' timelines, read from its Viewer Control state (``window._handle.viewer_state()``, the encoded
+    ``GetStateResponse`` that rerun's page exposes); None before the viewer has started or received anything.
+    ``time.time() - newest_time(page)`` is how far behind the run the page is (what its "latency" readout says)."""
+    state = page.evaluate("window._handle && window._handle.viewer_state ? "
+                          "Array.from(window._handle.viewer_state()) : null")
+    if not state:
+        return None
+    times = _epoch_times(bytes(state), [])
+    return max(times) / 1e9 if times else None

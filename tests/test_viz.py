@@ -415,7 +415,13 @@ def test_live_gantt_in_a_headless_viewer_shows_every_lane(tmp_path, viewer):
         png = tmp_path / "gantt.png"
         png.write_bytes(viewer.take_screenshot(view.view_id))
         (tmp_path / "viewer.png").write_bytes(viewer.take_screenshot())  # the whole layout, for a human look
+        lags = []  # how far behind the run the newest data the viewer holds is, read 10 times a second apart
+        for _ in range(10):
+            ends = [t.end for r in viewer.get_state().recordings for t in r.timelines if t.end]
+            lags.append(time.time() - max(ends) / 1e9)
+            time.sleep(1.0)
         code = run.stop(60)
+    assert sorted(lags)[len(lags) // 2] < 2.0, f"the live viewer is behind the run: {[round(x, 2) for x in lags]} s"
     assert "streaming to the viewer already listening" in (run.run_dir / "logs" / "viz-0.log").read_text()
     # Every stage's bars are on screen: sim chunks (blue), gen forwards (orange), train updates (green).
     pixels = hue_pixels(png)

@@ -1,4 +1,4 @@
-"""``ebrl`` command line: up, eval, stats, profile, report, bench, router, secret, slurm, schemas, config,
+"""``ebrl`` command line: up, eval, stats, sweep, profile, report, bench, router, secret, slurm, schemas, config,
 configs, init, graph, libero.
 
 Each command is two functions, ``_args_<command>`` (its arguments) and ``_run_<command>`` (what it does,
@@ -51,6 +51,61 @@ def _run_up(args: argparse.Namespace) -> int:
 
     return up(args.config, args.overrides, viz=args.viz, resume=args.resume, only=args.only, host=args.host,
               instance=args.instance)
+
+
+SWEEP_EXAMPLES = """examples:
+  ebrl sweep examples/sweep_quickstart.toml              a sweep file: config, params, objective, budget
+  ebrl sweep examples/sweep_quickstart.toml --jobs 2     two trials at once (default: one per 2 cores)
+  ebrl sweep quickstart --param train.lr=log_uniform:1e-4,3e-3 --param algo.clip=uniform:0.1,0.3 \\
+      --iterations 30 --trials 20                       a config swept by flags alone
+  ebrl sweep examples/sweep_quickstart.toml --best -o best.toml   the best trial's config, for ebrl up
+  ebrl sweep examples/sweep_quickstart.toml --storage postgresql://user@db/ebrl   several machines, one study
+
+Each trial is a real `ebrl up` in SWEEP_DIR/trials/, pruned from its learning curve; Ctrl-C stops the trials
+cleanly and running the sweep again goes on where it was. Results: SWEEP_DIR/results.md, results.csv, *.png.
+Guide: docs/sweeps.md."""
+
+
+def _args_sweep(p: argparse.ArgumentParser) -> None:
+    p.description = ("Sweep hyperparameters with Optuna: each trial a real `ebrl up` of the config with the trial's\n"
+                     "values, followed live and pruned from its curve; the study in a database (SQLite by default).")
+    p.epilog = SWEEP_EXAMPLES
+    p.formatter_class = argparse.RawDescriptionHelpFormatter
+    p.add_argument("sweep", help="a sweep file (TOML with a top-level `config`), or a config (path or stock name) "
+                                 "swept by --param")
+    p.add_argument("--param", action="append", default=[], dest="params", metavar="KEY=DIST",
+                   help="sweep a config key: KIND:ARGS (log_uniform:1e-4,3e-3, uniform:0.1,0.3, int:4,16[,step], "
+                        "log_int:2,64, choice:a,b) or a TOML table ({log_uniform = [1e-4, 3e-3]})")
+    p.add_argument("--set", action="append", default=[], dest="overrides", metavar="SECTION.KEY=VALUE",
+                   help="a fixed config value for every trial, after the file's [set]")
+    p.add_argument("--trials", type=int, default=None, help="trials to finish in the study (n_trials; a total over "
+                                                            "every run of the sweep, every process)")
+    p.add_argument("--jobs", type=int, default=None, help="trials at once on this host (0: one per cores_per_trial "
+                                                          "cores, 2 by default)")
+    p.add_argument("--iterations", type=int, default=None, help="each trial's run.iterations (budget.iterations)")
+    p.add_argument("--metric", default=None, help="the objective metric (default train/episode_return_mean)")
+    p.add_argument("--direction", default=None, choices=("maximize", "minimize"))
+    p.add_argument("--study", default=None, help="the study's name (default: the sweep file's name)")
+    p.add_argument("--storage", default=None, metavar="URL",
+                   help="the study's database (default sqlite:///SWEEP_DIR/study.db; postgresql://... for several "
+                        "machines)")
+    p.add_argument("--dir", default=None, help="the sweep's directory (default sweeps/<study>)")
+    p.add_argument("--best", action="store_true", help="print the best trial's config (TOML for ebrl up) and exit")
+    p.add_argument("-o", "--output", default=None, metavar="FILE", help="with --best: write it here")
+    p.add_argument("--report", action="store_true", help="only write the results table and plots from the study")
+
+
+def _run_sweep(args: argparse.Namespace) -> int:
+    try:
+        import optuna  # noqa: F401 -- the sweep extra
+    except ImportError:
+        print("ebrl sweep needs Optuna: pip install 'ebrl[sweep]'", file=sys.stderr)
+        return 2
+    from ebrl.sweep.runner import command
+
+    return command(args.sweep, params=args.params, sets=args.overrides, best=args.best, output=args.output,
+                   report=args.report, n_trials=args.trials, jobs=args.jobs, storage=args.storage, study=args.study,
+                   directory=args.dir, metric=args.metric, direction=args.direction, iterations=args.iterations)
 
 
 def _args_eval(p: argparse.ArgumentParser) -> None:
@@ -391,6 +446,8 @@ COMMANDS = {  # name: (help, its arguments, what it runs)
     "up": ("start a training run from a TOML config", _args_up, _run_up),
     "eval": ("evaluate a trained policy on held-out seeds: a table, eval.json, videos", _args_eval, _run_eval),
     "stats": ("print decoded ebrl/stats/** messages live", _args_stats, _run_stats),
+    "sweep": ("sweep hyperparameters with Optuna: real ebrl up trials, pruned from their curves", _args_sweep,
+              _run_sweep),
     "bench": ("run a config in several modes, interleaved, and compare throughput", _args_bench, _run_bench),
     "profile": ("profile each stage alone and print the tables and Algorithm 1's allocation", _args_profile,
                 _run_profile),

@@ -7,7 +7,7 @@ allocator is here too (``from ebrl import ResourcePool, EmbodiPlacement, profile
 use, so ``import ebrl`` stays light for services that do not need it.
 """
 
-__version__ = "0.1.0"
+__version__ = "0.2.0"
 
 _LAZY = {
     "train": "ebrl.api",

@@ -41,6 +41,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from ebrl import durable
+
 log = logging.getLogger(__name__)
 
 TIE = 0.05  # candidates within 5 % of the fastest count as as fast: the simpler one wins (decide)
@@ -393,7 +395,7 @@ def cached(cfg: Any) -> Decision | None:
 
 
 def remember(cfg: Any, decision: Decision) -> None:
-    """Keep a measured decision (atomically: a concurrent run reads the old file or the new one)."""
+    """Keep a measured decision (``ebrl.durable``: a concurrent run reads the old file or the new one)."""
     path = cache_path()
     if path is None or not decision.gen_s:
         return
@@ -404,9 +406,7 @@ def remember(cfg: Any, decision: Decision) -> None:
         except (OSError, ValueError):
             known = {}
         known[cache_key(cfg)] = decision.to_dict()
-        tmp = path.with_suffix(f".{os.getpid()}.tmp")
-        tmp.write_text(json.dumps(known, indent=1) + "\n")
-        os.replace(tmp, path)
+        durable.write_text(path, json.dumps(known, indent=1) + "\n")
     except OSError as exc:  # a read-only home: measure again next time
         log.warning("auto: could not keep the measurement in %s: %s", path, exc)
 

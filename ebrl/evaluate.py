@@ -29,6 +29,8 @@ from typing import Any, Callable
 
 import numpy as np
 
+from ebrl import durable
+
 EVAL_SEED = 2_000_000_000  # the first evaluation episode's reset seed (eval.seeds, ebrl eval --seed)
 MAX_EPISODE_STEPS = 100_000  # an episode still running after this many steps is cut (an env without a time limit)
 CONFIDENCE = 0.95
@@ -167,12 +169,8 @@ def _finite(x: float) -> float | None:
 
 
 def write_json(result: EvalResult, path: str | os.PathLike) -> Path:
-    """``result`` as JSON at ``path``, written atomically."""
-    path = Path(path)
-    tmp = path.with_name(f".{path.name}.tmp")
-    tmp.write_text(json.dumps(result.to_json(), indent=1) + "\n")
-    os.replace(tmp, path)
-    return path
+    """``result`` as JSON at ``path``, written durably and atomically (``ebrl.durable``)."""
+    return durable.write_text(path, json.dumps(result.to_json(), indent=1) + "\n")
 
 
 # --- videos ---------------------------------------------------------------------------------------------

@@ -21,6 +21,7 @@ import time
 from pathlib import Path
 from typing import Any
 
+from ebrl import durable
 from ebrl.envs import libero_suite
 from ebrl.evaluate import CONFIDENCE, wilson_interval
 
@@ -194,9 +195,7 @@ def command(path: str, suites: list[str], *, episodes: int = 50, tasks: list[int
         print(result.table() + "\n")
         directory = Path(path) if Path(path).is_dir() else Path.cwd()
         target = Path(out.format(suite=suite)) if out else directory / f"eval_{suite}.json"
-        tmp = target.with_name(f".{target.name}.tmp")
-        tmp.write_text(json.dumps(result.to_json(), indent=1) + "\n")
-        os.replace(tmp, target)
+        durable.write_text(target, json.dumps(result.to_json(), indent=1) + "\n")
         print(f"wrote {target}\n")
         results.append(result)
     print(published_row(results))

@@ -32,7 +32,7 @@ import time
 from pathlib import Path
 from typing import Callable
 
-from ebrl import config as config_mod, prepare, procenv, stall
+from ebrl import config as config_mod, durable, prepare, procenv, stall
 from ebrl.bus import auth, keys
 from ebrl.bus.session import Bus, BusOptions
 from ebrl.bus.endpoints import (address_in_use, config_file_connect, config_file_listen, free_port,
@@ -156,7 +156,7 @@ class LauncherBus:
                                   run=self.run, host=plan.instance, instances=instances, dictionary_file=dictionary,
                                   groups=groups, planned=self.planned, shares=shares))
         mine = [self.local, *(e for e in listen if e != self.local)] if endpoint else []  # scripts take the first
-        (run_dir / "bus.json").write_text(json.dumps({"listen": mine, "run": self.run}) + "\n")
+        durable.write_text(run_dir / "bus.json", json.dumps({"listen": mine, "run": self.run}) + "\n")
         # the primary records the run; another host's launcher would draw every span across the link for a copy
         self.recorder = record.Recorder(run_dir / record.FILENAME) if cfg.viz.record and plan.primary else None
         if self.recorder is not None:

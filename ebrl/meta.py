@@ -23,7 +23,7 @@ from typing import Any
 import psutil
 
 import ebrl
-from ebrl import config as config_mod
+from ebrl import config as config_mod, durable
 
 FILENAME = "meta.json"
 # distributions whose versions decide what a run does (missing ones are reported as null)
@@ -158,8 +158,7 @@ def write(cfg: config_mod.Config, run_dir: str | Path, argv: list[str] | None = 
             meta = {**first, "resumed": [*first.get("resumed", []), meta]}
         except (OSError, ValueError):
             pass
-    path.write_text(json.dumps(meta, indent=2) + "\n")
-    return path
+    return durable.write_text(path, json.dumps(meta, indent=2) + "\n")
 
 
 def read(run_dir: str | Path) -> dict[str, Any]:

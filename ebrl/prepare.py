@@ -19,7 +19,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-from ebrl import autotune, config as config_mod, devices, meta, ranknet, slurm, tracking
+from ebrl import autotune, config as config_mod, devices, durable, meta, ranknet, slurm, tracking
 from ebrl.bus import auth
 from ebrl.bus.endpoints import config_file_acl, config_file_endpoints
 from ebrl.bus.joincheck import certificate_problem
@@ -90,7 +90,7 @@ def prepare(config_path: str, overrides: list[str], *, viz: str | None = None, r
     except NotStarted:
         run.close()
         raise
-    (run.run_dir / "config.toml").write_text(config_mod.dump_toml(run.cfg))
+    durable.write_text(run.run_dir / "config.toml", config_mod.dump_toml(run.cfg))
     # a resumed run's env steps go on from where its tracking stopped
     extra = {"env_steps_before": tracking.steps_so_far(run.run_dir)} if resume else {}
     extra = {**extra, "auto": decision.to_dict()} if decision else extra

@@ -24,6 +24,7 @@ from collections import deque
 from pathlib import Path
 from typing import Any, Callable, TextIO
 
+from ebrl import durable
 from ebrl.bus import keys
 from ebrl.messages import RETURN_WINDOW, StatsReport
 from ebrl.weights import plausible
@@ -386,8 +387,8 @@ def sim_numbers(view: RunView) -> dict[str, Any]:
 
 
 def write_summary(summary: dict[str, Any], path: Path) -> str:
-    """Write ``summary.json``; return the line that ends the launcher's output."""
-    path.write_text(json.dumps(summary, indent=2) + "\n")
+    """Write ``summary.json`` (``ebrl.durable``); return the line that ends the launcher's output."""
+    durable.write_text(path, json.dumps(summary, indent=2) + "\n")
     final = f"{summary['final_return']:.1f}" if summary["final_return"] is not None else "-"
     best = f"{summary['best_return']:.1f}" if summary["best_return"] is not None else "-"
     return (f"run {summary['run']} {'finished' if summary['exit_code'] == 0 else 'stopped'}: "

@@ -178,7 +178,7 @@ def test_a_train_killed_while_handing_over_leaves_its_whole_records_to_the_next(
     taken over (they were never trained on), and both files go."""
     handed_over(tmp_path)
     path = tmp_path / HANDOVER_FILE
-    tmp = path.with_name(path.name + ".tmp")
+    tmp = path.with_name(f".{path.name}.k1l2.tmp")  # ebrl.durable's temporary, as a kill leaves it
     data = path.read_bytes()
     path.unlink()
     tmp.write_bytes(data[:len(data) - 5])

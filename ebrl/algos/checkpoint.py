@@ -9,9 +9,9 @@ A checkpoint is a directory ``RUN_DIR/checkpoints/v<version>/`` holding
 - ``state.json``: the policy version, the optimizer's hyper-parameters (param groups) and when it was
   written.
 
-Durability: every file is written into ``v<version>.tmp/`` and fsynced, then the directory is fsynced and
-renamed into place, the parent fsynced; only then is ``latest`` (a one-line file naming the directory) replaced
-the same way (written to ``latest.tmp``, fsynced, renamed, directory fsynced). A checkpoint counts once
+Durability (``ebrl.durable``): every file is written into ``v<version>.tmp/``, which goes into place whole
+(:func:`ebrl.durable.replace_dir`: its files and itself fsynced, renamed, the parent fsynced); only then is
+``latest`` (a one-line file naming the directory) replaced, durably too. A checkpoint counts once
 ``latest`` names it, so a crash (kill -9, power loss) at any moment leaves the previous one intact. The new
 checkpoint and the newest ``KEEP - 1`` whole ones before it are kept; an older one (or one that is not whole)
 is renamed to ``*.tmp`` before it is deleted, so a crash while deleting never leaves half a checkpoint under a
@@ -34,12 +34,13 @@ import shutil
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, BinaryIO, Callable
+from typing import Any, Callable
 
 import torch
 from safetensors import SafetensorError, safe_open
 from safetensors.torch import load_file, save_file
 
+from ebrl import durable
 from ebrl.policies import save_checkpoint
 from ebrl.policies.checkpoint import UnreadableCheckpoint, load_arrays, read_checkpoint
 
@@ -113,7 +114,7 @@ def remove_stale(run_dir: str | Path) -> list[Path]:
     Only the process that writes checkpoints may call this (it would remove a save in progress)."""
     removed = []
     for stale in _listdir(checkpoint_dir(run_dir)):
-        if stale.name.endswith(".tmp"):
+        if stale.name.endswith(durable.SUFFIX):  # a v*.tmp directory, or a file's temporary (ebrl.durable)
             if stale.is_dir() and not stale.is_symlink():
                 shutil.rmtree(stale, ignore_errors=True)
             else:
@@ -137,7 +138,7 @@ def save(run_dir: str | Path, model: torch.nn.Module, optimizer: Any, version: i
     tmp, final = root / f"{name}.tmp", root / name
     tmp.mkdir(exist_ok=True)  # a leftover remove_stale could not delete is written over
     save_checkpoint(model, str(tmp / "policy.safetensors"), {**(metadata or {}), "version": str(version)},
-                    state=model_state)  # fsynced, renamed, its directory fsynced
+                    state=model_state)
     state = optimizer if isinstance(optimizer, dict) else optimizer.state_dict()
     tensors = {f"opt.{index}.{key}": value.detach().cpu().contiguous()
                for index, slots in state["state"].items() for key, value in slots.items()
@@ -150,18 +151,10 @@ def save(run_dir: str | Path, model: torch.nn.Module, optimizer: Any, version: i
     tensors.update({f"rng.{key}": gen.get_state() for key, gen in generators.items()})
     tensors["rng.torch"] = torch.get_rng_state()
     save_file(tensors, str(tmp / "train.safetensors"))
-    fsync_file(tmp / "train.safetensors")
     text = json.dumps({"version": version, "time": time.time(), "param_groups": state["param_groups"]}, indent=1)
-    with open(tmp / "state.json", "w") as fh:
-        fh.write(text + "\n")
-        fh.flush()
-        os.fsync(fh.fileno())
-    fsync_dir(tmp)
-    if final.exists():  # the same version again: the old one goes first (a crash here falls back past it)
-        shutil.rmtree(final)
-    os.replace(tmp, final)
-    fsync_dir(root)  # the directory is there before latest names it
-    write_durably(root / POINTER, lambda fh: fh.write(f"{name}\n".encode()))
+    (tmp / "state.json").write_text(text + "\n")
+    durable.replace_dir(tmp, final)  # the same version again: the old one goes first (a crash then falls back)
+    durable.write_text(root / POINTER, f"{name}\n")  # once the directory is there
     others = [p for p in candidates(run_dir) if p != final]
     kept = [p for p in others if looks_complete(p)][:KEEP - 1]  # an unreadable one is not worth keeping
     for old in others:
@@ -284,31 +277,6 @@ def _apply(path: Path, loaded: tuple[dict, dict, dict], model: torch.nn.Module, 
             gen.set_state(tensors[f"rng.{key}"])
     torch.set_rng_state(tensors["rng.torch"])
     return Restored(version=state["version"], path=path)
-
-
-def write_durably(path: Path, write: Callable[[BinaryIO], Any]) -> None:
-    """Replace ``path`` with what ``write(fh)`` writes, so that a crash at any moment leaves either the old file
-    or the whole new one: into ``<path>.tmp``, fsynced, renamed over ``path``, the directory fsynced."""
-    tmp = path.with_name(path.name + ".tmp")
-    with open(tmp, "wb") as fh:
-        write(fh)
-        fh.flush()
-        os.fsync(fh.fileno())
-    os.replace(tmp, path)
-    fsync_dir(path.parent)
-
-
-def fsync_file(path: Path) -> None:
-    with open(path, "rb") as fh:
-        os.fsync(fh.fileno())
-
-
-def fsync_dir(path: Path) -> None:
-    fd = os.open(path, os.O_RDONLY)
-    try:
-        os.fsync(fd)
-    finally:
-        os.close(fd)
 
 
 def _listdir(root: Path) -> list[Path]:

@@ -12,7 +12,7 @@ from typing import BinaryIO, Callable, Iterable
 
 import msgpack
 
-from ebrl.algos import checkpoint
+from ebrl import durable
 from ebrl.messages import MessageError, TrajectorySegment, decode_message, encode_message
 
 log = logging.getLogger(__name__)
@@ -24,10 +24,10 @@ _RECORD = struct.Struct("<II")
 
 def hand_over(run_dir: str, segments: list[TrajectorySegment]) -> int:
     """Write ``segments`` (received, not yet trained on) for the next learner of this run; how many. Durably
-    (:func:`ebrl.algos.checkpoint.write_durably`), one checked record per segment (:func:`write_records`)."""
+    (:func:`ebrl.durable.writing`), one checked record per segment (:func:`write_records`)."""
     if segments:
-        path = Path(run_dir) / HANDOVER_FILE
-        checkpoint.write_durably(path, lambda fh: write_records(fh, (encode_message(s) for s in segments)))
+        with durable.writing(Path(run_dir) / HANDOVER_FILE) as tmp, open(tmp, "wb") as fh:
+            write_records(fh, (encode_message(s) for s in segments))
     return len(segments)
 
 
@@ -35,18 +35,19 @@ def take_over(run_dir: str, accept: Callable[[TrajectorySegment], int],
               malformed: Callable[[Exception], None]) -> tuple[int, int]:
     """Take over what the learner before handed over, once (the file is removed): each segment goes to
     ``accept``; returns (taken, handed over). A learner killed while handing over left only the temporary
-    file: its whole records are taken over too (each is checked; a torn last one is lost, logged)."""
+    file (:func:`ebrl.durable.temporaries`): its whole records are taken over too (each is checked; a torn last
+    one is lost, logged)."""
     path = Path(run_dir) / HANDOVER_FILE
-    tmp = path.with_name(path.name + ".tmp")
-    source = path if path.exists() else tmp if tmp.exists() else None
+    left = durable.temporaries(path)
+    source = path if path.exists() else left[-1] if left else None
     if source is None:
         return 0, 0
     payloads, torn = read_records(source)
     if torn:
         log.warning("%s: %s; took the %d whole records before it", source, torn, len(payloads))
-    for stale in (path, tmp):  # before anything is trained on: never taken over twice
+    for stale in (path, *left):  # before anything is trained on: never taken over twice
         stale.unlink(missing_ok=True)
-    checkpoint.fsync_dir(path.parent)
+    durable.fsync_dir(path.parent)
     taken = 0
     for payload in payloads:
         try:

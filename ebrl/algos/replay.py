@@ -14,7 +14,6 @@ them back (a restarted replay resumes with what it held, or counts it lost where
 
 from __future__ import annotations
 
-import io
 import math
 from dataclasses import dataclass
 from pathlib import Path
@@ -22,7 +21,7 @@ from pathlib import Path
 import numpy as np
 import psutil
 
-from ebrl.algos.checkpoint import write_durably
+from ebrl import durable
 from ebrl.messages import TRANSITION_FIELDS, ReplayRequest, ReplaySample, TrajectorySegment
 
 REPLAY_FILE = "replay.npz"  # RUN_DIR: the replay service's contents as of its last save (replay.save)
@@ -150,16 +149,13 @@ class ReplayBuffer:
         return ReplayBatch(**{name: getattr(self, name)[idx] for name in FIELDS})
 
     def save(self, path: str | Path, extra: dict[str, int] | None = None) -> None:
-        """The contents and ``extra`` counters, durably (written to a temporary, fsynced, renamed): what
-        ``restore`` reads."""
+        """The contents and ``extra`` counters, durably (:func:`ebrl.durable.writing`): what ``restore``
+        reads."""
         meta = np.array([self.obs_size, self.action_size, self.capacity, self.size, self.cursor, self.inserted],
                         np.int64)
         counters = {f"extra_{name}": np.array(value, np.int64) for name, value in (extra or {}).items()}
-
-        def write(f: io.BufferedWriter) -> None:
+        with durable.writing(path) as tmp, open(tmp, "wb") as f:  # a file object: np.savez adds .npz to a name
             np.savez(f, meta=meta, **counters, **{name: getattr(self, name)[:self.size] for name in FIELDS})
-
-        write_durably(Path(path), write)
 
     def restore(self, path: str | Path) -> tuple[int, dict[str, int]]:
         """Read back what ``save`` wrote: the transitions restored and the ``extra`` counters. ValueError where

@@ -19,9 +19,9 @@ from typing import TYPE_CHECKING
 
 import torch
 
+from ebrl import durable
 from ebrl.algos import checkpoint
 from ebrl.policies import save_checkpoint
-from ebrl.policies.checkpoint import remove_stale_temporaries
 
 if TYPE_CHECKING:
     from ebrl.algos.learner import Learner
@@ -44,7 +44,7 @@ def policy_path(run_dir: str) -> str:
 def remove_interrupted(run_dir: str) -> list:
     """Remove what a kill in the middle of a write left in ``run_dir`` (a checkpoint's ``*.tmp``, the policy
     file's temporaries); what was removed. Only the writer may call this: a save in progress would go too."""
-    return checkpoint.remove_stale(run_dir) + remove_stale_temporaries(policy_path(run_dir))
+    return checkpoint.remove_stale(run_dir) + durable.remove_temporaries(policy_path(run_dir))
 
 
 def save_train_state(learner: Learner, run_name: str) -> bool:

@@ -41,7 +41,7 @@ from typing import Any, Callable, Iterator
 
 import numpy as np
 
-from ebrl import config as config_mod
+from ebrl import config as config_mod, durable
 from ebrl.alloc.algorithm import Profiles
 from ebrl.resources.pool import ResourcePool
 
@@ -268,9 +268,9 @@ def profile(pool: ResourcePool, cfg: config_mod.Config, seconds: float = 1.0,
 
 def save(path: Path, profiles: Profiles, tag: dict[str, Any]) -> None:
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_suffix(".tmp")
-    tmp.write_text(json.dumps({"fingerprint": tag, "created": time.time(), "profiles": profiles.to_json()}, indent=1))
-    tmp.replace(path)  # atomic: a reader sees the old file or the new one
+    # a reader sees the old file or the new one (ebrl.durable)
+    durable.write_text(path, json.dumps({"fingerprint": tag, "created": time.time(), "profiles": profiles.to_json()},
+                                        indent=1))
 
 
 def load(path: Path, tag: dict[str, Any], max_age_s: float) -> Profiles | None:

@@ -49,7 +49,7 @@ import stat
 from dataclasses import dataclass
 from pathlib import Path
 
-from ebrl import graph
+from ebrl import durable, graph
 
 FILENAME = "bus.secret"
 OBSERVER_USER = graph.username("observer")
@@ -73,15 +73,9 @@ def _new_lines(users) -> str:
 
 def create(path: str | os.PathLike) -> Path:
     """Write a new secret file at ``path`` (0600, fsynced): a password for each identity; an existing file is an
-    error, never replaced."""
-    path = Path(path)
-    fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
-    try:
-        os.write(fd, _new_lines(graph.username(role) for role in IDENTITIES).encode())
-        os.fsync(fd)
-    finally:
-        os.close(fd)
-    return path
+    error, never replaced (``ebrl.durable``)."""
+    return durable.write_text(path, _new_lines(graph.username(role) for role in IDENTITIES), mode=0o600,
+                              exclusive=True)
 
 
 def write_observer(secret: str | os.PathLike, path: str | os.PathLike) -> Path:
@@ -89,13 +83,7 @@ def write_observer(secret: str | os.PathLike, path: str | os.PathLike) -> Path:
     secret file ``secret`` alone: what another user or a script needs to watch the run (read its stats, ask a
     service's status) and nothing more. It holds no service password, so it cannot sign in as a service."""
     credentials = load(secret, "observer")
-    fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
-    try:
-        os.write(fd, f"{credentials.user}:{credentials.password}\n".encode())
-        os.fsync(fd)
-    finally:
-        os.close(fd)
-    return Path(path)
+    return durable.write_text(path, f"{credentials.user}:{credentials.password}\n", mode=0o600, exclusive=True)
 
 
 def ensure(path: str | os.PathLike) -> Path:
@@ -216,15 +204,7 @@ def write_router_dictionary(secret: str | os.PathLike, path: str | os.PathLike,
     users = _users(Path(secret))
     lines = [f"{user}:{users[user]}" for user in (graph.username("launcher"), OBSERVER_USER) if user in users]
     lines += [instance_line(secret, role, instance) for role, instance in instances]
-    temporary = path.with_name(f".{path.name}.{secrets.token_hex(4)}")
-    fd = os.open(temporary, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
-    try:
-        os.write(fd, "".join(line + "\n" for line in lines).encode())
-        os.fsync(fd)
-    finally:
-        os.close(fd)
-    os.replace(temporary, path)
-    return path
+    return durable.write_text(path, "".join(line + "\n" for line in lines), mode=0o600)
 
 
 TRUSTED_HOSTS = 256  # launchers numbered below this, and the router, are trusted at the end of a link opened

@@ -14,21 +14,17 @@ the action bounds and the format version. The observation normaliser's running
 statistics (``policy.normalize_obs``) are tensors of the state dict
 (``obs_norm.mean``, ``obs_norm.var``, ``obs_norm.count``), so they travel too.
 
-Files are written atomically (a temporary file ``.<name>.<random>.tmp`` beside
-the target, fsynced, renamed, the directory fsynced) and readable as the umask
-allows (0644 under the usual 022), never only by their owner. A file that
-cannot be read (missing, truncated, not safetensors) is told apart from one
-that does not fit the model: :class:`UnreadableCheckpoint`.
+Files are written durably and atomically (``ebrl.durable``) and readable as
+the umask allows (0644 under the usual 022), never only by their owner. A file
+that cannot be read (missing, truncated, not safetensors) is told apart from
+one that does not fit the model: :class:`UnreadableCheckpoint`.
 """
 
 from __future__ import annotations
 
-import contextlib
 import dataclasses
-import glob
 import json
 import os
-import tempfile
 from typing import Any
 
 import numpy as np
@@ -36,6 +32,7 @@ import torch
 from safetensors import SafetensorError, safe_open
 from safetensors.torch import save_file
 
+from ebrl import durable
 from ebrl.policies.base import ChunkPolicy
 
 CHECKED = ("kind", "chunk", "action_dim", "layout")  # reserved metadata keys, written from the model
@@ -104,50 +101,9 @@ def save_checkpoint(model: ChunkPolicy, path: str, metadata: dict[str, str],
     """Write the weights (``state``, default the model's own) and ``metadata`` (plus the reserved keys
     ``CHECKED``) atomically to ``path``."""
     tensors = {name: t.detach().cpu().contiguous() for name, t in (state or model.state_dict()).items()}
-    directory = os.path.dirname(os.path.abspath(path))
-    os.makedirs(directory, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{os.path.basename(path)}.", suffix=".tmp", dir=directory)
-    os.close(fd)
-    try:
-        save_file(tensors, tmp, metadata={**metadata, **policy_metadata(model)})
-        os.chmod(tmp, 0o666 & ~_umask())  # mkstemp makes it 0600: the group (a collaborator, a server) may read it
-        with open(tmp, "rb") as fh:
-            os.fsync(fh.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        with contextlib.suppress(OSError):
-            os.unlink(tmp)
-        raise
-    dir_fd = os.open(directory, os.O_RDONLY)
-    try:
-        os.fsync(dir_fd)  # the rename itself survives a crash
-    finally:
-        os.close(dir_fd)
-
-
-def _umask() -> int:
-    """This process's umask, read without changing it (os.umask would, for every thread, for a moment)."""
-    try:
-        with open("/proc/self/status") as fh:
-            for line in fh:
-                if line.startswith("Umask:"):
-                    return int(line.split()[1], 8)
-    except (OSError, ValueError):
-        pass
-    return 0o022
-
-
-def remove_stale_temporaries(path: str) -> list[str]:
-    """Remove what a writer of ``path`` killed in the middle of :func:`save_checkpoint` left (its temporary
-    files); returns their names. Only for a file one process writes (another writer's file in progress would
-    go too)."""
-    directory, name = os.path.split(os.path.abspath(path))
-    removed = []
-    for stale in glob.glob(os.path.join(glob.escape(directory), f".{glob.escape(name)}.*.tmp")):
-        with contextlib.suppress(FileNotFoundError):
-            os.unlink(stale)
-            removed.append(stale)
-    return removed
+    os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
+    with durable.writing(path) as tmp:  # as the umask allows: the group (a collaborator, a server) may read it
+        save_file(tensors, str(tmp), metadata={**metadata, **policy_metadata(model)})
 
 
 def read_checkpoint(model: ChunkPolicy, path: str) -> tuple[dict[str, np.ndarray], dict[str, str]]:

@@ -14,15 +14,16 @@ The only module that imports rerun-sdk (used by the viz service alone).
   to each :class:`Outlet` at its own pace: a live viewer often, the file
   ``RUN_DIR/timeline.rrd`` in few large chunks (a chunk's framing costs more
   than a few rows: one ``log`` call per metric made the quickstart's file grow
-  at 250 KiB/s and a web viewer fall behind).
+  at about 240 KiB/s and a web viewer fall minutes behind).
 * **Colours mean something**: the state is the kind of work (``chunk``,
   ``wait``, ``forward``, ``update``, ``publish``, ``realloc``), coloured by a
   static ``StateConfiguration`` per lane; a weights span ``v<n>`` is a
   ``publish`` bar and a line in the event log.
-* **Plots** (``plots/<topic>/...``): the stats metrics a user looks at, one
-  ``TimeSeriesView`` per topic; every other metric is kept under
-  ``metrics/<service><instance>/...``. Training losses are also on the
-  ``iteration`` timeline (the policy version).
+* **Plots** (``plots/<topic>``): the stats metrics a user looks at, one entity
+  and one ``TimeSeriesView`` per topic, a series per service instance and metric
+  (``sim0/sim.env_steps_per_s``); every other metric is kept under
+  ``metrics/<service><instance>/<first name chunk>``. Training losses are also on
+  the ``iteration`` timeline (the policy version).
 * **Events** (``events``): a ``TextLog`` of launcher, service and allocator events.
 """
 
@@ -88,8 +89,8 @@ class Outlet:
     Rows are buffered per entity and sent as columns (``send_columns``): one chunk per entity per send. A
     chunk costs about 1.1 KiB in a recording beyond its rows (its schema, ids, framing), and a viewer pays per
     chunk too, so how often each family is sent decides both the file's growth and whether a viewer keeps up:
-    row by row, the quickstart made 186 chunks/s, 250 KiB/s of ``timeline.rrd``, and the web viewer fell a
-    minute behind in its first minute (BENCHMARKS.md, "The live view")."""
+    row by row, the quickstart made 186 chunks/s, about 240 KiB/s of ``timeline.rrd``, and the web viewer fell
+    minutes behind (BENCHMARKS.md, "The live view")."""
 
     def __init__(self, rec: rr.RecordingStream, every_s: dict[str, float]):
         self.rec = rec
@@ -140,8 +141,10 @@ class Outlet:
 
 
 FAMILIES = ("timeline", "plots", "metrics", "events")
-# A live viewer: the Gantt within about a second, the plots every second, the metrics no view shows every 30 s.
-LIVE_EVERY_S = {"timeline": 0.5, "plots": 1.0, "metrics": 30.0, "events": 1.0}
+# A live viewer: the Gantt every second, the plots every 2 s, the metrics no view shows every 30 s: about 10 chunks
+# a second on the quickstart. Twice as often (20 chunks/s), a web viewer sharing 2 cores with the run and a native
+# viewer fell minutes behind in 10 minutes; at this pace it stayed within 1.6 s (median; BENCHMARKS.md).
+LIVE_EVERY_S = {"timeline": 1.0, "plots": 2.0, "metrics": 30.0, "events": 2.0}
 # The file (RUN_DIR/timeline.rrd): few, large chunks; what a kill -9 of viz loses is in RUN_DIR/stats.msgpack.
 FILE_EVERY_S = dict.fromkeys(FAMILIES, 60.0)
 # Back-to-back spans of one lane: a gap below this is not drawn (a group's chunk and wait spans are 0.15 ms apart
@@ -255,7 +258,7 @@ class RerunBridge:
 
 
 def make_blueprint(window_s: float = 20.0) -> rrb.Blueprint:
-    """Gantt and event log on the left, one plot per topic on the right; the time panel follows
+    """Gantt and event log on the left, one plot per topic on the right; the time panel (collapsed) follows
     the present on the ``wall`` timeline and every view shows the last ``window_s`` seconds."""
     follow = rrb.TimeAxis(view_range=rrb.TimeRange(
         start=rrb.TimeRangeBoundary.cursor_relative(seconds=-window_s),
@@ -272,7 +275,9 @@ def make_blueprint(window_s: float = 20.0) -> rrb.Blueprint:
             rrb.Grid(*plots, grid_columns=3),
             column_shares=[1, 1],
         ),
-        rrb.TimePanel(timeline="wall", play_state="following"),
+        # collapsed: its streams' density graph over the whole run is redrawn every frame, a cost that grows with
+        # the run's length (a web viewer on a loaded machine fell behind with it open; one click opens it)
+        rrb.TimePanel(state="collapsed", timeline="wall", play_state="following"),
         rrb.BlueprintPanel(state="collapsed"),
         rrb.SelectionPanel(state="collapsed"),
     )

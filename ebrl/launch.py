@@ -128,6 +128,14 @@ def local_endpoint(endpoint: str) -> str:
     return endpoint if not endpoint or auth.is_loopback(endpoint) else f"tcp/127.0.0.1:{free_port()}"
 
 
+def stopped_code(stop_reason: str) -> int:
+    """The exit code of a run stopped from outside: 130 after SIGINT, 143 after SIGTERM, 0 where the primary
+    host ended the run."""
+    if stop_reason == PRIMARY_ENDED:
+        return 0
+    return 130 if stop_reason.startswith("signal SIGINT") else 143
+
+
 class LauncherBus:
     """This host's launcher on the bus (a router when the run spans hosts): where it listens (``bus.json``), the
     recording of the run's stats, and what it publishes: events, its stats report, stops."""
@@ -386,6 +394,8 @@ class Launcher:
                 self.supervisor.start(*services[0], members=services)
             if await self.wait_live():
                 code = await self.supervise()
+            elif self.stopping.is_set() and self.failure is None:  # Ctrl-C (or SIGTERM) while starting
+                code = stopped_code(self.stop_reason)
         finally:
             for task in control_tasks:  # no new GPU share while stopping
                 task.cancel()
@@ -455,9 +465,7 @@ class Launcher:
                 await asyncio.wait_for(self.stopping.wait(), 0.5)
             except asyncio.TimeoutError:
                 pass
-        if self.stop_reason == PRIMARY_ENDED:
-            return 0
-        return 130 if self.stop_reason.startswith("signal SIGINT") else 143
+        return stopped_code(self.stop_reason)
 
     def show_progress(self, force: bool = False) -> None:
         hosts = len(self.members.hosts_up) + 1 if self.plan.multi else None

@@ -82,6 +82,18 @@ def test_services_are_separate_processes_and_sigint_leaves_none(tmp_path):
     assert code == 130
 
 
+def test_ctrl_c_while_the_services_start_is_a_stop_not_a_failure(tmp_path):
+    """SIGINT as soon as the launcher has started the services (they take seconds to import torch): the run
+    stops with 130, as after Ctrl-C later, and its summary names no failure (it said exit 1 before)."""
+    with quickstart(tmp_path / "runs", "run.iterations=0", name="early") as run:
+        run.wait_for_line("run early:", 300)  # printed before any service starts
+        run.interrupt()
+        code = run.wait(SHUTDOWN_S + LOADED_S)
+    assert "all services live" not in run.output, "the services were up before the SIGINT reached the launcher"
+    assert code == 130, run.output
+    assert json.loads((run.run_dir / "summary.json").read_text())["failure"] is None
+
+
 @pytest.mark.slow
 def test_quickstart_learns_to_the_stated_return(tmp_path):
     with quickstart(tmp_path / "runs", name="learn") as run:

@@ -26,6 +26,7 @@ def eval_reports(run_dir):
     return [r for r in rec.stats if r.service == "eval" and "eval/version" in r.metrics]
 
 
+@pytest.mark.slow  # 22 s: the fast suite keeps to its 10 minutes on 2 cores
 def test_up_with_eval_reports_each_version_records_videos_and_keeps_the_best_policy(tmp_path):
     with helpers.up(tmp_path / "runs", "configs/quickstart.toml", "run.iterations=4", "eval.every=2",
                     "eval.episodes=3", name="evalrun") as run:

@@ -149,6 +149,7 @@ def shared_process(run) -> psutil.Process:
     raise AssertionError("no shared process among the launcher's children")
 
 
+@pytest.mark.slow  # 35 s: the fast suite keeps to its 10 minutes on 2 cores
 def test_services_sharing_a_process_train_report_as_themselves_and_restart_together(tmp_path):
     """The quickstart with sim, gen and train in one process: one child process for the three; a user's stats
     subscriber sees each service's own reports and Gantt lanes as from three processes, while observations, actions

@@ -37,6 +37,7 @@ def finished(process: subprocess.Popen) -> dict:
     return json.loads(process.communicate("", timeout=120)[0].splitlines()[-1])
 
 
+@pytest.mark.slow  # 53 s: the fast suite keeps to its 10 minutes on 2 cores
 def test_a_simulator_s_credential_can_neither_end_halt_nor_fail_a_run(tmp_path):
     with up(tmp_path, "configs/quickstart.toml", "run.iterations=30", 'viz.rerun="off"', name="untrusted") as run:
         run.wait_for_line("all services live", 300)

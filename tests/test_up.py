@@ -82,6 +82,7 @@ def test_services_are_separate_processes_and_sigint_leaves_none(tmp_path):
     assert code == 130
 
 
+@pytest.mark.slow  # 11 s: the fast suite keeps to its 10 minutes on 2 cores
 def test_ctrl_c_while_the_services_start_is_a_stop_not_a_failure(tmp_path):
     """SIGINT as soon as the launcher has started the services (they take seconds to import torch): the run
     stops with 130, as after Ctrl-C later, and its summary names no failure (it said exit 1 before)."""

@@ -120,23 +120,23 @@ class Outlet:
                     self._send(family, entity, sorted(entity_rows, key=lambda r: r[0]))
 
     def _send(self, family: str, entity: str, rows: list[tuple]) -> None:
-        wall = rr.TimeColumn("wall", timestamp=np.array([r[0] for r in rows], dtype=np.float64))
-        if family == "timeline":
-            self.rec.send_columns(entity, indexes=[wall], columns=rr.StateChange.columns(state=[r[1] for r in rows]))
-        elif family == "events":
-            self.rec.send_columns(entity, indexes=[wall], columns=rr.TextLog.columns(text=[r[1] for r in rows],
-                                                                                   level=[r[2] for r in rows]))
+        if family == "timeline":  # rows: (time, state)
+            self._columns(entity, rows, rr.StateChange.columns(state=[r[1] for r in rows]))
+        elif family == "events":  # rows: (time, text, level)
+            self._columns(entity, rows, rr.TextLog.columns(text=[r[1] for r in rows], level=[r[2] for r in rows]))
         else:  # plots, metrics: (time, values, iteration or None); with an iteration also on that timeline
             for part in ([r for r in rows if r[2] is not None], [r for r in rows if r[2] is None]):
-                if not part:
-                    continue
-                indexes = [rr.TimeColumn("wall", timestamp=np.array([r[0] for r in part], dtype=np.float64))]
-                if part[0][2] is not None:
-                    indexes.append(rr.TimeColumn("iteration", sequence=np.array([r[2] for r in part], np.int64)))
-                values = rr.Scalars.columns(scalars=np.array([v for r in part for v in r[1]], np.float64))
-                self.rec.send_columns(entity, indexes=indexes, columns=values.partition([len(r[1]) for r in part]))
-                self.chunks += 1
-            return
+                if part:
+                    values = rr.Scalars.columns(scalars=np.array([v for r in part for v in r[1]], np.float64))
+                    iteration = None if part[0][2] is None else [r[2] for r in part]
+                    self._columns(entity, part, values.partition([len(r[1]) for r in part]), iteration)
+
+    def _columns(self, entity: str, rows: list[tuple], columns, iteration: list[int] | None = None) -> None:
+        """One chunk: ``rows``' times (their first field) on ``wall`` (and ``iteration``) with ``columns``."""
+        indexes = [rr.TimeColumn("wall", timestamp=np.array([r[0] for r in rows], dtype=np.float64))]
+        if iteration is not None:
+            indexes.append(rr.TimeColumn("iteration", sequence=np.array(iteration, np.int64)))
+        self.rec.send_columns(entity, indexes=indexes, columns=columns)
         self.chunks += 1
 
 

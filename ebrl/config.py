@@ -97,7 +97,9 @@ class RunSection(Section):
         "a process shares its memory: the env's code can then reach the others (docs/processes.md). Empty: each "
         "service in a process of its own. \"auto\": sim, gen and train in one process on a host with a GPU that "
         "runs all three (one training rank, no allocator) with a GPU simulator EBRL ships (env.backend = \"mjwarp\", "
-        "its own task), else each alone; decided at start, written into the run's config.toml", "auto")
+        "its own task); on a CPU host, sim and gen in one process where the run is the ebrl mode without the "
+        "allocator, each env a worker process of its own (not sim.vectorized) and no module:EnvId of yours; else "
+        "each alone; decided at start, written into the run's config.toml", "auto")
 
     def _check(self) -> None:
         try:
@@ -245,8 +247,9 @@ class SimSection(Section):
     segment_length: int = doc("chunk decisions per trajectory segment sent to training", 32)
     nice: int = doc("niceness of the sim service and its env workers (0-19): where simulation shares cores with "
                     "generation and training, the scheduler serves those first, so an update finishes sooner and "
-                    "less of the data is acted by an older version; 0: equal shares. Not applied in a process "
-                    "the sim shares with other services (run.processes)", 0)
+                    "less of the data is acted by an older version; 0: equal shares. In a process the sim shares "
+                    "with other services (run.processes) only its env workers and vectorized group processes take "
+                    "it (groups stepping on a thread of that process do not)", 0)
     step_timeout: float = doc("seconds an env worker may take for one request (a chunk, or one step under batch "
                               "stepping) before it is killed and replaced; 0: automatic, 20x the "
                               "measured P99 chunk latency and at least 20 s (120 s until 50 chunks were seen)", 0.0)

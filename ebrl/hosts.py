@@ -26,7 +26,7 @@ from dataclasses import dataclass
 
 from ebrl.algos.algorithm import uses_replay
 from ebrl.bus import keys
-from ebrl.config import ROLES, Config, ConfigError, processes, train_ranks
+from ebrl.config import ROLES, Config, ConfigError, processes, train_ranks, vectorized
 
 PRIMARY_LOST_S = 30.0  # a secondary host stops when no train has been live for this long
 UNKNOWN_KEPT = 4096  # tokens of instances the run does not have, remembered to count each once (memory bounded)
@@ -270,31 +270,55 @@ GPU_SIMULATORS = ("mjwarp",)  # env.backend values whose worlds step on the GPU,
 
 def decide_processes(cfg: Config, here: HostPlan, gpu: bool) -> tuple[Config, str]:
     """``cfg`` with ``run.processes = "auto"`` decided for this host (``gpu``: it has one), and the line that says
-    what it became ("" where it was not "auto"). Shared: sim, gen and train in one process, where this host runs
-    the three with one training rank, no allocator (its quotas and GPU shares are a process's each) and a GPU
-    simulator of :data:`GPU_SIMULATORS` on a task EBRL ships (no
-    ``module:EnvId``: a user's env code never shares training's memory unasked), so that the three stages share
-    one CUDA context and no message between them leaves the process. Else every service alone, as on a CPU
-    host, where separate processes keep each stage's cores its own. The replay (an off-policy run's) shares
-    train's process wherever this host runs both with one training rank: its minibatches are then handed over
-    by reference (BENCHMARKS.md, "Where the replay runs")."""
+    what it became ("" where it was not "auto").
+
+    - On a GPU host: sim, gen and train in one process, where this host runs the three with one training rank,
+      no allocator (its quotas and GPU shares are a process's each) and a GPU simulator of
+      :data:`GPU_SIMULATORS` on a task EBRL ships (no ``module:EnvId``: a user's env code never shares
+      training's memory unasked), so that the three stages share one CUDA context and no message between them
+      leaves the process.
+    - On a CPU host: sim and gen in one process, where this host runs both in the ebrl mode (the baselines keep
+      the process layout they model) without the allocator, each env steps in a worker process of its own (not
+      ``sim.vectorized``: the env's code never runs in the shared process beyond describing it once, and gen's
+      policy is nothing the simulator could not already act against) and the env is not a ``module:EnvId``.
+      Their observations and actions then go by reference instead of through the launcher's router: 1.33x the
+      quickstart's env steps/s on 2 cores (BENCHMARKS.md, "The launcher's hop on the quickstart"); training
+      keeps its own process, and with it its cores.
+    - Else every service alone.
+
+    The replay (an off-policy run's) shares train's process wherever this host runs both with one training
+    rank: its minibatches are then handed over by reference (BENCHMARKS.md, "Where the replay runs")."""
     if cfg.run.processes != "auto":
         return cfg, ""
-    stages = {"sim", "gen", "train"}
-    why = ("no GPU on this host" if not gpu
-           else "not every stage on this host" if not stages <= set(here.roles)
-           else f"env.backend = {cfg.env.backend!r} steps on the CPU" if cfg.env.backend not in GPU_SIMULATORS
-           else f"env.id = {cfg.env.id!r} is your own code" if not _shipped_task(cfg.env.id)
-           else "several training ranks" if cfg.train.world_size > 1
+    stages = ["sim", "gen", "train"] if gpu else ["sim", "gen"]
+    why = ("not every stage on this host" if not set(stages) <= set(here.roles)
            else "the allocator shares cores and the GPU out per process" if cfg.alloc.enabled
-           else "")
-    chosen = [] if why else [["sim", "gen", "train"]]
+           else _why_apart_on_gpu(cfg) if gpu else _why_apart_on_cpu(cfg))
+    chosen = [] if why else [stages]
     replay = {"train", "replay"} <= set(here.roles) and cfg.train.world_size == 1
     if replay:
-        chosen = [group + ["replay"] for group in chosen] or [["train", "replay"]]
+        chosen = [group + ["replay"] for group in chosen if "train" in group] or chosen + [["train", "replay"]]
     cfg = dataclasses.replace(cfg, run=dataclasses.replace(cfg.run, processes=chosen))
-    reasons = [why or "a GPU simulator, generation and training on one GPU"] + ["the replay with training"] * replay
+    shared = ("a GPU simulator, generation and training on one GPU" if gpu
+              else "no GPU on this host: the simulator and generation")
+    reasons = [why or shared] + ["the replay with training"] * replay
     return cfg, f"auto: run.processes = {chosen} ({'; '.join(reasons)})"
+
+
+def _why_apart_on_gpu(cfg: Config) -> str:
+    """Why sim, gen and train keep their processes on a GPU host ("": they share one)."""
+    return (f"env.backend = {cfg.env.backend!r} steps on the CPU" if cfg.env.backend not in GPU_SIMULATORS
+            else f"env.id = {cfg.env.id!r} is your own code" if not _shipped_task(cfg.env.id)
+            else "several training ranks" if cfg.train.world_size > 1
+            else "")
+
+
+def _why_apart_on_cpu(cfg: Config) -> str:
+    """Why sim and gen keep their processes on a CPU host ("": they share one)."""
+    return (f"run.mode = {cfg.run.mode!r} keeps its own layout" if cfg.run.mode != "ebrl"
+            else "no GPU on this host; the vectorized groups keep their processes" if vectorized(cfg)
+            else f"no GPU on this host; env.id = {cfg.env.id!r} is your own code" if ":" in cfg.env.id
+            else "")
 
 
 def _shipped_task(env_id: str) -> bool:

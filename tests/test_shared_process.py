@@ -76,7 +76,7 @@ def test_auto_shares_a_process_only_for_a_gpu_simulator_ebrl_ships_with_every_st
     shared, line = decide_processes(cfg, here, gpu=True)
     assert shared.run.processes == [["sim", "gen", "train"]] and "one GPU" in line
     assert (("train", 0), ("gen", 0), ("sim", 0)) in here.processes(shared)
-    cases = {"no GPU on this host": (mjwarp, {}, False),
+    cases = {"the vectorized groups keep their processes": (mjwarp, {}, False),  # no GPU on this host
              "steps on the CPU": (load(), {}, True),  # the quickstart's gymnasium env
              "is your own code": (mjwarp, {"env": {"id": "mytasks:Pick-v0"}}, True),
              "not every stage on this host": (mjwarp, {"only": "sim"}, True)}
@@ -91,6 +91,28 @@ def test_auto_shares_a_process_only_for_a_gpu_simulator_ebrl_ships_with_every_st
     assert decide_processes(with_alloc, here, gpu=True)[0].run.processes == []
     explicit = config.from_dict({**mjwarp.to_dict(), "run": {**mjwarp.to_dict()["run"], "processes": []}})
     assert decide_processes(*plan(explicit), gpu=True) == (explicit, "")  # a user's choice is kept, unsaid
+
+
+def test_auto_shares_sim_and_gen_on_a_cpu_host_for_the_ebrl_mode_with_env_workers():
+    cfg, here = plan(load())  # the quickstart's gymnasium env, one worker process per env
+    shared, line = decide_processes(cfg, here, gpu=False)
+    assert shared.run.processes == [["sim", "gen"]] and "no GPU on this host" in line, line
+    assert here.processes(shared) == [(("train", 0),), (("gen", 0), ("sim", 0))]  # training keeps its own
+    cases = {"keeps its own layout": {"run": {"mode": "colocated"}},  # a baseline models its layout
+             "is your own code": {"env": {"id": "mytasks:Pick-v0"}},
+             "the vectorized groups keep their processes": {"sim": {"vectorized": True}},
+             "per process": {"alloc": {"enabled": True}},
+             "not every stage on this host": {"only": "gen"}}
+    for why, change in cases.items():
+        only = change.pop("only", None)
+        cfg, here = plan(load(**change), only=only)
+        kept, line = decide_processes(cfg, here, gpu=False)
+        assert kept.run.processes == [] and why in line, (why, line)
+    sac = load(algo={"name": "sac"}, policy={"kind": "squashed"})  # the replay joins training, beside sim and gen
+    cfg, here = plan(sac)
+    assert decide_processes(cfg, here, gpu=False)[0].run.processes == [["sim", "gen"], ["train", "replay"]]
+    cfg, here = plan(load(algo={"name": "sac"}, policy={"kind": "squashed"}, run={"mode": "colocated"}))
+    assert decide_processes(cfg, here, gpu=False)[0].run.processes == [["train", "replay"]]
 
 
 # --- rights --------------------------------------------------------------------------------------------------------

@@ -39,11 +39,11 @@ log = logging.getLogger(__name__)
 
 
 def _vector_main(conn: Connection, spec: EnvSpec, seeds: list[int], shared: Any = None,
-                 owner: int | None = None) -> None:
+                 owner: int | None = None, nice: int = 0) -> None:
     """A vectorized group's process: builds the batch, answers ``reset`` (each env's episode index) and ``chunk``
     (actions [N, K, A]) with a :class:`VectorChunk`, until ``close`` or its pipe closes. ``shared``: a float32
     buffer of 2 x N x D the observations go through instead of the pipe."""
-    if not adopt(owner):
+    if not adopt(owner, nice):
         return
     from ebrl.envs.batch import BatchRunner, make_batch  # torch: in this process only
 
@@ -77,9 +77,9 @@ class VectorWorker(WorkerProcess):
     obs_size float32) rather than pickled through the pipe: for 256 envs of 64 px images (12.6 MB) that cut
     their way from the group's process to the sim service from 62 ms to 2.4 ms (benchmarks/vector_transfer.py)."""
 
-    def __init__(self, spec: EnvSpec, seeds: list[int], cores: list[int], obs_size: int = 0):
+    def __init__(self, spec: EnvSpec, seeds: list[int], cores: list[int], obs_size: int = 0, nice: int = 0):
         shared = worker_context(spec).RawArray("f", 2 * len(seeds) * obs_size) if obs_size else None
-        super().__init__(spec, _vector_main, lambda child: (spec, list(seeds), shared), "ebrl-vector")
+        super().__init__(spec, _vector_main, lambda child: (spec, list(seeds), shared), "ebrl-vector", nice)
         self.shared = None if shared is None else np.frombuffer(shared, np.float32).reshape(2, len(seeds), obs_size)
         self.num_envs = len(seeds)
         self.cores: list[int] = []

@@ -177,10 +177,14 @@ def _exists(pid: int) -> bool:
     return True
 
 
-def adopt(owner: int | None) -> bool:
-    """In a worker process, first thing: SIGINT is ignored (the sim service decides when workers stop), and the
-    process dies with its parent and with ``owner`` (the sim service's pid). False: one of them is gone already."""
+def adopt(owner: int | None, nice: int = 0) -> bool:
+    """In a worker process, first thing: SIGINT is ignored (the sim service decides when workers stop), the
+    process runs at niceness ``nice`` (``sim.nice``; before it starts a thread, so every thread it starts runs
+    there too), and it dies with its parent and with ``owner`` (the sim service's pid). False: one of them is
+    gone already."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)
+    if nice > os.nice(0):
+        os.nice(nice - os.nice(0))
     # The parent imported this module before it forked this process: the forkserver (which preloads it) or a
     # forking sim service. Imported here (spawn, a forkserver without the preload), its pid is not known.
     parent = _IMPORTED_BY if _IMPORTED_BY != os.getpid() else os.getppid()
@@ -188,13 +192,13 @@ def adopt(owner: int | None) -> bool:
 
 
 def _worker_main(conn: Connection, spec: EnvSpec, seed: int, claim: CoreClaim | None = None,
-                 cores: tuple[int, ...] | None = None, owner: int | None = None) -> None:
+                 cores: tuple[int, ...] | None = None, owner: int | None = None, nice: int = 0) -> None:
     """Episode ``k`` starts from ``env.reset(seed=seed + 7919 * k)``: workers given the same ``seed`` replay
     the same sequence of initial states (GRPO groups). With a ``claim`` on the sim service's core pool, every
     step runs on a core claimed from it (:mod:`ebrl.sched.corepool`). ``cores``: pinned there before the env
     is made, so every thread a simulator starts runs there too. ``owner``: the sim service's pid; the worker
-    dies with it."""
-    if not adopt(owner):
+    dies with it; ``nice``: its niceness (:func:`adopt`)."""
+    if not adopt(owner, nice):
         return  # the sim service (or the forkserver) died before the worker got here
     if cores:
         os.sched_setaffinity(0, cores)
@@ -368,11 +372,13 @@ class WorkerFailed(RuntimeError):
 class WorkerProcess:
     """Parent side of a worker process that answers requests over a pipe (an env worker, a vectorized group)."""
 
-    def __init__(self, spec: EnvSpec, target: Any, args: Callable[[Connection], tuple], name: str):
-        """Start ``target(child_conn, *args(child_conn), owner_pid)`` in a process of the env workers' forkserver."""
+    def __init__(self, spec: EnvSpec, target: Any, args: Callable[[Connection], tuple], name: str, nice: int = 0):
+        """Start ``target(child_conn, *args(child_conn), owner_pid, nice)`` in a process of the env workers'
+        forkserver (``nice``: its niceness, ``sim.nice``, which it takes itself before anything else)."""
         ctx = worker_context(spec)
         self.conn, child = ctx.Pipe()
-        self.proc = BareProcess(target=target, args=(child, *args(child), os.getpid()), daemon=True, name=name)
+        self.proc = BareProcess(target=target, args=(child, *args(child), os.getpid(), nice), daemon=True,
+                                name=name)
         self.proc.start()
         child.close()
         self.chunks_done = 0  # chunks it answered (a replaced worker that never did counts against its env)
@@ -434,14 +440,14 @@ class EnvWorker(WorkerProcess):
     """Parent-side handle of one env worker process."""
 
     def __init__(self, spec: EnvSpec, seed: int, core: int | tuple[int, ...] | None = None,
-                 pool: CorePool | None = None, slot: int = 0):
+                 pool: CorePool | None = None, slot: int = 0, nice: int = 0):
         """``core``: pinned there (a core, or a set of cores for a simulator that steps on several threads,
         ``sim.cores_per_env``), every thread of it; ``pool``: every step claims a core of the pool as env
-        ``slot`` of it."""
+        ``slot`` of it; ``nice``: the worker's niceness (``sim.nice``)."""
         home = _cores(core) if core is not None else None
         super().__init__(spec, _worker_main,
                          lambda child: (spec, seed, CoreClaim(pool, slot, child) if pool is not None else None, home),
-                         "ebrl-env")
+                         "ebrl-env", nice)
         self.slot = slot  # its place in the core pool
         self.core = core
         if core is not None:

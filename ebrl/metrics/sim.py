@@ -50,8 +50,10 @@ METRICS = (
     Metric("sim/envs", "envs", "env workers", SERVICE),
     Metric("sim/cores", "cores", "cores the simulator holds (what an allocator on another host plans with)",
            SERVICE),
-    Metric("sim/nice", "niceness", "the sim service's niceness, which its env workers inherit (`sim.nice`)",
-           SERVICE),
+    Metric("sim/nice", "niceness", "the sim service's own niceness (`sim.nice`; 0 where it shares a process with "
+           "other services)", SERVICE),
+    Metric("sim/workers_nice", "niceness", "the lowest niceness of its env worker and vectorized group processes, "
+           "as the kernel has it (`sim.nice`, in a shared process too); absent where none is a process", SERVICE),
     Metric("sim/unknown_instances", "tokens", "liveliness tokens of an instance the run does not have (its "
            "launcher's plan of hosts), each time one appeared: as `gen/unknown_instances`", SERVICE),
     # core rebinding (ebrl.sched.stepping) and its automatic choice (ebrl.sched.stepchoice)

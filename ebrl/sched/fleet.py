@@ -16,8 +16,9 @@ import asyncio
 import collections
 import dataclasses
 import logging
+import os
 import time
-from typing import Callable
+from typing import Callable, Iterable
 
 import numpy as np
 
@@ -105,10 +106,11 @@ class EnvFleet:
 
     def _start(self, env: int, core: int | tuple[int, ...] | None = None) -> EnvWorker:
         if self.pool is not None:  # every step claims a core of the pool
-            return EnvWorker(self.spec, seed=self.env_seed(env), pool=self.pool, slot=self.slot(env))
+            return EnvWorker(self.spec, seed=self.env_seed(env), pool=self.pool, slot=self.slot(env),
+                             nice=self.schedule.nice)
         # static pinning round-robin over them (sets of sim.cores_per_env cores for a multi-threaded simulator)
         home = home_cores(self.schedule.sim_cores, self.schedule.cores_per_env, env) if core is None else core
-        return EnvWorker(self.spec, seed=self.env_seed(env), core=home)
+        return EnvWorker(self.spec, seed=self.env_seed(env), core=home, nice=self.schedule.nice)
 
     def replace(self, g: int, i: int) -> EnvWorker:
         """Kill env ``i`` of group ``g``'s worker (dead or hung); a new one for the same env, seed and core
@@ -168,6 +170,10 @@ class EnvFleet:
         """Envs running (not given up)."""
         return len(self.live())
 
+    def niceness(self) -> float | None:
+        """The lowest niceness of the env workers' processes (None: none is alive)."""
+        return lowest_niceness(worker.proc.pid for worker in self.live())
+
     def cores(self) -> list[int]:
         """The cores the envs run on (a rebinding budget, or the statically pinned cores)."""
         if self.pool is not None:
@@ -214,9 +220,10 @@ class VectorFleet(EnvFleet):
         self.workers = {}  # no process per env
 
     def _start_group(self, g: int) -> VectorWorker | InlineVectorWorker:
-        worker = InlineVectorWorker if self.inline else VectorWorker
-        return worker(self.spec, [self.env_seed(int(env)) for env in self.env_ids(g)], self.schedule.sim_cores,
-                      self.obs_size)
+        seeds = [self.env_seed(int(env)) for env in self.env_ids(g)]
+        if self.inline:  # a thread of the shared process: no niceness of its own
+            return InlineVectorWorker(self.spec, seeds, self.schedule.sim_cores, self.obs_size)
+        return VectorWorker(self.spec, seeds, self.schedule.sim_cores, self.obs_size, nice=self.schedule.nice)
 
     async def reset_group(self, g: int) -> np.ndarray:
         return await self.vectors[g].reset(np.zeros(self.per_group, np.int64))
@@ -276,6 +283,10 @@ class VectorFleet(EnvFleet):
     def live(self) -> list[VectorWorker]:  # type: ignore[override]
         return [self.vectors[g] for g in self.groups if int(self.env_ids(g)[0]) not in self.given_up_envs]
 
+    def niceness(self) -> float | None:
+        """The lowest niceness of the groups' processes (None: none, or they step on a thread of this process)."""
+        return lowest_niceness(worker.proc.pid for worker in self.live() if isinstance(worker, VectorWorker))
+
     def count(self) -> int:
         return len(self.live()) * self.per_group
 
@@ -289,6 +300,18 @@ class VectorFleet(EnvFleet):
     def close(self) -> None:
         for worker in self.vectors.values():
             worker.close(timeout=1.0)
+
+
+def lowest_niceness(pids: Iterable[int | None]) -> float | None:
+    """The lowest niceness among processes ``pids`` as the kernel has it (None: none of them is alive)."""
+    seen = []
+    for pid in pids:
+        try:
+            if pid is not None:
+                seen.append(os.getpriority(os.PRIO_PROCESS, pid))
+        except (ProcessLookupError, PermissionError):
+            continue
+    return float(min(seen)) if seen else None
 
 
 def make_fleet(spec: EnvSpec, schedule: Schedule, host: int, seed: int, share: int = 1, obs_size: int = 0,

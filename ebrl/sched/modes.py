@@ -51,6 +51,8 @@ class Schedule:
     cores_per_env: int = 1
     # sim.lazy_render: envs that render on demand render only the observations the policy reads
     lazy_render: bool = True
+    # sim.nice: the niceness each env worker and vectorized group process takes before it starts
+    nice: int = 0
 
     def length(self, hosts: int = 1) -> int:
         """Decisions per env per iteration while ``hosts`` sim hosts are live: an update's batch comes from all
@@ -112,6 +114,7 @@ def resolve(cfg: Any, cores: list[int] | None = None) -> Schedule:
         vectorized=batched,
         cores_per_env=cfg.sim.cores_per_env,
         lazy_render=bool(pick(cfg.sim.lazy_render, "lazy_render")),
+        nice=cfg.sim.nice,
     )
 
 

@@ -34,7 +34,7 @@ class SimService(Service):
         bounds = self.bounds or await self.message_bounds()
         if sched.mode == "async":
             os.sched_setaffinity(0, sched.sim_cores)  # rollout's share of the machine
-        if cfg.sim.nice > os.nice(0) and not self.shares_process:  # before the workers start: they inherit it
+        if cfg.sim.nice > os.nice(0) and not self.shares_process:  # its workers take sim.nice themselves
             os.nice(cfg.sim.nice - os.nice(0))
         # sim/<instance> runs on host <instance> of a multi-host run: its groups follow the other hosts'
         share = cfg.algo.group_size if cfg.algo.name == "grpo" else 1
@@ -90,6 +90,8 @@ class SimService(Service):
                "sim/segments_held": float(len(self.outbox.held)), "sim/envs_given_up": float(self.fleet.given_up),
                "sim/unknown_instances": float(self.peers.unknown_seen), "sim/nice": float(os.nice(0)),
                **self.stats.metrics()}
+        if (workers_nice := self.fleet.niceness()) is not None:
+            out["sim/workers_nice"] = workers_nice
         if (rebinding := self.fleet.rebinding) is not None:
             out.update(rebinding.metrics())
         for core, percent in enumerate(psutil.cpu_percent(percpu=True)):

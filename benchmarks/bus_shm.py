@@ -27,7 +27,8 @@ sys.path.insert(0, str(ROOT))
 import zenoh  # noqa: E402
 
 from ebrl import bench  # noqa: E402
-from ebrl.bus import auth, keys  # noqa: E402
+from ebrl import keys  # noqa: E402
+from ebrl.bus import auth  # noqa: E402
 from ebrl.bus.session import BusOptions, zenoh_config  # noqa: E402
 from ebrl.testing import free_port  # noqa: E402
 

@@ -34,7 +34,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 from ebrl import bench  # noqa: E402
 from ebrl.envs import EnvSpec, EnvWorker  # noqa: E402
 from ebrl.sched.rebind import CoreRebinding  # noqa: E402
-from ebrl.sched.corepool import CorePool  # noqa: E402
+from ebrl.resources.corepool import CorePool  # noqa: E402
 from ebrl.sched.stepping import BatchStepping, RebindingStepping  # noqa: E402
 
 ENV_ID = "HalfCheetah-v5"  # never terminates; 1000-step episodes outlast the benchmark

@@ -35,7 +35,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from ebrl import bench  # noqa: E402
 from ebrl.envs import EnvSpec, EnvWorker  # noqa: E402
-from ebrl.sched.corepool import CorePool  # noqa: E402
+from ebrl.resources.corepool import CorePool  # noqa: E402
 from ebrl.sched.stepping import IndependentStepping, RebindingStepping  # noqa: E402
 
 ENV_ID = "InvertedPendulum-v5"  # ~20 µs of physics per step; the busy-wait sets the rest

@@ -32,7 +32,7 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from ebrl import bench  # noqa: E402
-from ebrl.bus import keys  # noqa: E402
+from ebrl import keys  # noqa: E402
 from ebrl.bus.session import Bus, BusOptions
 from ebrl import config as config_mod  # noqa: E402
 from ebrl.service import SPAN_FLUSH_S, Service  # noqa: E402

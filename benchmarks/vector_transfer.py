@@ -44,7 +44,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from ebrl.bus import keys  # noqa: E402
+from ebrl import keys  # noqa: E402
 from ebrl.bus.session import Bus, BusOptions
 from ebrl.envs.worker import VectorChunk  # noqa: E402
 from ebrl.messages import (ActionChunk, Observation, SegmentBatch, TrajectorySegment, decode_message,  # noqa: E402

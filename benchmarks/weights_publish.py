@@ -52,7 +52,7 @@ import zenoh
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from ebrl.bus import keys  # noqa: E402
+from ebrl import keys  # noqa: E402
 from ebrl.bus.session import Bus, BusOptions, zenoh_config
 from ebrl.bus.endpoints import free_port  # noqa: E402
 from ebrl.messages import Weights, encode_message  # noqa: E402

@@ -157,7 +157,7 @@ def messages_reference() -> str:
            "", "Every message type on the bus: where it travels, its size limit (a larger one is dropped before it is "
            "decoded) and its fields. The same JSON Schema is in `schemas/<Type>.json` (`make schemas` writes it; a "
            "test fails when it is stale). Payloads are msgpack maps, numpy arrays a msgpack extension type "
-           "(`ebrl/bus/codec.py`); every received message is validated (see [Reliability](../reliability.md), "
+           "(`ebrl/codec.py`); every received message is validated (see [Reliability](../reliability.md), "
            "\"Bad input\"). Who publishes and subscribes to each is in [the service graph](../graph.md).", "",
            "| message | key | at most |", "|---|---|---|"]
     for s in schemas:

@@ -23,7 +23,7 @@ import tomli_w
 
 from ebrl import devices, typecheck
 from ebrl.presets import PRESETS
-from ebrl.bus import keys
+from ebrl import keys
 
 
 class ConfigError(ValueError):

@@ -1,7 +1,7 @@
 """The service graph: what each role publishes, subscribes to, queries and answers on the bus, in one place.
 
 Sample Factory's ``connect_components`` and dora-rs's dataflow file show at a glance who talks to whom; this
-is EBRL's. Each :class:`Flow` names a key pattern (built by ``ebrl.bus.keys``, so the keys themselves stay
+is EBRL's. Each :class:`Flow` names a key pattern (built by ``ebrl.keys``, so the keys themselves stay
 in one module) and the message it carries. From it:
 
 * a test records every key each service touches over a real run on the in-memory bus and fails when a role
@@ -23,7 +23,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Literal
 
-from ebrl.bus import keys
+from ebrl import keys
 
 Direction = Literal["put", "sub", "query", "answer", "token", "watch"]
 DIRECTIONS: tuple[Direction, ...] = ("put", "sub", "query", "answer", "token", "watch")

@@ -25,7 +25,7 @@ import time
 from dataclasses import dataclass
 
 from ebrl.algos.algorithm import uses_replay
-from ebrl.bus import keys
+from ebrl import keys
 from ebrl.config import ROLES, Config, ConfigError, processes, train_ranks, vectorized
 
 PRIMARY_LOST_S = 30.0  # a secondary host stops when no train has been live for this long

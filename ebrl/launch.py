@@ -33,7 +33,8 @@ from pathlib import Path
 from typing import Callable
 
 from ebrl import config as config_mod, durable, prepare, procenv, stall
-from ebrl.bus import auth, keys
+from ebrl import keys
+from ebrl.bus import auth
 from ebrl.bus.session import Bus, BusOptions
 from ebrl.bus.endpoints import (address_in_use, config_file_connect, config_file_listen, free_port,
                                 listen_endpoint)

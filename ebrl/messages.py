@@ -5,14 +5,14 @@ checks, in this order, and raises :class:`MessageError` (services count it and d
 
 1. the payload's size against the type's ``MAX_BYTES``, before anything is decoded
    (:class:`OversizedError`; a weights part, a segment and a stats report have different limits);
-2. the msgpack and array headers (:mod:`ebrl.bus.codec`: bounded lengths, exact byte counts);
+2. the msgpack and array headers (:mod:`ebrl.codec`: bounded lengths, exact byte counts);
 3. every field's type (:mod:`ebrl.typecheck`);
 4. the message's meaning (its ``check`` method): per-decision fields of one length, finite values, counts
    and versions in range.
 
 What only the receiver knows (the policy's shapes, the weights' layout, which instances exist) it checks
 itself. On the wire a message is a msgpack map of its fields plus ``"v"`` (the schema version); arrays
-travel through :mod:`ebrl.bus.codec`.
+travel through :mod:`ebrl.codec`.
 """
 
 from __future__ import annotations
@@ -28,7 +28,7 @@ from typing import Annotated, Any, Literal, TypeVar, get_args, get_origin
 
 import numpy as np
 
-from ebrl.bus import codec, keys
+from ebrl import codec, keys
 from ebrl import typecheck
 from ebrl.typecheck import Array
 
@@ -816,7 +816,7 @@ def _schema_of(tp: Any) -> dict[str, Any]:
         if spec is not None:
             return {
                 "x-ebrl-ndarray": {"dtype": spec.dtype or "numeric", "ndim": spec.ndim},
-                "description": "numpy array (msgpack extension type 1, see ebrl/bus/codec.py)",
+                "description": "numpy array (msgpack extension type 1, see ebrl/codec.py)",
             }
         return _schema_of(base)
     if origin in (types.UnionType, typing.Union):

@@ -25,7 +25,7 @@ from pathlib import Path
 from typing import Any, Callable, TextIO
 
 from ebrl import durable
-from ebrl.bus import keys
+from ebrl import keys
 from ebrl.messages import RETURN_WINDOW, StatsReport
 from ebrl.weights import plausible
 

@@ -32,7 +32,8 @@ from typing import Any, Iterator
 import psutil
 
 from ebrl import config as config_mod, devices, procenv, sizes, threads
-from ebrl.bus import auth, keys
+from ebrl import keys
+from ebrl.bus import auth
 from ebrl.bus.session import Bus, BusOptions
 from ebrl.messages import Affinity, Event, Quota, SpanBatch, StatsReport, Stop, encode_message
 from ebrl.meter import SPAN_BATCH_MAX, Meter

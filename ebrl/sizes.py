@@ -35,7 +35,7 @@ MARGIN = 64 << 10  # bytes on top: msgpack field names and array references, Zen
 # process receives some, so a receive limit never goes below this
 FIXED_MAX = max(cls.MAX_BYTES for cls in messages.MESSAGES if cls.MAX_BYTES < messages.DATA_MAX_BYTES
                 and cls not in (messages.Weights, messages.WeightsPart))
-_ALIGN = 64  # ebrl.bus.codec pads each array to this
+_ALIGN = 64  # ebrl.codec pads each array to this
 _FRAME = 1024  # a frame's head, its msgpack header of field names and array references (a few hundred bytes)
 _FLOAT, _INT = 9, 9  # msgpack bytes of a Python float (float64) and of any int
 

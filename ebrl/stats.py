@@ -18,7 +18,8 @@ from typing import Callable, Iterator
 
 import zenoh
 
-from ebrl.bus import auth, codec, keys
+from ebrl import codec, keys
+from ebrl.bus import auth
 from ebrl.bus.session import BusOptions, zenoh_config
 from ebrl.messages import EpisodeBatch, Event, MessageError, SpanBatch, StatsReport, decode_stats_sample
 

@@ -28,7 +28,8 @@ from typing import Any, Callable, Sequence
 import zenoh
 
 from ebrl import config as config_mod
-from ebrl.bus import auth, keys
+from ebrl import keys
+from ebrl.bus import auth
 from ebrl.bus.session import BusOptions, zenoh_config
 from ebrl.bus.endpoints import free_port
 from ebrl.bus.memory import MemoryBus, MemoryNetwork

@@ -40,7 +40,7 @@ from typing import Callable, Literal
 
 import numpy as np
 
-from ebrl.bus import keys
+from ebrl import keys
 from ebrl.bus.session import BusBase, Query
 from ebrl.messages import MessageError, StatsReport, Weights, WeightsPart, decode_message, encode_message
 

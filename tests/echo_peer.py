@@ -3,7 +3,7 @@
 import asyncio
 import sys
 
-from ebrl.bus import keys
+from ebrl import keys
 from ebrl.bus.session import Bus, BusOptions
 from ebrl.messages import Observation
 

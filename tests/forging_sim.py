@@ -20,7 +20,8 @@ import numpy as np
 import zenoh
 
 from ebrl import config as config_mod
-from ebrl.bus import auth, keys
+from ebrl import keys
+from ebrl.bus import auth
 from ebrl.bus.session import BusOptions, zenoh_config
 from ebrl.envs import EnvSpec, describe
 from ebrl.messages import TrajectorySegment, encode_message

@@ -40,7 +40,8 @@ import time
 
 import zenoh
 
-from ebrl.bus import auth, keys
+from ebrl import keys
+from ebrl.bus import auth
 from ebrl.bus.session import BusOptions, zenoh_config
 from ebrl.messages import StatsReport, Stop, Weights, encode_message
 
@@ -127,7 +128,7 @@ def insider_attacks(run: str, run_dir: str, role: str) -> list[tuple[str, bytes]
 
     from ebrl import config as config_mod
     from ebrl.envs import EnvSpec, describe
-    from ebrl.bus import codec
+    from ebrl import codec
     from ebrl.messages import Affinity, EpisodeBatch, GpuShare, Quota, to_wire
     from ebrl.policies import make_policy
 

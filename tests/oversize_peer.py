@@ -28,7 +28,8 @@ import time
 import numpy as np
 
 from ebrl import config as config_mod, obswire, sizes
-from ebrl.bus import auth, keys
+from ebrl import keys
+from ebrl.bus import auth
 from ebrl.bus.session import BusOptions
 from ebrl.messages import Observation, encode_message
 from ebrl.service import Service, env_info
@@ -139,7 +140,7 @@ def attack(run, stats, env: dict[str, str]) -> dict:
     dropped before it is copied, about 19 MB of gen's peak once. Returns what was sent and the memory read."""
     import subprocess
 
-    from ebrl.bus import keys
+    from ebrl import keys
 
     def send(*sizes_: str) -> dict:
         sender = subprocess.run([sys.executable, __file__, "send", "sim/0", run.endpoint, str(run.run_dir),

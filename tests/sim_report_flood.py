@@ -20,7 +20,8 @@ import time
 
 import zenoh
 
-from ebrl.bus import auth, keys
+from ebrl import keys
+from ebrl.bus import auth
 from ebrl.bus.session import BusOptions, zenoh_config
 from ebrl.messages import StatsReport, encode_message
 

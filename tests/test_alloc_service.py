@@ -131,7 +131,7 @@ def test_a_new_gpu_share_restarts_training_at_a_safe_point_and_loses_nothing(tmp
     import psutil
     import zenoh
 
-    from ebrl.bus import keys
+    from ebrl import keys
     from ebrl.bus.session import BusOptions, zenoh_config
     from ebrl.messages import GpuShare, encode_message
     from ebrl.viz import record

@@ -250,7 +250,7 @@ def test_no_function_is_over_a_screen():
 
 
 def test_keys_are_built_and_parsed_only_in_the_key_module():
-    """No key f-strings (``f"ebrl/..."``) and no positional key parsing outside ebrl/bus/keys.py."""
+    """No key f-strings (``f"ebrl/..."``) and no positional key parsing outside ebrl/keys.py."""
     offenders = []
     for path in sorted((ROOT / "ebrl").rglob("*.py")):
         if path.name == "keys.py":

@@ -16,7 +16,8 @@ import zenoh
 
 from ebrl import config, graph, procenv
 from ebrl import stats as stats_mod
-from ebrl.bus import auth, keys
+from ebrl import keys
+from ebrl.bus import auth
 from ebrl.bus.session import BusOptions, zenoh_config
 from ebrl.messages import EpisodeBatch, Stop, Weights, decode_message, decode_stats_sample
 from ebrl.testing import StatsWatcher, run_session_config

@@ -224,7 +224,7 @@ def test_one_forged_weights_version_ahead_of_train_does_not_stall_the_run(tmp_pa
     still for good. Now gen goes back to train's weights and the run finishes, nothing restarted."""
     import asyncio
 
-    from ebrl.bus import keys
+    from ebrl import keys
     from ebrl.messages import Weights
     from helpers import loopback_bus
 

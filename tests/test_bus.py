@@ -13,7 +13,7 @@ import sys
 import numpy as np
 import pytest
 
-from ebrl.bus import keys
+from ebrl import keys
 from ebrl.messages import Event, Observation, StatsReport
 from ebrl.bus.session import BusOptions
 from helpers import BUS_KINDS, bus_pair, free_port, loopback_bus, until
@@ -192,7 +192,7 @@ def test_a_bus_left_open_does_not_hang_interpreter_exit(tmp_path):
     script = tmp_path / "forgets_to_close.py"
     script.write_text(
         "import asyncio, sys\n"
-        "from ebrl.bus import keys\n"
+        "from ebrl import keys\n"
         "from ebrl.messages import Observation\n"
         "from helpers import free_port, loopback_bus\n"
         "async def main():\n"

@@ -8,7 +8,7 @@ import msgpack
 import numpy as np
 import pytest
 
-from ebrl.bus import codec
+from ebrl import codec
 
 
 def test_arrays_in_nested_maps_round_trip():

@@ -1,4 +1,4 @@
-"""Step-level rebinding carried out by the env workers (ebrl.sched.corepool) and its automatic choice
+"""Step-level rebinding carried out by the env workers (ebrl.resources.corepool) and its automatic choice
 (ebrl.sched.stepchoice): real worker processes, a real shared-memory pool."""
 
 from __future__ import annotations
@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 from ebrl.envs import EnvSpec, EnvWorker
-from ebrl.sched.corepool import PINNED, REBIND, CorePool
+from ebrl.resources.corepool import PINNED, REBIND, CorePool
 from ebrl.sched.stepchoice import SteppingChoice, interval, verdict
 from ebrl.sched.stepping import RebindingStepping
 

@@ -21,7 +21,7 @@ from ebrl.alloc.placement import EmbodiPlacement, StageRates
 from ebrl.envs import EnvSpec, EnvWorker
 from ebrl.envs.worker import ChunkResult, cores_used
 from ebrl.resources.pool import Core, ResourcePool
-from ebrl.sched.corepool import PINNED, REBIND
+from ebrl.resources.corepool import PINNED, REBIND
 from ebrl.sched.fleet import EnvFleet
 from ebrl.sched.modes import home_cores, resolve
 from ebrl.sched.stepchoice import SteppingChoice

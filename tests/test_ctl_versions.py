@@ -12,7 +12,7 @@ import time
 import types
 
 from ebrl import config
-from ebrl.bus import keys
+from ebrl import keys
 from ebrl.bus.memory import MemoryBus, MemoryNetwork
 from ebrl.messages import Affinity, GpuShare, Quota
 from ebrl.service import CONTROL_STEP, Service, control_version_refused

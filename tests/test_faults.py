@@ -14,7 +14,7 @@ import msgpack
 import psutil
 import pytest
 
-from ebrl.bus import keys
+from ebrl import keys
 from ebrl.testing import Run, StatsWatcher
 from helpers import ROOT, up
 

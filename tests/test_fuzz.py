@@ -11,7 +11,7 @@ from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
 
 from ebrl import messages as m
-from ebrl.bus import codec
+from ebrl import codec
 
 # A bounded number of examples, the same every run (derandomize), no example database left behind.
 FUZZ = settings(max_examples=200, deadline=None, derandomize=True, database=None,

@@ -197,7 +197,7 @@ def test_rank_commands_travel_as_messages_never_as_pickles():
     (got,) = decode_command(encode_command(Command("update", [segment]), SegmentCollector), SegmentCollector).items
     np.testing.assert_array_equal(got.rewards, segment.rewards)
     assert decode_command(encode_command(Command("stop"), SegmentCollector), SegmentCollector).items is None
-    from ebrl.bus import codec
+    from ebrl import codec
 
     for payload in (pickle.dumps(Command("stop")), codec.encode({"kind": "exec", "items": None}),
                     codec.encode({"kind": "update", "items": [{"segments": [], "fresh": [True], "advantage": 1.0}]})):

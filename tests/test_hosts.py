@@ -452,7 +452,7 @@ def test_ebrl_router_relays_between_hosts_and_prints_who_joined():
     """Two runs' launchers would meet at a router; here two plain sessions that only know the router."""
     import zenoh
 
-    from ebrl.bus import keys
+    from ebrl import keys
     from ebrl.testing import Output
 
     port = helpers.free_port()

@@ -8,7 +8,7 @@ import asyncio
 import csv
 
 from ebrl import autotune, config
-from ebrl.bus import keys
+from ebrl import keys
 from ebrl.testing import InProcessRun
 from helpers import store_profile
 from test_graph import recording, undeclared

@@ -20,7 +20,7 @@ import numpy as np
 import pytest
 
 from ebrl import messages
-from ebrl.bus import keys
+from ebrl import keys
 from ebrl.bus.local import LocalBus, LocalHub
 from ebrl.bus.session import Bus, BusOptions, zenoh_config
 from ebrl.messages import ActionChunk, Observation, StatsReport

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from ebrl import messages as m
-from ebrl.bus import codec
+from ebrl import codec
 
 ROOT = pathlib.Path(__file__).resolve().parent.parent
 

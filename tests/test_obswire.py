@@ -11,7 +11,7 @@ import pytest
 import zenoh
 
 from ebrl import obswire
-from ebrl.bus import keys
+from ebrl import keys
 from ebrl.envs.obs import ObsField, ObsLayout, tokenize
 from ebrl.messages import MessageError, Observation, TrajectorySegment, decode_message, encode_message
 from ebrl.testing import Run, StatsWatcher, run_session_config

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from ebrl import obswire
-from ebrl.bus import keys
+from ebrl import keys
 from ebrl.envs.obs import ObsField, ObsLayout
 from ebrl.envs.worker import VectorChunk, WorkerFailed
 from ebrl.messages import (ActionChunk, MessageError, SegmentBatch, TrajectorySegment, decode_message,

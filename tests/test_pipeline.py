@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 
 from ebrl import config
-from ebrl.bus import keys
+from ebrl import keys
 from ebrl.messages import ActionChunk, SegmentBatch, StatsReport, TrajectorySegment
 from ebrl.sched.modes import resolve
 from ebrl.testing import InProcessRun

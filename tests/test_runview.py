@@ -15,7 +15,7 @@ import termios
 from pathlib import Path
 from types import SimpleNamespace
 
-from ebrl.bus import keys
+from ebrl import keys
 from ebrl.hosts import UNKNOWN_KEPT, HostChange, Membership
 from ebrl.messages import StatsReport
 from ebrl.runview import Console, Progress, RunView, may_end, summary as run_summary, write_summary

@@ -4,7 +4,7 @@ import asyncio
 import os
 
 from ebrl import config
-from ebrl.bus import keys
+from ebrl import keys
 from ebrl.bus.session import BusOptions
 from ebrl.messages import Affinity, SpanBatch, StatsReport, Stop, decode_message
 from ebrl.service import Service

@@ -15,7 +15,8 @@ import pytest
 import zenoh
 
 from ebrl import config, graph
-from ebrl.bus import auth, keys
+from ebrl import keys
+from ebrl.bus import auth
 from ebrl.bus.session import BusOptions, zenoh_config
 from ebrl.hosts import decide_processes, plan
 from ebrl.testing import StatsWatcher

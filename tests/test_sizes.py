@@ -17,7 +17,7 @@ import pytest
 import zenoh
 
 from ebrl import config, obswire, sizes
-from ebrl.bus import keys
+from ebrl import keys
 from ebrl.bus.memory import MemoryBus, MemoryNetwork
 from ebrl.bus.session import BusOptions, zenoh_config
 from ebrl.envs.obs import ObsField, ObsLayout

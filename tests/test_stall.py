@@ -15,7 +15,7 @@ import time
 
 import pytest
 
-from ebrl.bus import keys
+from ebrl import keys
 from ebrl.messages import StatsReport
 from ebrl.runview import RunView
 from ebrl.stall import StallWatch

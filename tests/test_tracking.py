@@ -20,7 +20,7 @@ import pytest
 
 import helpers
 from ebrl import config, meta, tracking
-from ebrl.bus import keys
+from ebrl import keys
 from ebrl.messages import EpisodeBatch, StatsReport, Stop
 from ebrl.tracking import Point, Tracker
 

@@ -11,7 +11,7 @@ import time
 import numpy as np
 import pytest
 
-from ebrl.bus import keys
+from ebrl import keys
 from ebrl.bus.memory import MemoryBus, MemoryNetwork
 from ebrl.messages import (ActionChunk, Affinity, MessageError, Observation, OversizedError, Quota, StatsReport,
                            Stop, TrajectorySegment, Weights, WeightsPart, decode_message, encode_message)

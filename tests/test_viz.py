@@ -14,7 +14,7 @@ import pytest
 
 import helpers
 from ebrl.messages import EpisodeBatch, Event, Span, SpanBatch, StatsReport, encode_message
-from ebrl.bus import keys
+from ebrl import keys
 from ebrl.viz import record, report, timeline
 
 T0 = 1_800_000_000.0

@@ -9,7 +9,7 @@ import msgpack
 import numpy as np
 import pytest
 
-from ebrl.bus import keys
+from ebrl import keys
 from ebrl.messages import StatsReport, Weights, WeightsPart, decode_message, encode_message
 import ebrl.weights as weights_module
 from ebrl.weights import ALIGN, WeightsPublisher, WeightsReceiver

@@ -40,7 +40,7 @@ import torch.distributed as dist
 from torch import nn
 
 from ebrl import procenv, typecheck
-from ebrl.bus import codec
+from ebrl import codec
 from ebrl.messages import MessageError
 
 log = logging.getLogger(__name__)

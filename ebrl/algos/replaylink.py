@@ -26,7 +26,7 @@ from typing import Any, Callable
 import numpy as np
 
 from ebrl.algos.replay import FIELDS, ReplayBatch
-from ebrl.bus import keys
+from ebrl import keys
 from ebrl.messages import ReplayRequest, ReplaySample
 
 log = logging.getLogger(__name__)

@@ -11,7 +11,7 @@ from __future__ import annotations
 import logging
 from typing import Any, Callable
 
-from ebrl.bus import keys
+from ebrl import keys
 
 log = logging.getLogger(__name__)
 

@@ -17,7 +17,8 @@ import time
 
 import zenoh
 
-from ebrl.bus import auth, keys
+from ebrl import keys
+from ebrl.bus import auth
 from ebrl.bus.session import BusOptions
 from ebrl.bus.endpoints import config_file_acl, config_file_endpoints, config_file_listen
 from ebrl.bus.session import zenoh_config

@@ -35,7 +35,7 @@ from typing import Any, AsyncIterator, Awaitable, Callable, Generic, Literal, Ty
 
 import zenoh
 
-from ebrl import messages  # module import: messages itself imports ebrl.bus.codec
+from ebrl import messages  # module import: messages itself imports ebrl.codec
 from ebrl.bus import auth
 from ebrl.bus.endpoints import config_file_connect, config_file_listen
 

@@ -32,7 +32,7 @@ import ebrl.envs.guard as guard
 from ebrl.envs.backends import backend, lazy_observer, make_env
 from ebrl.envs.render import ensure_gl_for
 from ebrl.envs.spec import EnvSpec
-from ebrl.sched.corepool import CoreClaim, CorePool, ParentGone, pin_threads
+from ebrl.resources.corepool import CoreClaim, CorePool, ParentGone, pin_threads
 
 _CTX = None
 EPISODE_SEED_STRIDE = 7919  # episode k of a worker seeded s starts from reset(seed=s + EPISODE_SEED_STRIDE * k)
@@ -195,7 +195,7 @@ def _worker_main(conn: Connection, spec: EnvSpec, seed: int, claim: CoreClaim | 
                  cores: tuple[int, ...] | None = None, owner: int | None = None, nice: int = 0) -> None:
     """Episode ``k`` starts from ``env.reset(seed=seed + 7919 * k)``: workers given the same ``seed`` replay
     the same sequence of initial states (GRPO groups). With a ``claim`` on the sim service's core pool, every
-    step runs on a core claimed from it (:mod:`ebrl.sched.corepool`). ``cores``: pinned there before the env
+    step runs on a core claimed from it (:mod:`ebrl.resources.corepool`). ``cores``: pinned there before the env
     is made, so every thread a simulator starts runs there too. ``owner``: the sim service's pid; the worker
     dies with it; ``nice``: its niceness (:func:`adopt`)."""
     if not adopt(owner, nice):

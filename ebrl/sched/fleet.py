@@ -26,7 +26,7 @@ from ebrl.envs import EnvSpec, EnvWorker
 from ebrl.envs.vector import InlineVectorWorker, VectorWorker
 from ebrl.envs.worker import ChunkResult, VectorChunk, WorkerFailed
 from ebrl.messages import EPISODES_MAX, RETURN_WINDOW, EpisodeBatch
-from ebrl.sched.corepool import CorePool
+from ebrl.resources.corepool import CorePool
 from ebrl.sched.modes import Schedule, home_cores
 from ebrl.sched.rollout import Episodes
 from ebrl.sched.stepchoice import SteppingChoice

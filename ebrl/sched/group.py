@@ -23,7 +23,7 @@ from typing import Any, Callable
 import numpy as np
 
 from ebrl import obswire
-from ebrl.bus import keys
+from ebrl import keys
 from ebrl.envs.obs import ObsLayout
 from ebrl.envs.worker import VectorChunk, WorkerFailed
 from ebrl.messages import ActionChunk, Observation, SegmentBatch, TrajectorySegment

@@ -54,7 +54,7 @@ from typing import Iterable
 import numpy as np
 from scipy import stats as scipy_stats
 
-from ebrl.sched.corepool import PINNED, REBIND
+from ebrl.resources.corepool import PINNED, REBIND
 
 NAMES = {PINNED: "pinned", REBIND: "rebind"}
 MULTI_THREADED = 1.25  # cores an env keeps busy while stepping above which it counts as multi-threaded

@@ -6,7 +6,7 @@
   then step k+1 (vectorised-env stepping, what RLinf and gymnasium vector envs do).
 * :class:`RebindingStepping` — step-level asynchrony with greedy core rebinding
   across all groups (:mod:`ebrl.sched.rebind`, carried out by the workers through
-  :mod:`ebrl.sched.corepool`): one step at a time is bound to a free core of the
+  :mod:`ebrl.resources.corepool`): one step at a time is bound to a free core of the
   simulation budget, longest-latency ready env first.
 
 Each returns, per env, the merged :class:`ChunkResult` and the env's chunk
@@ -26,7 +26,7 @@ from typing import Callable, Protocol, Sequence
 import numpy as np
 
 from ebrl.envs.worker import ChunkResult, EnvWorker, WorkerFailed, cores_used
-from ebrl.sched.corepool import CorePool
+from ebrl.resources.corepool import CorePool
 from ebrl.sched.stepchoice import SteppingChoice
 
 
@@ -119,7 +119,7 @@ class BatchStepping:
 
 class RebindingStepping(IndependentStepping):
     """Step-level asynchrony with greedy core rebinding: one instance serves every group of the sim service,
-    whose env workers share one :class:`~ebrl.sched.corepool.CorePool`. Each env gets its whole chunk at once;
+    whose env workers share one :class:`~ebrl.resources.corepool.CorePool`. Each env gets its whole chunk at once;
     the workers claim a core per step from the pool and hand cores to each other (the ready set spans all
     groups), so no single step passes through the event loop."""
 

@@ -17,7 +17,7 @@ import time
 
 from ebrl import procenv
 from ebrl.alloc.runtime import Observations, describe, gpu_shares, make_placement, metrics_of, plan_messages
-from ebrl.bus import keys
+from ebrl import keys
 from ebrl.messages import Affinity, StatsReport
 from ebrl.service import Service, service_main
 

@@ -13,7 +13,7 @@ import numpy as np
 import torch
 
 from ebrl import devices, meta, obswire, procenv, sizes, threads
-from ebrl.bus import keys
+from ebrl import keys
 from ebrl.bus.peers import LivePeers, plan_admits
 from ebrl.messages import Observation, Quota
 from ebrl.policies import load_arrays, make_policy

@@ -13,7 +13,7 @@ import concurrent.futures
 import time
 
 from ebrl import tracking
-from ebrl.bus import keys
+from ebrl import keys
 from ebrl.messages import decode_stats_sample
 from ebrl.service import Service, service_main
 

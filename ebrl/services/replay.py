@@ -20,7 +20,7 @@ import time
 
 from ebrl import sizes
 from ebrl.algos.replay import REPLAY_FILE, ReplayStore, batches_per_sample, replay_bound
-from ebrl.bus import keys
+from ebrl import keys
 from ebrl.messages import ReplayRequest
 from ebrl.service import Service, env_info, service_main
 

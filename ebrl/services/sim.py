@@ -12,7 +12,7 @@ import os
 import psutil
 
 from ebrl import procenv, sizes
-from ebrl.bus import keys
+from ebrl import keys
 from ebrl.bus.peers import LivePeers, plan_admits
 from ebrl.envs import EnvSpec
 from ebrl.resources.nvml import GpuMonitor

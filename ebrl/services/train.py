@@ -19,7 +19,7 @@ from ebrl.algos.handover import HANDOVER_FILE
 from ebrl.algos.learner import Learner
 from ebrl.algos.replaylink import connect_replay
 from ebrl.algos.ranks import Ranks
-from ebrl.bus import keys
+from ebrl import keys
 from ebrl.messages import SegmentBatch, TrajectorySegment
 from ebrl.runview import may_end
 from ebrl.sched.modes import resolve

@@ -10,7 +10,7 @@ import asyncio
 import os
 import threading
 
-from ebrl.bus import keys
+from ebrl import keys
 from ebrl.messages import EpisodeBatch, Event, SpanBatch, decode_stats_sample
 from ebrl.service import Service, service_main
 from ebrl.viz.rerun_bridge import (RerunBridge, make_blueprint, open_recording, serve_web, stop_web,

@@ -10,9 +10,10 @@ Or one checkout against itself with settings for the new side (``--base`` left o
     python benchmarks/overhead_ab.py --config configs/quickstart.toml --duration 30 --rounds 3 \\
         --set-new 'run.processes=[["sim","gen","train"]]' --out benchmarks/results/shared_process_quickstart_cpu.json
 
-Each run is ``python -m ebrl.cli bench CONFIG --modes ebrl --duration D --repeat 1 --raw-seconds 0`` with
-``PYTHONPATH`` set to the checkout it measures (so its services, started from the same interpreter, run that
-checkout's code); the base runs first in each round. It writes both sides' runs and their medians (env steps/s,
+Each run is ``python -m ebrl.cli bench CONFIG --modes ebrl --duration D --repeat 1 --raw-seconds 0`` run from
+inside the checkout it measures, with ``PYTHONPATH`` set to it (so it and its services, started from the same
+interpreter, run that checkout's code and read its config; checked before each run); the base runs first in each
+round. It writes both sides' runs and their medians (env steps/s,
 trajectories/s, updates/s) and the ratios new / base.
 """
 
@@ -39,11 +40,23 @@ def commit(where: Path) -> str:
         return "unknown"
 
 
+def code_of(checkout: Path) -> Path:
+    """Where ``import ebrl`` finds the package when run as :func:`bench` runs it for ``checkout``: from inside the
+    checkout, so that ``python -m`` puts it first on the path (a run from this checkout would import this
+    checkout's ebrl whatever ``PYTHONPATH`` says: the measurements of 80683b3 compared one checkout with itself)."""
+    found = subprocess.run([sys.executable, "-c", "import ebrl; print(ebrl.__file__)"], cwd=checkout,
+                           env={**os.environ, "PYTHONPATH": str(checkout)}, capture_output=True, text=True, check=True)
+    return Path(found.stdout.strip()).resolve().parent
+
+
 def bench(checkout: Path, config: str, duration: float, out: Path, sets: list[str] = ()) -> dict:
-    """One ``ebrl bench`` of the ebrl mode with ``checkout``'s code (and ``sets``: overrides); its result."""
+    """One ``ebrl bench`` of the ebrl mode with ``checkout``'s code and config (and ``sets``: overrides), run from
+    inside ``checkout`` (its services start there too); its result."""
+    if code_of(checkout) != (checkout / "ebrl").resolve():
+        raise SystemExit(f"overhead_ab: a run from {checkout} imports ebrl from {code_of(checkout)}, not its own")
     cmd = [sys.executable, "-m", "ebrl.cli", "bench", config, "--modes", "ebrl", "--duration", str(duration),
            "--repeat", "1", "--raw-seconds", "0", "--json", str(out), *[a for kv in sets for a in ("--set", kv)]]
-    subprocess.run(cmd, cwd=ROOT, env={**os.environ, "PYTHONPATH": str(checkout)}, check=True, timeout=1800,
+    subprocess.run(cmd, cwd=checkout, env={**os.environ, "PYTHONPATH": str(checkout)}, check=True, timeout=1800,
                    stdout=subprocess.DEVNULL)
     return json.loads(out.read_text())["results"]["ebrl"][0]
 

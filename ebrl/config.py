@@ -264,10 +264,14 @@ class PolicySection(Section):
     NAME = "policy"
     POSITIVE = ("chunk", "embed_dim", "denoise_steps", "width", "depth", "heads", "patch")
 
-    kind: Literal["mlp", "cnn", "flow", "squashed"] = doc(
+    kind: str = doc(
         "policy model: mlp (Gaussian chunk from a flat observation), cnn (conv image encoder + proprioception + "
         "instruction embedding, Gaussian chunk), flow (flow-matching action head: the chunk by denoising), squashed "
-        "(tanh of a Gaussian with state-dependent std, scaled to the env's action bounds: SAC's actor)", "mlp")
+        "(tanh of a Gaussian with state-dependent std, scaled to the env's action bounds: SAC's actor), vla (a "
+        "vision-language-action model on Hugging Face transformers, docs/vla.md), or your own ChunkPolicy "
+        "subclass as \"my_pkg.module:MyPolicy\" (docs/policies.md)", "mlp")
+    options: dict[str, Any] = doc("kind-specific options, read by the kind's from_config (your own kind's, vla's); "
+                                  "the built-in kinds read the fields below", factory=dict)
     chunk: int = doc("K: actions per chunk, executed open-loop", 4)
     hidden: list[int] = doc("hidden layer widths", factory=lambda: [64, 64])
     init_log_std: float = doc("initial log standard deviation of the Gaussian (flow: of the stochastic final "
@@ -299,8 +303,9 @@ class PolicySection(Section):
                           "directory); empty: fresh weights", "")
 
     def _check(self) -> None:
-        if self.backbone == "transformer" and self.kind != "flow":
-            raise ConfigError(f"policy.backbone = 'transformer' is the flow policy's; policy.kind is {self.kind!r}")
+        from ebrl.policies.registry import name_problem  # the registry's names only: no policy is imported
+        if problem := name_problem(self.kind):
+            raise ConfigError(problem)
         if self.width % self.heads:
             raise ConfigError(f"policy.width = {self.width}: must be a multiple of policy.heads = {self.heads}")
 
@@ -868,9 +873,9 @@ def _check_across(cfg: Config) -> None:
 
 def _check_algorithm(cfg: Config) -> None:
     """The algorithm against the policy it trains and the ranks that train it."""
-    if cfg.algo.name == "sac" and cfg.policy.kind != "squashed":  # (ppo's learner refuses a squashed one)
-        raise ConfigError(f"algo.name = 'sac' with policy.kind = {cfg.policy.kind!r}: sac trains a tanh-squashed "
-                          "actor; set policy.kind = \"squashed\"")
+    from ebrl.policies.registry import config_problem  # a registered kind's facts, no policy imported
+    if problem := config_problem(cfg.policy, cfg.algo.name):  # a user's kind: checked by the launcher's preflight
+        raise ConfigError(problem)
     if cfg.algo.name == "sac" and cfg.train.world_size > 1:
         raise ConfigError(f"train.world_size = {cfg.train.world_size}: sac trains on one rank (its replay is one "
                           "process's); set train.world_size = 1")

@@ -24,6 +24,7 @@ from ebrl.bus import auth
 from ebrl.bus.endpoints import config_file_acl, config_file_endpoints
 from ebrl.bus.joincheck import certificate_problem
 from ebrl.hosts import HostPlan, decide_processes, plan as plan_host
+from ebrl.policies.registry import preflight as policy_preflight
 
 
 class NotStarted(Exception):
@@ -209,6 +210,8 @@ def preflight(cfg: config_mod.Config, roles: tuple[str, ...] = ("gen", "train"),
                 "to each host (mode 0600) and set bus.secret_file = PATH (or bus.auth = false on a trusted network)")
     if cfg.policy.checkpoint and not os.path.isfile(cfg.policy.checkpoint):
         return f"policy.checkpoint = {cfg.policy.checkpoint!r}: no such file"
+    if problem := policy_preflight(cfg.policy, cfg.algo.name):  # a user's kind imports, is a ChunkPolicy, fits
+        return problem
     device_error = devices.preflight(cfg, roles)  # e.g. train.device = "cuda" on a machine without one
     if device_error:
         return device_error

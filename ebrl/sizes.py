@@ -151,9 +151,12 @@ class Bounds:
 
 def latent_shape(policy: Any, action_dim: int) -> tuple[int, ...]:
     """The sampling state a policy of ``policy`` (a PolicySection) keeps per decision, for a receiver that builds
-    no policy (the simulator): a flow policy's initial noise, one per action of the chunk (``ebrl.policies.flow``);
-    nothing for the Gaussian ones. tests/test_sizes.py checks it against every kind's ``latent_shape``."""
-    return (policy.chunk, action_dim) if policy.kind == "flow" else (0,)
+    no policy (the simulator): its kind's ``latent_shape_of`` (a flow policy's initial noise, one per action of
+    the chunk; nothing for the Gaussian ones), a registered kind's known without importing it
+    (``ebrl.policies.registry``). tests/test_sizes.py checks it against every kind's ``latent_shape``."""
+    from ebrl.policies.registry import latent_shape as of_kind
+
+    return of_kind(policy, action_dim)
 
 
 def of_run(cfg: Any, info: Any, *, weights: bool) -> Bounds:

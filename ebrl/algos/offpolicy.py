@@ -31,6 +31,7 @@ from ebrl.algos.algorithm import Algorithm, Learned, Optimizers
 from ebrl.algos.ppo import SegmentCollector
 from ebrl.algos.replay import FIELDS, batches_per_sample, transitions
 from ebrl.algos.sac import SAC, SACSettings
+from ebrl.policies.registry import trained_by_problem
 
 log = logging.getLogger(__name__)
 
@@ -56,8 +57,8 @@ class SACAlgorithm(Algorithm):
 
     def __init__(self, model: Any, cfg: Any, info: Any, telemetry: Any, device: torch.device):
         super().__init__(model, cfg, info, telemetry, device)
-        if getattr(model, "kind", "") != "squashed":
-            raise ValueError("algo.name = 'sac' needs policy.kind = 'squashed' (a tanh-squashed Gaussian actor)")
+        if problem := trained_by_problem(model, self.name):  # sac trains a tanh-squashed actor (rsample_flat)
+            raise ValueError(problem)
         if info.layout.byte_size:
             raise ValueError("algo.name = 'sac' learns from float observations; this env's have camera images "
                              f"({', '.join(f.name for f in info.layout.fields if f.uint8)}, bytes on the bus): the "

@@ -20,6 +20,7 @@ from ebrl import devices
 from ebrl.algos.algorithm import Algorithm, Learned
 from ebrl.algos.grpo import GroupCollector
 from ebrl.algos.ppo import PPO, BadBatch, Batch, SegmentCollector
+from ebrl.policies.registry import trained_by_problem
 
 
 class PPOAlgorithm(Algorithm):
@@ -31,9 +32,8 @@ class PPOAlgorithm(Algorithm):
 
     def __init__(self, model: Any, cfg: Any, info: Any, telemetry: Any, device: torch.device):
         super().__init__(model, cfg, info, telemetry, device)
-        if getattr(model, "kind", "") == "squashed":
-            raise ValueError(f"algo.name = {self.name!r} with policy.kind = 'squashed': that actor has no value head "
-                             "(it is SAC's); use policy.kind = \"mlp\", or algo.name = \"sac\"")
+        if problem := trained_by_problem(model, self.name):  # e.g. squashed: SAC's actor, no value head
+            raise ValueError(problem)
         self.ppo = PPO(model, cfg.algo, cfg.train.lr, seed=cfg.run.seed)
         self.dp: Any = None
 

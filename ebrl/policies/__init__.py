@@ -1,52 +1,67 @@
 """Policy models behind one interface: ``act`` for generation, ``evaluate`` and ``value`` for training.
 
-Four kinds (``policy.kind``): ``mlp`` (Gaussian chunk from the flat observation),
-``cnn`` (conv image encoder + proprioception + instruction embedding, Gaussian
-chunk), ``flow`` (flow-matching action head, the chunk by N denoising steps) and
-``squashed`` (tanh-squashed Gaussian within the action bounds, SAC's actor).
-The interface is :class:`ebrl.policies.base.ChunkPolicy`.
+``policy.kind`` names a kind of :mod:`ebrl.policies.registry`: ``mlp`` (Gaussian chunk from the flat observation),
+``cnn`` (conv image encoder + proprioception + instruction embedding, Gaussian chunk), ``flow`` (flow-matching
+action head, the chunk by N denoising steps), ``squashed`` (tanh-squashed Gaussian within the action bounds,
+SAC's actor), ``vla`` (a vision-language-action model, ``ebrl.policies.vla``), or a user's own
+:class:`~ebrl.policies.base.ChunkPolicy` subclass as ``"pkg.module:MyPolicy"`` (docs/policies.md).
+
+The package imports no policy, nor torch, until one is used (the config checks ``policy.kind`` against the
+registry in every process, the simulator's among them): its names load on first use.
 """
 
 from __future__ import annotations
 
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
-import numpy as np
+from ebrl.policies.registry import canonical, policy_class
 
-from ebrl.envs.obs import ObsLayout
-from ebrl.policies.base import ChunkPolicy
-from ebrl.policies.checkpoint import load_arrays, load_checkpoint, save_checkpoint, state_arrays
-from ebrl.policies.cnn import ChunkGaussianCNN
-from ebrl.policies.flow import FlowPolicy
-from ebrl.policies.mlp import ChunkGaussianMLP
-from ebrl.policies.nets import ObsNormalizer
-from ebrl.policies.squashed import ChunkSquashedMLP
-from ebrl.policies.transformer import TransformerEncoder
+if TYPE_CHECKING:
+    import numpy as np
+
+    from ebrl.envs.obs import ObsLayout
+    from ebrl.policies.base import ChunkPolicy
+
+_LAZY = {
+    "ChunkPolicy": "ebrl.policies.base",
+    "GaussianChunkPolicy": "ebrl.policies.base",
+    "ChunkGaussianMLP": "ebrl.policies.mlp",
+    "ChunkGaussianCNN": "ebrl.policies.cnn",
+    "FlowPolicy": "ebrl.policies.flow",
+    "ChunkSquashedMLP": "ebrl.policies.squashed",
+    "ObsNormalizer": "ebrl.policies.nets",
+    "load_arrays": "ebrl.policies.checkpoint",
+    "load_checkpoint": "ebrl.policies.checkpoint",
+    "save_checkpoint": "ebrl.policies.checkpoint",
+    "state_arrays": "ebrl.policies.checkpoint",
+}
 
 
 def make_policy(policy_cfg: Any, layout: ObsLayout, action_dim: int,
                 bounds: tuple[np.ndarray, np.ndarray] | None = None) -> ChunkPolicy:
     """The policy ``policy_cfg`` (a PolicySection) describes, for observations of ``layout`` and actions within
-    ``bounds`` (low, high: the env's action space, which the ``squashed`` kind needs); loads
-    ``policy_cfg.checkpoint`` (a path, resolved by the caller) when it is set."""
+    ``bounds`` (low, high: the env's action space, which a kind with ``needs_bounds`` needs): its kind's class
+    (:func:`~ebrl.policies.registry.policy_class`) builds it (``from_config``); then the steps every kind shares:
+    the observation normaliser (``policy.normalize_obs``) and ``policy.checkpoint`` (a path, resolved by the
+    caller) when it is set."""
+    from ebrl.policies.checkpoint import load_checkpoint
+    from ebrl.policies.nets import ObsNormalizer
+
     cfg = policy_cfg
-    if cfg.kind == "mlp":
-        model: ChunkPolicy = ChunkGaussianMLP(layout, action_dim, cfg.chunk, list(cfg.hidden), cfg.init_log_std)
-    elif cfg.kind == "cnn":
-        model = ChunkGaussianCNN(layout, action_dim, cfg.chunk, list(cfg.hidden), list(cfg.channels), cfg.embed_dim,
-                                 cfg.init_log_std)
-    elif cfg.kind == "flow":
-        encoder = None
-        if getattr(cfg, "backbone", "conv") == "transformer":
-            encoder = TransformerEncoder(layout, cfg.width, cfg.depth, cfg.heads, cfg.patch)
-        model = FlowPolicy(layout, action_dim, cfg.chunk, list(cfg.hidden), list(cfg.channels), cfg.embed_dim,
-                           cfg.denoise_steps, cfg.init_log_std, encoder=encoder)
-    elif cfg.kind == "squashed":
-        if bounds is None:
-            raise ValueError("policy.kind = 'squashed' needs the env's action bounds")
-        model = ChunkSquashedMLP(layout, action_dim, cfg.chunk, list(cfg.hidden), *bounds)
-    else:
-        raise ValueError(f"policy.kind = {cfg.kind!r} is not available (mlp, cnn, flow, squashed)")
+    cls = policy_class(cfg.kind)
+    if cls.needs_bounds and bounds is None:
+        raise ValueError(f"policy.kind = {cfg.kind!r} needs the env's action bounds")
+    if cfg.backbone not in cls.backbones:
+        raise ValueError(f"policy.backbone = {cfg.backbone!r}: policy.kind = {cfg.kind!r} reads "
+                         f"{' or '.join(map(repr, cls.backbones))}")
+    model = cls.from_config(cfg, layout, action_dim, bounds)
+    expected = tuple(cls.latent_shape_of(cfg, action_dim))
+    if tuple(model.latent_shape) != expected:  # the simulator sizes its messages by latent_shape_of
+        raise ValueError(f"policy.kind = {cfg.kind!r}: the model's latent_shape {tuple(model.latent_shape)} is not "
+                         f"what its class's latent_shape_of says, {expected}")
+    model.kind = canonical(cfg.kind)
+    if model.options is None:
+        model.options = dict(cfg.options)
     if cfg.normalize_obs:
         model.obs_norm = ObsNormalizer(layout)
     if cfg.checkpoint:
@@ -54,6 +69,12 @@ def make_policy(policy_cfg: Any, layout: ObsLayout, action_dim: int,
     return model
 
 
-__all__ = ["ChunkGaussianCNN", "ChunkGaussianMLP", "ChunkPolicy", "ChunkSquashedMLP",
-           "FlowPolicy", "load_arrays", "load_checkpoint", "ObsNormalizer", "make_policy", "save_checkpoint",
-           "state_arrays"]
+def __getattr__(name: str) -> Any:
+    if name in _LAZY:
+        import importlib
+
+        return getattr(importlib.import_module(_LAZY[name]), name)
+    raise AttributeError(f"module 'ebrl.policies' has no attribute {name!r}")
+
+
+__all__ = ["make_policy", "policy_class", *_LAZY]

@@ -12,6 +12,7 @@ them back to ``evaluate``.
 from __future__ import annotations
 
 import math
+from typing import Any, ClassVar
 
 import numpy as np
 import torch
@@ -26,17 +27,52 @@ HALF_LOG_2PI = 0.5 * math.log(2 * math.pi)
 
 
 class ChunkPolicy(nn.Module):
-    """pi(a_{t:t+K} | o_t, z): what the generation and training services call."""
+    """pi(a_{t:t+K} | o_t, z): what the generation and training services call.
 
-    kind: str  # policy.kind of the config; stored in checkpoints
+    A kind (``policy.kind``, ``ebrl.policies.registry``) is a subclass that builds itself from the ``[policy]``
+    section (:meth:`from_config`) and says, as class attributes, what other modules need to know of it without
+    building one: its latents (:meth:`latent_shape_of`), whether it needs the env's action bounds, the algorithms
+    that can train it, the ``policy.backbone`` values it reads and whether its :meth:`sample` can be captured as
+    a CUDA graph. docs/policies.md is the user's guide.
+    """
+
+    kind: str  # policy.kind of the config (set by make_policy); stored in checkpoints
     layout: ObsLayout
     chunk: int  # K
     action_dim: int  # A
     latent_shape: tuple[int, ...]
+    # what a checkpoint stores as policy.options to rebuild this model from the checkpoint alone; None: the
+    # config's policy.options as given (make_policy sets them)
+    options: dict[str, Any] | None = None
+
+    needs_bounds: ClassVar[bool] = False  # from_config needs the env's action bounds (low, high)
+    trained_by: ClassVar[frozenset[str]] = frozenset({"ppo", "grpo"})  # the registered algorithms that train it
+    backbones: ClassVar[tuple[str, ...]] = ("conv",)  # the policy.backbone values it reads ("conv": the default)
+    capturable: ClassVar[bool] = True  # gen.compile may capture sample() as a CUDA graph (ebrl.policies.graphs)
 
     def __init__(self) -> None:
         super().__init__()
         self.obs_norm: ObsNormalizer | None = None  # policy.normalize_obs: set by make_policy
+
+    @classmethod
+    def from_config(cls, cfg: Any, layout: ObsLayout, action_dim: int,
+                    bounds: tuple[np.ndarray, np.ndarray] | None) -> "ChunkPolicy":
+        """The policy ``cfg`` (the PolicySection; kind-specific options in ``cfg.options``) describes, for
+        observations of ``layout``, actions of ``action_dim`` values and, where the env's action space has them,
+        its ``bounds`` (low, high; None where the caller has none: a kind with ``needs_bounds`` always gets
+        them). Fresh weights: ``make_policy`` adds the observation normaliser and loads a checkpoint after."""
+        raise NotImplementedError(f"{cls.__module__}.{cls.__qualname__} does not say how to build it from a config: "
+                                  "define the classmethod from_config(cls, cfg, layout, action_dim, bounds)")
+
+    @classmethod
+    def latent_shape_of(cls, cfg: Any, action_dim: int) -> tuple[int, ...]:
+        """The ``latent_shape`` of the policy :meth:`from_config` builds from ``cfg``, known without building it
+        (the simulator's message bounds): by default the class's own ``latent_shape``."""
+        shape = getattr(cls, "latent_shape", None)
+        if shape is None:
+            raise NotImplementedError(f"{cls.__module__}.{cls.__qualname__}: set the class attribute latent_shape "
+                                      "or define the classmethod latent_shape_of(cls, cfg, action_dim)")
+        return tuple(shape)
 
     @torch.no_grad()
     def act(self, obs: np.ndarray | torch.Tensor) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:

@@ -1,18 +1,20 @@
 """Policy weights as named arrays: for Weights messages (``state_arrays``/``load_arrays``) and on disk.
 
 A checkpoint is one safetensors file: the model's state dict plus string
-metadata, which always holds the policy's ``kind``, ``chunk``, ``action_dim``
-and ``layout`` (``ObsLayout.to_dict`` as JSON); loading checks them against the
-model before any tensor, so a checkpoint of another task or policy is refused
-with a message that says which of them differs.
+metadata, which always holds the policy's ``kind`` (a registered name or a
+user's ``"pkg.module:MyPolicy"``), ``chunk``, ``action_dim`` and ``layout``
+(``ObsLayout.to_dict`` as JSON); loading checks them against the model before
+any tensor, so a checkpoint of another task or policy is refused with a
+message that says which of them differs.
 
 Checkpoints written by training (and the eval service's ``best.safetensors``) are
 also *portable*: :func:`portable_metadata` adds everything needed to rebuild and
 run the policy without the run's config (``ebrl.load_policy``): the whole
-``[policy]`` section, the ``[env]`` section as resolved, the observation shape,
-the action bounds and the format version. The observation normaliser's running
-statistics (``policy.normalize_obs``) are tensors of the state dict
-(``obs_norm.mean``, ``obs_norm.var``, ``obs_norm.count``), so they travel too.
+``[policy]`` section (its ``options`` as the model holds them), the ``[env]``
+section as resolved, the observation shape, the action bounds and the format
+version. The observation normaliser's running statistics (``policy.normalize_obs``)
+are tensors of the state dict (``obs_norm.mean``, ``obs_norm.var``,
+``obs_norm.count``), so they travel too.
 
 Files are written durably and atomically (``ebrl.durable``) and readable as
 the umask allows (0644 under the usual 022), never only by their owner. A file
@@ -99,11 +101,24 @@ def read_metadata(path: str) -> dict[str, str]:
 def save_checkpoint(model: ChunkPolicy, path: str, metadata: dict[str, str],
                     state: dict[str, torch.Tensor] | None = None) -> None:
     """Write the weights (``state``, default the model's own) and ``metadata`` (plus the reserved keys
-    ``CHECKED``) atomically to ``path``."""
+    ``CHECKED``) atomically to ``path``. Portable metadata's ``[policy]`` section gets the model's own kind and
+    options (:func:`rebuilt_by`)."""
     tensors = {name: t.detach().cpu().contiguous() for name, t in (state or model.state_dict()).items()}
+    if "policy" in metadata:
+        metadata = {**metadata, "policy": rebuilt_by(model, metadata["policy"])}
     os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
     with durable.writing(path) as tmp:  # as the umask allows: the group (a collaborator, a server) may read it
         save_file(tensors, str(tmp), metadata={**metadata, **policy_metadata(model)})
+
+
+def rebuilt_by(model: ChunkPolicy, policy_json: str) -> str:
+    """The ``[policy]`` section (JSON) with what rebuilds ``model`` from the checkpoint alone: its kind (a user's
+    ``"pkg.module:MyPolicy"``, imported again by ``ebrl.load_policy``) and its ``options`` (the config's, or what
+    the kind put in their place: a pretrained model's architecture rather than the directory it came from)."""
+    section = json.loads(policy_json)
+    section["kind"] = model.kind
+    section["options"] = dict(model.options or {})
+    return json.dumps(section)
 
 
 def read_checkpoint(model: ChunkPolicy, path: str) -> tuple[dict[str, np.ndarray], dict[str, str]]:

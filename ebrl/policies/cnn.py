@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from typing import Any
+
 import torch
 from torch import nn
 
@@ -27,6 +29,11 @@ class ChunkGaussianCNN(GaussianChunkPolicy):
         self.mean = layer(width(self.encoder.out_dim, hidden), chunk * action_dim, 0.01)
         self.critic = layer(width(self.encoder.out_dim, hidden), 1, 1.0)
         self.log_std = nn.Parameter(torch.full((chunk * action_dim,), float(init_log_std)))
+
+    @classmethod
+    def from_config(cls, cfg: Any, layout: ObsLayout, action_dim: int, bounds: Any) -> "ChunkGaussianCNN":
+        return cls(layout, action_dim, cfg.chunk, list(cfg.hidden), list(cfg.channels), cfg.embed_dim,
+                   cfg.init_log_std)
 
     def moments(self, obs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         h = self.trunk(self.encoder(obs))

@@ -35,6 +35,7 @@ never the parameters: weights trained or saved with one N load with any other.
 from __future__ import annotations
 
 import math
+from typing import Any
 
 import numpy as np
 import torch
@@ -44,6 +45,7 @@ from torch.distributions import Normal
 from ebrl.envs.obs import ObsLayout
 from ebrl.policies.base import ChunkPolicy, Tensors3, noise
 from ebrl.policies.nets import ObsEncoder, mlp
+from ebrl.policies.transformer import TransformerEncoder
 
 TIME_FREQUENCIES = 8  # the time embedding is [sin(2^k pi t), cos(2^k pi t)] for k < 8
 
@@ -58,6 +60,7 @@ class FlowPolicy(ChunkPolicy):
     """pi(a_{t:t+K} | o_t, x_0): N Euler steps of a velocity field, the last one Gaussian."""
 
     kind = "flow"
+    backbones = ("conv", "transformer")  # policy.backbone: the observation encoder
 
     def __init__(self, layout: ObsLayout, action_dim: int, chunk: int, hidden: list[int], channels: list[int],
                  embed_dim: int, denoise_steps: int, init_log_std: float = -0.5, encoder: nn.Module | None = None):
@@ -73,6 +76,21 @@ class FlowPolicy(ChunkPolicy):
         self.velocity = mlp(n + 2 * TIME_FREQUENCIES + self.encoder.out_dim, hidden, n, 0.01)
         self.critic = mlp(self.encoder.out_dim, hidden, 1, 1.0)
         self.log_std = nn.Parameter(torch.full((n,), float(init_log_std)))
+
+    @classmethod
+    def from_config(cls, cfg: Any, layout: ObsLayout, action_dim: int, bounds: Any) -> "FlowPolicy":
+        """``policy.backbone``: the conv ``ObsEncoder`` or the ``TransformerEncoder`` (width, depth, heads,
+        patch)."""
+        encoder = None
+        if cfg.backbone == "transformer":
+            encoder = TransformerEncoder(layout, cfg.width, cfg.depth, cfg.heads, cfg.patch)
+        return cls(layout, action_dim, cfg.chunk, list(cfg.hidden), list(cfg.channels), cfg.embed_dim,
+                   cfg.denoise_steps, cfg.init_log_std, encoder=encoder)
+
+    @classmethod
+    def latent_shape_of(cls, cfg: Any, action_dim: int) -> tuple[int, ...]:
+        """x_0: one value per action of the chunk, [K, A]."""
+        return (cfg.chunk, action_dim)
 
     def mean(self, features: torch.Tensor, x0: torch.Tensor) -> torch.Tensor:
         """mu(o, x_0): N Euler steps from the flat noise x0 [B, K*A]; differentiable."""

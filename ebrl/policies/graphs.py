@@ -9,7 +9,8 @@
   place (``load_arrays``), so a graph stays valid across versions; the sampling noise comes from torch's CUDA
   generator, which advances on every replay. On the CPU there is nothing to capture: ``"cudagraphs"`` runs
   eagerly there (a config naming the CPU explicitly is refused by ``ebrl.config``). A policy whose forward
-  cannot be captured (an operation that reads back to the host) is reported once and runs eagerly.
+  cannot be captured (an operation that reads back to the host) is reported once and runs eagerly; a kind that knows it
+cannot be (``ChunkPolicy.capturable = False``) is never tried.
 """
 
 from __future__ import annotations
@@ -39,9 +40,11 @@ class Actor:
     def __init__(self, policy: ChunkPolicy, mode: str = "off", dtype: str = "float32"):
         self.policy, self.dtype = policy, dtype
         self.device = policy.device
-        self.graphed = mode == "cudagraphs" and self.device.type == "cuda"
+        capturable = type(policy).capturable  # a kind whose sample() reads back to the host says so
+        self.graphed = mode == "cudagraphs" and self.device.type == "cuda" and capturable
         if mode == "cudagraphs" and not self.graphed:
-            log.info("gen.compile = 'cudagraphs' on %s: nothing to capture, running eagerly", self.device)
+            log.info("gen.compile = 'cudagraphs' on %s: %s, running eagerly", self.device,
+                     "nothing to capture" if capturable else f"policy.kind = {policy.kind!r} is not capturable")
         self.graphs: dict[int, tuple[torch.Tensor, Any, tuple[torch.Tensor, ...]]] = {}
         self.pool = torch.cuda.graph_pool_handle() if self.graphed else None  # one memory pool for every graph
 

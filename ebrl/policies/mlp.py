@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from typing import Any
+
 import torch
 from torch import nn
 from torch.distributions import Normal
@@ -26,6 +28,10 @@ class ChunkGaussianMLP(GaussianChunkPolicy):
         self.actor = mlp(self.obs_dim, hidden, chunk * action_dim, 0.01)
         self.critic = mlp(self.obs_dim, hidden, 1, 1.0)
         self.log_std = nn.Parameter(torch.full((chunk * action_dim,), float(init_log_std)))
+
+    @classmethod
+    def from_config(cls, cfg: Any, layout: ObsLayout, action_dim: int, bounds: Any) -> "ChunkGaussianMLP":
+        return cls(layout, action_dim, cfg.chunk, list(cfg.hidden), cfg.init_log_std)
 
     def dist(self, obs: torch.Tensor) -> Normal:
         """The chunk distribution for observations as the env gives them."""

@@ -12,7 +12,8 @@ What ``path`` may be:
   again on those same seeds flatters it.
 
 The checkpoint's metadata (``ebrl.policies.checkpoint.portable_metadata``) says how to rebuild the model: its
-``[policy]`` section, the observation layout and shape, the action bounds; and which environment it acts in
+``[policy]`` section (a user's kind as ``"pkg.module:MyPolicy"``, imported again, and its options), the
+observation layout and shape, the action bounds; and which environment it acts in
 (``[env]`` as the run resolved it), so :meth:`PortablePolicy.make_env` builds that. A checkpoint written before
 that metadata existed is refused with a message saying so, unless ``config`` (the run's ``config.toml``, or a
 :class:`~ebrl.config.Config`) is given; a run directory's own ``config.toml`` is used for it automatically.
@@ -202,7 +203,11 @@ def from_metadata(metadata: dict[str, str], *, device: str = "cpu", seed: int = 
     layout = ObsLayout.from_dict(json.loads(metadata["layout"]))
     bounds = (np.asarray(json.loads(metadata["action_low"]), np.float64),
               np.asarray(json.loads(metadata["action_high"]), np.float64))
-    model = make_policy(dataclasses.replace(policy_cfg, checkpoint=""), layout, int(metadata["action_dim"]), bounds)
+    try:  # a user's kind ("pkg.module:MyPolicy") is imported again: its module must be importable here
+        model = make_policy(dataclasses.replace(policy_cfg, checkpoint=""), layout, int(metadata["action_dim"]),
+                            bounds)
+    except (ImportError, ValueError) as exc:
+        raise PolicyFileError(f"{source or 'policy'}: cannot rebuild its policy: {exc}") from None
     return PortablePolicy(model.to(device), metadata, source, seed=seed)
 
 
@@ -245,7 +250,11 @@ def _version(file: Path) -> int:
 
 
 def _policy_section(values: dict[str, Any], file: str) -> config_mod.PolicySection:
+    """The ``[policy]`` section alone, checked as a section: not against a default config's other sections (its
+    ``algo.name`` is not the one that trained the policy)."""
     try:
-        return config_mod.from_dict({"policy": values}).policy
+        section = config_mod._section("policy", config_mod.PolicySection, values)
+        section.check()
+        return section
     except config_mod.ConfigError as exc:
         raise PolicyFileError(f"{file}: its [policy] metadata does not fit this EBRL: {exc}") from None

@@ -14,6 +14,7 @@ zero (SAC learns Q functions beside the policy, ``ebrl.algos.sac``, not a value 
 from __future__ import annotations
 
 import math
+from typing import Any
 
 import numpy as np
 import torch
@@ -38,6 +39,8 @@ class ChunkSquashedMLP(ChunkPolicy):
 
     kind = "squashed"
     latent_shape = (0,)
+    needs_bounds = True
+    trained_by = frozenset({"sac"})  # no value head: ppo and grpo refuse it; sac calls rsample_flat, to_env, warmup
 
     def __init__(self, layout: ObsLayout, action_dim: int, chunk: int, hidden: list[int],
                  low: np.ndarray, high: np.ndarray):
@@ -58,6 +61,13 @@ class ChunkSquashedMLP(ChunkPolicy):
         # 1: sample() acts uniformly within the bounds (SAC's warm-up before its first gradient step, as
         # Stable-Baselines3's); a buffer, so that generation acts as the weights it holds say
         self.register_buffer("warmup", torch.zeros(()))
+
+    @classmethod
+    def from_config(cls, cfg: Any, layout: ObsLayout, action_dim: int,
+                    bounds: tuple[np.ndarray, np.ndarray] | None) -> "ChunkSquashedMLP":
+        if bounds is None:
+            raise ValueError(f"policy.kind = {cfg.kind!r} needs the env's action bounds")
+        return cls(layout, action_dim, cfg.chunk, list(cfg.hidden), *bounds)
 
     def moments(self, flat_obs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """mu and log sigma of u, [B, K*A] each, from standardised flat observations; in float32 also under

@@ -268,7 +268,7 @@ class PolicySection(Section):
         "policy model: mlp (Gaussian chunk from a flat observation), cnn (conv image encoder + proprioception + "
         "instruction embedding, Gaussian chunk), flow (flow-matching action head: the chunk by denoising), squashed "
         "(tanh of a Gaussian with state-dependent std, scaled to the env's action bounds: SAC's actor), vla (a "
-        "vision-language-action model on Hugging Face transformers, docs/vla.md), or your own ChunkPolicy "
+        "vision-language-action model on Hugging Face transformers, ebrl.policies.vla), or your own ChunkPolicy "
         "subclass as \"my_pkg.module:MyPolicy\" (docs/policies.md)", "mlp")
     options: dict[str, Any] = doc("kind-specific options, read by the kind's from_config (your own kind's, vla's); "
                                   "the built-in kinds read the fields below", factory=dict)

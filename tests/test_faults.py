@@ -33,8 +33,11 @@ def wait_version(stats: StatsWatcher, version: int, timeout: float = 300) -> Non
 
 
 def service(run: Run, role: str) -> psutil.Process:
+    """The process that runs ``role``/0: its own (``python -m ebrl.services.<role>``) or one it shares
+    (``python -m ebrl.process --service <role>/0 ...``; on this CPU host "auto" puts sim and gen in one)."""
     for child in psutil.Process(run.proc.pid).children():
-        if f"ebrl.services.{role}" in " ".join(child.cmdline()):
+        argv = child.cmdline()
+        if f"ebrl.services.{role}" in argv or f"{role}/0" in argv:
             return child
     raise AssertionError(f"no {role} service running")
 

@@ -393,10 +393,10 @@ class WorkerProcess:
         def readable() -> None:
             loop.remove_reader(fd)
             try:
-                reply = self.conn.recv()
+                reply = self.conn.recv()  # read even when nobody waits: the next request must not get it
             except (EOFError, OSError) as exc:
-                fut.set_exception(WorkerFailed(f"env worker {self.proc.pid} died ({exc!r}; exit code "
-                                               f"{self.proc.exitcode})"))
+                reply = WorkerFailed(f"env worker {self.proc.pid} died ({exc!r}; exit code {self.proc.exitcode})")
+            if fut.done():  # the request was cancelled (its service stopping) after the reply was on its way
                 return
             if isinstance(reply, Exception):
                 fut.set_exception(reply)

@@ -5,7 +5,7 @@
 The path a run's messages take by default: a client session signed in as ``sim/0`` publishes on its trajectory key,
 the launcher's router (``bus.mode = "client"``, with the run's access rules) forwards it, a client signed in as
 ``train/0`` receives it, all three on loopback. Zenoh 1.x puts a payload over 3 KB into a shared-memory pool on its
-own (``transport/shared_memory``, enabled by default, which ``ebrl.bus.session.zenoh_config`` keeps): then only a
+own (``transport/shared_memory``, enabled by default, which ``ebrl.bus.options.zenoh_config`` keeps): then only a
 reference crosses the sockets. For each size, after 200 messages of warm-up, ``--messages`` messages with shared
 memory on and off (``transport/shared_memory/enabled``), sizes interleaved; MB/s received.
 """

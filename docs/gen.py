@@ -8,7 +8,7 @@ What it writes:
 * ``docs/reference/config.md``: every config key with its type, default and meaning, a table per section
   (the text of ``ebrl config``: :func:`ebrl.config.describe`);
 * ``docs/reference/messages.md``: every message type on the bus with its key, size limit and fields (the JSON
-  Schema of ``schemas/*.json``, made by :func:`ebrl.messages.json_schema` from ``ebrl/messages.py``);
+  Schema of ``schemas/*.json``, made by :func:`ebrl.messages.json_schema` from ``ebrl/messages/``);
 * ``docs/graph.md``: the service graph and key space (:func:`ebrl.graph.markdown`, as ``ebrl graph --markdown``);
 * the metrics table of ``docs/stats.md``: the block between its ``metrics:begin`` and ``metrics:end`` markers, a
   table per service of every metric with its unit, meaning and the modules that publish it (the catalog
@@ -123,7 +123,7 @@ def anchor(heading: str) -> str:
 
 
 def schema_type(prop: dict) -> str:
-    """A JSON Schema property of ``ebrl/messages.py``'s schemas, in words."""
+    """A JSON Schema property of ``ebrl/messages/``'s schemas, in words."""
     if "x-ebrl-ndarray" in prop:
         spec = prop["x-ebrl-ndarray"]
         dims = "any number of dimensions" if spec.get("ndim") is None else f"{spec['ndim']}-d"
@@ -153,7 +153,7 @@ def size(n: int) -> str:
 
 def messages_reference() -> str:
     schemas = [messages.json_schema(cls) for cls in messages.MESSAGES]
-    out = ["# Message reference", "", GENERATED.format(source="ebrl/messages.py (the JSON Schema of `schemas/*.json`)"),
+    out = ["# Message reference", "", GENERATED.format(source="ebrl/messages/ (the JSON Schema of `schemas/*.json`)"),
            "", "Every message type on the bus: where it travels, its size limit (a larger one is dropped before it is "
            "decoded) and its fields. The same JSON Schema is in `schemas/<Type>.json` (`make schemas` writes it; a "
            "test fails when it is stale). Payloads are msgpack maps, numpy arrays a msgpack extension type "

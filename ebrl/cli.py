@@ -456,7 +456,7 @@ COMMANDS = {  # name: (help, its arguments, what it runs)
     "secret": ("create a secret file for a run over several hosts (bus.secret_file), or --observer: a read-only one",
                _args_secret, _run_secret),
     "slurm": ("write (and --submit) a Slurm batch script: one `ebrl up` per node", _args_slurm, _run_slurm),
-    "schemas": ("write schemas/*.json from ebrl/messages.py", _args_schemas, _run_schemas),
+    "schemas": ("write schemas/*.json from ebrl/messages/", _args_schemas, _run_schemas),
     "config": ("check a config, or list every config key", _args_config, _run_config),
     "configs": ("list the stock configs (ebrl up NAME runs one)", _args_configs, _run_configs),
     "init": ("copy a stock config here to edit", _args_init, _run_init),

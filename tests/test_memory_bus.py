@@ -9,7 +9,7 @@ import time
 import pytest
 import zenoh
 
-from ebrl.bus import session
+from ebrl.bus import sender, session, subscription
 from ebrl.bus.memory import MemoryBus, MemoryNetwork
 from ebrl.messages import Event
 from helpers import until
@@ -39,7 +39,7 @@ def test_keys_match_by_zenoh_rules_and_a_bus_hears_itself():
 
 
 def test_a_full_block_subscription_holds_the_publisher_back_and_loses_nothing(monkeypatch):
-    monkeypatch.setattr(session, "SENDER_QUEUE", 4)
+    monkeypatch.setattr(sender, "SENDER_QUEUE", 4)
 
     async def scenario():
         network = MemoryNetwork()
@@ -67,7 +67,7 @@ def test_a_full_block_subscription_holds_the_publisher_back_and_loses_nothing(mo
 
 
 def test_a_stalled_consumer_costs_a_counted_drop_after_the_block_limit(monkeypatch):
-    monkeypatch.setattr(session, "BLOCK_LIMIT_S", 0.1)
+    monkeypatch.setattr(subscription, "BLOCK_LIMIT_S", 0.1)
 
     async def scenario():
         bus = MemoryBus(MemoryNetwork())

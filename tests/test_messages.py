@@ -1,4 +1,4 @@
-"""Messages: round trips, validation on receipt, and schemas/ kept in sync with ebrl/messages.py."""
+"""Messages: round trips, validation on receipt, and schemas/ kept in sync with ebrl/messages/."""
 
 import json
 import pathlib

@@ -1,6 +1,6 @@
 """A vectorized group's segments, packed: ``SegmentBuffers`` cuts exactly the segments per-env builders cut, a
 ``SegmentBatch`` survives the bus (images as bytes too) and refuses what does not add up, and training takes it
-as the same segments (``ebrl/sched/rollout.py``, ``ebrl/messages.py``)."""
+as the same segments (``ebrl/sched/rollout.py``, ``ebrl/messages/rollout.py``)."""
 
 from __future__ import annotations
 

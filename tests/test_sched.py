@@ -14,7 +14,7 @@ from ebrl.algos.ppo import PPO, build_batch
 from ebrl.messages import TrajectorySegment
 from ebrl.policies import make_policy
 from ebrl.sched.modes import resolve
-from ebrl.sched.staleness import fresh_suffix, split
+from ebrl.algos.staleness import fresh_suffix, split
 
 
 def cfg(**sections):

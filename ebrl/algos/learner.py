@@ -180,13 +180,35 @@ class Learner:
                                                               else " with fresh weights")
 
     def save_checkpoint(self, run_name: str) -> bool:
-        """Write the training state (:func:`ebrl.algos.saving.save_train_state`); False if there was nothing new."""
-        return saving.save_train_state(self, run_name)
+        """Write the training state (on the update thread, between updates: :func:`ebrl.algos.saving.save_train_state`);
+        False if there was nothing new, or nothing finite. Sharded, the state the ranks gathered (sync, the stop)."""
+        if self.version == self.saved_version:
+            return False
+        model_state, optimizer = None, self.algo.optimizer
+        if self.sharded:
+            if self.train_state is None or self.train_state[0] != self.version:
+                return False
+            _, model_state, optimizer = self.train_state
+        if not saving.save_train_state(self.run_dir, self.model, optimizer, self.version,
+                                       {"run": run_name, **self.portable}, self.telemetry, self.algo.generators(),
+                                       self.algo.extra_state(), model_state=model_state):
+            return False
+        self.saved_version = self.version
+        return True
 
     def save_policy(self, run_name: str) -> str | None:
         """Write the newest published weights to ``RUN_DIR/policy.safetensors``; its path, or None where they are
         not finite (:func:`ebrl.algos.saving.save_policy`)."""
-        return saving.save_policy(self, run_name)
+        return saving.save_policy(self.run_dir, self.model, self.arrays,
+                                  {"run": run_name, "version": str(self.version), **self.portable})
+
+    def save_at_end(self, run_name: str) -> str | None:
+        """As a run ends (or stops to restart): the training state and the policy file, where this learner made a
+        version at all; the policy file's path, or None where none was written."""
+        if self.version <= 0:
+            return None
+        self.save_checkpoint(run_name)
+        return self.save_policy(run_name)
 
     def hand_over(self) -> int:
         """The segments not yet trained on, written for the next learner (:func:`ebrl.algos.handover.hand_over`)."""

@@ -38,7 +38,7 @@ from torch import nn
 
 from ebrl.algos.parallel import Methods
 from ebrl.messages import TrajectorySegment, from_wire, to_wire
-from ebrl.sched.staleness import fresh_suffix, split
+from ebrl.algos.staleness import fresh_suffix, split
 
 
 def gae(rewards: np.ndarray, values: np.ndarray, discounts: np.ndarray, last_value: float,
@@ -229,11 +229,11 @@ class PPO:
 
     @property
     def optimizer(self) -> torch.optim.Optimizer:
-        """Adam over the model's parameters (:func:`make_adam`), made on first use: torch's first optimizer
-        imports torch._dynamo, most of a second of CPU, which a new run spends after its first weights are out
-        (``prepare``) rather than before generation can act."""
+        """Adam over the model's trainable parameters (:func:`make_adam`; a VLA's frozen base weights are not
+        its), made on first use: torch's first optimizer imports torch._dynamo, most of a second of CPU, which a
+        new run spends after its first weights are out (``prepare``) rather than before generation can act."""
         if self._optimizer is None:
-            self._optimizer = make_adam(self.model.parameters(), self.lr)
+            self._optimizer = make_adam([p for p in self.model.parameters() if p.requires_grad], self.lr)
         return self._optimizer
 
     @optimizer.setter

@@ -8,6 +8,9 @@
 Nothing that is not finite is written: a refused checkpoint leaves the newest good one the one a restart
 reads, a refused policy file is not written at all. Only rank 0 writes; with sharded ranks, the state it
 writes is the one every rank gathered (``Learner.sync``, and the stop in ``ebrl.algos.ranks``).
+
+The learner decides when and hands over what to write (:meth:`ebrl.algos.learner.Learner.save_checkpoint`,
+``save_policy``, ``save_at_end``); this module only writes it, and knows nothing of the learner.
 """
 
 from __future__ import annotations
@@ -15,8 +18,9 @@ from __future__ import annotations
 import logging
 import os
 import time
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
+import numpy as np
 import torch
 
 from ebrl import durable
@@ -24,7 +28,7 @@ from ebrl.algos import checkpoint
 from ebrl.policies import save_checkpoint
 
 if TYPE_CHECKING:
-    from ebrl.algos.learner import Learner
+    from ebrl.meter import Telemetry
 
 log = logging.getLogger("ebrl.algos.learner")  # the learner's own log: these are its writes
 
@@ -47,49 +51,36 @@ def remove_interrupted(run_dir: str) -> list:
     return checkpoint.remove_stale(run_dir) + durable.remove_temporaries(policy_path(run_dir))
 
 
-def save_train_state(learner: Learner, run_name: str) -> bool:
-    """Write ``learner``'s training state (on the update thread, between updates); False if there was nothing
-    new, or nothing finite (counted: ``train/checkpoints_refused``)."""
-    if learner.version == learner.saved_version:
-        return False
+def save_train_state(run_dir: str, model: torch.nn.Module, optimizer: Any, version: int, metadata: dict[str, str],
+                     telemetry: Telemetry, generators: dict[str, Any], extra: dict[str, torch.Tensor],
+                     model_state: dict[str, torch.Tensor] | None = None) -> bool:
+    """Write the training state of ``version`` to ``run_dir`` (the learner calls it on the update thread, between
+    updates, when it has a new version: ``Learner.save_checkpoint``); False where it is not finite (then nothing
+    is written, counted: ``train/checkpoints_refused``). ``model_state``: the model's state gathered from sharded
+    ranks, written instead of ``model``'s own."""
     start = time.time()
-    model_state, optimizer = None, learner.algo.optimizer
-    if learner.sharded:  # what the ranks gathered (sync, and the stop)
-        if learner.train_state is None or learner.train_state[0] != learner.version:
-            return False
-        _, model_state, optimizer = learner.train_state
     try:
-        checkpoint.save(learner.run_dir, learner.model, optimizer, learner.version, learner.algo.generators(),
-                        {"run": run_name, **learner.portable}, model_state=model_state,
-                        extra=learner.algo.extra_state())
+        checkpoint.save(run_dir, model, optimizer, version, generators, metadata, model_state=model_state,
+                        extra=extra)
     except checkpoint.NonFiniteState as exc:  # the newest good checkpoint stays the one a restart reads
         log.error("%s", exc)
-        learner.telemetry.count("train/checkpoints_refused")
+        telemetry.count("train/checkpoints_refused")
         return False
-    learner.saved_version = learner.version
-    learner.telemetry.publish_span("train", "checkpoint", start, time.time())
-    learner.telemetry.count("train/checkpoints")
+    telemetry.publish_span("train", "checkpoint", start, time.time())
+    telemetry.count("train/checkpoints")
     return True
 
 
-def save_policy(learner: Learner, run_name: str) -> str | None:
-    """Write ``learner``'s newest published weights to ``RUN_DIR/policy.safetensors``; its path, or None where
-    they are not finite (then nothing is written, logged)."""
-    path = policy_path(learner.run_dir)
-    weights = {name: torch.from_numpy(a) for name, a in learner.arrays.items()}  # full, also when sharded
+def save_policy(run_dir: str, model: torch.nn.Module, arrays: dict[str, np.ndarray],
+                metadata: dict[str, str]) -> str | None:
+    """Write the published weights ``arrays`` (full, also when sharded) as ``model``'s policy file
+    ``RUN_DIR/policy.safetensors``; its path, or None where they are not finite (then nothing is written,
+    logged)."""
+    path = policy_path(run_dir)
+    weights = {name: torch.from_numpy(a) for name, a in arrays.items()}
     # the published weights, finite (finite_or_previous); a sharded run's gathered ones are checked here
     if bad := checkpoint.nonfinite(weights):
         log.error("%s not written: values that are not finite (%s)", path, ", ".join(bad[:3]))
         return None
-    save_checkpoint(learner.model, path, {"run": run_name, "version": str(learner.version), **learner.portable},
-                    state=weights)
+    save_checkpoint(model, path, metadata, state=weights)
     return path
-
-
-def save_at_end(learner: Learner, run_name: str) -> str | None:
-    """As a run ends (or stops to restart): the training state and the policy file, where ``learner`` made a
-    version at all; the policy file's path, or None where none was written."""
-    if learner.version <= 0:
-        return None
-    learner.save_checkpoint(run_name)
-    return learner.save_policy(run_name)

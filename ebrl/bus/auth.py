@@ -238,7 +238,7 @@ def zenoh_settings(credentials: Credentials, mode: str, run: str = "*", connects
     * ``router`` (a launcher, ``ebrl router``): checks whoever connects against the file and takes from each
       identity only what its role declares in run ``run`` (:func:`ebrl.graph.access_control`); ``connects``:
       it opens links itself (``bus.connect``), whose far ends are trusted by their Zenoh ids (:func:`host_zid`;
-      one that opens none takes its own host's id: ``ebrl.bus.session.zenoh_config``). With ``instances`` (a
+      one that opens none takes its own host's id: ``ebrl.bus.options.zenoh_config``). With ``instances`` (a
       client-mode launcher: the service instances it starts), it checks sign-ins against ``dictionary``
       (:func:`write_router_dictionary`) instead, and each instance takes only its own instance's keys (and,
       with ``groups`` per simulator, a simulator its own groups' data keys); with ``planned`` (every instance of

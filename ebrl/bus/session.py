@@ -13,7 +13,10 @@ a put with blocking congestion control can block its thread. So:
 * a malformed payload is counted per key, logged once per key, and dropped.
 
 :class:`BusBase` holds all of that except the transport, and so is the bus API; :class:`Bus` carries it
-over a Zenoh session, :class:`ebrl.bus.memory.MemoryBus` over an in-process network (tests).
+over a Zenoh session, :class:`ebrl.bus.memory.MemoryBus` over an in-process network (tests). The pieces a bus
+holds have modules of their own: its options and Zenoh config (:mod:`ebrl.bus.options`), its sender thread
+(:mod:`ebrl.bus.sender`) and its subscriptions (:mod:`ebrl.bus.subscription`); ``BusOptions``,
+``zenoh_config`` and ``Subscription`` are importable from here too.
 """
 
 from __future__ import annotations
@@ -24,20 +27,20 @@ import atexit
 import collections
 import contextlib
 import functools
-import json
 import logging
-import queue
 import threading
-import time
 import weakref
-from dataclasses import dataclass, field
-from typing import Any, AsyncIterator, Awaitable, Callable, Generic, Literal, TypeVar
+from dataclasses import dataclass
+from typing import Any, Awaitable, Callable, Literal, TypeVar
 
 import zenoh
 
-from ebrl import messages  # module import: messages itself imports ebrl.codec
-from ebrl.bus import auth
-from ebrl.bus.endpoints import config_file_connect, config_file_listen
+from ebrl import messages  # module import: a test counts the encodings by patching it (tests/test_local_bus.py)
+from ebrl.bus.options import BusOptions, zenoh_config
+from ebrl.bus.sender import Outgoing, Sender
+from ebrl.bus.subscription import Subscription
+
+__all__ = ["Bus", "BusBase", "BusOptions", "Outgoing", "Query", "Subscription", "intersects", "zenoh_config"]
 
 log = logging.getLogger("ebrl.bus")
 T = TypeVar("T")
@@ -55,99 +58,6 @@ def _close_forgotten_buses() -> None:
 
 _register_exit = getattr(threading, "_register_atexit", atexit.register)
 _register_exit(_close_forgotten_buses)
-
-# Zenoh closes a link whose blocking put waits longer than 5 s; a consumer that
-# is full for this long drops the sample (counted) so the link survives.
-BLOCK_LIMIT_S = 3.0
-SENDER_QUEUE = 4096
-
-
-@dataclass
-class BusOptions:
-    """How to join the bus. Built from the ``[bus]`` config section."""
-
-    mode: Literal["peer", "client", "router"] = "peer"  # router: a launcher joining hosts
-    connect: list[str] = field(default_factory=list)
-    listen: list[str] = field(default_factory=lambda: ["tcp/127.0.0.1:0"])
-    config_file: str = ""
-    max_message_bytes: int = 256 << 20  # larger payloads are dropped before decoding (Zenoh's own rx limit too)
-    secret_file: str = ""  # the run's secret (ebrl.bus.auth); empty: an open bus that anyone on the host can join
-    role: str = ""  # who signs in (with a secret_file): a role of the service graph, or observer (a script watching)
-    run: str = "*"  # the run whose keys a router's access rules name (ebrl.graph.access_control)
-    # a launcher's host number, or "router" for ebrl router: a router signed in that opens no link of its own
-    # takes that host's Zenoh id (ebrl.bus.auth.host_zid), which the hosts that connect to it trust
-    host: int | str | None = None
-    file_listen_wins: bool = False  # the listen endpoints of config_file, when it has some, replace ``listen``
-    local: str = ""  # a loopback endpoint listened on in any case (a launcher's, for its own services)
-    # ``user:password`` of this process's own instance identity, handed over by its launcher (ebrl.procenv): a
-    # client signs in with it rather than with its role's line of secret_file (ebrl.bus.auth)
-    identity: str = ""
-    # a client-mode launcher's router: the service instances it starts ((role, n) pairs), each admitted with its
-    # own identity and rights, checked against dictionary_file (ebrl.bus.auth.write_router_dictionary); and the
-    # groups each simulator has (its data keys are its own groups'); empty: every role's line, any instance
-    instances: tuple[tuple[str, int], ...] = ()
-    dictionary_file: str = ""
-    groups: int = 0
-    # ... and every instance of the run on every host (launchers included), where its plan names them: tokens of
-    # any other instance then reach this router's own session alone, where the launcher counts them
-    planned: tuple[tuple[str, int], ...] | None = None
-    # ... and the processes of several services it starts (run.processes): the first service of each, one of
-    # ``instances``, signs in for all of them and may send what each may
-    shares: tuple[tuple[tuple[str, int], ...], ...] = ()
-
-
-# Zenoh's default has both peers of a pair connect to each other as soon as gossip tells them of the other.
-# The two sessions race; with usrpwd (bus.auth) zenoh 1.10 rejects the second one as a duplicate of a
-# different configuration (eclipse-zenoh/zenoh#2577), and a pair of peers could end with no session at all,
-# never hearing each other (a run stalled at start). One side connecting ends the race (tests/test_bus.py
-# holds the check; the counts are in the commit that made it so).
-AUTOCONNECT_STRATEGY = {"peer": {"to_router": "always", "to_peer": "greater-zid"}}
-
-
-def zenoh_config(options: BusOptions) -> zenoh.Config:
-    """A Zenoh config: loopback-only peer unless told otherwise, multicast scouting off; with a
-    ``secret_file``, signed in as ``role`` and, as a router or peer, access-controlled (:mod:`ebrl.bus.auth`);
-    with an ``identity`` (a service its launcher started), signed in as its own instance.
-
-    Peers learn each other's loopback locators by gossip through the endpoint they
-    connect to (the launcher's), so services talk directly, without a relay. Of two peers that learn of each
-    other, only the one with the greater Zenoh id connects (:data:`AUTOCONNECT_STRATEGY`).
-    """
-    conf = zenoh.Config.from_file(options.config_file) if options.config_file else zenoh.Config()
-    conf.insert_json5("mode", json.dumps(options.mode))
-    conf.insert_json5("scouting/multicast/enabled", "false")
-    if json.loads(conf.get_json("scouting/gossip/autoconnect_strategy")) is None:  # unless config_file says
-        conf.insert_json5("scouting/gossip/autoconnect_strategy", json.dumps(AUTOCONNECT_STRATEGY))
-    file_listen = config_file_listen(options.config_file)  # none where the file leaves the default (every address)
-    listen = file_listen if options.file_listen_wins and file_listen else options.listen
-    listen = [*listen, options.local] if options.local and options.local not in listen else listen
-    if listen and options.mode != "client" and listen is not file_listen:
-        conf.insert_json5("listen/endpoints", json.dumps(listen))
-    if options.connect:
-        conf.insert_json5("connect/endpoints", json.dumps(options.connect))
-    # Zenoh reassembles no message larger than this (it drops it, the link stays): the same bound as ours
-    conf.insert_json5("transport/link/rx/max_message_size", json.dumps(options.max_message_bytes))
-    if options.identity:
-        credentials = auth.parse_line(options.identity)
-        own = auth.instance_of(credentials.user)
-        if options.mode != "client" or own is None or (options.role and own[0] != options.role):
-            raise auth.AuthError(f"{credentials.user!r} is no identity of a {options.role or 'service'} instance "
-                                 f"(it signs in as a client of its launcher, not as a {options.mode})")
-        conf.insert_json5("transport/auth/usrpwd", json.dumps(auth.zenoh_settings(credentials, "client")
-                                                               ["transport/auth/usrpwd"]))
-    elif options.secret_file:
-        if not options.role:
-            raise auth.AuthError("signing in needs a role (BusOptions.role): a role of the service graph or "
-                                 "observer")
-        credentials = auth.load(options.secret_file, options.role)
-        connects = options.mode == "router" and bool(options.connect or config_file_connect(options.config_file))
-        for path, value in auth.zenoh_settings(credentials, options.mode, options.run, connects, options.instances,
-                                               options.dictionary_file or None, options.groups,
-                                               options.planned, options.shares).items():
-            conf.insert_json5(path, json.dumps(value))
-        if options.mode == "router" and not connects and options.host is not None:
-            conf.insert_json5("id", json.dumps(auth.host_zid(options.secret_file, options.host)))
-    return conf
 
 
 @functools.lru_cache(maxsize=4096)
@@ -175,78 +85,6 @@ class Query:
     def finish(self) -> None:
         """No more replies: the asker's ``get`` returns once every answerer finished (or at its timeout)."""
         self._finish()
-
-
-Outgoing = tuple[str, "bytes | None", bool, Any]
-"""One sample on its way: key, payload (None: no one needs the bytes, ``ebrl.bus.local``), express, and the message
-itself (None: only its bytes were published)."""
-
-
-class Sender:
-    """A bus's one sender thread: what is published, from the event loop or any thread, goes in order through
-    a bounded queue (``SENDER_QUEUE``) to the transport's blocking ``put``, so that no publisher waits on the
-    network; ``put`` waits for room, ``offer`` drops (counted) when there is none."""
-
-    def __init__(self, put: Callable[[str, bytes | None, bool, Any], None], closed: Callable[[], bool],
-                 settle_s: float):
-        self._put, self._closed, self.settle_s = put, closed, settle_s
-        self.queue: queue.Queue = queue.Queue(maxsize=SENDER_QUEUE)
-        self.dropped = 0
-        self.thread = threading.Thread(target=self._loop, name="ebrl-bus-sender", daemon=True)
-        self.thread.start()
-
-    def offer(self, item: Outgoing) -> bool:
-        try:
-            self.queue.put_nowait(item)
-            return True
-        except queue.Full:
-            self.dropped += 1
-            return False
-
-    async def put(self, loop: asyncio.AbstractEventLoop, item: Outgoing) -> None:
-        try:
-            self.queue.put_nowait(item)
-        except queue.Full:
-            await loop.run_in_executor(None, self.queue.put, item)
-
-    def _loop(self) -> None:
-        while True:
-            item = self.queue.get()
-            if item is None:
-                return
-            key, payload, express, msg = item
-            try:
-                self._put(key, payload, express, msg)
-            except Exception as exc:  # a closed session at shutdown, mostly
-                if not self._closed():
-                    log.warning("put on %s failed: %s", key, exc)
-            finally:
-                self.queue.task_done()
-
-    async def flush(self, timeout: float) -> None:
-        """Wait until the queue is empty (best effort, bounded by ``timeout``), then ``settle_s`` for the last
-        put to leave the socket."""
-        deadline = time.monotonic() + timeout
-        while self.queue.unfinished_tasks:
-            if time.monotonic() > deadline:
-                return
-            await asyncio.sleep(0.005)
-        await asyncio.sleep(self.settle_s)
-
-    def drop_all(self) -> None:
-        """Lose what is still queued and end the thread (a bus that dies like a killed process)."""
-        while True:
-            try:
-                self.queue.get_nowait()
-                self.queue.task_done()
-            except queue.Empty:
-                break
-        self.queue.put_nowait(None)
-
-    async def stop(self, loop: asyncio.AbstractEventLoop) -> None:
-        """End the thread once it sent what is queued (at most 2 s more)."""
-        self.queue.put(None)
-        await loop.run_in_executor(None, self.thread.join, 2.0)
 
 
 class BusBase(abc.ABC):
@@ -544,124 +382,3 @@ class Bus(BusBase):
             self.session.close()
         except Exception as exc:
             log.debug("session close: %s", exc)
-
-
-class Subscription(Generic[T]):
-    """Bounded bridge from a bus's transport thread to the event loop (see module docstring)."""
-
-    def __init__(self, bus: BusBase, key: str, cls: type[T] | Callable[[str, bytes], T], policy: str, capacity: int,
-                 notify: asyncio.Event | None = None, max_bytes: int | None = None):
-        if policy not in ("block", "latest"):
-            raise ValueError(f"unknown queue policy {policy!r}")
-        self.bus, self.key, self.policy, self.capacity = bus, key, policy, capacity
-        self.max_bytes = max_bytes  # the key's bound in this run (ebrl.sizes); None: the bus's alone
-        if isinstance(cls, type):
-            self._decode: Callable[[str, bytes], T] = lambda _key, payload: messages.decode_message(cls, payload)
-            self._accept: Callable[[str, Any], T] | None = lambda _key, msg: messages.accept(cls, msg)
-        else:
-            self._decode = cls
-            self._accept = getattr(cls, "local", None)  # a decoder that takes messages handed over in the process
-        self.received = 0
-        self.dropped = 0
-        self._items: collections.deque[tuple[str, T]] = collections.deque()
-        self._cond = threading.Condition()
-        self._ready = asyncio.Event()
-        self._notify = notify
-        self._closed = False
-        self._source: Any = None  # the transport's declaration feeding offer(); undeclared on close
-
-    def __len__(self) -> int:
-        return len(self._items)
-
-    @property
-    def by_reference(self) -> bool:
-        """Whether it takes a message handed over in the process as it is (else the message's bytes)."""
-        return self._accept is not None
-
-    def offer(self, key: str, payload: Any) -> None:  # a transport thread; payload: bytes-like
-        """Check, decode and queue one sample; for a full ``block`` queue, wait for room (back-pressure)."""
-        if self._closed or not self.bus.fits(key, len(payload), self.max_bytes):  # len: no copy yet
-            return
-        try:
-            msg = self._decode(key, bytes(payload))
-        except Exception as exc:  # MessageError mostly; never let an exception escape into the transport
-            self.bus.count_malformed(key, exc)
-            return
-        self._queue(key, msg)
-
-    def offer_message(self, key: str, msg: Any) -> None:  # a sender thread of this process
-        """Check and queue a message handed over by reference in the process (``ebrl.bus.local``): bounded and
-        validated as one decoded from the bus, its arrays shared read-only, not copied."""
-        assert self._accept is not None
-        if self._closed or not self.bus.fits(key, messages.array_bytes(msg), self.max_bytes):
-            return
-        try:
-            accepted = self._accept(key, msg)
-        except Exception as exc:
-            self.bus.count_malformed(key, exc)
-            return
-        self._queue(key, accepted)
-
-    def _queue(self, key: str, msg: T) -> None:
-        with self._cond:
-            if len(self._items) >= self.capacity:
-                if self.policy == "latest":
-                    self._items.popleft()
-                    self.dropped += 1
-                else:
-                    deadline = time.monotonic() + BLOCK_LIMIT_S
-                    while len(self._items) >= self.capacity and not self._closed:
-                        left = deadline - time.monotonic()
-                        if left <= 0:
-                            self.dropped += 1
-                            log.warning("%s: consumer stalled %.0f s, dropped a sample", self.key, BLOCK_LIMIT_S)
-                            return
-                        self._cond.wait(left)
-            if self._closed:
-                return
-            self._items.append((key, msg))
-            self.received += 1
-            was_empty = len(self._items) == 1
-        if was_empty:
-            self.bus._call_soon(self._signal)
-
-    def _signal(self) -> None:
-        self._ready.set()
-        if self._notify is not None:
-            self._notify.set()
-
-    def drain(self, limit: int | None = None) -> list[tuple[str, T]]:
-        """Take up to ``limit`` items that are already here, without waiting."""
-        out = []
-        with self._cond:
-            while self._items and (limit is None or len(out) < limit):
-                out.append(self._items.popleft())
-            if out:
-                self._cond.notify_all()
-        return out
-
-    async def next(self) -> tuple[str, T]:
-        while True:
-            with self._cond:
-                if self._items:
-                    item = self._items.popleft()
-                    self._cond.notify_all()
-                    return item
-                self._ready.clear()
-            await self._ready.wait()
-
-    def __aiter__(self) -> AsyncIterator[tuple[str, T]]:
-        return self
-
-    async def __anext__(self) -> tuple[str, T]:
-        return await self.next()
-
-    def close(self) -> None:
-        with self._cond:
-            self._closed = True
-            self._cond.notify_all()
-        try:
-            if self._source is not None:
-                self._source.undeclare()
-        except Exception:
-            pass

@@ -13,7 +13,6 @@ import time
 from typing import Any
 
 from ebrl import obswire, procenv, sizes, threads
-from ebrl.algos import saving
 from ebrl.algos.cycle import UpdateCycle, wind_down
 from ebrl.algos.handover import HANDOVER_FILE
 from ebrl.algos.learner import Learner
@@ -138,7 +137,7 @@ class TrainService(Service):
                 self.accept(key, msg)
             if n := self.learner.hand_over():
                 self.log.info("handed over %d segments not yet trained on (%s)", n, HANDOVER_FILE)
-        if path := saving.save_at_end(self.learner, self.run_name):
+        if path := self.learner.save_at_end(self.run_name):
             self.log.info("policy v%d saved to %s", self.learner.version, path)
 
 

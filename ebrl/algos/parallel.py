@@ -163,7 +163,8 @@ class DataParallel:
         dist.init_process_group(self.backend, init_method=init, rank=rank, world_size=world,
                                 timeout=datetime.timedelta(seconds=TIMEOUT_S))
         self._share_optimizer_state(optimizer)
-        self.names = [f"policy.{name}" for name, _ in policy.named_parameters()]  # optimizer index -> FQN
+        # optimizer index -> FQN; the optimizer holds the trainable parameters only (PPO.optimizer)
+        self.names = [f"policy.{name}" for name, p in policy.named_parameters() if p.requires_grad]
         if not shard:
             # No buffer sync in forward: a forward pass is no collective (ranks call value() a different number
             # of times). The one buffer that changes, the observation statistics, every rank updates alike
@@ -181,7 +182,7 @@ class DataParallel:
         # PPO never changes an output in place, which is what this warning is about (evaluate returns views).
         warnings.filterwarnings("ignore", message="FSDP2-wrapped module .* returned a view tensor")
         self.net = fully_shard(Methods(policy))
-        self.optimizer = type(optimizer)(self.net.parameters(), **optimizer.defaults)
+        self.optimizer = type(optimizer)([p for p in self.net.parameters() if p.requires_grad], **optimizer.defaults)
         if restored["state"]:
             set_optimizer_state_dict(self.net, self.optimizer, self._by_name(restored),
                                      options=StateDictOptions(full_state_dict=True))

@@ -21,6 +21,7 @@ from pathlib import Path
 from typing import Any
 
 from ebrl import config as config_mod
+from ebrl.envs.records import backend_record
 from ebrl.messages import StatsReport
 from ebrl.testing import Run, RunError, StatsWatcher, source
 
@@ -42,7 +43,6 @@ MECHANISMS = {
     "vectorized": "sim.vectorized",
     "lazy_render": "sim.lazy_render",
 }
-CAMERA_DEFAULTS = {"libero": "rgb", "robosuite": "state"}  # the backends that render lazily, their default obs
 
 
 def commit() -> str:
@@ -73,7 +73,7 @@ def ablation_variants(config: str, overrides: list[str]) -> dict[str, list[str]]
         "vectorized": schedule.vectorized,
         "lazy_render": schedule.lazy_render,
     }
-    cameras = cfg.env.kwargs.get("obs", CAMERA_DEFAULTS.get(cfg.env.backend, "state")) == "rgb"
+    cameras = backend_record(cfg.env.backend).cameras(cfg.env.kwargs)
     out = {}
     for name, key in MECHANISMS.items():
         if name == "lazy_render" and not cameras:

@@ -22,6 +22,7 @@ from typing import Any, ClassVar, Literal
 import tomli_w
 
 from ebrl import devices, typecheck
+from ebrl.envs import records
 from ebrl.presets import PRESETS
 from ebrl import keys
 
@@ -160,26 +161,19 @@ class BusSection(Section):
             raise ConfigError("bus.listen and bus.connect are both empty: services could not find each other")
 
 
+BACKEND_NAMES = tuple(records.BACKENDS)  # env.backend's choices: the simulator backends' registry
+
+
 @dataclass
 class EnvSection(Section):
     NAME = "env"
 
-    backend: Literal["gymnasium", "robosuite", "maniskill", "mjwarp", "libero"] = doc(
-        "simulator adapter (maniskill: the optional extra, `pip install -e '.[maniskill]'`, needs a Vulkan GPU; "
-        "mjwarp: MuJoCo Warp, `pip install -e '.[mjwarp]'`, each group one batch of envs_per_group worlds on the GPU "
-        "or the CPU, env.kwargs.device; libero: the LIBERO benchmark, `make libero`)", "gymnasium")
-    id: str = doc("environment id: a gymnasium id (InvertedPendulum-v5, my_pkg.envs:MyEnv-v0), a robosuite "
-                  "task (Lift, PickPlaceCan, Stack), a ManiSkill task (PickCube-v1), an mjwarp task "
-                  "(PandaPickCube-v0, my_pkg.tasks:MyTask) or a LIBERO suite (libero_spatial, libero_object, "
-                  "libero_goal, libero_10, libero_90)", "InvertedPendulum-v5")
+    backend: Literal[BACKEND_NAMES] = doc(f"simulator adapter ({records.described()})", "gymnasium")
+    id: str = doc(f"environment id: {records.described_ids()}", "InvertedPendulum-v5")
     max_episode_steps: int = doc("time limit in env steps; 0 keeps the environment's own (LIBERO: the suite's, "
                                  "280/280/300/520/400)", 0)
-    kwargs: dict[str, Any] = doc("extra keyword arguments for the environment constructor (robosuite and ManiSkill: "
-                                 "obs = \"state\" | \"rgb\", image_size, camera, instruction, ...; mjwarp: device, "
-                                 "nconmax, njmax, cuda_graph, then the task's own, e.g. model; LIBERO: tasks (an "
-                                 "index, a name or a list; empty: the whole suite spread over the envs), obs = "
-                                 "\"rgb\" | \"state\", cameras, image_size, no_op_steps, init_states, arena_mb, "
-                                 "object_state_size)", factory=dict)
+    kwargs: dict[str, Any] = doc("extra keyword arguments for the environment constructor "
+                                 f"({records.described_options()})", factory=dict)
     latency: Literal["none", "lognormal"] = doc(
         "add a synthetic step latency (CPU busy-wait) drawn from this distribution, for scheduler experiments", "none")
     latency_mean_ms: float = doc("mean of the added step latency in milliseconds", 16.0)
@@ -834,12 +828,9 @@ def _check_train_hosts(cfg: Config) -> None:
 
 def vectorized(cfg: Config) -> bool:
     """Whether each sim group is one vectorized process (``sim.vectorized``; "auto": where physics is on the GPU;
-    always for MuJoCo Warp, whose group is one model of many worlds)."""
-    if cfg.env.backend == "mjwarp":
-        return True
-    if cfg.sim.vectorized == "auto":
-        return devices.gpu_physics(cfg.env.backend, cfg.env.kwargs)
-    return bool(cfg.sim.vectorized)
+    always for a backend whose group is one batch by nature, MuJoCo Warp's model of many worlds): the backend's
+    record decides (``ebrl.envs.records``)."""
+    return records.backend_record(cfg.env.backend).vectorized(cfg.sim.vectorized, cfg.env.kwargs)
 
 
 def _device(text: str, path: str) -> None:
@@ -907,11 +898,9 @@ def _check_batching(cfg: Config) -> None:
 
 def _check_vectorized(cfg: Config) -> None:
     """What a vectorized group (one process stepping its envs as one batch) cannot do."""
-    if cfg.env.backend == "mjwarp" and cfg.sim.vectorized is False:
-        raise ConfigError("sim.vectorized = false: an mjwarp group is one MuJoCo Warp model of envs_per_group worlds; "
-                          "for one CPU MuJoCo env per worker process use env.backend = \"gymnasium\" with "
-                          "env.id = \"ebrl.envs.tasks:PandaPickCube-v0\" (or your task through "
-                          "ebrl.envs.mjtask.MjTaskEnv)")
+    record = records.backend_record(cfg.env.backend)
+    if record.vectorize == "always" and cfg.sim.vectorized is False:
+        raise ConfigError(f"sim.vectorized = false: {record.always_vectorized}")
     if not vectorized(cfg):
         return
     if cfg.alloc.enabled:

@@ -57,17 +57,6 @@ def physx_backend(value: str | None) -> str:
     return value or "physx_cpu"
 
 
-def gpu_physics(backend: str, kwargs: dict[str, Any]) -> bool:
-    """Whether the simulator steps on the GPU: ManiSkill under ``sim_backend = "physx_cuda[:N]"``, or ``"auto"``
-    where torch sees a CUDA GPU (:func:`physx_backend`); MuJoCo Warp on a CUDA ``env.kwargs.device``
-    (``"auto"``, its default: where torch sees one)."""
-    if backend == "mjwarp":
-        return is_cuda(str(kwargs.get("device", "auto")))
-    if backend != "maniskill":
-        return False
-    return physx_backend(kwargs.get("sim_backend")).startswith("physx_cuda")
-
-
 def resolve(value: str, field: str) -> Any:
     """The ``torch.device`` that ``value`` names on this machine; DeviceError if it does not exist."""
     import torch

@@ -23,6 +23,7 @@ from typing import Any
 
 from ebrl import durable
 from ebrl.envs import libero_suite
+from ebrl.envs.records import BACKENDS
 from ebrl.evaluate import CONFIDENCE, wilson_interval
 
 
@@ -151,9 +152,11 @@ def evaluate_suite(path: str, suite: str, *, per_task: int = 50, tasks: Any = No
     from ebrl.policies.portable import load_policy
 
     policy = load_policy(path, which=which, config=config)  # here first: a path without a policy fails at once
-    if policy.env_config.get("backend") != "libero":
-        raise ValueError(f"--suite evaluates a policy trained on LIBERO (env.backend = \"libero\"); {policy.path} "
-                         f"was trained on {policy.env_config.get('backend')!r} ({policy.env_config.get('id')!r})")
+    trained_on = policy.env_config.get("backend")
+    if not (trained_on in BACKENDS and BACKENDS[trained_on].suites):  # the records of benchmark suites: LIBERO's
+        suites = " or ".join(f"{r.label} (env.backend = \"{r.name}\")" for r in BACKENDS.values() if r.suites)
+        raise ValueError(f"--suite evaluates a policy trained on {suites}; {policy.path} "
+                         f"was trained on {trained_on!r} ({policy.env_config.get('id')!r})")
     chosen = libero_suite.select(suite, tasks)
     count = min(per_task, len(libero_suite.init_states(chosen[0])))
     workers = workers or len(os.sched_getaffinity(0))

@@ -27,6 +27,7 @@ from dataclasses import dataclass
 from ebrl.algos.algorithm import uses_replay
 from ebrl import keys
 from ebrl.config import ROLES, Config, ConfigError, processes, train_ranks, vectorized
+from ebrl.envs.records import backend_record
 
 PRIMARY_LOST_S = 30.0  # a secondary host stops when no train has been live for this long
 UNKNOWN_KEPT = 4096  # tokens of instances the run does not have, remembered to count each once (memory bounded)
@@ -265,16 +266,13 @@ class Membership:
         return self.train_seen_at is not None and now - self.train_seen_at >= self.lost_after_s
 
 
-GPU_SIMULATORS = ("mjwarp",)  # env.backend values whose worlds step on the GPU, with env code EBRL ships
-
-
 def decide_processes(cfg: Config, here: HostPlan, gpu: bool) -> tuple[Config, str]:
     """``cfg`` with ``run.processes = "auto"`` decided for this host (``gpu``: it has one), and the line that says
     what it became ("" where it was not "auto").
 
     - On a GPU host: sim, gen and train in one process, where this host runs the three with one training rank,
-      no allocator (its quotas and GPU shares are a process's each) and a GPU simulator of
-      :data:`GPU_SIMULATORS` on a task EBRL ships (no ``module:EnvId``: a user's env code never shares
+      no allocator (its quotas and GPU shares are a process's each) and a GPU simulator (its record's
+      ``gpu_simulator``, ebrl.envs.records) on a task EBRL ships (no ``module:EnvId``: a user's env code never shares
       training's memory unasked), so that the three stages share one CUDA context and no message between them
       leaves the process.
     - On a CPU host: sim and gen in one process, where this host runs both in the ebrl mode (the baselines keep
@@ -307,8 +305,9 @@ def decide_processes(cfg: Config, here: HostPlan, gpu: bool) -> tuple[Config, st
 
 def _why_apart_on_gpu(cfg: Config) -> str:
     """Why sim, gen and train keep their processes on a GPU host ("": they share one)."""
-    return (f"env.backend = {cfg.env.backend!r} steps on the CPU" if cfg.env.backend not in GPU_SIMULATORS
-            else f"env.id = {cfg.env.id!r} is your own code" if not _shipped_task(cfg.env.id)
+    simulator = backend_record(cfg.env.backend)
+    return (f"env.backend = {cfg.env.backend!r} steps on the CPU" if not simulator.gpu_simulator
+            else f"env.id = {cfg.env.id!r} is your own code" if not simulator.ships(cfg.env.id)
             else "several training ranks" if cfg.train.world_size > 1
             else "")
 
@@ -319,13 +318,6 @@ def _why_apart_on_cpu(cfg: Config) -> str:
             else "no GPU on this host; the vectorized groups keep their processes" if vectorized(cfg)
             else f"no GPU on this host; env.id = {cfg.env.id!r} is your own code" if ":" in cfg.env.id
             else "")
-
-
-def _shipped_task(env_id: str) -> bool:
-    """Whether ``env_id`` is a MuJoCo Warp task EBRL ships (``ebrl.envs.mjtask.TASKS``), not a user's module."""
-    from ebrl.envs.mjtask import TASKS  # MuJoCo: only where a GPU simulator is about to run
-
-    return env_id in TASKS
 
 
 def planned_instances(cfg: Config, here: HostPlan) -> tuple[tuple[str, int], ...] | None:

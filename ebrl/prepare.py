@@ -23,6 +23,7 @@ from ebrl import autotune, config as config_mod, devices, durable, meta, ranknet
 from ebrl.bus import auth
 from ebrl.bus.endpoints import config_file_acl, config_file_endpoints
 from ebrl.bus.joincheck import certificate_problem
+from ebrl.envs.records import backend_record
 from ebrl.hosts import HostPlan, decide_processes, plan as plan_host
 from ebrl.policies.registry import preflight as policy_preflight
 
@@ -231,11 +232,12 @@ PROCESSES_PER_CORE = 8  # env worker processes per core beyond which a run is re
 
 def too_many_processes(cfg: config_mod.Config, cores: int) -> str | None:
     """ManiSkill configs are sized for GPU PhysX (hundreds of envs, one process per group); where CPU PhysX runs
-    them instead (``sim_backend = "auto"`` without CUDA torch), each env would be a process of its own."""
-    if cfg.env.backend != "maniskill" or config_mod.vectorized(cfg) or cfg.num_envs <= PROCESSES_PER_CORE * cores:
+    them instead (``sim_backend = "auto"`` without CUDA torch), each env would be a process of its own. The
+    backends whose configs are so sized say what runs instead (their records' ``on_cpu``)."""
+    on_cpu = backend_record(cfg.env.backend).on_cpu
+    if on_cpu is None or config_mod.vectorized(cfg) or cfg.num_envs <= PROCESSES_PER_CORE * cores:
         return None
-    return (f"sim.envs_per_group = {cfg.sim.envs_per_group}: {cfg.num_envs} ManiSkill envs on CPU PhysX "
-            f"(env.kwargs.sim_backend = {cfg.env.kwargs.get('sim_backend', 'physx_cpu')!r}: no GPU PhysX here) would "
+    return (f"sim.envs_per_group = {cfg.sim.envs_per_group}: {cfg.num_envs} {on_cpu(cfg.env.kwargs)} would "
             f"start {cfg.num_envs} worker processes on {cores} cores; lower sim.envs_per_group (e.g. --set "
             f"sim.envs_per_group={max(1, PROCESSES_PER_CORE * cores // max(1, cfg.sim.groups))}), or run where "
             "torch sees a CUDA GPU")

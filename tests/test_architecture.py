@@ -387,3 +387,108 @@ def test_readme_headings_named_in_the_code_exist():
             elif match.group(2) and not any(h.startswith(match.group(2).strip()) for h in headings(page)):
                 missing.append(f"{path.relative_to(ROOT)}: {match.group(1)}: {match.group(2)!r}")
     assert not missing, "README or docs/ headings that do not exist:\n" + "\n".join(missing)
+
+# --- a simulator backend's facts in its record (issue 55) ---------------------------------------------------
+
+# Where the backends' facts live: every other module asks a record (ebrl.envs.records.backend_record) instead of
+# testing a backend's name, so that adding a backend touches its module, its record and its tests only.
+BACKEND_RECORDS = ("ebrl/envs/records.py",)
+
+
+def _names_in(node: ast.AST, names: tuple[str, ...]) -> bool:
+    """Whether ``node`` is a backend name (a str literal) or a tuple, list or set literal holding one."""
+    items = node.elts if isinstance(node, (ast.Tuple, ast.List, ast.Set)) else [node]
+    return any(isinstance(item, ast.Constant) and item.value in names for item in items)
+
+
+def _only_names(node: ast.AST, names: tuple[str, ...]) -> bool:
+    """Whether ``node`` is a tuple, list or set literal of backend names only, or a dict literal keyed by them
+    only: a table of backends (their facts kept outside their records)."""
+    items = (node.elts if isinstance(node, (ast.Tuple, ast.List, ast.Set))
+             else node.keys if isinstance(node, ast.Dict) else [])
+    return bool(items) and all(isinstance(item, ast.Constant) and item.value in names for item in items)
+
+
+def backend_name_tests(source: str, names: tuple[str, ...]) -> list[tuple[int, str]]:
+    """Where ``source`` tests a backend's name: compared (``==``, ``!=``, ``in``, ``not in``, with a literal name or
+    a literal collection holding one), looked up by a literal name (``table["mjwarp"]``, ``.get("mjwarp")``), a
+    ``match`` case on one, or a table of backends (a collection of names only, a dict keyed by them)."""
+    tree = ast.parse(source)
+    compared = {id(side) for node in ast.walk(tree) if isinstance(node, ast.Compare)
+                for side in (node.left, *node.comparators)}
+    found = set()
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Compare) and any(_names_in(side, names) for side in (node.left, *node.comparators)):
+            found.add((node.lineno, "compared"))
+        elif isinstance(node, ast.Subscript) and _names_in(node.slice, names) and not isinstance(node.slice, ast.Tuple):
+            found.add((node.lineno, "looked up by name"))
+        elif isinstance(node, ast.Call) and isinstance(node.func, ast.Attribute) and node.func.attr == "get" \
+                and node.args and _names_in(node.args[0], names) and not isinstance(node.args[0], ast.Tuple):
+            found.add((node.lineno, "looked up by name"))
+        elif isinstance(node, ast.match_case) and any(isinstance(p, ast.MatchValue) and _names_in(p.value, names)
+                                                      for p in ast.walk(node.pattern)):
+            found.add((node.pattern.lineno, "a match case"))
+        if _only_names(node, names) and id(node) not in compared:
+            found.add((node.lineno, "a table of backends"))
+    return sorted(found)
+
+
+def backend_name_offenders(root: Path, package: str, names: tuple[str, ...],
+                           records: tuple[str, ...] = BACKEND_RECORDS) -> list[str]:
+    """Every backend name test in ``package`` under ``root`` outside ``records`` (paths relative to ``root``)."""
+    out = []
+    for path in sorted((root / package).rglob("*.py")):
+        where = path.relative_to(root).as_posix()
+        if where not in records:
+            out += [f"{where}:{line}: {what}" for line, what in backend_name_tests(path.read_text(), names)]
+    return out
+
+
+TOY_NAME_TESTS = '''\
+def vectorized(backend, kwargs):
+    if backend == "mjwarp":
+        return True
+    if backend != "maniskill" and kwargs:
+        return False
+    return backend in ("gymnasium", "robosuite")
+DEFAULT_OBS = {"libero": "rgb", "robosuite": "state"}
+GPU_SIMULATORS = ("mjwarp",)
+def obs(backend, table):
+    return table["libero"], table.get("robosuite", "state"), DEFAULT_OBS.get(backend)
+def rendered(backend):
+    match backend:
+        case "robosuite" | "libero":
+            return True
+    return backend not in ["mjwarp"]
+'''
+# what is no test of a name: a default, a message, an argument, a package list that names other packages too
+TOY_CLEAN = '''\
+import importlib.util
+def spec(env, backend="gymnasium"):
+    found = importlib.util.find_spec("robosuite")
+    return env.get("backend", "gymnasium"), f"env.backend = 'libero' needs LIBERO", found
+PACKAGES = ("ebrl", "torch", "gymnasium", "mujoco")
+COMMANDS = {"libero": 1, "up": 2}
+'''
+
+
+def test_the_backend_name_check_finds_each_way_of_testing_a_name(tmp_path):
+    names = ("gymnasium", "robosuite", "maniskill", "mjwarp", "libero")
+    assert backend_name_tests(TOY_NAME_TESTS, names) == [
+        (2, "compared"), (4, "compared"), (6, "compared"), (7, "a table of backends"), (8, "a table of backends"),
+        (10, "looked up by name"), (13, "a match case"), (15, "compared")]
+    assert backend_name_tests(TOY_CLEAN, names) == []
+    root = toy(tmp_path / "named", **{"toy/a/sim.py": TOY_NAME_TESTS, "toy/b/records.py": TOY_NAME_TESTS,
+                                      "toy/b/clean.py": TOY_CLEAN})
+    found = backend_name_offenders(root, "toy", names, records=("toy/b/records.py",))
+    assert len(found) == 8 and all(line.startswith("toy/a/sim.py:") for line in found)
+    assert "toy/a/sim.py:13: a match case" in found
+
+
+def test_no_backend_name_is_tested_outside_the_backend_records():
+    """``env.backend``'s names (the registry's) are tested only in ebrl/envs/records.py."""
+    from ebrl.envs.records import BACKENDS
+
+    found = backend_name_offenders(ROOT, PACKAGE, tuple(BACKENDS))
+    assert not found, ("backend names tested outside the backend records (ask the record instead: "
+                       "ebrl.envs.records.backend_record(name)):\n" + "\n".join(found))

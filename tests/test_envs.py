@@ -1,6 +1,7 @@
 """Env adapter and worker processes: ids in module:EnvId form, chunks, auto-reset, clear errors."""
 
 import asyncio
+import dataclasses
 import os
 import pathlib
 import subprocess
@@ -10,9 +11,10 @@ import typing
 import numpy as np
 import pytest
 
-from ebrl.config import EnvSection
+from ebrl import config
+from ebrl.config import ConfigError, EnvSection
 from ebrl.envs import EnvError, EnvSpec, EnvWorker, describe, make_env
-from ebrl.envs.backends import BACKENDS
+from ebrl.envs.records import BACKENDS, backend_record
 
 
 def test_importing_ebrl_envs_imports_no_simulator():
@@ -33,10 +35,48 @@ def test_the_sim_service_imports_no_torch():
     assert out.stdout.strip() == "False"
 
 
-def test_every_configurable_backend_has_an_entry_and_unknown_ones_are_a_clear_error():
-    assert set(BACKENDS) == set(typing.get_args(typing.get_type_hints(EnvSection)["backend"]))
+def test_the_configs_backends_are_the_registrys_and_unknown_ones_are_a_clear_error():
+    assert typing.get_args(typing.get_type_hints(EnvSection)["backend"]) == tuple(BACKENDS)
+    assert tuple(BACKENDS) == ("gymnasium", "robosuite", "maniskill", "mjwarp", "libero")
     with pytest.raises(EnvError, match="env.backend = 'isaac'.*'gymnasium'"):
         make_env(EnvSpec("Lift", backend="isaac"))
+    with pytest.raises(ConfigError, match="env.backend = 'isaac': expected one of 'gymnasium', 'robosuite'"):
+        config.from_dict({"env": {"backend": "isaac"}})
+    described = {f.name: f.metadata["doc"] for f in dataclasses.fields(EnvSection)}
+    assert "mjwarp: MuJoCo Warp, `pip install -e '.[mjwarp]'`" in described["backend"]
+    assert "a ManiSkill task (PickCube-v1), an mjwarp task" in described["id"]
+    assert " or a LIBERO suite (libero_spatial" in described["id"]
+    assert "MuJoCo Warp: device, nconmax, njmax, cuda_graph" in described["kwargs"]
+
+
+def test_each_backends_record_answers_what_its_name_was_tested_for(monkeypatch):
+    """What the modules used to ask by testing a backend's name, each record answers (ebrl/envs/records.py)."""
+    from ebrl import devices
+
+    gym_, robosuite, maniskill, mjwarp, libero = (backend_record(name) for name in BACKENDS)
+    monkeypatch.setattr(devices, "cuda_available", lambda: False)
+    # sim.vectorized: always MuJoCo Warp's; "auto" ManiSkill's under GPU PhysX; otherwise only when asked
+    assert mjwarp.vectorized(False, {}) and mjwarp.vectorized("auto", {"device": "cpu"})
+    assert maniskill.vectorized("auto", {"sim_backend": "physx_cuda"}) and not maniskill.vectorized("auto", {})
+    assert not maniskill.vectorized("auto", {"sim_backend": "auto"})  # no CUDA here: CPU PhysX
+    assert not gym_.vectorized("auto", {}) and gym_.vectorized(True, {}) and not robosuite.vectorized(False, {})
+    # physics on the GPU (a vectorized group's own batch: tests/test_vector.py)
+    assert not mjwarp.gpu_physics({"device": "cpu"}) and mjwarp.gpu_physics({"device": "cuda:1"})
+    assert not mjwarp.gpu_physics({}) and not gym_.gpu_physics({"device": "cuda"})
+    monkeypatch.setattr(devices, "cuda_available", lambda: True)
+    assert mjwarp.gpu_physics({}) and maniskill.vectorized("auto", {"sim_backend": "auto"})
+    # cameras: robosuite's on asking, LIBERO's by default; both through MuJoCo's GL, ManiSkill's through SAPIEN
+    assert not robosuite.cameras({}) and robosuite.cameras({"obs": "rgb"}) and robosuite.gl_cameras
+    assert libero.cameras({}) and not libero.cameras({"obs": "state"}) and libero.gl_cameras
+    assert maniskill.cameras({"obs": "rgb"}) and not maniskill.gl_cameras and not gym_.cameras({})
+    assert [r.name for r in BACKENDS.values() if r.gl_frames] == ["gymnasium", "robosuite", "mjwarp", "libero"]
+    # a GPU simulator whose tasks EBRL ships; what runs on the CPU instead; benchmark suites
+    assert [r.name for r in BACKENDS.values() if r.gpu_simulator] == ["mjwarp"]
+    assert mjwarp.ships("PandaPickCube-v0") and not mjwarp.ships("mytasks:Pick-v0") and not gym_.ships("Hopper-v5")
+    assert [r.name for r in BACKENDS.values() if r.on_cpu] == ["maniskill"]
+    assert "CPU PhysX (env.kwargs.sim_backend = 'auto'" in maniskill.on_cpu({"sim_backend": "auto"})
+    assert [r.name for r in BACKENDS.values() if r.suites] == ["libero"]
+    assert mjwarp.install in mjwarp.about.format(install=mjwarp.install) and not gym_.install
 
 
 def test_module_colon_id_imports_the_users_module():

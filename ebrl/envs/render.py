@@ -19,6 +19,8 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
+from ebrl.envs.records import backend_record
+
 PROBE_TIMEOUT_S = 30.0
 # set by choose_gl to the backend it decided on: a child process trusts it instead of deciding again
 CHOSEN_VAR = "EBRL_MUJOCO_GL"
@@ -61,22 +63,20 @@ def choose_gl(candidates: Sequence[str] | None = None) -> str:
 
 
 def ensure_gl_for(spec: Any) -> str | None:
-    """Choose the backend now if the environment ``spec`` (an EnvSpec) renders camera observations; None when
-    it renders nothing. Call it before mujoco/robosuite are imported and before env workers start."""
-    if spec.backend == "robosuite" and spec.kwargs.get("obs", "state") == "rgb":
-        return choose_gl()
-    if spec.backend == "libero" and spec.kwargs.get("obs", "rgb") == "rgb":  # LIBERO's cameras are on by default
-        return choose_gl()
-    return None
+    """Choose the backend now if the environment ``spec`` (an EnvSpec) renders camera observations with MuJoCo's
+    GL (its record's ``gl_cameras``: robosuite's and LIBERO's); None when it renders nothing so. Call it before
+    mujoco/robosuite are imported and before env workers start."""
+    record = backend_record(spec.backend)
+    return choose_gl() if record.gl_cameras and record.cameras(spec.kwargs) else None
 
 
 def with_rendering(spec: Any) -> Any:
     """``spec`` (an EnvSpec) built so that ``env.render()`` returns RGB frames (evaluation videos): every backend
-    takes ``render_mode="rgb_array"``. MuJoCo-based backends render offscreen, so the GL backend is chosen now:
-    call it before mujoco is imported in this process."""
+    takes ``render_mode="rgb_array"``. MuJoCo-based backends (their records' ``gl_frames``) render offscreen, so
+    the GL backend is chosen now: call it before mujoco is imported in this process."""
     import dataclasses
 
-    if spec.backend in ("gymnasium", "robosuite", "mjwarp", "libero"):
+    if backend_record(spec.backend).gl_frames:
         choose_gl()
     return dataclasses.replace(spec, kwargs={**spec.kwargs, "render_mode": "rgb_array"})
 

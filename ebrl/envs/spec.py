@@ -8,8 +8,8 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from ebrl import devices
 from ebrl.envs.obs import ObsLayout
+from ebrl.envs.records import backend_record
 
 if TYPE_CHECKING:
     import gymnasium as gym
@@ -21,8 +21,8 @@ class EnvError(ValueError):
 
 @dataclass(frozen=True)
 class EnvSpec:
-    """What a worker needs to build its environment (picklable); ``backend`` names an entry of
-    ``ebrl.envs.backends.BACKENDS``."""
+    """What a worker needs to build its environment (picklable); ``backend`` names a record of
+    ``ebrl.envs.records.BACKENDS``."""
 
     id: str
     backend: str = "gymnasium"
@@ -37,9 +37,9 @@ class EnvSpec:
 
     @property
     def gpu_physics(self) -> bool:
-        """Whether the simulator steps on the GPU (ManiSkill under ``sim_backend = "physx_cuda[:N]"``): a whole
-        batch of envs per process, which ``sim.vectorized = "auto"`` turns on."""
-        return devices.gpu_physics(self.backend, self.kwargs)
+        """Whether the simulator steps on the GPU (its record's ``gpu_physics``: ManiSkill under ``sim_backend =
+        "physx_cuda[:N]"``, MuJoCo Warp on a CUDA device): a whole batch of envs per process."""
+        return backend_record(self.backend).gpu_physics(self.kwargs)
 
     @classmethod
     def from_config(cls, env_cfg: Any) -> "EnvSpec":

@@ -24,7 +24,7 @@ import tomli_w
 from ebrl import devices, typecheck
 from ebrl.envs import records
 from ebrl.presets import PRESETS
-from ebrl import keys
+from ebrl import graph, keys
 
 
 class ConfigError(ValueError):
@@ -542,7 +542,7 @@ class EvalSection(Section):
                               "take 32-bit seeds)")
 
 
-ROLES = ("viz", "log", "replay", "train", "gen", "sim", "eval", "alloc")  # every service a host can run, in start order
+ROLES = graph.START_ORDER  # every service a host can run, in start order (ebrl.graph.Role.start)
 
 
 @dataclass

@@ -20,6 +20,8 @@ spans, events, liveliness and its control keys) besides its own.
 
 from __future__ import annotations
 
+import functools
+import inspect
 from dataclasses import dataclass
 from typing import Literal
 
@@ -33,10 +35,13 @@ VERBS = {"put": "publishes", "sub": "subscribes to", "query": "queries", "answer
 
 @dataclass(frozen=True)
 class Flow:
-    """One edge end: ``direction`` on keys matching ``pattern``, carrying ``message``."""
+    """One edge end: ``direction`` on the keys of ``key`` (a builder of ``ebrl.keys`` and its arguments, the
+    placeholders :data:`R`, :data:`ROLE` and :data:`I` among them), carrying ``message``; ``name`` is what code asks
+    a role's :class:`RoleKeys` for (``keys_of(run, "sim", 0).put("obs", group=3)``)."""
 
+    name: str
     direction: Direction
-    pattern: str
+    key: tuple  # (builder, *arguments): ``(keys.obs, R)``
     message: str
     why: str = ""
     chart: bool = True  # drawn in the chart (a monitor that only counts what it hears is not)
@@ -44,94 +49,219 @@ class Flow:
     # alone where the router knows them (sim/n has groups n*G .. n*G+G-1: ebrl.sched.fleet)
     grouped: bool = False
 
+    @property
+    def pattern(self) -> str:
+        """The flow's key expression, placeholders left in: ``ebrl/data/{run}/obs/*``."""
+        return self.key[0](*self.key[1:])
+
+    def build(self, run: str | None, role: str, instance: int | str, given: dict[str, object]) -> str | None:
+        """The concrete key of this flow for one run, role and instance, with the builder's arguments ``given``
+        in place of the declared ones; None where that key is outside the flow's pattern. The run, where the
+        holder has one, narrows a flow of every run (an observer's)."""
+        builder, *declared = self.key
+        args = _declared(self.key)
+        fill = {R: run, ROLE: role, I: instance}
+        args = {name: fill.get(value, value) if isinstance(value, str) else value for name, value in args.items()}
+        if run is not None and "run" in args:
+            args["run"] = run
+        if run is None and R in declared:
+            raise ValueError(f"{role}'s flow {self.name!r} is of one run: keys_of(run, ...) needs the run's name")
+        key = builder(**{**args, **given})
+        pattern = self.pattern.replace(R, run or "*").replace(ROLE, role).replace(I, str(instance))
+        return key if covers(pattern, key) else None
+
+
+@functools.lru_cache(maxsize=None)
+def _declared(key: tuple) -> dict[str, object]:
+    """A flow's declared arguments by the builder's parameter names: ``(keys.obs, R)`` -> ``{"run": R}``."""
+    return dict(inspect.signature(key[0]).bind(*key[1:]).arguments)
+
 
 R, ROLE, I = "{run}", "{role}", "{instance}"
 EVERY_STAT = "StatsReport | SpanBatch | Event | EpisodeBatch"  # what ebrl/stats/<run>/** carries
 
 SERVICE_FLOWS = (  # every service (ebrl.service.Service)
-    Flow("put", keys.stats(R, ROLE, I), "StatsReport", "its stats report, every run.stats_interval"),
-    Flow("put", keys.spans(R, "*"), "SpanBatch", "timeline spans of its lanes"),
-    Flow("put", keys.events(R, ROLE), "Event", "what happened: a restart, a decision, a device"),
-    Flow("sub", keys.ctl(R, ROLE, I, "*"), "Quota | Affinity | Stop", "the allocator's and launcher's control"),
-    Flow("answer", keys.ctl(R, ROLE, I, "status"), "StatsReport", "its latest numbers, on request"),
-    Flow("token", keys.live(R, ROLE, I), "-", "alive while the process runs"),
+    Flow("stats", "put", (keys.stats, R, ROLE, I), "StatsReport", "its stats report, every run.stats_interval"),
+    Flow("spans", "put", (keys.spans, R, "*"), "SpanBatch", "timeline spans of its lanes"),
+    Flow("events", "put", (keys.events, R, ROLE), "Event", "what happened: a restart, a decision, a device"),
+    Flow("ctl", "sub", (keys.ctl, R, ROLE, I, "*"), "Quota | Affinity | Stop", "the allocator's and launcher's "
+         "control"),
+    Flow("status", "answer", (keys.ctl, R, ROLE, I, "status"), "StatsReport", "its latest numbers, on request"),
+    Flow("live", "token", (keys.live, R, ROLE, I), "-", "alive while the process runs"),
 )
 
 WEIGHTS_READER = (  # ebrl.weights.WeightsReceiver: new versions as published, and the newest on request
-    Flow("sub", keys.weights_all(R), "Weights | WeightsPart", "new policy versions"),
-    Flow("query", keys.weights_all(R), "Weights | WeightsPart", "the newest version, at start"),
-    Flow("sub", keys.stats(R, "train", 0), "StatsReport", "training's version (back from a forged one)"),
+    Flow("weights", "sub", (keys.weights_all, R), "Weights | WeightsPart", "new policy versions"),
+    Flow("weights", "query", (keys.weights_all, R), "Weights | WeightsPart", "the newest version, at start"),
+    Flow("stats", "sub", (keys.stats, R, "train", 0), "StatsReport", "training's version (back from a forged one)"),
 )
 
-FLOWS: dict[str, tuple[Flow, ...]] = {
-    "sim": (
-        Flow("put", keys.obs(R), "Observation", "a group's observations, when its chunk ends", grouped=True),
-        Flow("put", keys.traj(R), "TrajectorySegment", "finished segments", grouped=True),
-        Flow("put", keys.traj_packed(R), "SegmentBatch", "a vectorized group's finished segments, packed",
+STAGES = ("sim", "gen", "train")  # what the allocator plans
+
+@dataclass(frozen=True)
+class Role:
+    """One role of a run, with every fact about it that other modules read: its flows (what it sends and reads on
+    the bus), and for a service (an ``ebrl.service.Service``, ``start`` given) its place in a host's start order
+    (``ebrl.config.ROLES``: lower starts first), the module the launcher runs for it (``python -m <module>``) and
+    the namespace of its own metrics in ``ebrl/metrics`` (``sim/env_steps``: ``sim``). Adding a service is its
+    module, its record here and its tests."""
+
+    name: str
+    flows: tuple[Flow, ...]
+    start: int | None = None  # None: not a service (the launcher, observers)
+    stats: str = ""  # the namespace of its own metrics; "": it reports none
+
+    @property
+    def service(self) -> bool:
+        """Whether it is an ``ebrl.service.Service`` (it then has :data:`SERVICE_FLOWS` too)."""
+        return self.start is not None
+
+    @property
+    def module(self) -> str:
+        """What the launcher runs for a service: ``ebrl.services.<name>``; "" for a role that is no service."""
+        return f"ebrl.services.{self.name}" if self.service else ""
+
+
+ROLES: dict[str, Role] = {role.name: role for role in (
+    Role("sim", start=5, stats="sim", flows=(
+        Flow("obs", "put", (keys.obs, R), "Observation", "a group's observations, when its chunk ends",
              grouped=True),
-        Flow("put", keys.episodes(R, ROLE), "EpisodeBatch", "finished episodes (returns, success)"),
-        Flow("sub", keys.act(R), "ActionChunk", "each group's next chunk"),
-        Flow("watch", keys.live_all(R), "-", "which gen and sim hosts are up (the iteration gate)"),
-    ),
-    "gen": (
-        Flow("sub", keys.obs(R), "Observation", "the groups' observations"),
-        Flow("put", keys.act(R), "ActionChunk", "a chunk per group"),
+        Flow("traj", "put", (keys.traj, R), "TrajectorySegment", "finished segments", grouped=True),
+        Flow("packed", "put", (keys.traj_packed, R), "SegmentBatch", "a vectorized group's finished segments, "
+             "packed", grouped=True),
+        Flow("episodes", "put", (keys.episodes, R, ROLE), "EpisodeBatch", "finished episodes (returns, success)"),
+        Flow("act", "sub", (keys.act, R), "ActionChunk", "each group's next chunk"),
+        Flow("live", "watch", (keys.live_all, R), "-", "which gen and sim hosts are up (the iteration gate)"),
+    )),
+    Role("gen", start=4, stats="gen", flows=(
+        Flow("obs", "sub", (keys.obs, R), "Observation", "the groups' observations"),
+        Flow("act", "put", (keys.act, R), "ActionChunk", "a chunk per group"),
         *WEIGHTS_READER,
-        Flow("watch", keys.live(R, "sim"), "-", "how many sim hosts serve (a batch's size)"),
-    ),
-    "train": (
-        Flow("sub", keys.traj(R), "TrajectorySegment", "segments to learn from"),
-        Flow("sub", keys.traj_packed(R), "SegmentBatch", "packed segments to learn from"),
-        Flow("put", keys.weights(R), "Weights", "each new version (small policies)"),
-        Flow("put", keys.weights_parts(R), "WeightsPart", "each new version in parts (large policies)"),
-        Flow("answer", keys.weights_all(R), "Weights | WeightsPart", "the newest version, on request"),
-        Flow("put", keys.replay(R, "request"), "ReplayRequest", "an update's new transitions, minibatches wanted "
-             "(an off-policy algorithm)"),
-        Flow("sub", keys.replay(R, "sample"), "ReplaySample", "the minibatches of its gradient steps"),
-    ),
-    "replay": (
-        Flow("sub", keys.replay(R, "request"), "ReplayRequest", "transitions to keep, minibatches to draw"),
-        Flow("put", keys.replay(R, "sample"), "ReplaySample", "minibatches drawn uniformly"),
-    ),
-    "eval": WEIGHTS_READER,
-    "alloc": (
-        Flow("sub", keys.stats(R, "sim", "*"), "StatsReport", "every simulator's rates and CPU use"),
-        Flow("sub", keys.stats(R, "gen", 0), "StatsReport", "generation's rates and CPU use"),
-        Flow("sub", keys.stats(R, "train", 0), "StatsReport", "training's rates and CPU use"),
-        *(Flow("put", keys.ctl(R, stage, "*", "quota"), "Quota", "threads, batch and GPU memory of a stage")
-          for stage in ("sim", "gen", "train")),
-        *(Flow("put", keys.ctl(R, stage, "*", "affinity"), "Affinity", "a stage's cores")
-          for stage in ("sim", "gen", "train")),
-        Flow("put", keys.gpu_share(R, "*"), "GpuShare", "a stage's new GPU share, for its host's launcher"),
-    ),
-    "log": (Flow("sub", keys.stats_all(R), EVERY_STAT, "everything, for the sinks"),),
-    "observer": (  # a script or `ebrl stats` signed in as observer (ebrl.stats.observer_config): it reads only,
-        # the stats of any run on the bus (its file names no run: `ebrl stats` without --run watches every one)
-        Flow("sub", keys.stats(), EVERY_STAT, "a run watched from any script", chart=False),
-        Flow("watch", keys.live("*", "launcher", "*"), "-", "whether a run's launchers are up "
+        Flow("live", "watch", (keys.live, R, "sim"), "-", "how many sim hosts serve (a batch's size)"),
+    )),
+    Role("train", start=3, stats="train", flows=(
+        Flow("traj", "sub", (keys.traj, R), "TrajectorySegment", "segments to learn from"),
+        Flow("packed", "sub", (keys.traj_packed, R), "SegmentBatch", "packed segments to learn from"),
+        Flow("weights", "put", (keys.weights, R), "Weights", "each new version (small policies)"),
+        Flow("parts", "put", (keys.weights_parts, R), "WeightsPart", "each new version in parts (large policies)"),
+        Flow("weights", "answer", (keys.weights_all, R), "Weights | WeightsPart", "the newest version, on request"),
+        Flow("request", "put", (keys.replay, R, "request"), "ReplayRequest", "an update's new transitions, "
+             "minibatches wanted (an off-policy algorithm)"),
+        Flow("sample", "sub", (keys.replay, R, "sample"), "ReplaySample", "the minibatches of its gradient steps"),
+    )),
+    Role("replay", start=2, stats="replay", flows=(
+        Flow("request", "sub", (keys.replay, R, "request"), "ReplayRequest", "transitions to keep, minibatches to "
+             "draw"),
+        Flow("sample", "put", (keys.replay, R, "sample"), "ReplaySample", "minibatches drawn uniformly"),
+    )),
+    Role("eval", start=6, stats="eval", flows=WEIGHTS_READER),
+    Role("alloc", start=7, stats="alloc", flows=(
+        Flow("stats", "sub", (keys.stats, R, "sim", "*"), "StatsReport", "every simulator's rates and CPU use"),
+        Flow("stats", "sub", (keys.stats, R, "gen", 0), "StatsReport", "generation's rates and CPU use"),
+        Flow("stats", "sub", (keys.stats, R, "train", 0), "StatsReport", "training's rates and CPU use"),
+        *(Flow("quota", "put", (keys.ctl, R, stage, "*", "quota"), "Quota", "threads, batch and GPU memory of a "
+               "stage") for stage in STAGES),
+        *(Flow("affinity", "put", (keys.ctl, R, stage, "*", "affinity"), "Affinity", "a stage's cores")
+          for stage in STAGES),
+        Flow("gpu_share", "put", (keys.gpu_share, R, "*"), "GpuShare", "a stage's new GPU share, for its host's "
+             "launcher"),
+    )),
+    Role("log", start=1, stats="log", flows=(
+        Flow("stats", "sub", (keys.stats_all, R), EVERY_STAT, "everything, for the sinks"),)),
+    Role("observer", flows=(  # a script or `ebrl stats` signed in as observer (ebrl.stats.observer_config): it
+        # reads only, the stats of any run on the bus (its file names no run: `ebrl stats` without --run watches
+        # every one)
+        Flow("stats", "sub", (keys.stats_all, None), EVERY_STAT, "a run watched from any script", chart=False),
+        Flow("live", "watch", (keys.live, "*", "launcher", "*"), "-", "whether a run's launchers are up "
              "(the end of ebrl.stats.stream)", chart=False),
-    ),
-    "viz": (Flow("sub", keys.stats_all(R), EVERY_STAT, "everything, for rerun"),),
-    "launcher": (
-        Flow("sub", keys.stats_all(R), EVERY_STAT, "the progress line, "
+    )),
+    Role("viz", start=0, stats="viz", flows=(
+        Flow("stats", "sub", (keys.stats_all, R), EVERY_STAT, "everything, for rerun"),)),
+    Role("launcher", stats="launcher", flows=(
+        Flow("stats", "sub", (keys.stats_all, R), EVERY_STAT, "the progress line, "
              "the recording"),
-        Flow("put", keys.stats(R, "launcher", I), "StatsReport", "its own report"),
-        Flow("put", keys.events(R, "launcher"), "Event", "live, stall, auto, host, stopping"),
-        Flow("put", keys.ctl(R, "*", "*", "stop"), "Stop", "the end of the run, to every service"),
-        Flow("sub", keys.gpu_share(R, I), "GpuShare", "a stage of this host to restart with a new GPU share"),
-        Flow("sub", keys.ctl(R, "launcher", "*", "stop"), "Stop", "the primary host ended the run"),
-        Flow("sub", keys.ctl(R, "*", "*", "*"), "Quota | Affinity | Stop", "counts control for services the run "
-             "does not have", chart=False),
-        Flow("token", keys.live(R, "launcher", I), "-", "this host's launcher is up"),
-        Flow("watch", keys.live_all(R), "-", "which services and hosts are up"),
-    ),
-}
-SERVICES = ("sim", "gen", "train", "replay", "eval", "alloc", "log", "viz")  # roles that are ebrl.service.Service
+        Flow("stats", "put", (keys.stats, R, "launcher", I), "StatsReport", "its own report"),
+        Flow("events", "put", (keys.events, R, "launcher"), "Event", "live, stall, auto, host, stopping"),
+        Flow("stop", "put", (keys.ctl, R, "*", "*", "stop"), "Stop", "the end of the run, to every service"),
+        Flow("gpu_share", "sub", (keys.gpu_share, R, I), "GpuShare", "a stage of this host to restart with a new "
+             "GPU share"),
+        Flow("stop", "sub", (keys.ctl, R, "launcher", "*", "stop"), "Stop", "the primary host ended the run"),
+        Flow("ctl", "sub", (keys.ctl, R, "*", "*", "*"), "Quota | Affinity | Stop", "counts control for services "
+             "the run does not have", chart=False),
+        Flow("live", "token", (keys.live, R, "launcher", I), "-", "this host's launcher is up"),
+        Flow("live", "watch", (keys.live_all, R), "-", "which services and hosts are up"),
+    )),
+)}
+FLOWS: dict[str, tuple[Flow, ...]] = {name: role.flows for name, role in ROLES.items()}
+SERVICES = tuple(name for name, role in ROLES.items() if role.service)  # roles that are ebrl.service.Service
+START_ORDER = tuple(sorted(SERVICES, key=lambda name: ROLES[name].start))  # every service a host can run
 
 
 def flows(role: str) -> tuple[Flow, ...]:
     """Every flow of ``role``: its own, and those every service has."""
     return FLOWS[role] + (SERVICE_FLOWS if role in SERVICES else ())
+
+
+class RoleKeys:
+    """The concrete keys of one role's flows in one run (:func:`keys_of`): ``put``, ``sub``, ``query``, ``answer``,
+    ``token`` and ``watch`` each take a flow's name and the key builder's arguments that the flow leaves open
+    (``put("obs", group=3)``, ``put("stop", service="sim", instance=0)``), and return the key, or raise ValueError
+    where the role declares no such flow in that direction or the key is outside it. Code gets its keys here
+    alone, so that a key it uses is one the graph declares (and the access rules allow)."""
+
+    def __init__(self, run: str | None, role: str, instance: int | str, own: tuple[Flow, ...]):
+        self.run, self.role, self.instance, self.flows = run, role, instance, own
+        self._built: dict[tuple, str] = {}
+
+    def _key(self, direction: Direction, name: str, given: dict[str, object]) -> str:
+        memo = (direction, name, *sorted(given.items()))
+        if (found := self._built.get(memo)) is not None:
+            return found
+        candidates = [f for f in self.flows if f.name == name and f.direction == direction]
+        if not candidates:
+            declared = sorted({f.name for f in self.flows if f.direction == direction}) or ["none"]
+            raise ValueError(f"{self.role} declares no flow {name!r} it {VERBS[direction]} (ebrl/graph.py); its "
+                             f"flows in that direction: {', '.join(declared)}")
+        for flow in candidates:
+            if (key := flow.build(self.run, self.role, self.instance, given)) is not None:
+                self._built[memo] = key
+                return key
+        raise ValueError(f"{self.role}/{self.instance}: {given} is outside its flow {name!r} "
+                         f"({', '.join(f.pattern for f in candidates)})")
+
+    def put(self, name: str, **given: object) -> str:
+        return self._key("put", name, given)
+
+    def sub(self, name: str, **given: object) -> str:
+        return self._key("sub", name, given)
+
+    def query(self, name: str, **given: object) -> str:
+        return self._key("query", name, given)
+
+    def answer(self, name: str, **given: object) -> str:
+        return self._key("answer", name, given)
+
+    def token(self, **given: object) -> str:
+        return self._key("token", "live", given)
+
+    def watch(self, name: str = "live", **given: object) -> str:
+        return self._key("watch", name, given)
+
+
+@functools.lru_cache(maxsize=4096)
+def keys_of(run: str | None, role: str, instance: int | str = 0, service: bool = False) -> RoleKeys:
+    """The keys ``role`` (its instance ``instance``) uses in run ``run`` (None: an observer's of every run).
+    ``service``: a :class:`~ebrl.service.Service` whose role the graph may lack (a test's own), which then has the
+    flows every service has alone."""
+    if role not in FLOWS and not service:
+        raise ValueError(f"no role {role!r} in the service graph (ebrl/graph.py); roles are {', '.join(FLOWS)}")
+    return RoleKeys(run, role, instance, flows(role) if role in FLOWS else SERVICE_FLOWS)
+
+
+def every_token() -> str:
+    """What ``ebrl router`` watches to print the services that join and leave: the liveliness tokens of every
+    run. The router is no role of any run (it takes part in none and signs in as none), so it has no flows."""
+    return keys.live_all()
 
 
 def _chunks_match(pattern: list[str], key: list[str]) -> bool:

@@ -25,7 +25,7 @@ import time
 from dataclasses import dataclass
 
 from ebrl.algos.algorithm import uses_replay
-from ebrl import keys
+from ebrl import graph, keys
 from ebrl.config import ROLES, Config, ConfigError, processes, train_ranks, vectorized
 from ebrl.envs.records import backend_record
 
@@ -201,7 +201,7 @@ class Membership:
 
     def admit_only(self, instances: tuple[tuple[str, int], ...]) -> None:
         """Take in only the tokens of ``instances`` from now on (see :attr:`planned`)."""
-        self.planned = frozenset(keys.live(self.run, role, n) for role, n in instances)
+        self.planned = frozenset(graph.keys_of(self.run, role, n).token() for role, n in instances)
 
     def update(self, key: str, alive: bool) -> HostChange | None:
         """A token appeared or vanished; a change when it was another host's launcher."""
@@ -236,7 +236,7 @@ class Membership:
         return None
 
     def is_live(self, role: str, instance: int | str) -> bool:
-        return keys.live(self.run, role, instance) in self.live
+        return graph.keys_of(self.run, role, instance).token() in self.live
 
     async def number_taken(self, wait_s: float = 1.0) -> bool:
         """Whether another host's launcher already has this host's number; the other hosts' tokens arrive once
@@ -246,7 +246,8 @@ class Membership:
 
     def gone(self, role: str, instances: range) -> list[int]:
         """Those of ``instances`` of ``role`` that were live once and are not now."""
-        return [n for n in instances if keys.live(self.run, role, n) in self.ever and not self.is_live(role, n)]
+        return [n for n in instances
+                if graph.keys_of(self.run, role, n).token() in self.ever and not self.is_live(role, n)]
 
     def services_live(self) -> int:
         """Live service processes (launchers not counted)."""

@@ -134,9 +134,10 @@ def episodes(run: str, service: str = "*") -> str:
     return f"{ROOT}/stats/{run}/episodes/{service}"
 
 
-def stats_all(run: str) -> str:
-    """Everything under ``ebrl/stats/<run>/``: stats reports, spans, events and episode records of one run."""
-    return f"{ROOT}/stats/{run}/**"
+def stats_all(run: str | None) -> str:
+    """Everything under ``ebrl/stats/<run>/``: stats reports, spans, events and episode records of one run
+    (``run=None``: of every run, ``ebrl/stats/**``)."""
+    return f"{ROOT}/stats/{run}/**" if run is not None else f"{ROOT}/stats/**"
 
 
 def live(run: str, service: str = "*", instance: int | str = "*") -> str:

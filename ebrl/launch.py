@@ -33,7 +33,7 @@ from pathlib import Path
 from typing import Callable
 
 from ebrl import config as config_mod, durable, prepare, procenv, stall
-from ebrl import keys
+from ebrl import graph, keys
 from ebrl.bus import auth
 from ebrl.bus.session import Bus, BusOptions
 from ebrl.bus.endpoints import (address_in_use, config_file_connect, config_file_listen, free_port,
@@ -58,9 +58,10 @@ OPTIONAL_ROLES = ("log", "eval")  # services no other one needs: a death that re
 
 
 def service_argv(config_path: Path, endpoint: str) -> Argv:
-    """``python -m ebrl.services.<role> --config ... --instance N [--connect <the launcher's endpoint>]``."""
+    """``python -m <the role's module> --config ... --instance N [--connect <the launcher's endpoint>]``."""
     def argv(role: str, instance: int) -> list[str]:
-        cmd = [sys.executable, "-m", f"ebrl.services.{role}", "--config", str(config_path), "--instance", str(instance)]
+        module = graph.ROLES[role].module  # ebrl.services.<role>
+        cmd = [sys.executable, "-m", module, "--config", str(config_path), "--instance", str(instance)]
         return cmd + (["--connect", endpoint] if endpoint else [])
     return argv
 
@@ -143,6 +144,7 @@ class LauncherBus:
 
     def __init__(self, cfg: config_mod.Config, plan: HostPlan, endpoint: str, run_dir: Path):
         self.run, self.host = cfg.run.name, plan.instance  # its stats and events are launcher/<host>
+        self.keys = graph.keys_of(self.run, "launcher", self.host)
         listen = [endpoint, *cfg.bus.listen[1:]] if endpoint else []
         self.local = local_endpoint(endpoint)
         secret = auth.secret_path(cfg.bus, run_dir)
@@ -169,7 +171,7 @@ class LauncherBus:
         # the primary records the run; another host's launcher would draw every span across the link for a copy
         self.recorder = record.Recorder(run_dir / record.FILENAME) if cfg.viz.record and plan.primary else None
         if self.recorder is not None:
-            self.bus.subscribe_raw(keys.stats_all(self.run), self.recorder.write)
+            self.bus.subscribe_raw(self.keys.sub("stats"), self.recorder.write)
         self._seq = 0
         self.ctl_unknown = 0  # control messages for a service this run does not have
         # control messages refused (refuse): GPU shares in a run without the allocator, or numbered far ahead
@@ -184,7 +186,7 @@ class LauncherBus:
                     log.warning("control message for an unknown service ignored: %s (further ones only counted)",
                                 key)
                 self.ctl_unknown += 1
-        self.bus.subscribe_raw(keys.ctl(self.run, "*", "*", "*"), on_control)
+        self.bus.subscribe_raw(self.keys.sub("ctl"), on_control)
 
     def refuse(self, counter: str, line: str, say: Callable[[str], None]) -> None:
         """Count a control message refused in ``refused[counter]`` (reported under that name); say ``line`` once."""
@@ -201,18 +203,18 @@ class LauncherBus:
         return asyncio.create_task(consume(self.bus.subscribe(key, cls, policy="latest", capacity=capacity)))
 
     def event(self, kind: str, text: str) -> None:
-        self.bus.put_nowait(keys.events(self.run, "launcher"),
+        self.bus.put_nowait(self.keys.put("events"),
                             Event(time=time.time(), service="launcher", instance=self.host, kind=kind, text=text))
 
     def publish_stats(self, metrics: dict[str, float]) -> None:
         """``metrics`` with what the bus dropped (``bus/*``) and the control messages refused, as its report."""
         metrics = {**metrics, **bus_metrics(self.bus), **{name: float(n) for name, n in self.refused.items()}}
-        self.bus.put_nowait(keys.stats(self.run, "launcher", self.host), StatsReport(
+        self.bus.put_nowait(self.keys.put("stats"), StatsReport(
             run=self.run, service="launcher", instance=self.host, time=time.time(), seq=self._seq, metrics=metrics))
         self._seq += 1
 
     async def stop(self, role: str, instance: int | str, reason: str) -> None:
-        await self.bus.put(keys.ctl(self.run, role, instance, "stop"), Stop(reason=reason))
+        await self.bus.put(self.keys.put("stop", service=role, instance=instance), Stop(reason=reason))
 
     async def stop_all(self, services: tuple[tuple[str, int], ...], reason: str) -> None:
         """Ask each of ``services`` (a process's) to stop."""
@@ -319,9 +321,9 @@ def apply_gpu_share(share: GpuShare, gpu_env: dict[str, dict[str, str]], supervi
         link.refuse("ctl/version_refused", f"a GPU share for {share.stage} refused: {refused}", say)
         return
     for child in supervisor.new_gpu_share(share.stage, share.env, share.version):
-        for role, instance in child.services:  # a process of several stops with its stage
-            if role == share.stage:
-                link.bus.put_nowait(keys.ctl(link.run, role, instance, "stop"), Stop(reason=STOP_TO_RESTART))
+        for instance in (n for role, n in child.services if role == share.stage):  # a process of several stops
+            link.bus.put_nowait(link.keys.put("stop", service=share.stage, instance=instance),
+                                Stop(reason=STOP_TO_RESTART))
 
 
 class Launcher:
@@ -374,20 +376,20 @@ class Launcher:
             role_env=role_env(self.cfg, self.plan), instance_env=instance_env(self.cfg, self.run_dir),
             version_floor=self.view.version_floor, optional=OPTIONAL_ROLES, across_hosts=across_hosts(self.cfg, self.plan),
             process_argv=process_argv(self.run_dir / "config.toml", self.link.local))
-        self.link.bus.watch_liveliness(keys.live_all(self.run_name), functools.partial(follow_liveliness, self))
+        self.link.bus.watch_liveliness(self.link.keys.watch(), functools.partial(follow_liveliness, self))
         self.link.count_unknown_controls(self.roles)
         if self.plan.multi and await self.members.number_taken():
             self.console.say(f"ebrl: host {self.plan.instance} of run {self.run_name} is already up elsewhere on the "
                              "bus; give each host its own --instance (or --host)")
             await self.link.close()
             return 2
-        self.link.bus.declare_token(keys.live(self.run_name, "launcher", self.plan.instance))
-        stats_tasks = [self.link.consume(keys.stats(self.run_name, role, "*"), StatsReport, self.view.on_report, 64)
-                       for role in self.roles]
-        control_tasks = [self.link.consume(keys.gpu_share(self.run_name, self.plan.instance), GpuShare,
+        self.link.bus.declare_token(self.link.keys.token())
+        stats_tasks = [self.link.consume(graph.keys_of(self.run_name, role, "*").put("stats"), StatsReport,
+                                         self.view.on_report, 64) for role in self.roles]
+        control_tasks = [self.link.consume(self.link.keys.sub("gpu_share"), GpuShare,
                                            self.on_gpu_share, 16)]
         if self.plan.multi and not self.plan.primary:
-            control_tasks.append(self.link.consume(keys.ctl(self.run_name, "launcher", "*", "stop"), Stop,
+            control_tasks.append(self.link.consume(self.link.keys.sub("stop"), Stop,
                                                    self.on_primary_ended, 4))
         code = 1
         try:

@@ -27,7 +27,7 @@ import threading
 
 import zenoh
 
-from ebrl import config as config_mod, procenv, sizes
+from ebrl import config as config_mod, graph, procenv, sizes
 from ebrl.bus import auth
 from ebrl.bus.local import LocalBus, LocalHub
 from ebrl.bus.session import BusOptions, zenoh_config
@@ -37,8 +37,8 @@ log = logging.getLogger("ebrl.process")
 
 
 def service_class(role: str) -> type[Service]:
-    """The :class:`Service` of ``role`` (``ebrl.services.<role>``)."""
-    module = importlib.import_module(f"ebrl.services.{role}")
+    """The :class:`Service` of ``role`` (its module, ``ebrl.graph.Role.module``: ``ebrl.services.<role>``)."""
+    module = importlib.import_module(graph.ROLES[role].module)
     for value in vars(module).values():
         if isinstance(value, type) and issubclass(value, Service) and value is not Service and value.role == role:
             return value

@@ -25,7 +25,7 @@ from pathlib import Path
 from typing import Any, Callable, TextIO
 
 from ebrl import durable
-from ebrl import keys
+from ebrl import graph
 from ebrl.messages import RETURN_WINDOW, StatsReport
 from ebrl.weights import plausible
 
@@ -131,6 +131,15 @@ def target_met(run: Any, trained: dict[str, float]) -> str | None:
     return None
 
 
+def stats_key(run: str, service: str, instance: int | str) -> str | None:
+    """The key instance ``service/instance`` of run ``run`` reports on (its role's stats flow in the graph; a name
+    the graph lacks as any service's would); None for a role that reports no stats (an observer)."""
+    try:
+        return graph.keys_of(run, service, instance, service=True).put("stats")
+    except ValueError:
+        return None
+
+
 class RunView:
     """The latest stats report of every service instance, and what the launcher reads from them.
 
@@ -180,7 +189,7 @@ class RunView:
         self.note: str | None = None  # what the progress line says first (a stall being acted on: ebrl.stall)
 
     def on_report(self, key: str, report: StatsReport) -> None:
-        if key != keys.stats(self.run, report.service, report.instance) or (
+        if key != stats_key(self.run, report.service, report.instance) or (
                 self.instances is not None and not self.instances(report.service, report.instance)):
             self.refused += 1
             return
@@ -197,7 +206,7 @@ class RunView:
                 self.refused += 1
                 return
             self._train_version[key] = (version, now)
-        if key == keys.stats(self.run, "train", 0):
+        if key == stats_key(self.run, "train", 0):
             if TRAIN_RETURN in finite:
                 if self._moves_plausibly(finite):
                     self.trained = {n: finite[n] for n in ("train/episodes", TRAIN_RETURN, TRAIN_SUCCESS)
@@ -249,7 +258,7 @@ class RunView:
     def left(self, service: str, instance: int | str) -> None:
         """Instance ``service/instance`` left the bus (its token vanished: its process or its host is gone): its
         rates (``*_per_s``) count no more until it reports again; its counts stay (what it did, it did)."""
-        self.gone.add(keys.stats(self.run, service, instance))
+        self.gone.add(stats_key(self.run, service, instance))
 
     def metric(self, name: str, how: str = "sum") -> float | None:
         """``name`` over every instance that reports it (sum, max or mean; a rate only of those still on the bus:

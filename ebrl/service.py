@@ -32,7 +32,7 @@ from typing import Any, Iterator
 import psutil
 
 from ebrl import config as config_mod, devices, procenv, sizes, threads
-from ebrl import keys
+from ebrl import graph
 from ebrl.bus import auth
 from ebrl.bus.session import Bus, BusOptions
 from ebrl.messages import Affinity, Event, Quota, SpanBatch, StatsReport, Stop, encode_message
@@ -53,8 +53,7 @@ class Service:
                  run_dir: str | None = None):
         self.cfg = cfg
         self.run_dir = run_dir or "."  # the run directory (where the launcher put the resolved config)
-        self.run_name = cfg.run.name
-        self.instance = instance
+        self.run_name, self.instance = cfg.run.name, instance
         self.bus_options = bus_options or BusOptions(mode=cfg.bus.mode, connect=list(cfg.bus.connect),
                                                      config_file=cfg.bus.config_file,
                                                      max_message_bytes=cfg.bus.max_message_bytes,
@@ -71,6 +70,7 @@ class Service:
                                                          "from now on"),
             on_full=self.flush_spans)
         self.reports = StatsReporter(self.run_name, self.role, instance, self.meter.started_at)
+        self.keys = graph.keys_of(self.run_name, self.role, instance, service=True)  # every key it uses
         self.bounds: sizes.Bounds | None = None  # of the data keys it receives (message_bounds), before its bus opens
         self.device: Any = None  # the torch device of gen and train (``use_device``)
         self.memory_cap: float | None = None  # the fraction of the GPU's memory this process may allocate
@@ -147,13 +147,13 @@ class Service:
         for lane, rows in self.meter.take_spans().items():
             for at in range(0, len(rows), SPAN_BATCH_MAX):  # other threads may have added past the bound
                 starts, ends, labels = zip(*rows[at:at + SPAN_BATCH_MAX])
-                self.bus.put_nowait(keys.spans(self.run_name, lane), SpanBatch(
+                self.bus.put_nowait(self.keys.put("spans", lane=lane), SpanBatch(
                     lane=lane, service=self.role, instance=self.instance, start=list(starts), end=list(ends),
                     label=list(labels)))
 
     def event(self, kind: str, text: str) -> None:
         """Add a line to the run's event log (``ebrl/stats/<run>/events/<role>``), from any thread."""
-        self.bus.put_nowait(keys.events(self.run_name, self.role),
+        self.bus.put_nowait(self.keys.put("events"),
                             Event(time=time.time(), service=self.role, instance=self.instance, kind=kind, text=text))
 
     # --- lifecycle ------------------------------------------------------------------
@@ -174,7 +174,7 @@ class Service:
             await self.setup()
             self.ready.set()
             self.controls = ControlInbox(self)
-            self.bus.declare_token(keys.live(self.run_name, self.role, self.instance))
+            self.bus.declare_token(self.keys.token())
             self.log.info("%s/%d ready", self.role, self.instance)
             stats_task = asyncio.create_task(self._stats_loop())
             spans_task = asyncio.create_task(self._spans_loop())
@@ -225,7 +225,7 @@ class Service:
     async def publish_report(self, metrics: dict[str, float]) -> None:
         """Publish a stats report of just ``metrics`` now, on this service's stats key and numbered with the
         periodic ones: for a result that happens once (an evaluation), not every interval."""
-        await self.bus.put(keys.stats(self.run_name, self.role, self.instance), self.reports.next(dict(metrics)))
+        await self.bus.put(self.keys.put("stats"), self.reports.next(dict(metrics)))
 
     async def publish_stats(self) -> None:
         """The periodic report, published every interval; or now, for a result the run waits on (the update that
@@ -235,7 +235,7 @@ class Service:
         except Exception as exc:
             self.log.warning("stats not reported: %s", exc)
             return
-        await self.bus.put(keys.stats(self.run_name, self.role, self.instance), report)
+        await self.bus.put(self.keys.put("stats"), report)
 
     def _report(self) -> StatsReport:
         """The periodic report: the meter's counters and rates, what every process reports, the service's own."""
@@ -353,13 +353,10 @@ class ControlInbox:
         async def status(_: bytes) -> bytes:
             return encode_message(s._report())
 
-        s.bus.declare_queryable(self.key("status"), status)
-
-    def key(self, kind: str) -> str:
-        return keys.ctl(self.service.run_name, self.service.role, self.service.instance, kind)
+        s.bus.declare_queryable(s.keys.answer("status"), status)
 
     def _consume(self, kind: str, cls: type, apply: Any) -> None:
-        key = self.key(kind)
+        key = self.service.keys.sub("ctl", kind=kind)
         sub = self.service.bus.subscribe(key, cls, policy="latest", capacity=8)
 
         async def consume() -> None:

@@ -18,7 +18,7 @@ from typing import Callable, Iterator
 
 import zenoh
 
-from ebrl import codec, keys
+from ebrl import codec, graph
 from ebrl.bus import auth
 from ebrl.bus.session import BusOptions, zenoh_config
 from ebrl.messages import EpisodeBatch, Event, MessageError, SpanBatch, StatsReport, decode_stats_sample
@@ -68,7 +68,7 @@ def stream(run_dir: str | os.PathLike, *, connect: str | None = None, everything
                 pass
 
     with zenoh.open(observer_config(run_dir, connect)) as session:
-        session.declare_subscriber(keys.stats_all(run), on_sample)
+        session.declare_subscriber(graph.keys_of(run, "observer").sub("stats"), on_sample)
         when_launchers_leave(session, run, ended.set)
         last = time.monotonic()
         while True:
@@ -101,7 +101,7 @@ def command(connect: str | None, run: str | None, spans: bool = False, count: in
         where = Path(secret)
         with contextlib.suppress(FileNotFoundError):
             run = run_of(where if where.is_dir() else where.parent)
-    selector = keys.stats() if run is None else keys.stats_all(run)
+    selector = graph.keys_of(run, "observer").sub("stats")  # run None: of every run
     inbox: queue.Queue = queue.Queue(maxsize=10_000)
     signal.signal(signal.SIGINT, lambda *_: inbox.put(None))
     try:
@@ -162,7 +162,7 @@ def when_launchers_leave(session: zenoh.Session, run: str, ended: Callable[[], N
         if not launchers:
             ended()
 
-    session.liveliness().declare_subscriber(keys.live(run, "launcher", "*"), on_token, history=True)
+    session.liveliness().declare_subscriber(graph.keys_of(run, "observer").watch(), on_token, history=True)
 
 
 def _plain(value):

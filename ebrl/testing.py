@@ -28,7 +28,7 @@ from typing import Any, Callable, Sequence
 import zenoh
 
 from ebrl import config as config_mod
-from ebrl import keys
+from ebrl import graph
 from ebrl.bus import auth
 from ebrl.bus.session import BusOptions, zenoh_config
 from ebrl.bus.endpoints import free_port
@@ -333,23 +333,24 @@ def run_session_config(run: Run, endpoint: str | None = None, role: str = "obser
 
 class StatsWatcher:
     """Every StatsReport of one run, as its bus delivers them, for either kind of run: of a :class:`Run`, a Zenoh
-    subscriber of ``keys.stats_all(run.name)`` connected to the run's endpoint (``session`` is that Zenoh
+    subscriber of ``ebrl/stats/<run>/**`` (``role``'s stats flow) connected to the run's endpoint (``session`` is that Zenoh
     session, for a test that also publishes on the run's bus); of an :class:`InProcessRun`, a subscriber on its
     in-memory network. Thread-safe: filled by the transport's callback."""
 
     def __init__(self, run: Run | InProcessRun, endpoint: str | None = None,
                  role: str = "observer"):
         self.run = run
+        stats = graph.keys_of(run.name, role).sub("stats")
         self._lock = threading.Lock()
         self._reports: list[StatsReport] = []
         self.malformed = 0
         self.session: zenoh.Session | None = None
         if isinstance(run, InProcessRun):
-            self._subscriber = run.watch.subscribe_raw(keys.stats_all(run.name), self._on_payload)
+            self._subscriber = run.watch.subscribe_raw(stats, self._on_payload)
         else:
             self.session = zenoh.open(run_session_config(run, endpoint, role))
             self._subscriber = self.session.declare_subscriber(
-                keys.stats_all(run.name), lambda sample: self._on_payload(str(sample.key_expr),
+                stats, lambda sample: self._on_payload(str(sample.key_expr),
                                                                           sample.payload.to_bytes()))
 
     def __enter__(self) -> "StatsWatcher":

@@ -40,7 +40,7 @@ from typing import Callable, Literal
 
 import numpy as np
 
-from ebrl import keys
+from ebrl import graph
 from ebrl.bus.session import BusBase, Query
 from ebrl.messages import MessageError, StatsReport, Weights, WeightsPart, decode_message, encode_message
 
@@ -96,6 +96,7 @@ class WeightsPublisher:
     def __init__(self, bus: BusBase, run: str, *, part_bytes: int = PART_BYTES,
                  single_max_bytes: int = SINGLE_MAX_BYTES):
         self.bus, self.run = bus, run
+        self.keys = graph.keys_of(run, "train")
         self.part_bytes, self.single_max_bytes = part_bytes, single_max_bytes
         self.published = 0
         self.superseded = 0
@@ -104,7 +105,7 @@ class WeightsPublisher:
         self._latest: _Latest | None = None  # worker thread only
         self._buffer = np.zeros(0, np.uint8)  # worker thread only; reused while the size stays the same
         self._jobs: queue.SimpleQueue[Callable[[], None] | None] = queue.SimpleQueue()
-        self._queryable = bus.declare_queryable_raw(keys.weights_all(run), self._on_query)
+        self._queryable = bus.declare_queryable_raw(self.keys.answer("weights"), self._on_query)
         self._thread = threading.Thread(target=self._work, name="ebrl-weights", daemon=True)
         self._thread.start()
 
@@ -163,7 +164,7 @@ class WeightsPublisher:
             payload = encode_message(Weights(version=job.version, params=dict(zip(names, arrays)),
                                              created_at=job.created_at))
             packed = time.perf_counter()
-            self.bus.put_bytes_blocking(keys.weights(self.run), payload)
+            self.bus.put_bytes_blocking(self.keys.put("weights"), payload)
             self._latest = _Latest(job.version, job.created_at, whole=payload)
             return PublishStats(job.version, True, "whole", len(payload), 1, packed - start,
                                 time.perf_counter() - packed)
@@ -177,7 +178,7 @@ class WeightsPublisher:
                          count=-(-total // self.part_bytes))
         self._latest = latest
         packed = time.perf_counter()
-        parts_key = keys.weights_parts(self.run)
+        parts_key = self.keys.put("parts")
         for index in range(latest.count):
             self.bus.put_bytes_blocking(parts_key, self._part(latest, index))
         return PublishStats(job.version, True, "parts", total, latest.count, packed - start,
@@ -202,7 +203,7 @@ class WeightsPublisher:
             latest = self._latest
             if latest is None:
                 return
-            whole_key, parts_key = keys.weights(self.run), keys.weights_parts(self.run)
+            whole_key, parts_key = self.keys.put("weights"), self.keys.put("parts")
             if latest.whole is not None:
                 if query.matches(whole_key):
                     query.reply(whole_key, latest.whole)
@@ -303,12 +304,14 @@ class WeightsReceiver:
     ``layout`` (the receiver's policy) makes it take only versions of exactly those tensors, finite;
     ``floor`` is the newest version known to exist when it starts (a resumed run's checkpoint, the newest
     seen before a restart), from which the first version must be :func:`plausible`. ``follow``: read the
-    trainer's reports all along (:meth:`follow_trainer`), so a receiver put ahead of it goes back."""
+    trainer's reports all along (:meth:`follow_trainer`), so a receiver put ahead of it goes back. ``role``: the
+    reader's role in the service graph (``gen`` or ``eval``), whose declared keys it uses."""
 
     def __init__(self, bus: BusBase, run: str, *, notify: asyncio.Event | None = None,
                  layout: WeightsLayout | None = None, floor: int = -1, follow: bool = False,
-                 max_bytes: int | None = None):
+                 max_bytes: int | None = None, role: str = "gen"):
         self.bus, self.run, self._notify, self.layout = bus, run, notify, layout
+        self.keys = graph.keys_of(run, role)  # gen's or eval's: the graph's weights readers
         self.max_bytes = max_bytes  # a weights message's bound in this run (ebrl.sizes); None: the bus's alone
         self.version = -1  # newest complete version so far
         self.completed = 0  # versions assembled or received whole
@@ -319,13 +322,13 @@ class WeightsReceiver:
         self._ahead = (0.0, 0)  # since when, and in how many reports in a row, the trainer is behind the receiver
         self._reset = False  # take_newer hands out the next version even though it is older than the taker's
         self._anchor = (floor, time.monotonic())  # (newest version taken or the floor, when): plausible() from it
-        self._parts_key = keys.weights_parts(run)
+        self._parts_key = graph.keys_of(run, "train").put("parts")  # what training sends parts on
         self._lock = threading.Lock()  # assembly state; held while a part is copied in
         self._handoff = threading.Lock()  # only _latest, so taking it never waits for a copy
         self._assembly: _Assembly | None = None
         self._latest: Weights | None = None
         self._spare: np.ndarray | None = None  # the previous version's buffer, reused once it is free
-        bus.subscribe_raw(keys.weights_all(run), self._on_payload, max_bytes)
+        bus.subscribe_raw(self.keys.sub("weights"), self._on_payload, max_bytes)
         # made in a running event loop (gen's and eval's setup); the loop holds tasks weakly, so keep a reference
         self.follower = asyncio.get_running_loop().create_task(self.follow_trainer()) if follow else None
 
@@ -356,7 +359,7 @@ class WeightsReceiver:
         """Ask the publisher for its newest version (how a late joiner gets its first weights without waiting
         for the next update); True if a version newer than any taken is complete now."""
         # Every reply (parts share one key, so none may be merged), each assembled as it arrives.
-        await self.bus.get_raw(keys.weights_all(self.run), self._on_payload, timeout=timeout)
+        await self.bus.get_raw(self.keys.query("weights"), self._on_payload, timeout=timeout)
         return self._latest is not None
 
     def _on_payload(self, key: str, payload: bytes) -> None:  # a bus thread, or the query's
@@ -403,7 +406,7 @@ class WeightsReceiver:
     async def follow_trainer(self) -> None:
         """Read the trainer's reports (train/0's ``train/policy_version``) for as long as it runs; whenever the
         receiver is found ahead (:meth:`trainer_at`), ask for the trainer's newest weights."""
-        reports = self.bus.subscribe(keys.stats(self.run, "train", 0), StatsReport, policy="latest", capacity=1)
+        reports = self.bus.subscribe(self.keys.sub("stats"), StatsReport, policy="latest", capacity=1)
         async for _, report in reports:
             version = report.metrics.get("train/policy_version")
             if version is not None and math.isfinite(version) and self.trainer_at(int(version)):

@@ -492,3 +492,87 @@ def test_no_backend_name_is_tested_outside_the_backend_records():
     found = backend_name_offenders(ROOT, PACKAGE, tuple(BACKENDS))
     assert not found, ("backend names tested outside the backend records (ask the record instead: "
                        "ebrl.envs.records.backend_record(name)):\n" + "\n".join(found))
+
+
+# --- keys from the service graph's builders (issue 55) ------------------------------------------------------------
+
+KEY_PARSERS = ("parse", "role_of", "check_chunk")  # read a key or check a chunk: they build none
+
+
+def key_builders(root: Path = ROOT) -> set[str]:
+    """The key builders of ``ebrl/keys.py``: its module-level functions, less the parsers."""
+    tree = ast.parse((root / "ebrl" / "keys.py").read_text())
+    return {node.name for node in tree.body if isinstance(node, ast.FunctionDef)
+            and not node.name.startswith("_") and node.name not in KEY_PARSERS}
+
+
+def key_builder_calls(source: str, builders: set[str]) -> list[int]:
+    """The lines of ``source`` that call a builder of ``ebrl.keys``: ``keys.obs(...)`` (``keys`` however imported
+    or renamed), ``ebrl.keys.obs(...)``, or a builder imported by name (``from ebrl.keys import obs``)."""
+    tree = ast.parse(source)
+    modules, direct = set(), set()
+    for node in ast.walk(tree):
+        if isinstance(node, ast.ImportFrom) and node.module == "ebrl":
+            modules |= {a.asname or a.name for a in node.names if a.name == "keys"}
+        elif isinstance(node, ast.ImportFrom) and node.module == "ebrl.keys":
+            direct |= {a.asname or a.name for a in node.names if a.name in builders}
+        elif isinstance(node, ast.Import):
+            modules |= {a.asname for a in node.names if a.name == "ebrl.keys" and a.asname}
+    found = []
+    for node in ast.walk(tree):
+        if not isinstance(node, ast.Call):
+            continue
+        func = node.func
+        if isinstance(func, ast.Name) and func.id in direct:
+            found.append(node.lineno)
+        elif isinstance(func, ast.Attribute) and func.attr in builders and (
+                isinstance(func.value, ast.Name) and func.value.id in modules
+                or isinstance(func.value, ast.Attribute) and func.value.attr == "keys"
+                and isinstance(func.value.value, ast.Name) and func.value.value.id == "ebrl"):
+            found.append(node.lineno)
+    return sorted(found)
+
+
+def key_builder_offenders(root: Path, package: str, builders: set[str],
+                          exempt: tuple[str, ...] = ("ebrl/keys.py", "ebrl/graph.py")) -> list[str]:
+    """``path:line`` of every call of a key builder in ``package`` outside the ``exempt`` files."""
+    return [f"{path.relative_to(root)}:{line}" for path in sorted((root / package).rglob("*.py"))
+            if str(path.relative_to(root)) not in exempt
+            for line in key_builder_calls(path.read_text(), builders)]
+
+
+TOY_KEY_CALLS = '''\
+from ebrl import keys
+from ebrl import keys as k
+from ebrl.keys import act
+import ebrl.keys
+keys.obs("r", 3)
+k.stats("r", "sim", 0)
+act("r")
+ebrl.keys.live_all("r")
+'''
+TOY_KEY_CLEAN = '''\
+from ebrl import graph, keys
+keys.parse("ebrl/live/r/sim/0").service, keys.role_of("ebrl/live/r/sim/0"), keys.check_chunk("r", "run.name")
+self.keys.put("obs", group=3), graph.keys_of("r", "sim").token()
+keys = [1]; keys.append(2)
+'''
+
+
+def test_the_key_builder_check_finds_each_way_of_calling_one(tmp_path):
+    builders = {"obs", "stats", "act", "live_all"}
+    assert key_builder_calls(TOY_KEY_CALLS, builders) == [5, 6, 7, 8]
+    assert key_builder_calls(TOY_KEY_CLEAN, builders) == []
+    root = toy(tmp_path / "keyed", **{"toy/a/sim.py": TOY_KEY_CALLS, "toy/b/clean.py": TOY_KEY_CLEAN,
+                                      "toy/graph.py": TOY_KEY_CALLS})
+    found = key_builder_offenders(root, "toy", builders, exempt=("toy/graph.py",))
+    assert found == ["toy/a/sim.py:5", "toy/a/sim.py:6", "toy/a/sim.py:7", "toy/a/sim.py:8"]
+    assert {"obs", "stats", "live", "ctl", "weights_all"} <= key_builders() and not set(KEY_PARSERS) & key_builders()
+
+
+def test_no_key_is_built_outside_the_graphs_builders():
+    """Code gets its keys from ``ebrl.graph.keys_of(run, role, instance)`` (the keys of its role's declared flows);
+    only ebrl/keys.py (the formats) and ebrl/graph.py (the graph's patterns) call the builders of ebrl.keys."""
+    found = key_builder_offenders(ROOT, PACKAGE, key_builders())
+    assert not found, ("keys built outside the service graph's builders (use ebrl.graph.keys_of(run, role, "
+                       "instance).put/sub/...(flow)):\n" + "\n".join(found))

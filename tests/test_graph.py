@@ -8,7 +8,7 @@ from pathlib import Path
 
 import pytest
 
-from ebrl import graph
+from ebrl import graph, keys
 from ebrl.bus.memory import MemoryBus, MemoryNetwork
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -134,3 +134,57 @@ def test_the_generated_access_rules_let_each_role_send_only_what_it_declares(tmp
         for session in sessions:
             session.close()
     assert {payload for _, payload in got} == {b"sim obs", b"train weights"}, got
+
+
+def test_a_roles_builders_make_the_keys_of_its_declared_flows_and_refuse_any_other():
+    """Code gets its keys from ``graph.keys_of`` (tests/test_architecture.py checks no module builds one itself):
+    the same keys ebrl.keys builds, for the flows the role declares in that direction alone."""
+    sim, gen, alloc = graph.keys_of("pipe", "sim", 1), graph.keys_of("pipe", "gen"), graph.keys_of("pipe", "alloc")
+    assert sim.put("obs", group=3) == keys.obs("pipe", 3) and sim.sub("act", group=3) == keys.act("pipe", 3)
+    assert sim.put("stats") == keys.stats("pipe", "sim", 1) and sim.token() == keys.live("pipe", "sim", 1)
+    assert sim.sub("ctl", kind="quota") == keys.ctl("pipe", "sim", 1, "quota") and sim.watch() == keys.live_all("pipe")
+    assert gen.sub("obs") == keys.obs("pipe") and gen.query("weights") == keys.weights_all("pipe")
+    assert alloc.put("quota", service="gen", instance=0) == keys.ctl("pipe", "gen", 0, "quota")
+    assert graph.keys_of("pipe", "launcher", 2).put("stop", service="sim", instance=0) == \
+        keys.ctl("pipe", "sim", 0, "stop")
+    with pytest.raises(ValueError, match="sim declares no flow 'weights' it publishes"):
+        sim.put("weights")  # only train publishes weights
+    with pytest.raises(ValueError, match="gen declares no flow 'obs' it publishes"):
+        gen.put("obs", group=0)  # gen subscribes to observations
+    with pytest.raises(ValueError, match="outside its flow 'stats'"):
+        sim.put("stats", instance=2)  # a service reports as itself only
+    with pytest.raises(ValueError, match="outside its flow 'quota'"):
+        alloc.put("quota", service="log", instance=0)  # the allocator plans sim, gen and train alone
+    with pytest.raises(ValueError, match="declares no flow 'stop'"):
+        alloc.put("stop", service="gen", instance=0)  # stopping a run is the launcher's
+    with pytest.raises(ValueError, match="no role 'nobody'"):
+        graph.keys_of("pipe", "nobody")
+    # an observer reads one run, or every run (None)
+    assert graph.keys_of("pipe", "observer").sub("stats") == keys.stats_all("pipe")
+    assert graph.keys_of(None, "observer").sub("stats") == "ebrl/stats/**" == keys.stats()
+    assert graph.keys_of(None, "observer").watch() == keys.live("*", "launcher", "*")
+    with pytest.raises(ValueError, match="needs the run's name"):
+        graph.keys_of(None, "sim").put("obs", group=0)
+
+
+def test_every_flow_builds_its_own_pattern():
+    for role in graph.FLOWS:
+        run = None if role == "observer" else "pipe"
+        for flow in graph.flows(role):
+            pattern = flow.pattern.replace(graph.R, "pipe").replace(graph.ROLE, role).replace(graph.I, "0")
+            assert flow.build(run, role, 0, {}) == pattern, (role, flow.name)
+
+
+def test_a_role_is_one_record_the_config_the_launcher_and_the_metrics_read():
+    """Start order (ebrl.config.ROLES), module (what the launcher runs), service or not, metrics namespace:
+    each service's are on its record in ebrl/graph.py."""
+    from ebrl import config
+    from ebrl.metrics import CATALOG
+    from ebrl.metrics.record import NAMESPACES
+
+    assert config.ROLES == ("viz", "log", "replay", "train", "gen", "sim", "eval", "alloc")
+    assert set(graph.SERVICES) == set(config.ROLES) and "launcher" not in graph.SERVICES
+    for name, role in graph.ROLES.items():
+        assert not role.service or (ROOT / (role.module.replace(".", "/") + ".py")).is_file(), name
+        assert not role.stats or any(m.name.startswith(role.stats + "/") for m in CATALOG), name
+    assert set(NAMESPACES) == {r.stats for r in graph.ROLES.values() if r.stats}

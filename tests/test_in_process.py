@@ -1,6 +1,7 @@
-"""Every kind of service in one process on the in-memory bus (``ebrl.testing.InProcessRun``): eval and log
+"""Every kind of service in one process on the in-memory bus (``ebrl.testing.InProcessRun``): eval, log and viz
 beside sim, gen and train, the allocator re-planning a run, an off-policy run's replay; each uses only the keys
-its role declares in ebrl/graph.py (the recording bus of tests/test_graph.py)."""
+its role declares in ebrl/graph.py (the recording bus of tests/test_graph.py), every service of the graph among
+them."""
 
 from __future__ import annotations
 
@@ -16,16 +17,18 @@ from test_metrics import assert_catalogued
 from test_pipeline import ROOT, small_config
 
 
-def test_eval_and_log_evaluate_versions_and_write_every_metric_in_process(tmp_path):
+def test_eval_log_and_viz_evaluate_versions_and_write_every_metric_in_process(tmp_path):
     cfg = small_config(tmp_path, eval={"every": 1, "episodes": 2, "video_episodes": 0},
-                       log={"tensorboard": True, "csv": True, "flush_s": 0.2})
+                       log={"tensorboard": True, "csv": True, "flush_s": 0.2}, viz={"rerun": "save"})
     used: dict[str, set[tuple[str, str]]] = {}
 
     async def main():
-        async with InProcessRun(cfg, ("train", "gen", "sim", "eval", "log"), tmp_path, recording(used)) as run:
+        async with InProcessRun(cfg, ("train", "gen", "sim", "eval", "log", "viz"), tmp_path,
+                                recording(used)) as run:
             stats = run.stats
             await stats.until(lambda: stats.latest("eval/0", "eval/version", 0) >= 1, 180, "an evaluation of v1")
             await stats.until(lambda: stats.latest("log/0", "log/points", 0) > 0, 60, "log writing points")
+            await stats.until(lambda: stats.latest("viz/0", "viz/reports", 0) > 0, 60, "viz logging reports")
         return run
 
     run = asyncio.run(main())
@@ -41,6 +44,8 @@ def test_eval_and_log_evaluate_versions_and_write_every_metric_in_process(tmp_pa
     # and the run did use the data flows the graph draws
     assert ("put", keys.obs("pipe", 0)) in used["sim"] and ("put", keys.weights("pipe")) in used["train"]
     assert ("sub", keys.obs("pipe")) in used["gen"] and ("answer", keys.weights_all("pipe")) in used["train"]
+    assert ("sub", keys.stats_all("pipe")) in used["viz"] and ("token", keys.live("pipe", "viz", 0)) in used["viz"]
+    assert (tmp_path / "timeline.rrd").is_file()  # what viz logged to rerun
 
 
 def test_the_allocator_observes_the_stages_re_plans_and_the_services_apply_it_in_process(tmp_path):
@@ -93,3 +98,21 @@ def test_an_off_policy_run_asks_its_replay_service_for_minibatches_in_process(tm
     assert ("put", keys.replay("pipe", "request")) in used["train"] and ("sub", keys.replay("pipe", "sample")) in \
         used["train"]
     assert ("put", keys.replay("pipe", "sample")) in used["replay"]
+
+
+def test_the_tests_above_record_every_service_of_the_graph():
+    """Each service of ebrl/graph.py runs on the recording bus in one of the tests above (a service added to the
+    graph is added to one of them)."""
+    import ast
+    from pathlib import Path
+
+    from ebrl import graph
+
+    tree = ast.parse(Path(__file__).read_text())
+    started = {c.value for call in ast.walk(tree) if isinstance(call, ast.Call)  # InProcessRun(cfg, ROLES, ...)
+               and getattr(call.func, "id", "") == "InProcessRun" and len(call.args) > 1
+               for c in ast.walk(call.args[1]) if isinstance(c, ast.Constant)}
+    named = {c.value for assign in ast.walk(tree) if isinstance(assign, ast.Assign)  # roles = (...) passed so
+             and any(getattr(t, "id", "") == "roles" for t in assign.targets)
+             for c in ast.walk(assign.value) if isinstance(c, ast.Constant)}
+    assert set(graph.SERVICES) <= started | named, f"never recorded: {set(graph.SERVICES) - started - named}"

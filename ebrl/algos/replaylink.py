@@ -26,7 +26,7 @@ from typing import Any, Callable
 import numpy as np
 
 from ebrl.algos.replay import FIELDS, ReplayBatch
-from ebrl import keys
+from ebrl import graph
 from ebrl.messages import ReplayRequest, ReplaySample
 
 log = logging.getLogger(__name__)
@@ -65,7 +65,8 @@ class ReplayLink:
                  max_bytes: int | None = None):
         self.bus, self.count = bus, count
         self.obs_size, self.action_size = obs_size, action_size
-        self.request_key, self.sample_key = keys.replay(run, "request"), keys.replay(run, "sample")
+        train = graph.keys_of(run, "train")  # training asks the replay service
+        self.request_key, self.sample_key = train.put("request"), train.sub("sample")
         self.samples = bus.subscribe(self.sample_key, ReplaySample, capacity=8, max_bytes=max_bytes)
         self.session = secrets.randbits(62)  # this process's: the replay tells a request sent again by it
         self.seq = 0

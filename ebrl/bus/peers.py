@@ -11,7 +11,7 @@ from __future__ import annotations
 import logging
 from typing import Any, Callable
 
-from ebrl import keys
+from ebrl import graph, keys
 
 log = logging.getLogger(__name__)
 
@@ -40,7 +40,9 @@ class LivePeers:
         self.unknown_seen = 0  # tokens of such instances that appeared, each time
         self._joined: dict[str, list[Callable[[], None]]] = {}
         self._warn, self._admits = warn, admits
-        bus.watch_liveliness(keys.live(run, role) if role else keys.live_all(run), self._on_change)
+        # the tokens of role's instances, or every token of the run (what a simulator watches)
+        bus.watch_liveliness(graph.keys_of(run, role, "*").token() if role else graph.keys_of(run, "sim").watch(),
+                             self._on_change)
 
     def on_join(self, role: str, callback: Callable[[], None]) -> None:
         self._joined.setdefault(role, []).append(callback)

@@ -17,7 +17,7 @@ import time
 
 import zenoh
 
-from ebrl import keys
+from ebrl import graph, keys
 from ebrl.bus import auth
 from ebrl.bus.session import BusOptions
 from ebrl.bus.endpoints import config_file_acl, config_file_endpoints, config_file_listen
@@ -72,7 +72,7 @@ def serve(listen: list[str], connect: list[str], config_file: str = "", quiet: b
         print(f"{time.strftime('%H:%M:%S')} run {run}: {service}/{instance} {verb}", file=out, flush=True)
 
     watcher = None if quiet else session.liveliness().declare_subscriber(
-        keys.live_all(), on_token, history=True)
+        graph.every_token(), on_token, history=True)
     print(f"ebrl router {session.info.zid()} listening on {', '.join(listen)}"
           + (f", connected to {', '.join(connect)}" if connect else ""), file=out, flush=True)
     done.wait()

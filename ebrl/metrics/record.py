@@ -5,13 +5,15 @@ from __future__ import annotations
 import re
 from dataclasses import dataclass, field
 
+from ebrl import graph
+
 # a placeholder of a family's name: ``<lane>`` in ``busy/<lane>``; it stands for a word without ``/`` or ``_``
 # (a lane ``sim.g0``, a core ``3``, a stage ``train``), so that ``alloc/cores_<stage>`` is not also
 # ``alloc/cores_per_env``
 PLACEHOLDER = re.compile(r"<[a-z]+>")
 PLACEHOLDER_VALUE = r"[A-Za-z0-9.]+"
 RATE = "_per_s"  # a counter's rate over the last interval (ebrl.meter.Meter.metrics)
-NAMESPACES = ("sim", "gen", "train", "replay", "eval", "alloc", "launcher", "log", "viz")  # one service's own
+NAMESPACES = tuple(role.stats for role in graph.ROLES.values() if role.stats)  # one role's own (ebrl.graph.Role)
 
 
 @dataclass(frozen=True)

@@ -23,7 +23,7 @@ from typing import Any, Callable
 import numpy as np
 
 from ebrl import obswire
-from ebrl import keys
+from ebrl import graph
 from ebrl.envs.obs import ObsLayout
 from ebrl.envs.worker import VectorChunk, WorkerFailed
 from ebrl.messages import ActionChunk, Observation, SegmentBatch, TrajectorySegment
@@ -47,10 +47,11 @@ class ActionExchange:
                  timeout_s: float = ACTION_TIMEOUT_S, action_shape: tuple[int, int] | None = None,
                  layout: ObsLayout | None = None, max_bytes: int | None = None):
         self.bus, self.run, self.telemetry, self.timeout_s = bus, run, telemetry, timeout_s
+        self.keys = graph.keys_of(run, "sim")
         self.action_shape = action_shape  # (chunk, action dim): a chunk of another shape is dropped, counted
         self.layout = layout  # images of its uint8 fields travel as bytes (ebrl.obswire)
         # max_bytes: an action chunk's bound in this run (ebrl.sizes)
-        self.actions = {g: bus.subscribe(keys.act(run, g), ActionChunk, capacity=4, max_bytes=max_bytes)
+        self.actions = {g: bus.subscribe(self.keys.sub("act", group=g), ActionChunk, capacity=4, max_bytes=max_bytes)
                         for g in groups}
         self.gen_epoch = 0
 
@@ -62,7 +63,7 @@ class ActionExchange:
         message = obswire.observation(self.layout, g, seq, env_ids, obs, time.time()) if self.layout is not None \
             else Observation(group=g, seq=seq, env_ids=env_ids, obs=obs, sent_at=time.time())
         while True:
-            await self.bus.put(keys.obs(self.run, g), message, express=True)
+            await self.bus.put(self.keys.put("obs", group=g), message, express=True)
             start, epoch = time.time(), self.gen_epoch
             deadline = time.monotonic() + self.timeout_s
             while time.monotonic() < deadline and epoch == self.gen_epoch:
@@ -71,7 +72,7 @@ class ActionExchange:
                 except asyncio.TimeoutError:
                     continue
                 if self.action_shape is not None and chunk.actions.shape[1:] != self.action_shape:
-                    self.bus.count_malformed(keys.act(self.run, g), ValueError(
+                    self.bus.count_malformed(self.keys.sub("act", group=g), ValueError(
                         f"action chunk of shape {chunk.actions.shape[1:]}, expected {self.action_shape}"))
                     continue
                 if chunk.seq == seq and chunk.actions.shape[0] == len(env_ids) == chunk.latents.shape[0]:
@@ -127,6 +128,7 @@ class GroupLoop:
                  sim_hosts: Callable[[], int]):
         self.g, self.fleet, self.exchange, self.outbox, self.stats = g, fleet, exchange, outbox, stats
         self.telemetry, self.run, self.schedule, self.sim_hosts = telemetry, run, schedule, sim_hosts
+        self.keys = graph.keys_of(run, "sim")
         self.segment_length = segment_length
         self.env_ids = fleet.env_ids(g)
         self.builders = [SegmentBuilder(g, int(e), segment_length) for e in self.env_ids]
@@ -198,7 +200,7 @@ class GroupLoop:
         segment = self.builders[i].add(obs, chunk.actions[i], chunk.latents[i], float(chunk.logprobs[i]),
                                        float(chunk.values[i]), chunk.policy_version, res, boundary)
         if segment is not None:
-            await self.outbox.send(keys.traj(self.run, self.g), segment)
+            await self.outbox.send(self.keys.put("traj", group=self.g), segment)
             count("sim/segments")
         return res.next_obs
 
@@ -231,7 +233,7 @@ class VectorGroupLoop(GroupLoop):
             return await self.recover(obs, result)
         self.account(result, latency, chunk.policy_version)
         for segments in self.buffers.add(obs, chunk, result, boundary):
-            await self.outbox.send(keys.traj_packed(self.run, g), segments)
+            await self.outbox.send(self.keys.put("packed", group=g), segments)
             self.telemetry.count("sim/segments", len(segments.env_ids))
         return result.next_obs  # type: ignore[return-value]  (VectorWorker.chunk filled it in)
 

@@ -35,9 +35,9 @@ class AllocService(Service):
                       "" if self.local_sim else " (no simulator on this host)")
         self.seen = Observations(self.instance, self.local_sim, self.cfg.run.stats_interval)
         self.rates = None
-        self.stats = {role: self.bus.subscribe(keys.stats(self.run_name, role, 0), StatsReport, policy="latest",
-                                               capacity=4) for role in ("gen", "train")}
-        self.sim_stats = self.bus.subscribe(keys.stats(self.run_name, "sim", "*"), StatsReport, policy="latest",
+        self.stats = {role: self.bus.subscribe(self.keys.sub("stats", service=role, instance=0), StatsReport,
+                                               policy="latest", capacity=4) for role in ("gen", "train")}
+        self.sim_stats = self.bus.subscribe(self.keys.sub("stats", service="sim"), StatsReport, policy="latest",
                                             capacity=64)
 
     async def run(self) -> None:
@@ -65,9 +65,9 @@ class AllocService(Service):
         plan = self.placement.applied
         for stage, instance, message in plan_messages(self.placement, self.instance, self.local_sim):
             kind = "affinity" if isinstance(message, Affinity) else "quota"
-            await self.bus.put(keys.ctl(self.run_name, stage, instance, kind), message)
+            await self.bus.put(self.keys.put(kind, service=stage, instance=instance), message)
         for share in gpu_shares(self.placement):  # the launcher restarts a stage whose share changed
-            await self.bus.put(keys.gpu_share(self.run_name, self.instance), share)
+            await self.bus.put(self.keys.put("gpu_share", host=self.instance), share)
         reverted = plan.reason.startswith("reverted")
         self.count("alloc/reverts" if reverted else "alloc/reallocations")
         self.publish_span("alloc", "realloc", start, time.time())

@@ -45,7 +45,7 @@ class EvalService(Service):
         self.video_dir: str | None = None  # of the evaluation in progress
         self.busy = False
         self.wake, self.due = asyncio.Event(), asyncio.Event()
-        self.weights = WeightsReceiver(self.bus, self.run_name, notify=self.wake,
+        self.weights = WeightsReceiver(self.bus, self.run_name, notify=self.wake, role=self.role,
                                        layout=WeightsLayout.of_model(self.model), floor=known_version(self.run_dir),
                                        follow=True,  # back to train's weights if a forged version put eval ahead
                                        max_bytes=bounds.weights)

@@ -13,7 +13,7 @@ import numpy as np
 import torch
 
 from ebrl import devices, meta, obswire, procenv, sizes, threads
-from ebrl import keys
+from ebrl import graph
 from ebrl.bus.peers import LivePeers, plan_admits
 from ebrl.messages import Observation, Quota
 from ebrl.policies import load_arrays, make_policy
@@ -52,7 +52,7 @@ class GenService(Service):
         self.wake = asyncio.Event()
         # A group has at most one observation in flight; room for the groups of many sim hosts.
         decode = obswire.decoder(Observation, info.layout, info.obs_shape)  # camera images arrive as bytes
-        self.obs = self.bus.subscribe(keys.obs(self.run_name), decode, capacity=4 * self.schedule.groups * 16,
+        self.obs = self.bus.subscribe(self.keys.sub("obs"), decode, capacity=4 * self.schedule.groups * 16,
                                       notify=self.wake, max_bytes=bounds.obs)
         # assembles off the event loop; takes only versions of this policy's tensors, finite, plausibly numbered
         self.weights = WeightsReceiver(self.bus, self.run_name, notify=self.wake,
@@ -88,7 +88,7 @@ class GenService(Service):
         outputs, start, end = await self.forward.timed(np.concatenate([m.obs for m in batch]))
         self.publish_span("gen", "forward", start, end)
         for chunk in answers(batch, self.version, outputs):
-            await self.bus.put(keys.act(self.run_name, chunk.group), chunk, express=True)
+            await self.bus.put(self.keys.put("act", group=chunk.group), chunk, express=True)
         envs = sum(len(m.env_ids) for m in batch)
         for name, n in (("gen/batches", 1), ("gen/groups_served", len(batch)), ("gen/envs_served", envs)):
             self.count(name, n)
@@ -110,7 +110,7 @@ class GenService(Service):
         try:
             await asyncio.get_running_loop().run_in_executor(self.pool, load_arrays, self.policy, weights.params)
         except ValueError as exc:  # weights of another policy
-            self.bus.count_malformed(keys.weights(self.run_name), exc)
+            self.bus.count_malformed(graph.keys_of(self.run_name, "train").put("weights"), exc)
             self.weights.reject(weights, self.version)
             return
         if weights.version < self.version:  # back to train's from a version no trainer made (ebrl.weights)

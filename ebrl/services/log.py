@@ -13,7 +13,6 @@ import concurrent.futures
 import time
 
 from ebrl import tracking
-from ebrl import keys
 from ebrl.messages import decode_stats_sample
 from ebrl.service import Service, service_main
 
@@ -32,7 +31,7 @@ class LogService(Service):
         self.tracker = await loop.run_in_executor(self.pool, tracking.open_tracker, self.cfg, self.run_dir)
         names = ", ".join(s.name for s in self.tracker.sinks) or "none"
         self.log.info("sinks: %s (in %s)", names, self.run_dir)
-        self.inbox = self.bus.subscribe(keys.stats_all(self.run_name), decode_stats_sample, policy="latest",
+        self.inbox = self.bus.subscribe(self.keys.sub("stats"), decode_stats_sample, policy="latest",
                                         capacity=INBOX)
 
     async def run(self) -> None:

@@ -20,7 +20,6 @@ import time
 
 from ebrl import sizes
 from ebrl.algos.replay import REPLAY_FILE, ReplayStore, batches_per_sample, replay_bound
-from ebrl import keys
 from ebrl.messages import ReplayRequest
 from ebrl.service import Service, env_info, service_main
 
@@ -49,14 +48,14 @@ class ReplayService(Service):
         self.lost_at_start, self.saved_at = self.store.lost, time.monotonic()
         self.rates = (time.monotonic(), self.store.buffer.inserted, self.store.sampled)
         bounds = self.bounds or await self.message_bounds()
-        self.requests = self.bus.subscribe(keys.replay(self.run_name, "request"), ReplayRequest, capacity=8,
+        self.requests = self.bus.subscribe(self.keys.sub("request"), ReplayRequest, capacity=8,
                                            max_bytes=bounds.replay_request)
 
     async def message_bounds(self) -> sizes.Bounds:
         return sizes.of_run(self.cfg, await env_info(self), weights=False)
 
     async def run(self) -> None:
-        loop, sample_key = asyncio.get_running_loop(), keys.replay(self.run_name, "sample")
+        loop, sample_key = asyncio.get_running_loop(), self.keys.put("sample")
         async for key, request in self.requests:
             start = time.time()
             try:

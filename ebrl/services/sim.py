@@ -12,7 +12,6 @@ import os
 import psutil
 
 from ebrl import procenv, sizes
-from ebrl import keys
 from ebrl.bus.peers import LivePeers, plan_admits
 from ebrl.envs import EnvSpec
 from ebrl.resources.nvml import GpuMonitor
@@ -81,7 +80,7 @@ class SimService(Service):
         """The episodes that ended since the last batch, one record each (``EpisodeBatch``), beside the stats."""
         batch = self.stats.take_episodes(self.role, self.instance)
         if batch is not None:
-            await self.bus.put(keys.episodes(self.run_name, self.role), batch)
+            await self.bus.put(self.keys.put("episodes"), batch)
 
     def metrics(self) -> dict[str, float]:
         self.fleet.stepping.timeout = self.stats.step_timeout()  # once per stats report, not per chunk

@@ -18,7 +18,6 @@ from ebrl.algos.handover import HANDOVER_FILE
 from ebrl.algos.learner import Learner
 from ebrl.algos.replaylink import connect_replay
 from ebrl.algos.ranks import Ranks
-from ebrl import keys
 from ebrl.messages import SegmentBatch, TrajectorySegment
 from ebrl.runview import may_end
 from ebrl.sched.modes import resolve
@@ -54,8 +53,8 @@ class TrainService(Service):
             return
         bounds = self.bounds or await self.message_bounds()
         decode = obswire.decoder(TrajectorySegment, info.layout, info.obs_shape)  # camera images arrive as bytes
-        self.traj = self.bus.subscribe(keys.traj(self.run_name), decode, capacity=256, max_bytes=bounds.traj)
-        self.packed = self.bus.subscribe(keys.traj_packed(self.run_name),  # vectorized groups' segments, packed
+        self.traj = self.bus.subscribe(self.keys.sub("traj"), decode, capacity=256, max_bytes=bounds.traj)
+        self.packed = self.bus.subscribe(self.keys.sub("packed"),  # vectorized groups' segments, packed
                                          obswire.decoder(SegmentBatch, info.layout, info.obs_shape), capacity=32,
                                          max_bytes=bounds.packed)
         self.weights = WeightsPublisher(self.bus, self.run_name)  # also answers late joiners with the newest

@@ -10,7 +10,6 @@ import asyncio
 import os
 import threading
 
-from ebrl import keys
 from ebrl.messages import EpisodeBatch, Event, SpanBatch, decode_stats_sample
 from ebrl.service import Service, service_main
 from ebrl.viz.rerun_bridge import (RerunBridge, make_blueprint, open_recording, serve_web, stop_web,
@@ -35,7 +34,7 @@ class VizService(Service):
         self.lock = threading.Lock()  # the executor thread and teardown both log
         self.log.info("rerun: %s", where)
         self.event("viz", where)
-        self.inbox = self.bus.subscribe(keys.stats_all(self.run_name), decode_stats_sample, policy="latest",
+        self.inbox = self.bus.subscribe(self.keys.sub("stats"), decode_stats_sample, policy="latest",
                                         capacity=INBOX)
 
     async def run(self) -> None:

@@ -18,11 +18,11 @@ import tomllib
 from pathlib import Path
 from typing import Any
 
-from ebrl import config as config_mod
+from ebrl import config as config_mod, graph
 
 KINDS = ("uniform", "log_uniform", "int", "log_int", "choice")
 REDUCE = ("last", "best", "mean_last")
-SERVICES = ("sim", "gen", "train", "eval", "replay", "alloc", "log", "launcher", "viz")
+SERVICES = tuple(name for name, role in graph.ROLES.items() if role.stats)  # the roles that report stats
 TOP_KEYS = ("config", "study", "n_trials", "jobs", "cores_per_trial", "storage", "directory", "max_failures",
             "set", "params", "objective", "budget", "sampler", "pruner")
 OBJECTIVE_KEYS = ("metric", "direction", "reduce", "last_n", "service")

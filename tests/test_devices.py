@@ -8,7 +8,6 @@ from __future__ import annotations
 import subprocess
 import sys
 from pathlib import Path
-from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -100,8 +99,8 @@ def test_results_come_back_in_one_transfer_with_their_shapes():
 
 
 def small_policy(kind: str, device: str = "cpu"):
-    cfg = SimpleNamespace(kind=kind, chunk=4, hidden=[32, 32], channels=[8], embed_dim=16, denoise_steps=3,
-                          init_log_std=-0.5, normalize_obs=True, checkpoint="")
+    cfg = config.PolicySection(kind=kind, chunk=4, hidden=[32, 32], channels=[8], embed_dim=16, denoise_steps=3,
+                               init_log_std=-0.5, normalize_obs=True, checkpoint="")
     torch.manual_seed(0)
     return make_policy(cfg, ObsLayout.vector(6), 2).to(device)
 

@@ -103,13 +103,15 @@ class Role:
     """One role of a run, with every fact about it that other modules read: its flows (what it sends and reads on
     the bus), and for a service (an ``ebrl.service.Service``, ``start`` given) its place in a host's start order
     (``ebrl.config.ROLES``: lower starts first), the module the launcher runs for it (``python -m <module>``) and
-    the namespace of its own metrics in ``ebrl/metrics`` (``sim/env_steps``: ``sim``). Adding a service is its
-    module, its record here and its tests."""
+    the namespace of its own metrics in ``ebrl/metrics`` (``sim/env_steps``: ``sim``), and whether it is optional
+    (no other service needs it: its death, where restarts do not mend it, never ends the run). Adding a service is
+    its module, its record here and its tests (docs/contributing.md: "A new service")."""
 
     name: str
     flows: tuple[Flow, ...]
     start: int | None = None  # None: not a service (the launcher, observers)
     stats: str = ""  # the namespace of its own metrics; "": it reports none
+    optional: bool = False  # a service no other one needs (ebrl.launch.OPTIONAL_ROLES)
 
     @property
     def service(self) -> bool:
@@ -154,7 +156,7 @@ ROLES: dict[str, Role] = {role.name: role for role in (
              "draw"),
         Flow("sample", "put", (keys.replay, R, "sample"), "ReplaySample", "minibatches drawn uniformly"),
     )),
-    Role("eval", start=6, stats="eval", flows=WEIGHTS_READER),
+    Role("eval", start=6, stats="eval", optional=True, flows=WEIGHTS_READER),
     Role("alloc", start=7, stats="alloc", flows=(
         Flow("stats", "sub", (keys.stats, R, "sim", "*"), "StatsReport", "every simulator's rates and CPU use"),
         Flow("stats", "sub", (keys.stats, R, "gen", 0), "StatsReport", "generation's rates and CPU use"),
@@ -166,7 +168,7 @@ ROLES: dict[str, Role] = {role.name: role for role in (
         Flow("gpu_share", "put", (keys.gpu_share, R, "*"), "GpuShare", "a stage's new GPU share, for its host's "
              "launcher"),
     )),
-    Role("log", start=1, stats="log", flows=(
+    Role("log", start=1, stats="log", optional=True, flows=(
         Flow("stats", "sub", (keys.stats_all, R), EVERY_STAT, "everything, for the sinks"),)),
     Role("observer", flows=(  # a script or `ebrl stats` signed in as observer (ebrl.stats.observer_config): it
         # reads only, the stats of any run on the bus (its file names no run: `ebrl stats` without --run watches

@@ -54,7 +54,7 @@ log = logging.getLogger("ebrl.launch")
 
 EVERY_HOST = "all"  # the instance chunk of the run-wide stop: ctl/<run>/launcher/all/stop
 PRIMARY_ENDED = "the primary host ended the run"
-OPTIONAL_ROLES = ("log", "eval")  # services no other one needs: a death that restarts do not mend never ends the run
+OPTIONAL_ROLES = tuple(name for name, role in graph.ROLES.items() if role.optional)  # ebrl.graph.Role.optional
 
 
 def service_argv(config_path: Path, endpoint: str) -> Argv:

@@ -3,10 +3,11 @@
 
 from __future__ import annotations
 
+from ebrl import graph
 from ebrl.metrics.record import Metric
 
 SERVICE = "service.py"
-EVERY = ("sim", "gen", "train", "replay", "eval", "alloc", "log", "viz")
+EVERY = graph.SERVICES  # ebrl.graph.ROLES' services
 EVERY_AND_LAUNCHER = (*EVERY, "launcher")
 
 METRICS = (

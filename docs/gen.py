@@ -94,7 +94,7 @@ def config_sections() -> list[tuple[str, list[dict[str, str]]]]:
 
 def config_reference() -> str:
     sections = config_sections()
-    out = ["# Config reference", "", GENERATED.format(source="ebrl/config.py (`ebrl.config.describe()`)"), "",
+    out = ["# Config reference", "", GENERATED.format(source="ebrl/config/ (`ebrl.config.describe()`)"), "",
            "Every key of a config, as `ebrl config` lists it: its type, its default and what it does. How configs "
            "are written, combined (`base`) and overridden (`--set`) is in [Configs](../configs.md). A key that is "
            "absent by default is unset unless the config gives it.", "",

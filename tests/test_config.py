@@ -1,5 +1,6 @@
 """Config: unknown keys and wrong types name the field; overrides; `ebrl up` exits 2 and starts nothing."""
 
+import dataclasses
 import pathlib
 import subprocess
 import sys
@@ -131,7 +132,7 @@ def test_describe_lists_every_key_with_type_and_default():
     text = config.describe()
     for name, cls in config.SECTIONS.items():
         assert f"[{name}]" in text
-        for f in config.dataclasses.fields(cls):
+        for f in dataclasses.fields(cls):
             assert f"  {f.name} (" in text
     assert 'mode ("ebrl" | "colocated" | "hybrid" | "async", default "ebrl")' in text
     assert "target_return (float, optional, default absent)" in text

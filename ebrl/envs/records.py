@@ -157,7 +157,7 @@ LIBERO = Backend(
     install="`make libero`, or `pip install -e '.[libero]'` then `ebrl libero setup`",
     obs_default="rgb", gl_cameras=True, suites=True)  # its cameras are on by default
 
-# the registry: env.backend's choices (ebrl/config.py), in this order
+# the registry: env.backend's choices (ebrl/config/rollout.py), in this order
 BACKENDS: dict[str, Backend] = {record.name: record for record in (GYMNASIUM, ROBOSUITE, MANISKILL, MJWARP, LIBERO)}
 
 

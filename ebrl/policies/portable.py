@@ -253,7 +253,7 @@ def _policy_section(values: dict[str, Any], file: str) -> config_mod.PolicySecti
     """The ``[policy]`` section alone, checked as a section: not against a default config's other sections (its
     ``algo.name`` is not the one that trained the policy)."""
     try:
-        section = config_mod._section("policy", config_mod.PolicySection, values)
+        section = config_mod.make_section("policy", config_mod.PolicySection, values)
         section.check()
         return section
     except config_mod.ConfigError as exc:

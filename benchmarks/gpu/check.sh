@@ -16,6 +16,10 @@
 #   w3_accept   issue 35's acceptance: W3 with no flags, ebrl vs colocated (the best baseline of every W3
 #               record), REPEAT (3) interleaved rounds of DURATION (30 here) seconds
 #   forward     generation's forward pass: CPU vs GPU, float32 vs bfloat16, eager vs CUDA graphs, up to W3
+#   vla         the VLA policy (policy.kind = "vla", transformers + peft: the image has both) on the GPU: its
+#               tests (CUDA graphs in float32 and bfloat16), then generation's forwards/s and training's updates/s
+#               of tiny VLAs (both heads) and a W3-sized one beside W3, in bfloat16 with CUDA graphs
+#               (benchmarks/vla_rates.py; parts vla_tests, vla_rates)
 #   quickstart  a real `ebrl up` of the quickstart with gen and train on the GPU (device, memory, rates)
 #   mps         the same with the allocator's MPS shares: the launcher starts an MPS control daemon for the run
 #               and quits it at the end
@@ -163,6 +167,11 @@ while [ $i -lt ${#PARTS[@]} ]; do
     train_rate) part train_rate 200 python3 benchmarks/train_rate.py --configs configs/bench_w2_gpu.toml \
                     configs/bench_w3.toml --seconds 3 --rounds 2 --out "$RES/train_rate.json" ;;
     forward) part forward 120 python3 benchmarks/gpu/forward.py --seconds 0.5 --out "$RES/forward.json" ;;
+    vla) set -- vla_tests vla_rates; for b; do PARTS+=("$b"); done ;;
+    vla_tests) part vla_tests 150 python3 -m pytest -q -rs -p no:cacheprovider -o addopts="" --timeout 120 \
+                   -m "gpu or not slow" tests/test_vla.py -k "not ebrl_up" ;;
+    vla_rates) part vla_rates 300 python3 benchmarks/vla_rates.py --device cuda --dtype bfloat16 \
+                   --policies vla-tiny vla-tiny-tokens vla-base w3 --seconds 1 --rounds 3 --out "$RES/vla_rates_gpu.json" ;;
     quickstart) part quickstart 90 python3 benchmarks/gpu/quickstart.py --out "$RES/quickstart.json" ;;
     mps) part mps 120 python3 -m ebrl.cli up configs/quickstart.toml --set alloc.enabled=true \
              --set 'alloc.gpu_pool="mps"' --set alloc.profile_seconds=0.3 --set run.iterations=20 --set "run.output_dir=\"$RES/mps-run\"" \

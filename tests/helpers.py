@@ -87,6 +87,12 @@ async def until(predicate, timeout: float = 10.0, what: str = "condition") -> No
         await asyncio.sleep(0.02)
 
 
+# Each service in a process of its own, for the tests of what one role's own credential can do: on a CPU host
+# "auto" puts sim and gen in one process, whose one identity may send what both may (that identity's rights are
+# tests/test_shared_process.py's), so a simulator's credential of its own exists only with processes apart.
+OWN_PROCESSES = "run.processes=[]"
+
+
 def up(out_dir, config: str, *overrides: str, name: str, args=(), port: int | None = None) -> Run:
     """A real `ebrl up` of ``config`` (relative to the repository) as run ``name``, writing into ``out_dir``."""
     return Run(ROOT / config, *overrides, name=name, out_dir=out_dir, args=args, port=port, cwd=ROOT)

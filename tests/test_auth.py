@@ -21,7 +21,7 @@ from ebrl.bus import auth
 from ebrl.bus.session import BusOptions, zenoh_config
 from ebrl.messages import EpisodeBatch, Stop, Weights, decode_message, decode_stats_sample
 from ebrl.testing import StatsWatcher, run_session_config
-from helpers import ROOT, free_port, up
+from helpers import OWN_PROCESSES, ROOT, free_port, up
 
 import hostile_peer as hostile
 
@@ -547,7 +547,7 @@ def test_insiders_holding_sim_s_or_gen_s_credential_cannot_act_as_another_role(t
     does not end the run, since only training's reports do. An observer reads stats and gets no weights."""
     env = {**os.environ, "PYTHONPATH": str(ROOT)}
     with up(tmp_path, "configs/quickstart.toml", "run.iterations=30", "train.batch_size=256", 'viz.rerun="off"',
-            "run.target_return=1e8", name="insider") as run:  # bus.auth and bus.mode = "client": the defaults
+            "run.target_return=1e8", OWN_PROCESSES, name="insider") as run:  # bus.auth and bus.mode = "client": the defaults
         run.wait_for_line("all services live", 300)
         arrived: list[tuple[str, object]] = []  # what got past the router's rules, as a launcher sees it
 
@@ -623,7 +623,7 @@ def test_a_simulator_claiming_63_more_simulator_hosts_moves_neither_generation_n
     nothing restarts, and no forged number is taken as the run's."""
     env = {**os.environ, "PYTHONPATH": str(ROOT)}
     with up(tmp_path, "configs/quickstart.toml", "run.iterations=30", 'viz.rerun="off"', f'bus.mode="{mode}"',
-            name=f"claims-{mode}") as run:  # the quickstart's own settings otherwise, bus.auth the default
+            OWN_PROCESSES, name=f"claims-{mode}") as run:  # the quickstart's own settings otherwise, bus.auth the default
         claimed = {keys.live(run.name, "sim", n) for n in hostile.OTHERS}
         # the insider joins as the launcher listens, before the services meet; it keeps its claims to the end
         run.wait_for_line(lambda line: line.startswith(f"run {run.name}: "), 120, what="the launcher's banner")

@@ -25,7 +25,7 @@ from ebrl.envs.worker import VectorChunk
 from ebrl.messages import ActionChunk, TrajectorySegment, Weights, WeightsPart, decode_message, encode_message
 from ebrl.sched import rollout
 from ebrl.weights import PART_BYTES, WeightsLayout
-from helpers import ROOT, StatsWatcher, free_port, until, up
+from helpers import OWN_PROCESSES, ROOT, StatsWatcher, free_port, until, up
 
 import oversize_peer
 
@@ -241,7 +241,8 @@ def test_an_insider_sending_a_240_mib_observation_with_the_simulators_credential
     10 MB. (The 600 kB one, under gen's receive limit and over its key's bound, is reassembled by Zenoh and dropped
     before it is copied: about 19 MB of gen's peak once, measured apart; that is why it goes first.)"""
     env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(ROOT), str(ROOT / "tests")])}
-    with up(tmp_path, "configs/quickstart.toml", "run.iterations=30", 'viz.rerun="off"', name="oversize") as run:
+    with up(tmp_path, "configs/quickstart.toml", "run.iterations=30", 'viz.rerun="off"', OWN_PROCESSES,
+            name="oversize") as run:
         run.wait_for_line("all services live", 300)
         with StatsWatcher(run) as stats:
             got = oversize_peer.attack(run, stats, env)

@@ -21,7 +21,7 @@ from ebrl.runview import RunView
 from ebrl.stall import StallWatch
 from ebrl.testing import StatsWatcher
 import sim_report_flood as flood
-from helpers import ROOT, Run, up
+from helpers import OWN_PROCESSES, ROOT, Run, up
 
 RUN = "stall"
 
@@ -306,7 +306,7 @@ def test_a_run_whose_simulator_s_key_is_flooded_with_frozen_reports_finishes_on_
     run failed; its summary read the forged numbers). Every iteration is done, nothing restarts, and
     summary.json's numbers are training's: its env steps, its return, the forged ones only under ``sim``."""
     env = {**os.environ, "PYTHONPATH": str(ROOT)}
-    with Run(ROOT / "configs/quickstart.toml", "run.iterations=30", 'viz.rerun="off"', name="flooded",
+    with Run(ROOT / "configs/quickstart.toml", "run.iterations=30", 'viz.rerun="off"', OWN_PROCESSES, name="flooded",
              out_dir=tmp_path, stats_interval=None, cwd=ROOT) as run, StatsWatcher(run) as stats:
         run.wait_for_line("all services live", 300)
         flooder = subprocess.Popen([sys.executable, str(ROOT / "tests" / "sim_report_flood.py"), "sim/0",

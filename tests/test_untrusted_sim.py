@@ -23,7 +23,7 @@ import pytest
 import oversize_peer
 import sim_report_flood as flood
 from ebrl.testing import StatsWatcher
-from helpers import ROOT, up
+from helpers import OWN_PROCESSES, ROOT, up
 
 ENV = {**os.environ, "PYTHONPATH": os.pathsep.join([str(ROOT), str(ROOT / "tests")])}
 
@@ -39,7 +39,8 @@ def finished(process: subprocess.Popen) -> dict:
 
 @pytest.mark.slow  # 53 s: the fast suite keeps to its 10 minutes on 2 cores
 def test_a_simulator_s_credential_can_neither_end_halt_nor_fail_a_run(tmp_path):
-    with up(tmp_path, "configs/quickstart.toml", "run.iterations=30", 'viz.rerun="off"', name="untrusted") as run:
+    with up(tmp_path, "configs/quickstart.toml", "run.iterations=30", 'viz.rerun="off"', OWN_PROCESSES,
+            name="untrusted") as run:
         run.wait_for_line("all services live", 300)
         where = [run.endpoint, run.name, str(run.run_dir)]
         with StatsWatcher(run) as stats:
@@ -88,7 +89,8 @@ def test_episode_returns_forged_in_a_simulator_s_segments_never_reach_the_run_s_
     of 5000, one of 5000, an episode that did not end, and replays: training refuses them all (counted), the run
     finishes every iteration with no restart, reaches nothing it did not, and every return it shows is a real
     one (InvertedPendulum returns at most 1000)."""
-    with up(tmp_path, "configs/quickstart.toml", "run.iterations=30", 'viz.rerun="off"', name="forger") as run:
+    with up(tmp_path, "configs/quickstart.toml", "run.iterations=30", 'viz.rerun="off"', OWN_PROCESSES,
+            name="forger") as run:
         run.wait_for_line("all services live", 300)
         forger = attacker(str(ROOT / "tests" / "forging_sim.py"), run.endpoint, run.name, str(run.run_dir))
         with StatsWatcher(run) as stats:

@@ -130,6 +130,7 @@ def test_several_optimizers_save_and_load_as_one():
 
 # --- SAC behind the learner --------------------------------------------------------------------------------------
 
+@pytest.mark.slow  # 25-60 s; the fast suite's SAC run (test_sac_trains_in_a_real_run...) checks the ratio too
 def test_sac_keeps_its_update_to_data_ratio_on_average_from_learning_starts(tmp_path):
     store = ReplayStore(3, 1, 10_000)
     learner, _ = sac_learner(tmp_path, "algo.utd=0.75", store=store)

@@ -298,6 +298,7 @@ def test_preflight_and_config_say_what_is_wrong():
         load(str(ROOT / "configs/mjwarp_pickcube.toml"), ["sim.vectorized=false"])
 
 
+@pytest.mark.slow  # 40-120 s: the fast suite keeps to its 10 minutes on 2 cores
 def test_up_trains_the_mjwarp_config_on_the_cpu_and_stops_cleanly(tmp_path):
     """A new user's `ebrl up configs/mjwarp_pickcube.toml` on a machine without a GPU, made small: 2 groups of 4
     worlds on Warp's CPU device, 3 updates; it ends by itself, with every service stopped cleanly."""

@@ -16,7 +16,7 @@ import pytest
 
 from ebrl import keys
 from ebrl.testing import Run, StatsWatcher
-from helpers import ROOT, up
+from helpers import OWN_PROCESSES, ROOT, up
 
 QUICK = ("run.iterations=8", "train.batch_size=256", "train.checkpoint_every=1")
 FINISH_S = 300  # generous: a loaded machine runs 8 iterations slowly
@@ -90,7 +90,8 @@ def test_a_hung_env_worker_is_killed_after_the_step_timeout(tmp_path):
 def test_a_killed_gen_is_restarted_and_every_group_is_served_again(tmp_path):
     # train.max_pending = one batch: training cannot have the rest of the run's data buffered when gen dies (with
     # the default 8192 it could finish every iteration before the restart, and there was nothing to restart for)
-    with quick(tmp_path, "kill-gen", "train.max_pending=256") as run, StatsWatcher(run) as stats:
+    # gen in a process of its own (a shared one restarting whole: tests/test_shared_process.py)
+    with quick(tmp_path, "kill-gen", "train.max_pending=256", OWN_PROCESSES) as run, StatsWatcher(run) as stats:
         wait_version(stats, 2)
         service(run, "gen").send_signal(signal.SIGKILL)
         code = run.wait(FINISH_S)

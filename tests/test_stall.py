@@ -281,7 +281,7 @@ def test_a_stopped_gen_is_reported_by_name_restarted_and_the_run_finishes(tmp_pa
     """SIGSTOP on gen mid-run: no error, no exit, only silence -- named within a minute (here within the 10 s
     timeout and a few seconds), killed, restarted, and every iteration done."""
     with up(tmp_path, "configs/quickstart.toml", "run.iterations=12", "train.batch_size=256", 'viz.rerun="off"',
-            "run.stall_timeout=10", name="stopped") as run, StatsWatcher(run) as stats:
+            "run.stall_timeout=10", OWN_PROCESSES, name="stopped") as run, StatsWatcher(run) as stats:  # gen alone
         stats.wait_for(lambda: (stats.latest("train/0", "train/policy_version") or 0) >= 2, 300, "policy v2")
         import psutil
 

@@ -280,9 +280,9 @@ def decide_processes(cfg: Config, here: HostPlan, gpu: bool) -> tuple[Config, st
       the process layout they model) without the allocator, each env steps in a worker process of its own (not
       ``sim.vectorized``: the env's code never runs in the shared process beyond describing it once, and gen's
       policy is nothing the simulator could not already act against) and the env is not a ``module:EnvId``.
-      Their observations and actions then go by reference instead of through the launcher's router: 1.33x the
-      quickstart's env steps/s on 2 cores (BENCHMARKS.md, "The launcher's hop on the quickstart"); training
-      keeps its own process, and with it its cores.
+      Their observations and actions then go by reference instead of through the launcher's router: 1.25x the
+      quickstart's env steps/s on 2 cores, HalfCheetah's unchanged (0.99x; BENCHMARKS.md, "The CPU default: sim
+      and gen in one process"); training keeps its own process, and with it its cores.
     - Else every service alone.
 
     The replay (an off-policy run's) shares train's process wherever this host runs both with one training

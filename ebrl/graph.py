@@ -23,9 +23,10 @@ from __future__ import annotations
 import functools
 import inspect
 from dataclasses import dataclass
-from typing import Literal
+from typing import Any, Callable, Literal
 
 from ebrl import keys
+from ebrl.metric import Metric
 
 Direction = Literal["put", "sub", "query", "answer", "token", "watch"]
 DIRECTIONS: tuple[Direction, ...] = ("put", "sub", "query", "answer", "token", "watch")
@@ -99,19 +100,37 @@ WEIGHTS_READER = (  # ebrl.weights.WeightsReceiver: new versions as published, a
 STAGES = ("sim", "gen", "train")  # what the allocator plans
 
 @dataclass(frozen=True)
+class Switch:
+    """The setting that turns a service on or off (:attr:`Role.switch`). ``setting`` names it for a user (``ebrl up
+    --only`` says it of a service the config has off); ``on(cfg)`` reads it from a run's ``ebrl.config.Config``,
+    by attribute alone, since the graph sits below the config."""
+
+    setting: str
+    on: Callable[[Any], bool]
+
+
+@dataclass(frozen=True)
 class Role:
-    """One role of a run, with every fact about it that other modules read: its flows (what it sends and reads on
-    the bus), and for a service (an ``ebrl.service.Service``, ``start`` given) its place in a host's start order
-    (``ebrl.config.ROLES``: lower starts first), the module the launcher runs for it (``python -m <module>``) and
-    the namespace of its own metrics in ``ebrl/metrics`` (``sim/env_steps``: ``sim``), and whether it is optional
-    (no other service needs it: its death, where restarts do not mend it, never ends the run). Adding a service is
-    its module, its record here and its tests (docs/contributing.md: "A new service")."""
+    """One role of a run, with every fact about it that other modules read.
+
+    ``flows``: what it sends and reads on the bus. For a service (an ``ebrl.service.Service``, ``start`` given):
+    its place in a host's start order (``ebrl.config.ROLES``: lower starts first) and the module the launcher runs
+    for it (``python -m <module>``). ``stats``: the namespace of its own metrics (``sim/env_steps``: ``sim``), and
+    ``about``, that namespace's line in docs/stats.md; ``metrics``, the records of the metrics it reports that no
+    module of the catalog (``ebrl/metrics/``, the stock services') declares. ``optional``: no other service needs
+    it (its death, where restarts do not mend it, never ends the run). ``switch``: the setting that turns it on
+    (None: every run has it). ``with_train``: it starts on the host that trains unless a ``[hosts]`` entry names
+    it. Adding a service is its module, its record here and its tests (docs/contributing.md: "A new service")."""
 
     name: str
     flows: tuple[Flow, ...]
     start: int | None = None  # None: not a service (the launcher, observers)
     stats: str = ""  # the namespace of its own metrics; "": it reports none
+    about: str = ""  # the line of its metrics' section in docs/stats.md
+    metrics: tuple[Metric, ...] = ()  # its own metrics' records, where ebrl/metrics/ has no module of them
     optional: bool = False  # a service no other one needs (ebrl.launch.OPTIONAL_ROLES)
+    switch: Switch | None = None  # None: every run has it
+    with_train: bool = False  # on training's host (ebrl.hosts.plan)
 
     @property
     def service(self) -> bool:
@@ -124,8 +143,13 @@ class Role:
         return f"ebrl.services.{self.name}" if self.service else ""
 
 
+def _sinks_on(cfg: Any) -> bool:
+    return bool(cfg.log.tensorboard or cfg.log.csv or cfg.log.wandb)
+
+
 ROLES: dict[str, Role] = {role.name: role for role in (
-    Role("sim", start=5, stats="sim", flows=(
+    Role("sim", start=5, stats="sim", about="The simulator: env steps, episodes, segments, chunk latencies, core "
+         "rebinding; and the host's cores and GPUs (one sim service per host reports them).", flows=(
         Flow("obs", "put", (keys.obs, R), "Observation", "a group's observations, when its chunk ends",
              grouped=True),
         Flow("traj", "put", (keys.traj, R), "TrajectorySegment", "finished segments", grouped=True),
@@ -135,13 +159,16 @@ ROLES: dict[str, Role] = {role.name: role for role in (
         Flow("act", "sub", (keys.act, R), "ActionChunk", "each group's next chunk"),
         Flow("live", "watch", (keys.live_all, R), "-", "which gen and sim hosts are up (the iteration gate)"),
     )),
-    Role("gen", start=4, stats="gen", flows=(
+    Role("gen", start=4, stats="gen", about="Generation: forward passes, the weights it acts with, the observations "
+         "waiting for it.", flows=(
         Flow("obs", "sub", (keys.obs, R), "Observation", "the groups' observations"),
         Flow("act", "put", (keys.act, R), "ActionChunk", "a chunk per group"),
         *WEIGHTS_READER,
         Flow("live", "watch", (keys.live, R, "sim"), "-", "how many sim hosts serve (a batch's size)"),
     )),
-    Role("train", start=3, stats="train", flows=(
+    Role("train", start=3, stats="train", about="Training: updates, weights, the data it took or refused, the returns "
+         "it computed from that data, and the algorithm's numbers of its last update (a user's own algorithm reports "
+         "its own names beside these).", flows=(
         Flow("traj", "sub", (keys.traj, R), "TrajectorySegment", "segments to learn from"),
         Flow("packed", "sub", (keys.traj_packed, R), "SegmentBatch", "packed segments to learn from"),
         Flow("weights", "put", (keys.weights, R), "Weights", "each new version (small policies)"),
@@ -151,13 +178,19 @@ ROLES: dict[str, Role] = {role.name: role for role in (
              "minibatches wanted (an off-policy algorithm)"),
         Flow("sample", "sub", (keys.replay, R, "sample"), "ReplaySample", "the minibatches of its gradient steps"),
     )),
-    Role("replay", start=2, stats="replay", flows=(
+    Role("replay", start=2, stats="replay", about="The replay service of an off-policy algorithm (SAC).",
+         switch=Switch("algo.name (an off-policy algorithm)", lambda cfg: cfg.algo.uses_replay), with_train=True,
+         flows=(
         Flow("request", "sub", (keys.replay, R, "request"), "ReplayRequest", "transitions to keep, minibatches to "
              "draw"),
         Flow("sample", "put", (keys.replay, R, "sample"), "ReplaySample", "minibatches drawn uniformly"),
     )),
-    Role("eval", start=6, stats="eval", optional=True, flows=WEIGHTS_READER),
-    Role("alloc", start=7, stats="alloc", flows=(
+    Role("eval", start=6, stats="eval", about="The eval service ([Evaluating](evaluation.md)): one report of its own "
+         "per evaluated version (`eval/version` and the results), and periodic ones of what it did.", optional=True,
+         switch=Switch("eval.every", lambda cfg: cfg.eval.every > 0), with_train=True, flows=WEIGHTS_READER),
+    Role("alloc", start=7, stats="alloc", about="The allocator ([The allocator](allocator.md)): its plan and the "
+         "measured capacities it re-plans from.", switch=Switch("alloc.enabled", lambda cfg: cfg.alloc.enabled),
+         with_train=True, flows=(
         Flow("stats", "sub", (keys.stats, R, "sim", "*"), "StatsReport", "every simulator's rates and CPU use"),
         Flow("stats", "sub", (keys.stats, R, "gen", 0), "StatsReport", "generation's rates and CPU use"),
         Flow("stats", "sub", (keys.stats, R, "train", 0), "StatsReport", "training's rates and CPU use"),
@@ -168,7 +201,8 @@ ROLES: dict[str, Role] = {role.name: role for role in (
         Flow("gpu_share", "put", (keys.gpu_share, R, "*"), "GpuShare", "a stage's new GPU share, for its host's "
              "launcher"),
     )),
-    Role("log", start=1, stats="log", optional=True, flows=(
+    Role("log", start=1, stats="log", about="The tracking sinks' service ([Tracking](tracking.md)).", optional=True,
+         switch=Switch("[log] tensorboard, csv or wandb", _sinks_on), with_train=True, flows=(
         Flow("stats", "sub", (keys.stats_all, R), EVERY_STAT, "everything, for the sinks"),)),
     Role("observer", flows=(  # a script or `ebrl stats` signed in as observer (ebrl.stats.observer_config): it
         # reads only, the stats of any run on the bus (its file names no run: `ebrl stats` without --run watches
@@ -177,9 +211,11 @@ ROLES: dict[str, Role] = {role.name: role for role in (
         Flow("live", "watch", (keys.live, "*", "launcher", "*"), "-", "whether a run's launchers are up "
              "(the end of ebrl.stats.stream)", chart=False),
     )),
-    Role("viz", start=0, stats="viz", flows=(
+    Role("viz", start=0, stats="viz", about="The rerun bridge ([Watching a run](watching.md)).",
+         switch=Switch("viz.rerun", lambda cfg: cfg.viz.rerun != "off"), with_train=True, flows=(
         Flow("stats", "sub", (keys.stats_all, R), EVERY_STAT, "everything, for rerun"),)),
-    Role("launcher", stats="launcher", flows=(
+    Role("launcher", stats="launcher", about="The launcher's own report (`launcher/<host>` on each host of a run "
+         "over several).", flows=(
         Flow("stats", "sub", (keys.stats_all, R), EVERY_STAT, "the progress line, "
              "the recording"),
         Flow("stats", "put", (keys.stats, R, "launcher", I), "StatsReport", "its own report"),

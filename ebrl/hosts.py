@@ -24,12 +24,12 @@ import dataclasses
 import time
 from dataclasses import dataclass
 
-from ebrl.algos.algorithm import uses_replay
 from ebrl import graph, keys
 from ebrl.config import ROLES, Config, ConfigError, processes, train_ranks, vectorized
 from ebrl.envs.records import backend_record
 
 PRIMARY_LOST_S = 30.0  # a secondary host stops when no train has been live for this long
+WITH_TRAIN = tuple(name for name, role in graph.ROLES.items() if role.with_train)  # ebrl.graph.Role.with_train
 UNKNOWN_KEPT = 4096  # tokens of instances the run does not have, remembered to count each once (memory bounded)
 
 
@@ -103,21 +103,13 @@ def sim_hosts(cfg: Config, plan: HostPlan) -> tuple[int, ...] | None:
 
 
 def enabled_roles(cfg: Config) -> tuple[str, ...]:
-    """Every service the run has, in start order: viz and log first (they see the run from its start), the
-    replay where the algorithm learns from one (before train, which asks it for minibatches), the allocator last
-    (it only reads the others' stats)."""
+    """Every service the run has, in start order (``ebrl.config.ROLES``: viz and log first, they see the run from
+    its start; the replay before train, which asks it for minibatches; the allocator last, it only reads the
+    others' stats): those whose switch in the graph (``ebrl.graph.Role.switch``) is on, and those without one."""
     try:
-        replay = uses_replay(cfg.algo.name)
+        return tuple(r for r in ROLES if (switch := graph.ROLES[r].switch) is None or switch.on(cfg))
     except ValueError as exc:  # a user's module:Class that does not import or is not an algorithm
         raise ConfigError(str(exc)) from None
-    on = {"viz": cfg.viz.rerun != "off", "alloc": cfg.alloc.enabled, "log": sinks_on(cfg), "eval": cfg.eval.every > 0,
-          "replay": replay}
-    return tuple(r for r in ROLES if on.get(r, True))
-
-
-def sinks_on(cfg: Config) -> bool:
-    """Whether the run has a log service: any tracking sink on."""
-    return cfg.log.tensorboard or cfg.log.csv or cfg.log.wandb
 
 
 def plan(cfg: Config, only: str | None = None, host: str | None = None, instance: int | None = None
@@ -133,10 +125,9 @@ def plan(cfg: Config, only: str | None = None, host: str | None = None, instance
         entry = cfg.hosts[host]
         named = {r for e in cfg.hosts.values() for r in e.services}
         ranks = train_ranks(cfg)
-        # viz, log, eval and the replay go with train (rank 0's host) unless some host names them; the allocator
-        # always does (it plans that host)
-        wanted = set(entry.services) | ({"viz", "log", "eval", "replay", "alloc"} - named if 0 in ranks.get(host, ())
-                                        else set())
+        # the services with_train go with train (rank 0's host) unless some host names them; the allocator always
+        # does (it plans that host)
+        wanted = set(entry.services) | (set(WITH_TRAIN) - named if 0 in ranks.get(host, ()) else set())
         _allocator_with_train(wanted, f"[hosts.{host}]")
         bus = dataclasses.replace(cfg.bus, listen=list(entry.listen or cfg.bus.listen),
                                   connect=list(entry.connect or cfg.bus.connect))
@@ -156,13 +147,13 @@ def plan(cfg: Config, only: str | None = None, host: str | None = None, instance
             raise ConfigError(f"--only {only}: unknown service {role!r}; services are {', '.join(ROLES)}")
     missing = [r for r in asked if r not in every]
     if missing:
-        raise ConfigError(f"--only {only}: {', '.join(missing)} is off in this config (viz.rerun / alloc.enabled / "
-                          "[log] / eval.every / algo.name: a replay only for an off-policy algorithm)")
+        settings = "; ".join(f"{r}: {graph.ROLES[r].switch.setting}" for r in missing if graph.ROLES[r].switch)
+        raise ConfigError(f"--only {only}: {', '.join(missing)} is off in this config ({settings})")
     number = 0 if instance is None else instance
     if number < 0:
         raise ConfigError(f"--instance {number}: must be >= 0")
-    # the allocator, the tracking sinks, the evaluation and the replay go with training
-    wanted = set(asked) | ({"alloc", "log", "eval", "replay"} if "train" in asked else set())
+    # the services with_train go with training
+    wanted = set(asked) | (set(WITH_TRAIN) if "train" in asked else set())
     _allocator_with_train(wanted, f"--only {only}")
     return cfg, HostPlan(tuple(r for r in every if r in wanted), number, True)
 

@@ -152,20 +152,24 @@ class Run:
 
     ``name`` is the name asked for; :attr:`name` is the one the run got (a ``run.name`` among
     ``overrides`` wins). What the launcher prints is kept (:attr:`output`, :meth:`wait_for_line`), also in
-    ``log`` if given. Leaving the ``with`` block stops the run (:meth:`stop`)."""
+    ``log`` if given. ``package``: the directory whose ``ebrl`` the run imports (default: this one's, the checkout
+    or the installed package), e.g. a copy with a change to try. Leaving the ``with`` block stops the run
+    (:meth:`stop`)."""
 
     _RUN_LINE = "run {name}: "  # the launcher's first line: "run NAME: RUN_DIR  (bus ENDPOINT)"
 
     def __init__(self, config: str | os.PathLike, *overrides: str, name: str, out_dir: str | os.PathLike,
                  args: Sequence[str] = (), port: int | None = None, stats_interval: float | None = 0.5,
-                 log: str | os.PathLike | None = None, cwd: str | os.PathLike | None = None):
+                 log: str | os.PathLike | None = None, cwd: str | os.PathLike | None = None,
+                 package: str | os.PathLike | None = None):
         self.port = port or free_port()
         self.endpoint = f"tcp/127.0.0.1:{self.port}"
         sets = up_sets(out_dir, self.port, name, stats_interval, overrides)
         self.name = run_name(config, sets, cwd)
         self.command = up_command(config, sets, args)
         env = dict(os.environ)
-        env["PYTHONPATH"] = os.pathsep.join(p for p in (str(REPO), env.get("PYTHONPATH", "")) if p)
+        first = str(REPO if package is None else package)
+        env["PYTHONPATH"] = os.pathsep.join(p for p in (first, env.get("PYTHONPATH", "")) if p)
         self._run_dir: Path | None = None
         self.proc = subprocess.Popen(self.command, cwd=cwd, env=env, stdin=subprocess.DEVNULL,
                                      stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)

@@ -223,7 +223,8 @@ def test_no_import_cycle_in_ebrl(lazy):
 LAYERS: list[tuple[str, tuple[str, ...]]] = [
     ("foundations: helpers, the wire formats, the service graph, the metric catalog",
      ("ebrl", "ebrl.durable", "ebrl.typecheck", "ebrl.devices", "ebrl.plugins", "ebrl.presets", "ebrl.procenv",
-      "ebrl.meter", "ebrl.threads", "ebrl.metrics", "ebrl.keys", "ebrl.codec", "ebrl.messages", "ebrl.graph")),
+      "ebrl.meter", "ebrl.threads", "ebrl.metric", "ebrl.metrics", "ebrl.keys", "ebrl.codec", "ebrl.messages",
+      "ebrl.graph")),
     ("the bus: Zenoh session, in-memory bus, sign-in, weights and stats over it",
      ("ebrl.bus", "ebrl.weights", "ebrl.stats")),
     ("hardware and simulators", ("ebrl.resources", "ebrl.envs", "ebrl.obswire")),

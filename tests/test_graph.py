@@ -180,7 +180,7 @@ def test_a_role_is_one_record_the_config_the_launcher_and_the_metrics_read():
     each service's are on its record in ebrl/graph.py."""
     from ebrl import config
     from ebrl.metrics import CATALOG
-    from ebrl.metrics.record import NAMESPACES
+    from ebrl.metrics import NAMESPACES
 
     assert config.ROLES == ("viz", "log", "replay", "train", "gen", "sim", "eval", "alloc")
     assert set(graph.SERVICES) == set(config.ROLES) and "launcher" not in graph.SERVICES

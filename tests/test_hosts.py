@@ -151,8 +151,13 @@ def test_only_and_instance():
     assert plan(cfg, only="sim,train,gen")[1].roles == ("train", "gen", "sim")  # start order, not typed order
     with pytest.raises(config.ConfigError, match="unknown service 'gem'"):
         plan(cfg, only="sim,gem")
-    with pytest.raises(config.ConfigError, match="is off in this config"):
+    with pytest.raises(config.ConfigError, match=r"alloc is off in this config \(alloc: alloc.enabled\)"):
         plan(cfg, only="alloc")
+    with pytest.raises(config.ConfigError, match=r"eval: eval.every; viz: viz.rerun\)"):
+        plan(cfg, only="eval,viz")
+    watched = load(viz={"rerun": "save"})
+    assert plan(watched, only="gen,train")[1].roles == ("viz", "train", "gen")  # viz goes with train
+    assert plan(watched, only="sim", instance=1)[1].roles == ("sim",)
     allocating = load(alloc={"enabled": True})
     assert plan(allocating, only="sim", instance=1)[1].roles == ("sim",)
     assert plan(allocating, only="gen,train")[1].roles == ("train", "gen", "alloc")  # the allocator goes with train

@@ -17,7 +17,8 @@ import pytest
 
 from ebrl import metrics
 from ebrl.messages import StatsReport
-from ebrl.metrics.record import NAMESPACES, Metric
+from ebrl.metric import Metric
+from ebrl.metrics import NAMESPACES
 
 ROOT = Path(__file__).resolve().parent.parent
 PACKAGE = ROOT / "ebrl"

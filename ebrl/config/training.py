@@ -48,6 +48,13 @@ class AlgoSection(Section):
     target_entropy: float | Literal["auto"] = doc("sac: the entropy the temperature is tuned toward; auto: minus the "
                                                   "chunk's action values (policy.chunk x action dimensions)", "auto")
 
+    @property
+    def uses_replay(self) -> bool:
+        """Whether the algorithm learns from a replay (the run then has a replay service: its switch in
+        ``ebrl.graph``). ValueError where a user's ``module:Class`` does not import or is no algorithm."""
+        from ebrl.algos.algorithm import uses_replay
+        return uses_replay(self.name)
+
     def _check(self) -> None:
         from ebrl.algos.algorithm import ALGORITHMS  # the registry, imported only to check names against it
         if self.name not in ALGORITHMS and ":" not in self.name:

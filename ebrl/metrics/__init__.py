@@ -1,9 +1,12 @@
 """The catalog of every metric a run publishes in its stats reports: one place where each is declared.
 
-Each :class:`~ebrl.metrics.record.Metric` names a metric (or a family, ``busy/<lane>``), its unit, the services
-that report it, what it means and the modules that publish it. ``docs/stats.md``'s table is generated from it
-(``python docs/gen.py``), tests check that every record's name is in the source of the modules it names and that
-every metric real runs publish is here (``tests/test_metrics.py``), and :func:`describe` looks a published name up::
+Each :class:`~ebrl.metric.Metric` names a metric (or a family, ``busy/<lane>``), its unit, the services
+that report it, what it means and the modules that publish it. The stock services' records are in this package's
+modules; a role may declare its own in its record of the service graph (``ebrl.graph.Role.metrics``), which is
+where a new service declares them. ``docs/stats.md``'s table is generated from the catalog (``python
+docs/gen.py``), a section per role (its ``Role.about``); tests check that every record's name is in the source of
+the modules it names and that every metric real runs publish is here (``tests/test_metrics.py``), and
+:func:`describe` looks a published name up::
 
     >>> describe("sim/env_steps_per_s").meaning
     'environment steps'
@@ -15,34 +18,40 @@ from __future__ import annotations
 
 from typing import Iterable
 
+from ebrl import graph
+from ebrl.metric import Metric
 from ebrl.metrics import alloc, common, evaluation, gen, launcher, observers, replay, sim, train
-from ebrl.metrics.record import Metric
 
-__all__ = ["CATALOG", "EVERY", "SECTIONS", "Metric", "describe", "missing", "section_of"]
+__all__ = ["CATALOG", "EVERY", "NAMESPACES", "SECTIONS", "Metric", "describe", "missing", "section_of"]
 
 EVERY = common.EVERY  # the services that each report what every service reports (the launcher is not one)
+NAMESPACES = tuple(role.stats for role in graph.ROLES.values() if role.stats)  # each role's own (ebrl.graph.Role)
 
 CATALOG: tuple[Metric, ...] = (*sim.METRICS, *gen.METRICS, *train.METRICS, *replay.METRICS, *evaluation.METRICS,
-                               *alloc.METRICS, *launcher.METRICS, *observers.METRICS, *common.METRICS)
+                               *alloc.METRICS, *launcher.METRICS, *observers.METRICS,
+                               *(m for role in graph.ROLES.values() for m in role.metrics), *common.METRICS)
 
-# the page's sections, in order (a service's own metrics, then what every service reports), each with its line
-SECTIONS = {
-    "sim": "The simulator: env steps, episodes, segments, chunk latencies, core rebinding; and the host's cores and "
-           "GPUs (one sim service per host reports them).",
-    "gen": "Generation: forward passes, the weights it acts with, the observations waiting for it.",
-    "train": "Training: updates, weights, the data it took or refused, the returns it computed from that data, and "
-             "the algorithm's numbers of its last update (a user's own algorithm reports its own names beside "
-             "these).",
-    "replay": "The replay service of an off-policy algorithm (SAC).",
-    "eval": "The eval service ([Evaluating](evaluation.md)): one report of its own per evaluated version "
-            "(`eval/version` and the results), and periodic ones of what it did.",
-    "alloc": "The allocator ([The allocator](allocator.md)): its plan and the measured capacities it re-plans from.",
-    "launcher": "The launcher's own report (`launcher/<host>` on each host of a run over several).",
-    "log": "The tracking sinks' service ([Tracking](tracking.md)).",
-    "viz": "The rerun bridge ([Watching a run](watching.md)).",
-    "every service": "What every service reports about itself (and, where it says so, the launcher).",
-}
+# the page's sections, in order (each role's own metrics, then what every service reports), each with its line
+SECTIONS = {**{role.stats: role.about for role in graph.ROLES.values() if role.stats},
+            "every service": "What every service reports about itself (and, where it says so, the launcher)."}
 
+
+
+def _check() -> None:
+    for metric in CATALOG:
+        if metric.services == (metric.namespace,) and metric.namespace not in NAMESPACES:
+            raise ValueError(f"ebrl.metrics: {metric.name}: say which services publish it (services=...); no "
+                             "role's own metrics are in its namespace (ebrl.graph.Role.stats)")
+    for role in graph.ROLES.values():
+        if role.stats and not role.about:
+            raise ValueError(f"ebrl.graph: role {role.name!r} reports metrics of its own (stats=...): give it the "
+                             "line of their section in docs/stats.md (about=...)")
+        if stray := [m.name for m in role.metrics if m.namespace != role.stats]:
+            raise ValueError(f"ebrl.graph: role {role.name!r} declares metrics outside its namespace "
+                             f"{role.stats + '/' if role.stats else '(it has none: stats=...)'}: {', '.join(stray)}")
+
+
+_check()
 _BY_NAME = {m.name: m for m in CATALOG if not m.family}
 _FAMILIES = [m for m in CATALOG if m.family]
 if len(_BY_NAME) + len(_FAMILIES) != len(CATALOG):

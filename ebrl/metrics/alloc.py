@@ -3,7 +3,7 @@ re-plans from (``ebrl.alloc.runtime``, ``ebrl/services/alloc.py``)."""
 
 from __future__ import annotations
 
-from ebrl.metrics.record import Metric
+from ebrl.metric import Metric
 
 RUNTIME = "alloc/runtime.py"
 SERVICE = "services/alloc.py"

@@ -4,7 +4,7 @@
 from __future__ import annotations
 
 from ebrl import graph
-from ebrl.metrics.record import Metric
+from ebrl.metric import Metric
 
 SERVICE = "service.py"
 EVERY = graph.SERVICES  # ebrl.graph.ROLES' services

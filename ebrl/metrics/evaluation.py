@@ -3,7 +3,7 @@ version (``ebrl.evaluate``), and periodic ones of what it did (``ebrl/services/e
 
 from __future__ import annotations
 
-from ebrl.metrics.record import Metric
+from ebrl.metric import Metric
 
 RESULT = "evaluate.py"  # one report per evaluated version
 SERVICE = "services/eval.py"

@@ -3,7 +3,7 @@ over several), on restarts, services up and what it refused."""
 
 from __future__ import annotations
 
-from ebrl.metrics.record import Metric
+from ebrl.metric import Metric
 
 LAUNCH = "launch.py"
 SUPERVISOR = "supervisor.py"

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from ebrl.metrics.record import Metric
+from ebrl.metric import Metric
 
 SERVICE = "services/replay.py"
 

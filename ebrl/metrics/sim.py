@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from ebrl.metrics.record import Metric
+from ebrl.metric import Metric
 
 GROUP = "sched/group.py"  # the group loop: env steps, episodes, segments, the guard against bad numbers
 FLEET = "sched/fleet.py"  # the episodes' and chunks' statistics

@@ -8,7 +8,7 @@ An algorithm's update returns its numbers by name (``policy_loss``); the train s
 
 from __future__ import annotations
 
-from ebrl.metrics.record import Metric
+from ebrl.metric import Metric
 
 SERVICE = "services/train.py"
 LEARNER = "algos/learner.py"

@@ -1,11 +1,13 @@
-"""One record of the metric catalog (:mod:`ebrl.metrics`): a metric's name, unit, publishers and meaning."""
+"""One metric's record: its name, unit, publishers and meaning.
+
+The catalog (:mod:`ebrl.metrics`) gathers the records: the stock services' from its modules, and any role's own from
+its record in the service graph (``ebrl.graph.Role.metrics``), which is why this module sits below both and imports
+neither."""
 
 from __future__ import annotations
 
 import re
 from dataclasses import dataclass, field
-
-from ebrl import graph
 
 # a placeholder of a family's name: ``<lane>`` in ``busy/<lane>``; it stands for a word without ``/`` or ``_``
 # (a lane ``sim.g0``, a core ``3``, a stage ``train``), so that ``alloc/cores_<stage>`` is not also
@@ -13,7 +15,6 @@ from ebrl import graph
 PLACEHOLDER = re.compile(r"<[a-z]+>")
 PLACEHOLDER_VALUE = r"[A-Za-z0-9.]+"
 RATE = "_per_s"  # a counter's rate over the last interval (ebrl.meter.Meter.metrics)
-NAMESPACES = tuple(role.stats for role in graph.ROLES.values() if role.stats)  # one role's own (ebrl.graph.Role)
 
 
 @dataclass(frozen=True)
@@ -23,8 +24,9 @@ class Metric:
     ``unit``: what one unit is (``count``, ``s``, ``MiB``, ``fraction`` 0-1, ``version``, ``0/1``, ...).
     ``modules``: the files under ``ebrl/`` that publish it (the name, or the part after its namespace, is in
     their source: a test reads them). ``services``: the services whose reports carry it (by default the
-    service its namespace names). ``counter``: counted with ``Service.count``, so every report carries the total
-    ``name`` and ``name_per_s``, the rate over the interval since the previous report."""
+    service its namespace names, which the catalog checks is a role's). ``counter``: counted with
+    ``Service.count``, so every report carries the total ``name`` and ``name_per_s``, the rate over the interval
+    since the previous report."""
 
     name: str
     unit: str
@@ -40,13 +42,15 @@ class Metric:
         if isinstance(self.services, str):
             object.__setattr__(self, "services", (self.services,))
         if not self.services:
-            namespace = self.name.split("/", 1)[0]
-            if namespace not in NAMESPACES:
-                raise ValueError(f"{self.name}: say which services publish it (services=...)")
-            object.__setattr__(self, "services", (namespace,))
+            object.__setattr__(self, "services", (self.namespace,))
         pieces = [re.escape(p) for p in PLACEHOLDER.split(self.name)]
         rate = f"(?:{RATE})?" if self.counter else ""
         object.__setattr__(self, "pattern", re.compile(PLACEHOLDER_VALUE.join(pieces) + rate))
+
+    @property
+    def namespace(self) -> str:
+        """What its name starts with: ``sim`` for ``sim/env_steps``."""
+        return self.name.split("/", 1)[0]
 
     @property
     def family(self) -> bool:

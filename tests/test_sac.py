@@ -4,7 +4,6 @@ tau, the temperature toward the target entropy, a non-finite step skipped, learn
 from __future__ import annotations
 
 import math
-import types
 
 import numpy as np
 import pytest
@@ -13,6 +12,7 @@ import torch
 from ebrl.algos.replay import (FIELDS, ReplayBatch, ReplayBuffer, ReplayStore, ReplayTooLarge, transition_bytes,
                                transitions)
 from ebrl.algos.sac import SAC, SACSettings
+from ebrl.config import PolicySection
 from ebrl.envs.obs import ObsField, ObsLayout
 from ebrl.messages import ReplayRequest, TrajectorySegment
 from ebrl.policies import make_policy
@@ -56,7 +56,7 @@ def test_the_squashed_actor_acts_within_the_bounds_and_its_log_prob_is_the_squas
 
 
 def test_the_squashed_kind_needs_bounds_and_refuses_infinite_ones():
-    cfg = types.SimpleNamespace(kind="squashed", chunk=1, hidden=[8], normalize_obs=False, checkpoint="")
+    cfg = PolicySection(kind="squashed", chunk=1, hidden=[8], normalize_obs=False)
     with pytest.raises(ValueError, match="action bounds"):
         make_policy(cfg, LAYOUT, 2)
     with pytest.raises(ValueError, match="finite action bounds"):

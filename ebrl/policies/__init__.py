@@ -51,9 +51,8 @@ def make_policy(policy_cfg: Any, layout: ObsLayout, action_dim: int,
     cls = policy_class(cfg.kind)
     if cls.needs_bounds and bounds is None:
         raise ValueError(f"policy.kind = {cfg.kind!r} needs the env's action bounds")
-    backbone = getattr(cfg, "backbone", "conv")  # a section-like object may leave out the defaults
-    if backbone not in cls.backbones:
-        raise ValueError(f"policy.backbone = {backbone!r}: policy.kind = {cfg.kind!r} reads "
+    if cfg.backbone not in cls.backbones:
+        raise ValueError(f"policy.backbone = {cfg.backbone!r}: policy.kind = {cfg.kind!r} reads "
                          f"{' or '.join(map(repr, cls.backbones))}")
     model = cls.from_config(cfg, layout, action_dim, bounds)
     expected = tuple(cls.latent_shape_of(cfg, action_dim))
@@ -62,7 +61,7 @@ def make_policy(policy_cfg: Any, layout: ObsLayout, action_dim: int,
                          f"what its class's latent_shape_of says, {expected}")
     model.kind = canonical(cfg.kind)
     if model.options is None:
-        model.options = dict(getattr(cfg, "options", {}))
+        model.options = dict(cfg.options)
     if cfg.normalize_obs:
         model.obs_norm = ObsNormalizer(layout)
     if cfg.checkpoint:

@@ -365,7 +365,7 @@ class VLAPolicy(VLAParts, FlowPolicy):
     def from_config(cls, cfg: Any, layout: ObsLayout, action_dim: int, bounds: Any = None) -> ChunkPolicy:
         """The policy a PolicySection ``cfg`` describes (``cfg.options``: the module docstring's options): this
         class for the flow head, :class:`VLATokensPolicy` (which needs the env's action ``bounds``) for tokens."""
-        options = dict(getattr(cfg, "options", None) or {})
+        options = dict(cfg.options)
         if options.get("head") == "tokens":
             if bounds is None:
                 raise ValueError("policy.options.head = 'tokens' bins each action value within the env's action "
@@ -376,7 +376,7 @@ class VLAPolicy(VLAParts, FlowPolicy):
     @classmethod
     def latent_shape_of(cls, cfg: Any, action_dim: int) -> tuple[int, ...]:
         """The flow head's x_0, [K, A]; the tokens head has none."""
-        head = (getattr(cfg, "options", None) or {}).get("head", "flow")
+        head = cfg.options.get("head", "flow")
         return (0,) if head == "tokens" else (cfg.chunk, action_dim)
 
 

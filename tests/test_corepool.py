@@ -8,6 +8,7 @@ import math
 import os
 import signal
 import subprocess
+import sys
 import time
 
 import numpy as np
@@ -15,7 +16,7 @@ import pytest
 
 from ebrl.envs import EnvSpec, EnvWorker
 from ebrl.resources.corepool import PINNED, REBIND, CorePool
-from ebrl.sched.stepchoice import SteppingChoice, interval, verdict
+from ebrl.sched.stepchoice import CONFIDENCE, SteppingChoice, interval, t_quantile, verdict
 from ebrl.sched.stepping import RebindingStepping
 
 CORES = sorted(os.sched_getaffinity(0))[:2]
@@ -208,6 +209,18 @@ def test_the_trial_verdict_is_a_confidence_rule_on_paired_windows(pairs, expecte
     assert verdict(ratios, min_pairs=2) == expected
     gain, low, high = interval(ratios)
     assert low <= gain <= high
+
+
+def test_the_t_quantile_is_scipys_without_importing_scipy():
+    from scipy import stats
+
+    for dof in range(1, 201):
+        assert t_quantile(dof) == pytest.approx(float(stats.t.ppf(CONFIDENCE, dof)), abs=2e-6), dof
+    with pytest.raises(ValueError):
+        t_quantile(0)
+    out = subprocess.run([sys.executable, "-c", "import sys, ebrl.sched.fleet; print('scipy' in sys.modules)"],
+                         capture_output=True, text=True, timeout=120)
+    assert out.stdout.strip() == "False", out.stderr  # the simulator's process starts without it
 
 
 def test_a_shifted_step_latency_starts_a_new_trial():

@@ -318,7 +318,8 @@ def test_a_host_number_already_on_the_bus_is_refused(tmp_path):
 # --- data-parallel training -----------------------------------------------------------------------------
 
 
-@pytest.mark.parametrize("parallel", ["ddp", pytest.param("fsdp", marks=pytest.mark.slow)])
+@pytest.mark.slow  # two real runs of two ranks (the fast suite has DDP's weights after every update, below)
+@pytest.mark.parametrize("parallel", ["ddp", "fsdp"])
 def test_two_training_ranks_train_and_stop_cleanly(tmp_path, parallel):
     code, out, seen = helpers.run_collecting_stats(tmp_path / "runs", "configs/quickstart.toml", "run.iterations=4",
                                                    "train.world_size=2", f'train.parallel="{parallel}"',

@@ -18,7 +18,8 @@ def test_a_nice_out_of_range_is_a_config_error_naming_the_field():
         config.from_dict(raw)
 
 
-@pytest.mark.parametrize("processes", ["auto", pytest.param("[]", marks=pytest.mark.slow)])
+@pytest.mark.slow  # two real runs (the fast suite's time, under 10 minutes on 2 cores)
+@pytest.mark.parametrize("processes", ["auto", "[]"])
 def test_the_env_workers_run_at_the_niceness_and_the_run_finishes(tmp_path, processes):
     """On this CPU host "auto" puts sim and gen in one process: generation's thread keeps niceness 0, the env
     workers take 7 themselves. Alone, the sim service runs at 7 too."""

@@ -153,7 +153,7 @@ def test_only_and_instance():
         plan(cfg, only="sim,gem")
     with pytest.raises(config.ConfigError, match=r"alloc is off in this config \(alloc: alloc.enabled\)"):
         plan(cfg, only="alloc")
-    with pytest.raises(config.ConfigError, match=r"eval: eval.every; viz: viz.rerun\)"):
+    with pytest.raises(config.ConfigError, match=r"eval: eval.every > 0; viz: viz.rerun not off\)"):
         plan(cfg, only="eval,viz")
     watched = load(viz={"rerun": "save"})
     assert plan(watched, only="gen,train")[1].roles == ("viz", "train", "gen")  # viz goes with train

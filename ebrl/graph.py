@@ -99,6 +99,7 @@ WEIGHTS_READER = (  # ebrl.weights.WeightsReceiver: new versions as published, a
 
 STAGES = ("sim", "gen", "train")  # what the allocator plans
 
+
 @dataclass(frozen=True)
 class Switch:
     """The setting that turns a service on or off (:attr:`Role.switch`). ``setting`` names it for a user (``ebrl up

@@ -36,7 +36,6 @@ SECTIONS = {**{role.stats: role.about for role in graph.ROLES.values() if role.s
             "every service": "What every service reports about itself (and, where it says so, the launcher)."}
 
 
-
 def _check() -> None:
     for metric in CATALOG:
         if metric.services == (metric.namespace,) and metric.namespace not in NAMESPACES:
@@ -52,6 +51,7 @@ def _check() -> None:
 
 
 _check()
+
 _BY_NAME = {m.name: m for m in CATALOG if not m.family}
 _FAMILIES = [m for m in CATALOG if m.family]
 if len(_BY_NAME) + len(_FAMILIES) != len(CATALOG):
